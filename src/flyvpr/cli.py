@@ -1,0 +1,410 @@
+"""Command-line interface: ``flyvpr <command> ...``.
+
+``main(argv) -> int`` returns 0 on success, 1 after a runtime error (one line on
+stderr) and 2 for a usage error.  Nothing else in the package imports this
+module.
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import json
+import logging
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+from . import __version__
+from ._io import write_json_atomic
+from .datasets import DATASETS, load_benchmark
+from .evaluation import evaluate_method
+from .images import DEFAULT_SIZE
+from .methods import METHODS, method_names
+
+__all__ = ["main"]
+
+logger = logging.getLogger("flyvpr")
+
+
+class UsageError(Exception):
+    """Bad command-line usage detected after parsing (exit code 2)."""
+
+
+# ---------------------------------------------------------------------------
+# small helpers
+# ---------------------------------------------------------------------------
+def format_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str:
+    """Align ``rows`` under ``columns`` given as (key, header, format)."""
+    cells = [[header for _, header, _ in columns]]
+    for row in rows:
+        line = []
+        for key, _, fmt in columns:
+            value = row.get(key)
+            line.append("-" if value is None else format(value, fmt))
+        cells.append(line)
+    widths = [max(len(r[i]) for r in cells) for i in range(len(columns))]
+    out = []
+    for n, r in enumerate(cells):
+        out.append("  ".join(c.rjust(w) if n and i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))))
+        if n == 0:
+            out.append("  ".join("-" * w for w in widths))
+    return "\n".join(out)
+
+
+RESULT_COLUMNS = [
+    ("method", "method", ""),
+    ("auc", "AUC", ".3f"),
+    ("recall_at_1", "R@1", ".3f"),
+    ("recall_at_5", "R@5", ".3f"),
+    ("recall_at_10", "R@10", ".3f"),
+    ("recall_at_100_precision", "R@100%P", ".3f"),
+    ("train_accuracy", "train acc", ".3f"),
+    ("per_query_ms", "ms/query", ".3f"),
+]
+
+
+def _table_rows(results):
+    return [{**r, "per_query_ms": r["timing"]["per_query_ms"]} for r in results]
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW such as 32x64; got {text!r}") from None
+    if h < 1 or w < 1:
+        raise argparse.ArgumentTypeError(f"size must be positive; got {text!r}")
+    return h, w
+
+
+def _parse_param(text: str) -> tuple[str, object]:
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE; got {text!r}")
+    key, raw = text.split("=", 1)
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    return key.strip(), value
+
+
+def _split_params(method: str, params: list[tuple[str, object]]):
+    """Route KEY=VALUE pairs to the front end or the filter by their constructor names."""
+    from .frontends import FRONTENDS
+    from .temporal import FILTERS
+
+    spec = METHODS[method]
+    front_names = set(FRONTENDS[spec.frontend]._param_names())
+    filt_names = set(FILTERS[spec.filter]._param_names()) if spec.filter else set()
+    front, filt = {}, {}
+    for key, value in params:
+        if key.startswith("filter.") and spec.filter:
+            key = key[len("filter.") :]
+            target = filt if key in filt_names else None
+        elif key.startswith("frontend."):
+            key = key[len("frontend.") :]
+            target = front if key in front_names else None
+        elif key in front_names:
+            target = front
+        elif key in filt_names:
+            target = filt
+        else:
+            target = None
+        if target is None:
+            raise UsageError(
+                f"--param {key}: not a parameter of method {method!r}; front end takes "
+                f"{sorted(front_names)}" + (f", filter takes {sorted(filt_names)}" if filt_names else "")
+            )
+        target[key] = value
+    return front, filt
+
+
+def _add_common_data_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--size",
+        type=_parse_size,
+        default=DEFAULT_SIZE,
+        metavar="HxW",
+        help="image size after area-averaging resize (default: %(default)s as HxW = 32x64)",
+    )
+    p.add_argument("--no-cache", action="store_true", help="neither read nor write the image cache")
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="image cache folder (default: $FLYVPR_CACHE_DIR or ~/.cache/flyvpr)",
+    )
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+
+
+def _add_dataset_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("dataset (see `flyvpr datasets` for layouts)")
+    g.add_argument("--dataset", required=True, choices=sorted(DATASETS), help="dataset layout")
+    g.add_argument("--root", type=Path, help="dataset root folder")
+    g.add_argument("--reference", help="reference traverse (e.g. summer, a run folder, a folder)")
+    g.add_argument("--query", help="query traverse (e.g. winter)")
+    g.add_argument("--first", type=int, help="first frame of the window (0-based position)")
+    g.add_argument("--count", type=int, help="number of consecutive frames in the window")
+    g.add_argument("--tolerance", type=float, help="ground-truth tolerance in frames")
+    g.add_argument("--tolerance-m", dest="tolerance_m", type=float, help="ground-truth radius in metres")
+    g.add_argument("--spacing", type=float, help="frame spacing in metres along the route (RobotCar)")
+    g.add_argument("--positions", type=Path, help="CSV of frame positions (generic layout)")
+    g.add_argument(
+        "--trust-pickle",
+        action="store_true",
+        help="allow unpickling the dataset's ground-truth file (VPR-Bench); pickles can run code",
+    )
+
+
+def _dataset_kwargs(args) -> dict:
+    """Pass the given dataset options that the chosen loader accepts; reject the others."""
+    spec = DATASETS[args.dataset]
+    accepted = set(inspect.signature(spec.loader).parameters)
+    candidates = {
+        "root": args.root,
+        "reference": args.reference,
+        "query": args.query,
+        "first": args.first,
+        "count": args.count,
+        "tolerance": args.tolerance,
+        "tolerance_m": args.tolerance_m,
+        "spacing": args.spacing,
+        "positions": args.positions,
+        "trust_pickle": args.trust_pickle or None,
+    }
+    kwargs = {}
+    for key, value in candidates.items():
+        if value is None:
+            continue
+        if key not in accepted:
+            raise UsageError(
+                f"--{key.replace('_', '-')} does not apply to dataset {args.dataset!r} "
+                f"(it takes: {', '.join(sorted(accepted))})"
+            )
+        if isinstance(value, float) and key == "tolerance" and value.is_integer():
+            value = int(value)
+        kwargs[key] = value
+    return kwargs
+
+
+# ---------------------------------------------------------------------------
+# commands
+# ---------------------------------------------------------------------------
+def cmd_evaluate(args) -> int:
+    if args.method not in METHODS:
+        raise UsageError(f"--method: unknown method {args.method!r}")
+    front_params, filt_params = _split_params(args.method, args.param)
+    bench = load_benchmark(args.dataset, **_dataset_kwargs(args))
+    cache = False if args.no_cache else (args.cache_dir or True)
+    progress = False if args.quiet else None
+    t0 = time.perf_counter()
+    ref = bench.reference.load_images(size=args.size, cache=cache, progress=progress)
+    qry = bench.query.load_images(size=args.size, cache=cache, progress=progress)
+    load_s = time.perf_counter() - t0
+    result = evaluate_method(
+        args.method,
+        ref,
+        qry,
+        bench.ground_truth,
+        seed=args.seed,
+        frontend_params=front_params,
+        filter_params=filt_params,
+        load_s=load_s,
+    )
+    protocol = bench.protocol()
+    out = {
+        "method": args.method,
+        "dataset": args.dataset,
+        "reference": protocol.get("reference"),
+        "query": protocol.get("query"),
+        "first": protocol.get("first"),
+        "count": protocol.get("count"),
+        "n_reference": result["n_reference"],
+        "n_query": result["n_query"],
+        "tolerance": protocol.get("tolerance"),
+        "seed": args.seed,
+        "image_size": list(args.size),
+        **{k: v for k, v in result.items() if k not in ("method", "seed", "n_reference", "n_query")},
+        "protocol": protocol,
+        "flyvpr_version": __version__,
+    }
+    _print_protocol(protocol, args)
+    print(format_table(_table_rows([result]), RESULT_COLUMNS))
+    if args.out is not None:
+        write_json_atomic(args.out, out)
+        print(f"wrote {args.out}")
+    return 0
+
+
+def _print_protocol(protocol: dict, args) -> None:
+    keys = ("dataset", "reference", "query", "first", "count", "n_reference", "n_query", "tolerance")
+    parts = [f"{k}={protocol[k]}" for k in keys if protocol.get(k) is not None]
+    size = getattr(args, "size", DEFAULT_SIZE)
+    print(" ".join(parts) + f" size={size[0]}x{size[1]} seed={args.seed}")
+
+
+def cmd_datasets(args) -> int:
+    for name, spec in DATASETS.items():
+        print(f"{name}: {spec.description}")
+        print(textwrap.indent(spec.layout.strip(), "    "))
+        params = [p for p in inspect.signature(spec.loader).parameters]
+        print(f"    options: {', '.join('--' + p.replace('_', '-') for p in params)}")
+        print()
+    return 0
+
+
+def cmd_methods(args) -> int:
+    available = set(method_names(available_only=True))
+    rows = []
+    for name, spec in METHODS.items():
+        extras = ", ".join(spec.extras)
+        rows.append(
+            {
+                "name": name,
+                "extra": f"[{extras}]" + ("" if name in available else " (not installed)")
+                if extras
+                else "",
+                "description": spec.description,
+            }
+        )
+    print(format_table(rows, [("name", "method", ""), ("extra", "needs", ""), ("description", "what", "")]))
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from .synthetic import make_route
+
+    t0 = time.perf_counter()
+    route = make_route(n_places=args.places, random_state=args.seed)
+    gt = route.ground_truth(tolerance=args.tolerance)
+    load_s = time.perf_counter() - t0
+    methods = args.method or [m for m in DEMO_METHODS if m in method_names(available_only=True)]
+    print(
+        f"synthetic route: {args.places} places, reference={route.conditions[0]} "
+        f"query={route.conditions[1]}, tolerance={args.tolerance} frames, seed={args.seed}, "
+        f"size={route.reference_images.shape[1]}x{route.reference_images.shape[2]}"
+    )
+    results = []
+    for m in methods:
+        if m not in METHODS:
+            raise UsageError(f"--method: unknown method {m!r}")
+        logger.info("evaluating %s", m)
+        results.append(
+            evaluate_method(m, route.reference_images, route.query_images, gt, seed=args.seed, load_s=load_s)
+        )
+    print(format_table(_table_rows(results), RESULT_COLUMNS))
+    print(
+        "\nReal data is one flag away, e.g.:\n"
+        "  flyvpr evaluate --dataset nordland --root ../shared/data/nordland_64x32 "
+        "--reference summer --query winter --first 0 --count 1000 --tolerance 20 "
+        "--method flynet+cann --seed 0 --out result.json"
+    )
+    if args.out is not None:
+        write_json_atomic(args.out, {"dataset": "synthetic", "places": args.places, "results": results})
+        print(f"wrote {args.out}")
+    return 0
+
+
+#: methods the demo runs by default, in table order
+DEMO_METHODS = ("pixels", "flyhash", "flynet", "seqslam", "flynet+seqslam", "flynet+cann")
+
+
+# ---------------------------------------------------------------------------
+# parser
+# ---------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="flyvpr",
+        description=(
+            "Visual place recognition with FlyNet+CANN. A reference traverse is learned; every "
+            "query frame is matched to a reference place; results are scored with precision-"
+            "recall AUC and Recall@K."
+        ),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="Run `flyvpr COMMAND --help` for the options of a command.",
+    )
+    parser.add_argument("--version", action="version", version=f"flyvpr {__version__}")
+    parser.add_argument("--verbose", "-v", action="count", default=0, help="more log output")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    p = sub.add_parser(
+        "evaluate",
+        help="fit a method on a reference traverse and score a query traverse",
+        description=(
+            "Fit METHOD on the reference traverse, score every query frame against every "
+            "reference place, and report PR-AUC, Recall@1/5/10 and recall at 100%% precision. "
+            "Each query's best reference is its prediction, with that score as confidence."
+        ),
+    )
+    _add_dataset_args(p)
+    p.add_argument(
+        "--method",
+        required=True,
+        choices=list(METHODS),
+        metavar="METHOD",
+        help="one of: " + ", ".join(METHODS),
+    )
+    p.add_argument("--seed", type=int, default=0, help="random_state of every random part (default 0)")
+    p.add_argument(
+        "--param",
+        type=_parse_param,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="constructor parameter of the front end or filter (JSON value), e.g. epochs=100; "
+        "prefix with frontend. or filter. to disambiguate",
+    )
+    p.add_argument("--out", type=Path, help="write the result as JSON (atomically)")
+    _add_common_data_args(p)
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("datasets", help="list dataset layouts and their options")
+    p.set_defaults(func=cmd_datasets)
+
+    p = sub.add_parser("methods", help="list the methods and the extras they need")
+    p.set_defaults(func=cmd_methods)
+
+    p = sub.add_parser(
+        "demo",
+        help="run the methods on a built-in procedurally generated route (no data needed)",
+        description=(
+            "Generate a route of PLACES places seen under two appearance conditions (summer as "
+            "reference, winter as query), evaluate the methods and print the table."
+        ),
+    )
+    p.add_argument("--places", type=int, default=500, help="number of places (default 500)")
+    p.add_argument("--tolerance", type=int, default=2, help="ground-truth tolerance in frames (default 2)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the route and the methods (default 0)")
+    p.add_argument("--method", action="append", metavar="METHOD", help="method to run (repeatable)")
+    p.add_argument("--out", type=Path, help="write all results as JSON (atomically)")
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Run the CLI; returns the process exit code."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse: --help/--version (0) or usage error (2)
+        return int(exc.code or 0)
+    logging.basicConfig(
+        level=logging.WARNING - 10 * min(args.verbose, 2),
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return int(args.func(args))
+    except UsageError as exc:
+        print(f"flyvpr {args.command}: usage error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("flyvpr: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, TypeError, OSError, ImportError, RuntimeError) as exc:
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"flyvpr {args.command}: error: {message}", file=sys.stderr)
+        logger.debug("traceback", exc_info=True)
+        return 1

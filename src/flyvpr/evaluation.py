@@ -1,0 +1,121 @@
+"""Run one method on one benchmark and collect metrics, timings and footprint.
+
+Used by ``flyvpr evaluate``, ``flyvpr demo`` and the benchmark scripts so that
+every number is produced by the same code path.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import metrics
+from .methods import make_method
+
+__all__ = ["evaluate_method", "RESULT_FIELDS"]
+
+#: fields every result dict carries (the JSON written by ``flyvpr evaluate``)
+RESULT_FIELDS = (
+    "method",
+    "auc",
+    "recall_at_1",
+    "recall_at_5",
+    "recall_at_10",
+    "recall_at_100_precision",
+    "precision",
+    "recall",
+    "train_accuracy",
+    "timing",
+    "footprint",
+    "seed",
+    "n_reference",
+    "n_query",
+)
+
+
+def evaluate_method(
+    method: str,
+    reference_images,
+    query_images,
+    ground_truth,
+    *,
+    seed=0,
+    frontend_params=None,
+    filter_params=None,
+    load_s: float | None = None,
+    return_scores: bool = False,
+):
+    """Fit ``method`` on the reference images, score the queries and measure it.
+
+    Parameters
+    ----------
+    method : str
+        A name of :data:`flyvpr.methods.METHODS`.
+    reference_images, query_images : ndarray, shape (n, H, W)
+        Gray float32 images in [0, 1].
+    ground_truth : ndarray of bool, shape (n_query, n_reference)
+    seed : int
+        ``random_state`` of every random part.
+    frontend_params, filter_params : dict, optional
+        Constructor arguments of the parts.
+    load_s : float, optional
+        Seconds spent loading the images, copied into ``timing``.
+    return_scores : bool
+        Also return the score matrix.
+
+    Returns
+    -------
+    dict
+        See :data:`RESULT_FIELDS`; ``timing`` holds ``load_s``, ``fit_s``,
+        ``encode_s`` (query encoding), ``match_s`` (scoring and filtering) and
+        ``per_query_ms`` = (encode_s + match_s) / n_query in milliseconds.
+    """
+    gt = np.asarray(ground_truth)
+    n_query, n_ref = len(query_images), len(reference_images)
+    if gt.shape != (n_query, n_ref):
+        raise ValueError(
+            f"ground_truth must have shape (n_query, n_reference) = {(n_query, n_ref)}; "
+            f"got {gt.shape}"
+        )
+    model = make_method(method, seed, frontend_params, filter_params)
+    model.fit(reference_images)
+    S = model.score(query_images)
+    scores = metrics.evaluate(S, gt)
+    timing = {"load_s": load_s, **model.timing_}
+    timing["per_query_ms"] = 1000.0 * (timing["encode_s"] + timing["match_s"]) / n_query
+    result = {
+        "method": method,
+        "seed": seed,
+        "n_reference": n_ref,
+        "n_query": n_query,
+        "auc": scores["auc"],
+        "recall_at_1": scores["recall_at_1"],
+        "recall_at_5": scores["recall_at_5"],
+        "recall_at_10": scores["recall_at_10"],
+        "recall_at_100_precision": scores["recall_at_100_precision"],
+        "precision": scores["precision"],
+        "recall": scores["recall"],
+        "train_accuracy": model.train_accuracy,
+        "timing": timing,
+        "footprint": model.footprint(),
+        "frontend_params": _plain(model.frontend.get_params()),
+        "filter_params": _plain(model.filter.get_params()) if model.filter is not None else None,
+    }
+    if return_scores:
+        return result, S
+    return result
+
+
+def _plain(params: dict) -> dict:
+    """JSON-friendly copy of estimator parameters (Generators become their repr)."""
+    out = {}
+    for key, value in params.items():
+        if isinstance(value, (bool, int, float, str, type(None))):
+            out[key] = value
+        elif isinstance(value, (np.integer, np.floating)):
+            out[key] = value.item()
+        elif isinstance(value, (list, tuple)):
+            out[key] = list(value)
+        else:
+            out[key] = repr(value)
+    return out
+

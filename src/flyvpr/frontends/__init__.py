@@ -1,0 +1,1 @@
+"""Single-frame encoders (registry filled in once all modules exist)."""

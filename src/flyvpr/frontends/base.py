@@ -1,0 +1,137 @@
+"""Base class of single-frame encoders (front ends).
+
+The base class owns the public calls and their validation; a subclass fills
+``_fit``, ``_encode`` and ``_score``.  Conventions follow scikit-learn:
+``__init__`` only stores its keyword arguments, ``fit`` sets attributes ending
+in ``_`` and returns ``self``, and calling ``encode``/``score`` before ``fit``
+raises :class:`~flyvpr.NotFittedError`.
+"""
+
+from __future__ import annotations
+
+import inspect
+
+import numpy as np
+
+from .._validation import NotFittedError, check_images
+
+__all__ = ["Encoder"]
+
+
+class Encoder:
+    """A single-frame encoder: reference images in, a (n_query, n_reference) score matrix out.
+
+    Attributes set by ``fit``
+    -------------------------
+    image_shape_ : (int, int)
+        (H, W) of the reference images; queries must match it.
+    n_reference_ : int
+        Number of reference places (columns of the score matrix).
+    train_accuracy_ : float or None
+        Accuracy on the reference images after training, ``None`` where
+        nothing is trained.
+    """
+
+    #: registry name, set by subclasses
+    name = "encoder"
+
+    # -- scikit-learn style parameter handling --------------------------------
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        sig = inspect.signature(cls.__init__)
+        return [
+            p.name
+            for p in sig.parameters.values()
+            if p.name != "self" and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL)
+        ]
+
+    def get_params(self) -> dict:
+        """The constructor's keyword arguments as stored on the instance."""
+        return {name: getattr(self, name) for name in self._param_names()}
+
+    def set_params(self, **params) -> Encoder:
+        """Set constructor parameters; unknown names raise ValueError."""
+        valid = set(self._param_names())
+        for key, value in params.items():
+            if key not in valid:
+                raise ValueError(
+                    f"invalid parameter {key!r} for {type(self).__name__}; "
+                    f"valid: {sorted(valid)}"
+                )
+            setattr(self, key, value)
+        return self
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
+        return f"{type(self).__name__}({args})"
+
+    # -- public calls ---------------------------------------------------------
+    def fit(self, reference_images) -> Encoder:
+        """Learn from the reference traverse, one place per image.
+
+        Parameters
+        ----------
+        reference_images : array-like, shape (n_reference, H, W)
+            Gray images in [0, 1].
+
+        Returns
+        -------
+        self
+        """
+        images = check_images(reference_images, "reference_images")
+        self.image_shape_ = tuple(images.shape[1:])
+        self.n_reference_ = int(images.shape[0])
+        self.train_accuracy_ = None
+        self._fit(images)
+        return self
+
+    def encode(self, images) -> np.ndarray:
+        """Encode images into the representation the scores are computed from.
+
+        Returns
+        -------
+        ndarray, shape (N, ...)
+        """
+        self._check_fitted()
+        return self._encode(check_images(images, "images", self.image_shape_))
+
+    def score(self, query_images) -> np.ndarray:
+        """Score every query image against every reference place.
+
+        Returns
+        -------
+        S : ndarray, shape (n_query, n_reference)
+            Higher means more similar.
+        """
+        self._check_fitted()
+        images = check_images(query_images, "query_images", self.image_shape_)
+        return self.score_codes(self._encode(images))
+
+    def score_codes(self, codes) -> np.ndarray:
+        """Score already-encoded queries (output of :meth:`encode`)."""
+        self._check_fitted()
+        return self._score(np.asarray(codes))
+
+    def footprint(self) -> dict:
+        """Model size as in the paper's footprint table: layers, params, neurons."""
+        self._check_fitted()
+        return self._footprint()
+
+    # -- hooks ----------------------------------------------------------------
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "n_reference_"):
+            raise NotFittedError(
+                f"this {type(self).__name__} is not fitted yet; call fit(reference_images) first"
+            )
+
+    def _fit(self, images: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def _encode(self, images: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _score(self, codes: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _footprint(self) -> dict:
+        raise NotImplementedError

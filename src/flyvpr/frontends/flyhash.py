@@ -1,0 +1,203 @@
+"""FlyHash: the FlyNet algorithm's fixed sparse binary projection and winner-take-all (FNA).
+
+Paper, Sec. "FlyNet algorithm" (Algorithm 1): a binary sparse random matrix W
+(n_hidden x m) in which every hidden unit sums a random ``sampling_ratio``
+share of the m = H*W pixels; y = W x; then winner-take-all keeps the top
+``wta_ratio`` share of the hidden units active (1) and silences the rest (0).
+The defaults are the paper's: 2048 inputs -> 64 units, 10% sampling, 50% WTA.
+
+Two choices the paper leaves open are fixed here and documented:
+
+* **Exact sums.**  Inputs are quantised to integer levels (at least 8-bit
+  resolution; 16-bit for the paper's 10% sampling) before the projection, so
+  every unit's sum is an exact integer in float32.  Encoding is then
+  bit-identical whatever the batch size or BLAS blocking, which makes the
+  streaming and batch paths agree and makes ties well defined.
+* **Tie rule.**  Units are ranked by their sum, highest first; equal sums are
+  ranked by unit index, lowest first; the first ``k`` win.  Exactly ``k`` units
+  are active in every code (the authors' ``>= k-th largest`` rule could switch
+  on more).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._validation import check_fraction, check_positive_int, check_random_state
+from .base import Encoder
+
+__all__ = ["FlyHash", "winner_take_all", "sample_connections"]
+
+#: largest integer that float32 represents exactly, bounds the quantisation
+_F32_EXACT = 2**24
+
+
+def sample_connections(n_hidden: int, n_inputs: int, n_samples: int, random_state=None):
+    """Draw each hidden unit's input indices: ``n_samples`` distinct inputs per unit.
+
+    Returns
+    -------
+    ndarray of int32, shape (n_hidden, n_samples)
+        Sorted indices per row.
+    """
+    rng = check_random_state(random_state)
+    if not 1 <= n_samples <= n_inputs:
+        raise ValueError(f"n_samples must be in [1, {n_inputs}]; got {n_samples}")
+    # An independent permutation per row: every unit gets a uniform random subset.
+    perm = rng.permuted(np.broadcast_to(np.arange(n_inputs, dtype=np.int32), (n_hidden, n_inputs)), axis=1)
+    return np.sort(perm[:, :n_samples], axis=1)
+
+
+def winner_take_all(activations, k: int) -> np.ndarray:
+    """Binary winner-take-all: exactly ``k`` ones per row.
+
+    The ``k`` largest activations of each row win; among equal activations the
+    lower column index wins.
+
+    Parameters
+    ----------
+    activations : array-like, shape (N, n_hidden)
+    k : int
+        Number of winners, 1 <= k <= n_hidden.
+
+    Returns
+    -------
+    ndarray of bool, shape (N, n_hidden)
+
+    Examples
+    --------
+    >>> winner_take_all(np.array([[3.0, 1.0, 3.0, 2.0]]), 2).astype(int)
+    array([[1, 0, 1, 0]])
+    >>> winner_take_all(np.zeros((1, 4)), 2).astype(int)
+    array([[1, 1, 0, 0]])
+    """
+    y = np.asarray(activations)
+    if y.ndim != 2:
+        raise ValueError(f"activations must have shape (N, n_hidden); got {y.shape}")
+    n = y.shape[1]
+    k = check_positive_int(k, "k")
+    if k > n:
+        raise ValueError(f"k must be <= n_hidden = {n}; got {k}")
+    if k == n:
+        return np.ones(y.shape, dtype=bool)
+    # k-th largest value per row, then fill the remaining places among the ties
+    # from the left so the count is exactly k.
+    kth = np.partition(y, n - k, axis=1)[:, n - k : n - k + 1]
+    above = y > kth
+    tied = y == kth
+    free = k - above.sum(axis=1, keepdims=True)
+    return above | (tied & (np.cumsum(tied, axis=1) <= free))
+
+
+class FlyHash(Encoder):
+    """Fixed sparse binary projection + winner-take-all (the paper's FNA layer).
+
+    Parameters
+    ----------
+    n_hidden : int, default 64
+        Number of hidden units (code length).
+    sampling_ratio : float, default 0.1
+        Share of the inputs each unit sums: exactly ``round(sampling_ratio * m)``.
+    wta_ratio : float, default 0.5
+        Share of units left active: exactly ``round(wta_ratio * n_hidden)``.
+    random_state : None, int or numpy.random.Generator
+        Seed of the connections.
+
+    Attributes
+    ----------
+    connections_ : ndarray of int32, shape (n_hidden, n_samples_)
+        Input indices of each hidden unit (the non-zeros of W).
+    n_inputs_, n_samples_, n_active_ : int
+        m, inputs per unit, active units per code.
+    reference_codes_ : ndarray of bool, shape (n_reference, n_hidden)
+        Codes of the reference images, for :meth:`score`.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> fh = FlyHash(random_state=0).fit(rng.random((5, 32, 64), dtype=np.float32))
+    >>> fh.encode(rng.random((3, 32, 64), dtype=np.float32)).sum(axis=1)
+    array([32, 32, 32])
+    """
+
+    name = "flyhash"
+
+    def __init__(self, n_hidden=64, sampling_ratio=0.1, wta_ratio=0.5, random_state=None):
+        self.n_hidden = n_hidden
+        self.sampling_ratio = sampling_ratio
+        self.wta_ratio = wta_ratio
+        self.random_state = random_state
+
+    # -- set-up ---------------------------------------------------------------
+    def _build(self, n_inputs: int, rng) -> None:
+        """Draw the connections for ``n_inputs`` inputs (no reference images needed)."""
+        n_hidden = check_positive_int(self.n_hidden, "n_hidden")
+        sampling = check_fraction(self.sampling_ratio, "sampling_ratio")
+        wta = check_fraction(self.wta_ratio, "wta_ratio")
+        self.n_inputs_ = int(n_inputs)
+        self.n_samples_ = max(1, int(round(sampling * n_inputs)))
+        self.n_active_ = min(n_hidden, max(1, int(round(wta * n_hidden))))
+        self.connections_ = sample_connections(n_hidden, n_inputs, self.n_samples_, rng)
+        self._prepare()
+
+    def _prepare(self) -> None:
+        """Derive the dense projection and quantisation used for fast encoding."""
+        n_hidden = self.connections_.shape[0]
+        proj = np.zeros((self.n_inputs_, n_hidden), dtype=np.float32)
+        proj[self.connections_, np.arange(n_hidden)[:, None]] = 1.0
+        self._projection = proj
+        self._levels = float(min(65535, _F32_EXACT // self.n_samples_))
+
+    def _fit(self, images: np.ndarray) -> None:
+        self._build(images.shape[1] * images.shape[2], check_random_state(self.random_state))
+        self.reference_codes_ = self._encode(images)
+
+    # -- encoding -------------------------------------------------------------
+    def activations(self, images) -> np.ndarray:
+        """Hidden-unit sums y = W x of quantised inputs, shape (N, n_hidden), float32.
+
+        Each value is ``levels`` times the sum of the unit's pixels (an exact integer).
+        """
+        self._check_fitted()
+        x = np.asarray(images, dtype=np.float32).reshape(len(images), -1)
+        xq = np.rint(x * np.float32(self._levels))
+        return xq @ self._projection
+
+    def _encode(self, images: np.ndarray) -> np.ndarray:
+        out = np.empty((len(images), self.connections_.shape[0]), dtype=bool)
+        # Blocks bound the temporary memory for very large batches.
+        block = 65536
+        for start in range(0, len(images), block):
+            stop = start + block
+            out[start:stop] = winner_take_all(self.activations(images[start:stop]), self.n_active_)
+        return out
+
+    def _score(self, codes: np.ndarray) -> np.ndarray:
+        codes = _check_codes(codes, self.connections_.shape[0])
+        # Shared active units / k: 1 for identical codes, and a monotone function
+        # of the Hamming distance since every code has exactly k ones.
+        overlap = codes.astype(np.float32) @ self.reference_codes_.T.astype(np.float32)
+        return overlap / np.float32(self.n_active_)
+
+    # -- size -----------------------------------------------------------------
+    def packed_connections(self) -> np.ndarray:
+        """The binary matrix W (n_hidden x m) bit-packed row-wise: 1 bit per weight."""
+        self._check_fitted()
+        dense = np.zeros((self.connections_.shape[0], self.n_inputs_), dtype=bool)
+        dense[np.arange(dense.shape[0])[:, None], self.connections_] = True
+        return np.packbits(dense, axis=1)
+
+    def _footprint(self) -> dict:
+        return {
+            "layers": 1,
+            "params": 0,  # nothing is trained
+            "neurons": int(self.connections_.shape[0]),
+            "fixed_connections": int(self.connections_.size),
+            "bytes_packed": int(self.packed_connections().nbytes),
+        }
+
+
+def _check_codes(codes: np.ndarray, n_hidden: int) -> np.ndarray:
+    if codes.ndim != 2 or codes.shape[1] != n_hidden:
+        raise ValueError(f"codes must have shape (N, {n_hidden}); got {codes.shape}")
+    return codes

@@ -1,0 +1,173 @@
+"""Methods: a single-frame front end, optionally followed by a temporal filter.
+
+A method name is a front end's registry name (``flynet``), a front end and a
+filter joined by ``+`` (``flynet+cann``), or an alias (``seqslam`` is SeqSLAM
+on patch-normalised pixels, the paper's SeqSLAM baseline).  ``METHODS`` is
+derived from :data:`flyvpr.frontends.FRONTENDS` and
+:data:`flyvpr.temporal.FILTERS`, so every combination is available and the
+CLI's choices never need a hand-written list.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._validation import check_random_state
+from .frontends import FRONTENDS, Encoder
+from .temporal import FILTERS, TemporalFilter
+
+__all__ = ["Method", "MethodSpec", "METHODS", "ALIASES", "make_method", "method_names"]
+
+#: short names for combinations the literature calls by one name
+ALIASES = {"seqslam": "pixels+seqslam"}
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """What a method name stands for."""
+
+    name: str
+    frontend: str
+    filter: str | None = None
+
+    @property
+    def description(self) -> str:
+        front = FRONTENDS[self.frontend]
+        text = (front.__doc__ or front.__name__).strip().splitlines()[0]
+        if self.filter is not None:
+            filt = FILTERS[self.filter]
+            text += " + " + (filt.__doc__ or filt.__name__).strip().splitlines()[0]
+        return text
+
+    @property
+    def extras(self) -> tuple[str, ...]:
+        """pip extras the method needs beyond the core install."""
+        needs = set(getattr(FRONTENDS[self.frontend], "requires", ()))
+        if self.filter is not None:
+            needs |= set(getattr(FILTERS[self.filter], "requires", ()))
+        return tuple(sorted(needs))
+
+
+def _build_registry() -> dict[str, MethodSpec]:
+    reg = {}
+    for front in FRONTENDS:
+        reg[front] = MethodSpec(front, front)
+        for filt in FILTERS:
+            reg[f"{front}+{filt}"] = MethodSpec(f"{front}+{filt}", front, filt)
+    for alias, target in ALIASES.items():
+        spec = reg[target]
+        reg[alias] = MethodSpec(alias, spec.frontend, spec.filter)
+    return reg
+
+
+#: method name -> spec
+METHODS: dict[str, MethodSpec] = _build_registry()
+
+
+def method_names(available_only: bool = False) -> list[str]:
+    """All method names; with ``available_only`` those whose extras are importable."""
+    names = list(METHODS)
+    if available_only:
+        names = [n for n in names if _extras_available(METHODS[n].extras)]
+    return names
+
+
+def _extras_available(extras) -> bool:
+    import importlib.util
+
+    return all(importlib.util.find_spec(mod) is not None for mod in extras)
+
+
+def make_method(
+    name: str, random_state=None, frontend_params=None, filter_params=None
+) -> Method:
+    """Build an unfitted :class:`Method` from its registry name.
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`METHODS`.
+    random_state : None, int or Generator
+        Passed to the parts that take one.
+    frontend_params, filter_params : dict, optional
+        Constructor keyword arguments of the front end and of the filter.
+
+    Raises
+    ------
+    ValueError
+        For an unknown name (the message lists the known ones) or unknown parameters.
+    """
+    if name not in METHODS:
+        raise ValueError(f"unknown method {name!r}; known methods: {', '.join(METHODS)}")
+    spec = METHODS[name]
+    rng = check_random_state(random_state)
+    frontend = _construct(FRONTENDS[spec.frontend], frontend_params or {}, rng)
+    filt = None
+    if spec.filter is not None:
+        filt = _construct(FILTERS[spec.filter], filter_params or {}, rng)
+    elif filter_params:
+        raise ValueError(f"method {name!r} has no temporal filter; got filter_params {filter_params}")
+    return Method(name, frontend, filt)
+
+
+def _construct(cls, params: dict, rng):
+    obj = cls()
+    obj.set_params(**params)
+    if "random_state" in obj.get_params() and "random_state" not in params:
+        obj.set_params(random_state=rng)
+    return obj
+
+
+@dataclass
+class Method:
+    """A fitted or unfitted front end + optional temporal filter.
+
+    ``fit`` trains on the reference images only; ``score`` returns the
+    (filtered) score matrix of the queries and records timings in ``timing_``.
+    """
+
+    name: str
+    frontend: Encoder
+    filter: TemporalFilter | None = None
+    timing_: dict = field(default_factory=dict)
+
+    def fit(self, reference_images) -> Method:
+        """Fit the front end, then the filter on the reference traverse's own scores."""
+        t0 = time.perf_counter()
+        self.frontend.fit(reference_images)
+        if self.filter is not None and getattr(self.filter, "needs_reference_scores", False):
+            self.filter.fit(self.frontend.score(reference_images))
+        self.timing_ = {"fit_s": time.perf_counter() - t0}
+        return self
+
+    def score(self, query_images) -> np.ndarray:
+        """Score matrix (n_query, n_reference) of the queries, filtered over time if a filter is set.
+
+        ``timing_`` gets ``encode_s`` (encoding the queries) and ``match_s``
+        (scoring against the references and temporal filtering).
+        """
+        t0 = time.perf_counter()
+        codes = self.frontend.encode(query_images)
+        t1 = time.perf_counter()
+        S = self.frontend.score_codes(codes)
+        if self.filter is not None:
+            S = self.filter.filter(S)
+        t2 = time.perf_counter()
+        self.timing_.update(encode_s=t1 - t0, match_s=t2 - t1)
+        return S
+
+    @property
+    def train_accuracy(self) -> float | None:
+        return getattr(self.frontend, "train_accuracy_", None)
+
+    def footprint(self) -> dict:
+        """Layers, trained parameters and neurons of front end + filter."""
+        fp = dict(self.frontend.footprint())
+        if self.filter is not None:
+            extra = self.filter.footprint(self.frontend.n_reference_)
+            for key in ("layers", "params", "neurons"):
+                fp[key] = int(fp.get(key, 0)) + int(extra.get(key, 0))
+        return {k: fp[k] for k in ("layers", "params", "neurons")}

@@ -1,0 +1,1 @@
+"""Temporal filters (registry filled in once all modules exist)."""

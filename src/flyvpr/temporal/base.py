@@ -1,0 +1,110 @@
+"""Base classes of temporal filters over a score matrix.
+
+A filter maps a score matrix S (n_query, n_reference; rows in query time
+order; higher = more similar) to a filtered matrix of the same shape and never
+modifies its input.  Online filters also process one row at a time with
+``reset()`` and ``step(row)``.
+"""
+
+from __future__ import annotations
+
+import inspect
+
+import numpy as np
+
+from .._validation import check_scores
+
+__all__ = ["TemporalFilter", "OnlineFilter"]
+
+
+class TemporalFilter:
+    """Base of every temporal filter: validates, copies, and delegates to ``_filter``."""
+
+    name = "filter"
+
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        sig = inspect.signature(cls.__init__)
+        return [
+            p.name
+            for p in sig.parameters.values()
+            if p.name != "self" and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL)
+        ]
+
+    def get_params(self) -> dict:
+        return {name: getattr(self, name) for name in self._param_names()}
+
+    def set_params(self, **params):
+        valid = set(self._param_names())
+        for key, value in params.items():
+            if key not in valid:
+                raise ValueError(
+                    f"invalid parameter {key!r} for {type(self).__name__}; "
+                    f"valid: {sorted(valid)}"
+                )
+            setattr(self, key, value)
+        return self
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
+        return f"{type(self).__name__}({args})"
+
+    def fit(self, reference_scores=None):
+        """Learn from the reference traverse's own scores, where the filter is trained.
+
+        Parameters
+        ----------
+        reference_scores : array-like, shape (n_reference, n_reference), optional
+            The front end's scores of the reference images against themselves.
+            Untrained filters ignore it.  Query data must never be passed here.
+        """
+        if reference_scores is not None:
+            check_scores(reference_scores, "reference_scores")
+        return self
+
+    def filter(self, S) -> np.ndarray:
+        """Filter a whole traverse of scores.
+
+        Parameters
+        ----------
+        S : array-like, shape (n_query, n_reference)
+
+        Returns
+        -------
+        ndarray, same shape as S
+        """
+        arr = check_scores(S, "S")
+        out = self._filter(np.array(arr, dtype=np.float32 if arr.dtype == np.float32 else np.float64))
+        if out.shape != arr.shape:  # a bug in a subclass, not a user error
+            raise RuntimeError(f"{type(self).__name__} changed the shape {arr.shape} -> {out.shape}")
+        return out
+
+    def footprint(self, n_reference: int) -> dict:
+        """Layers, parameters and neurons this filter adds on top of a front end."""
+        return {"layers": 0, "params": 0, "neurons": 0}
+
+    def _filter(self, S: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+
+class OnlineFilter(TemporalFilter):
+    """A causal filter that can run one query frame at a time."""
+
+    def reset(self) -> None:
+        """Forget all past frames."""
+        raise NotImplementedError
+
+    def step(self, scores_row) -> np.ndarray:
+        """Feed one query frame's scores (n_reference,) and return the filtered row."""
+        row = check_scores(scores_row, "scores_row", ndim=1)
+        return self._step(row)
+
+    def _step(self, row: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _filter(self, S: np.ndarray) -> np.ndarray:
+        self.reset()
+        out = np.empty_like(S)
+        for t in range(S.shape[0]):
+            out[t] = self._step(S[t])
+        return out
