@@ -89,7 +89,11 @@ def test_not_fitted():
 
 @pytest.mark.parametrize(
     "params, match",
-    [({"epochs": 0}, "epochs"), ({"learning_rate": -1.0}, "learning_rate"), ({"batch_size": 0}, "batch_size")],
+    [
+        ({"epochs": 0}, "epochs"),
+        ({"learning_rate": -1.0}, "learning_rate"),
+        ({"batch_size": 0}, "batch_size"),
+    ],
 )
 def test_bad_params(rng, params, match):
     ref, _ = _places(rng, 5)

@@ -110,7 +110,9 @@ def _folder(tmp_path, n=5):
     tmp_path.mkdir(parents=True, exist_ok=True)
     paths = []
     for i in range(n):
-        paths.append(_save(tmp_path / f"{i}.png", rng.integers(0, 256, (32, 64, 3), dtype=np.uint8)))
+        paths.append(
+            _save(tmp_path / f"{i}.png", rng.integers(0, 256, (32, 64, 3), dtype=np.uint8))
+        )
     return paths
 
 

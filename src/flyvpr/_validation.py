@@ -64,9 +64,7 @@ def check_images(images, name: str = "images", shape: tuple[int, int] | None = N
         arr = np.asarray(images)
     except Exception as exc:  # ragged lists and such
         raise TypeError(f"{name} must be an array of shape (N, H, W); {exc}") from exc
-    if arr.dtype == object or not (
-        np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_
-    ):
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
         raise TypeError(f"{name} must be a numeric array; got dtype {arr.dtype}")
     if arr.ndim != 3:
         raise ValueError(f"{name} must have shape (N, H, W); got shape {arr.shape}")

@@ -8,7 +8,6 @@ module.
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import logging
 import sys
@@ -47,7 +46,11 @@ def format_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str:
     widths = [max(len(r[i]) for r in cells) for i in range(len(columns))]
     out = []
     for n, r in enumerate(cells):
-        out.append("  ".join(c.rjust(w) if n and i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))))
+        out.append(
+            "  ".join(
+                c.rjust(w) if n and i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True))
+            )
+        )
         if n == 0:
             out.append("  ".join("-" * w for w in widths))
     return "\n".join(out)
@@ -115,7 +118,8 @@ def _split_params(method: str, params: list[tuple[str, object]]):
         if target is None:
             raise UsageError(
                 f"--param {key}: not a parameter of method {method!r}; front end takes "
-                f"{sorted(front_names)}" + (f", filter takes {sorted(filt_names)}" if filt_names else "")
+                f"{sorted(front_names)}"
+                + (f", filter takes {sorted(filt_names)}" if filt_names else "")
             )
         target[key] = value
     return front, filt
@@ -139,53 +143,55 @@ def _add_common_data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
 
 
+#: CLI form of every dataset option a loader may declare in ``DatasetSpec.options``
+DATASET_OPTIONS = {
+    "root": (Path, "dataset root folder"),
+    "reference": (str, "reference traverse (a season, a run folder or an image folder)"),
+    "query": (str, "query traverse (e.g. winter)"),
+    "first": (int, "first frame of the window (0-based position in the traverse)"),
+    "count": (int, "number of consecutive frames in the window"),
+    "tolerance": (int, "ground truth: a reference within this many frames is a match"),
+    "tolerance_m": (float, "ground truth: a reference within this many metres is a match"),
+    "radius": (float, "ground truth by positions CSV: match radius in metres"),
+    "spacing": (float, "keep one frame every this many metres along the route"),
+    "positions_csv": (Path, "CSV with header traverse,filename,x,y (metres)"),
+    "trust_pickle": (
+        bool,
+        "allow unpickling the dataset's ground-truth file; pickles can execute code, so only "
+        "for files you trust",
+    ),
+}
+
+
 def _add_dataset_args(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("dataset (see `flyvpr datasets` for layouts)")
+    g = p.add_argument_group("dataset (see `flyvpr datasets` for layouts and options)")
     g.add_argument("--dataset", required=True, choices=sorted(DATASETS), help="dataset layout")
-    g.add_argument("--root", type=Path, help="dataset root folder")
-    g.add_argument("--reference", help="reference traverse (e.g. summer, a run folder, a folder)")
-    g.add_argument("--query", help="query traverse (e.g. winter)")
-    g.add_argument("--first", type=int, help="first frame of the window (0-based position)")
-    g.add_argument("--count", type=int, help="number of consecutive frames in the window")
-    g.add_argument("--tolerance", type=float, help="ground-truth tolerance in frames")
-    g.add_argument("--tolerance-m", dest="tolerance_m", type=float, help="ground-truth radius in metres")
-    g.add_argument("--spacing", type=float, help="frame spacing in metres along the route (RobotCar)")
-    g.add_argument("--positions", type=Path, help="CSV of frame positions (generic layout)")
-    g.add_argument(
-        "--trust-pickle",
-        action="store_true",
-        help="allow unpickling the dataset's ground-truth file (VPR-Bench); pickles can run code",
-    )
+    used = {opt for spec in DATASETS.values() for opt in spec.options}
+    for opt in DATASET_OPTIONS:
+        if opt not in used:
+            continue
+        kind, help_text = DATASET_OPTIONS[opt]
+        flag = "--" + opt.replace("_", "-")
+        if kind is bool:
+            g.add_argument(flag, dest=opt, action="store_true", default=None, help=help_text)
+        else:
+            g.add_argument(flag, dest=opt, type=kind, default=None, help=help_text)
 
 
 def _dataset_kwargs(args) -> dict:
     """Pass the given dataset options that the chosen loader accepts; reject the others."""
     spec = DATASETS[args.dataset]
-    accepted = set(inspect.signature(spec.loader).parameters)
-    candidates = {
-        "root": args.root,
-        "reference": args.reference,
-        "query": args.query,
-        "first": args.first,
-        "count": args.count,
-        "tolerance": args.tolerance,
-        "tolerance_m": args.tolerance_m,
-        "spacing": args.spacing,
-        "positions": args.positions,
-        "trust_pickle": args.trust_pickle or None,
-    }
     kwargs = {}
-    for key, value in candidates.items():
+    for opt in DATASET_OPTIONS:
+        value = getattr(args, opt, None)
         if value is None:
             continue
-        if key not in accepted:
+        if opt not in spec.options:
             raise UsageError(
-                f"--{key.replace('_', '-')} does not apply to dataset {args.dataset!r} "
-                f"(it takes: {', '.join(sorted(accepted))})"
+                f"--{opt.replace('_', '-')} does not apply to dataset {args.dataset!r} "
+                f"(it takes: {', '.join('--' + o.replace('_', '-') for o in spec.options)})"
             )
-        if isinstance(value, float) and key == "tolerance" and value.is_integer():
-            value = int(value)
-        kwargs[key] = value
+        kwargs[opt] = value
     return kwargs
 
 
@@ -226,7 +232,9 @@ def cmd_evaluate(args) -> int:
         "tolerance": protocol.get("tolerance"),
         "seed": args.seed,
         "image_size": list(args.size),
-        **{k: v for k, v in result.items() if k not in ("method", "seed", "n_reference", "n_query")},
+        **{
+            k: v for k, v in result.items() if k not in ("method", "seed", "n_reference", "n_query")
+        },
         "protocol": protocol,
         "flyvpr_version": __version__,
     }
@@ -239,7 +247,16 @@ def cmd_evaluate(args) -> int:
 
 
 def _print_protocol(protocol: dict, args) -> None:
-    keys = ("dataset", "reference", "query", "first", "count", "n_reference", "n_query", "tolerance")
+    keys = (
+        "dataset",
+        "reference",
+        "query",
+        "first",
+        "count",
+        "n_reference",
+        "n_query",
+        "tolerance",
+    )
     parts = [f"{k}={protocol[k]}" for k in keys if protocol.get(k) is not None]
     size = getattr(args, "size", DEFAULT_SIZE)
     print(" ".join(parts) + f" size={size[0]}x{size[1]} seed={args.seed}")
@@ -249,8 +266,7 @@ def cmd_datasets(args) -> int:
     for name, spec in DATASETS.items():
         print(f"{name}: {spec.description}")
         print(textwrap.indent(spec.layout.strip(), "    "))
-        params = [p for p in inspect.signature(spec.loader).parameters]
-        print(f"    options: {', '.join('--' + p.replace('_', '-') for p in params)}")
+        print(f"    options: {', '.join('--' + o.replace('_', '-') for o in spec.options)}")
         print()
     return 0
 
@@ -269,7 +285,11 @@ def cmd_methods(args) -> int:
                 "description": spec.description,
             }
         )
-    print(format_table(rows, [("name", "method", ""), ("extra", "needs", ""), ("description", "what", "")]))
+    print(
+        format_table(
+            rows, [("name", "method", ""), ("extra", "needs", ""), ("description", "what", "")]
+        )
+    )
     return 0
 
 
@@ -292,7 +312,9 @@ def cmd_demo(args) -> int:
             raise UsageError(f"--method: unknown method {m!r}")
         logger.info("evaluating %s", m)
         results.append(
-            evaluate_method(m, route.reference_images, route.query_images, gt, seed=args.seed, load_s=load_s)
+            evaluate_method(
+                m, route.reference_images, route.query_images, gt, seed=args.seed, load_s=load_s
+            )
         )
     print(format_table(_table_rows(results), RESULT_COLUMNS))
     print(
@@ -302,7 +324,9 @@ def cmd_demo(args) -> int:
         "--method flynet+cann --seed 0 --out result.json"
     )
     if args.out is not None:
-        write_json_atomic(args.out, {"dataset": "synthetic", "places": args.places, "results": results})
+        write_json_atomic(
+            args.out, {"dataset": "synthetic", "places": args.places, "results": results}
+        )
         print(f"wrote {args.out}")
     return 0
 
@@ -347,7 +371,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="METHOD",
         help="one of: " + ", ".join(METHODS),
     )
-    p.add_argument("--seed", type=int, default=0, help="random_state of every random part (default 0)")
+    p.add_argument(
+        "--seed", type=int, default=0, help="random_state of every random part (default 0)"
+    )
     p.add_argument(
         "--param",
         type=_parse_param,
@@ -376,8 +402,12 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("--places", type=int, default=500, help="number of places (default 500)")
-    p.add_argument("--tolerance", type=int, default=2, help="ground-truth tolerance in frames (default 2)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the route and the methods (default 0)")
+    p.add_argument(
+        "--tolerance", type=int, default=2, help="ground-truth tolerance in frames (default 2)"
+    )
+    p.add_argument(
+        "--seed", type=int, default=0, help="seed of the route and the methods (default 0)"
+    )
     p.add_argument("--method", action="append", metavar="METHOD", help="method to run (repeatable)")
     p.add_argument("--out", type=Path, help="write all results as JSON (atomically)")
     p.set_defaults(func=cmd_demo)

@@ -119,3 +119,51 @@ def _plain(params: dict) -> dict:
             out[key] = repr(value)
     return out
 
+
+def speed_profile(n_frames: int, speed, random_state=None) -> np.ndarray:
+    """Indices of the query frames kept to simulate a robot moving at another speed.
+
+    Parameters
+    ----------
+    n_frames : int
+        Frames in the original (1 place per frame) query traverse.
+    speed : float or (float, float)
+        A constant speed in places per frame (2.0 keeps every 2nd frame), or a
+        range ``(low, high)``: each frame's step is drawn uniformly from it.
+    random_state : None, int or Generator
+        Seed of the random profile.
+
+    Returns
+    -------
+    ndarray of int64
+        Increasing frame indices, starting at 0, all ``< n_frames``.  The
+        ground truth of the kept frames is ``gt[indices]``.
+
+    Examples
+    --------
+    >>> speed_profile(7, 2.0)
+    array([0, 2, 4, 6])
+    """
+    from ._validation import check_positive_int, check_random_state
+
+    n_frames = check_positive_int(n_frames, "n_frames")
+    if np.ndim(speed) == 0:
+        low = high = float(speed)
+    else:
+        try:
+            low, high = (float(v) for v in speed)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"speed must be a number or a (low, high) pair; got {speed!r}"
+            ) from None
+    if not (0 < low <= high) or not np.isfinite(high):
+        raise ValueError(f"speed must be positive with low <= high; got {speed!r}")
+    # Enough steps to cover the traverse even at the lowest speed.
+    n_steps = int(np.ceil(n_frames / low)) + 1
+    if low == high:
+        steps = np.full(n_steps, low)
+    else:
+        steps = check_random_state(random_state).uniform(low, high, size=n_steps)
+    pos = np.concatenate([[0.0], np.cumsum(steps)])
+    idx = np.floor(pos + 1e-9).astype(np.int64)
+    return idx[idx < n_frames]

@@ -98,9 +98,7 @@ def to_gray(array: np.ndarray) -> np.ndarray:
             raise ValueError(f"image must have 1, 3 or 4 channels; got shape {a.shape}")
     elif a.ndim != 2:
         raise ValueError(f"image must have shape (H, W) or (H, W, C); got shape {a.shape}")
-    return np.clip(a, 0.0, 1.0, out=a if a.flags.writeable else None).astype(
-        np.float32, copy=False
-    )
+    return np.clip(a, 0.0, 1.0, out=a if a.flags.writeable else None).astype(np.float32, copy=False)
 
 
 def resize_area(gray: np.ndarray, size=DEFAULT_SIZE) -> np.ndarray:
@@ -247,7 +245,10 @@ def list_images(folder, extensions: Sequence[str] = IMAGE_EXTENSIONS) -> list[Pa
 
 
 def default_cache_dir() -> Path:
-    """The cache folder: ``$FLYVPR_CACHE_DIR``, else ``$XDG_CACHE_HOME/flyvpr``, else ``~/.cache/flyvpr``."""
+    """The cache folder.
+
+    ``$FLYVPR_CACHE_DIR`` if set, else ``$XDG_CACHE_HOME/flyvpr``, else ``~/.cache/flyvpr``.
+    """
     env = os.environ.get("FLYVPR_CACHE_DIR")
     if env:
         return Path(env)

@@ -81,9 +81,7 @@ def _extras_available(extras) -> bool:
     return all(importlib.util.find_spec(mod) is not None for mod in extras)
 
 
-def make_method(
-    name: str, random_state=None, frontend_params=None, filter_params=None
-) -> Method:
+def make_method(name: str, random_state=None, frontend_params=None, filter_params=None) -> Method:
     """Build an unfitted :class:`Method` from its registry name.
 
     Parameters
@@ -109,7 +107,9 @@ def make_method(
     if spec.filter is not None:
         filt = _construct(FILTERS[spec.filter], filter_params or {}, rng)
     elif filter_params:
-        raise ValueError(f"method {name!r} has no temporal filter; got filter_params {filter_params}")
+        raise ValueError(
+            f"method {name!r} has no temporal filter; got filter_params {filter_params}"
+        )
     return Method(name, frontend, filt)
 
 
@@ -144,7 +144,7 @@ class Method:
         return self
 
     def score(self, query_images) -> np.ndarray:
-        """Score matrix (n_query, n_reference) of the queries, filtered over time if a filter is set.
+        """Score matrix (n_query, n_reference) of the queries, filtered if a filter is set.
 
         ``timing_`` gets ``encode_s`` (encoding the queries) and ``match_s``
         (scoring against the references and temporal filtering).

@@ -57,9 +57,7 @@ def _check_indices(indices, n: int, name: str = "indices") -> np.ndarray:
             idx = arr.astype(np.intp)
             bad = (idx < 0) | (idx >= n)
             if bad.any():
-                raise ValueError(
-                    f"{name} must lie in [0, {n}); got {int(idx[np.argmax(bad)])}"
-                )
+                raise ValueError(f"{name} must lie in [0, {n}); got {int(idx[np.argmax(bad)])}")
         else:
             raise TypeError(
                 f"{name} must be a slice, a boolean mask or a sequence of ints; "
@@ -317,8 +315,7 @@ class Benchmark:
         expected = (len(self.query), len(self.reference))
         if gt.shape != expected:
             raise ValueError(
-                f"ground_truth must have shape (n_query, n_reference) = {expected}; "
-                f"got {gt.shape}"
+                f"ground_truth must have shape (n_query, n_reference) = {expected}; got {gt.shape}"
             )
         object.__setattr__(self, "ground_truth", gt)
         if not isinstance(self.tolerance, dict):

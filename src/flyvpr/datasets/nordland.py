@@ -100,7 +100,8 @@ def load_nordland(
     -------
     Benchmark
         ``tolerance={"frames": tolerance}``; each traverse has ``frame_ids``
-        (positions in the sorted sequence) and no positions.
+        (positions in the sorted sequence) and no positions; ``details`` holds
+        ``frame_number_range``, the first and last file frame numbers kept.
 
     Raises
     ------

@@ -37,14 +37,35 @@ logger = logging.getLogger(__name__)
 
 #: Columns of ``gps/ins.csv`` as written by the dataset (and read by the SDK).
 INS_COLUMNS = (
-    "timestamp", "ins_status", "latitude", "longitude", "altitude", "northing", "easting",
-    "down", "utm_zone", "velocity_north", "velocity_east", "velocity_down", "roll", "pitch",
+    "timestamp",
+    "ins_status",
+    "latitude",
+    "longitude",
+    "altitude",
+    "northing",
+    "easting",
+    "down",
+    "utm_zone",
+    "velocity_north",
+    "velocity_east",
+    "velocity_down",
+    "roll",
+    "pitch",
     "yaw",
 )
 #: Columns of ``gps/gps.csv``.
 GPS_COLUMNS = (
-    "timestamp", "number_of_satellites", "latitude", "longitude", "altitude",
-    "latitude_sigma", "longitude_sigma", "altitude_sigma", "northing", "easting", "down",
+    "timestamp",
+    "number_of_satellites",
+    "latitude",
+    "longitude",
+    "altitude",
+    "latitude_sigma",
+    "longitude_sigma",
+    "altitude_sigma",
+    "northing",
+    "easting",
+    "down",
     "utm_zone",
 )
 #: The columns this loader reads from either file.
@@ -100,7 +121,7 @@ def read_poses(path) -> tuple[np.ndarray, np.ndarray]:
         raise FileNotFoundError(f"pose file not found: {path}")
     with open(path, newline="") as fh:
         reader = csv.reader(fh)
-        header = next(reader, None)
+        header = next((row for row in reader if row), None)
         if header is None:
             raise ValueError(f"{path}: empty file; expected a header row and pose rows")
         header = [h.strip() for h in header]
@@ -124,8 +145,7 @@ def read_poses(path) -> tuple[np.ndarray, np.ndarray]:
     if bad:
         i = bad[0]
         raise ValueError(
-            f"{path}, line {lines[i]}: expected {width} fields as in the header; "
-            f"got {len(rows[i])}"
+            f"{path}, line {lines[i]}: expected {width} fields as in the header; got {len(rows[i])}"
         )
     where = {name: header.index(name) for name in _NEEDED}
     cols = {name: [row[i].strip() for row in rows] for name, i in where.items()}
@@ -136,7 +156,7 @@ def read_poses(path) -> tuple[np.ndarray, np.ndarray]:
         i = int(np.argmin(digits))
         raise ValueError(
             f"{path}, line {lines[i]}: timestamp must be an integer number of microseconds; "
-            f"got {stamps[i]!r}"
+            f"got {str(stamps[i])!r}"
         )
     timestamps = stamps.astype(np.int64)
     positions = np.empty((len(rows), 2), dtype=np.float64)
@@ -201,7 +221,7 @@ def select_by_distance(positions, spacing) -> np.ndarray:
 def _image_timestamps(folder: Path) -> tuple[list[Path], np.ndarray]:
     paths = _list_images_or_explain(folder, LAYOUT, extensions=(".png",))
     stems = [p.stem for p in paths]
-    for p, s in zip(paths, stems):
+    for p, s in zip(paths, stems, strict=True):
         if not s.isdigit():
             raise ValueError(
                 f"image file name must be a numeric timestamp in microseconds: {p}; "
@@ -229,9 +249,7 @@ def _load_run(root: Path, run, role: str, spacing: float):
         )
     image_dir = run_dir / "stereo" / "centre"
     if not image_dir.is_dir():
-        raise FileNotFoundError(
-            f"image folder not found: {image_dir}; expected layout:\n{LAYOUT}"
-        )
+        raise FileNotFoundError(f"image folder not found: {image_dir}; expected layout:\n{LAYOUT}")
     for pose_name in ("ins.csv", "gps.csv"):
         pose_file = run_dir / "gps" / pose_name
         if pose_file.is_file():
@@ -255,7 +273,10 @@ def _load_run(root: Path, run, role: str, spacing: float):
     if not inside.all():
         logger.info(
             "%s: dropped %d of %d images outside the time span of %s",
-            run, int((~inside).sum()), inside.size, pose_file,
+            run,
+            int((~inside).sum()),
+            inside.size,
+            pose_file,
         )
     frame_ids = np.flatnonzero(inside)
     # Subtract the first pose time before converting, so float64 keeps microseconds.
@@ -332,7 +353,7 @@ def load_robotcar(
         for t in (ref, qry)
     ]
     ref, qry = (
-        t.subset(slice(start, start + n)) for t, (start, n) in zip((ref, qry), windows)
+        t.subset(slice(start, start + n)) for t, (start, n) in zip((ref, qry), windows, strict=True)
     )
     return Benchmark(
         dataset="robotcar",

@@ -104,8 +104,7 @@ def parse_vprbench_rows(rows, n_query: int, n_reference: int, source="ground tru
         n_rows = len(rows)
     except TypeError:
         raise ValueError(
-            f"{source}: expected rows [query_index, [reference indices]]; "
-            f"got {type(rows).__name__}"
+            f"{source}: expected rows [query_index, [reference indices]]; got {type(rows).__name__}"
         ) from None
     for k in range(n_rows):
         row = rows[k]
@@ -122,9 +121,7 @@ def parse_vprbench_rows(rows, n_query: int, n_reference: int, source="ground tru
         if q.ndim != 0 or not np.issubdtype(q.dtype, np.integer):
             raise ValueError(f"{source}, row {k}: query index must be an int; got {q_raw!r}")
         if refs.ndim != 1 or not np.issubdtype(refs.dtype, np.integer):
-            raise ValueError(
-                f"{source}, row {k}: reference indices must be ints; got {refs_raw!r}"
-            )
+            raise ValueError(f"{source}, row {k}: reference indices must be ints; got {refs_raw!r}")
         q = int(q)
         if not 0 <= q < n_query:
             raise ValueError(

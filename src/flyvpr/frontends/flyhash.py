@@ -44,7 +44,9 @@ def sample_connections(n_hidden: int, n_inputs: int, n_samples: int, random_stat
     if not 1 <= n_samples <= n_inputs:
         raise ValueError(f"n_samples must be in [1, {n_inputs}]; got {n_samples}")
     # An independent permutation per row: every unit gets a uniform random subset.
-    perm = rng.permuted(np.broadcast_to(np.arange(n_inputs, dtype=np.int32), (n_hidden, n_inputs)), axis=1)
+    perm = rng.permuted(
+        np.broadcast_to(np.arange(n_inputs, dtype=np.int32), (n_hidden, n_inputs)), axis=1
+    )
     return np.sort(perm[:, :n_samples], axis=1)
 
 

@@ -1,1 +1,12 @@
-"""Temporal filters (registry filled in once all modules exist)."""
+"""Temporal filters over a score matrix: SeqSLAM, the CANN, and (with torch) an RNN.
+
+``FILTERS`` maps a registry name to its filter class.
+"""
+
+from .base import OnlineFilter, TemporalFilter
+from .seqslam import SeqSLAM
+
+__all__ = ["TemporalFilter", "OnlineFilter", "SeqSLAM", "FILTERS"]
+
+#: name -> filter class
+FILTERS: dict[str, type[TemporalFilter]] = {cls.name: cls for cls in (SeqSLAM,)}

@@ -39,8 +39,7 @@ class TemporalFilter:
         for key, value in params.items():
             if key not in valid:
                 raise ValueError(
-                    f"invalid parameter {key!r} for {type(self).__name__}; "
-                    f"valid: {sorted(valid)}"
+                    f"invalid parameter {key!r} for {type(self).__name__}; valid: {sorted(valid)}"
                 )
             setattr(self, key, value)
         return self
@@ -74,9 +73,13 @@ class TemporalFilter:
         ndarray, same shape as S
         """
         arr = check_scores(S, "S")
-        out = self._filter(np.array(arr, dtype=np.float32 if arr.dtype == np.float32 else np.float64))
+        out = self._filter(
+            np.array(arr, dtype=np.float32 if arr.dtype == np.float32 else np.float64)
+        )
         if out.shape != arr.shape:  # a bug in a subclass, not a user error
-            raise RuntimeError(f"{type(self).__name__} changed the shape {arr.shape} -> {out.shape}")
+            raise RuntimeError(
+                f"{type(self).__name__} changed the shape {arr.shape} -> {out.shape}"
+            )
         return out
 
     def footprint(self, n_reference: int) -> dict:
