@@ -69,8 +69,12 @@ def test_patch_normalize_ignores_brightness_and_contrast_per_patch(random_images
 
 @pytest.mark.parametrize(
     ("patch_size", "error", "match"),
-    [(3, ValueError, "patch_size must divide"), (1, ValueError, "patch_size"),
-     (0, ValueError, "patch_size"), (8.0, TypeError, "patch_size")],
+    [
+        (3, ValueError, "patch_size must divide"),
+        (1, ValueError, "patch_size"),
+        (0, ValueError, "patch_size"),
+        (8.0, TypeError, "patch_size"),
+    ],
 )
 def test_patch_normalize_rejects_bad_patch_size(random_images, patch_size, error, match):
     with pytest.raises(error, match=match):
@@ -86,7 +90,9 @@ def test_patch_normalize_rejects_bad_images():
 
 # -- sad_matrix ------------------------------------------------------------------------------
 @pytest.mark.parametrize("backend", ["auto", "numba", "scipy"])
-@pytest.mark.parametrize(("n_query", "n_reference", "n_features"), [(7, 5, 33), (1, 9, 4), (13, 1, 70)])
+@pytest.mark.parametrize(
+    ("n_query", "n_reference", "n_features"), [(7, 5, 33), (1, 9, 4), (13, 1, 70)]
+)
 def test_sad_matrix_matches_slow_loop(rng, backend, n_query, n_reference, n_features):
     if backend == "numba":
         pytest.importorskip("numba")
@@ -109,8 +115,7 @@ def test_sad_matrix_falls_back_to_scipy_without_numba(rng, monkeypatch):
     monkeypatch.setattr(pixels, "_numba_kernel", False)  # as if numba failed to import
     query = rng.random((4, 10), dtype=np.float32)
     reference = rng.random((3, 10), dtype=np.float32)
-    np.testing.assert_allclose(sad_matrix(query, reference), _slow_sad(query, reference),
-                               rtol=1e-5)
+    np.testing.assert_allclose(sad_matrix(query, reference), _slow_sad(query, reference), rtol=1e-5)
     with pytest.raises(ImportError, match="numba"):
         sad_matrix(query, reference, backend="numba")
 

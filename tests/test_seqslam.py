@@ -106,14 +106,16 @@ def test_filter_matches_slow_reference(rng, mode, length, v_min, v_max, v_step, 
 def test_velocity_grid():
     np.testing.assert_allclose(SeqSLAM().velocities(), [0.8, 0.9, 1.0, 1.1, 1.2])
     np.testing.assert_allclose(SeqSLAM(v_min=1.0, v_max=1.0).velocities(), [1.0])
-    np.testing.assert_allclose(SeqSLAM(v_min=0.8, v_max=1.25, v_step=0.1).velocities(),
-                               [0.8, 0.9, 1.0, 1.1, 1.2])
+    np.testing.assert_allclose(
+        SeqSLAM(v_min=0.8, v_max=1.25, v_step=0.1).velocities(), [0.8, 0.9, 1.0, 1.1, 1.2]
+    )
 
 
 def test_sequence_length_one_is_contrast_enhancement_only(rng):
     S = rng.normal(size=(6, 20))
-    np.testing.assert_allclose(SeqSLAM(sequence_length=1).filter(S), enhance_contrast(S, 10),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        SeqSLAM(sequence_length=1).filter(S), enhance_contrast(S, 10), atol=1e-12
+    )
 
 
 # -- recovering synthetic routes -------------------------------------------------------------
@@ -235,8 +237,12 @@ def test_bad_scores(S, match):
 def test_params_repr_footprint():
     f = SeqSLAM(sequence_length=10, mode="centered")
     assert f.get_params() == {
-        "sequence_length": 10, "v_min": 0.8, "v_max": 1.2, "v_step": 0.1,
-        "enhance_window": 10, "mode": "centered",
+        "sequence_length": 10,
+        "v_min": 0.8,
+        "v_max": 1.2,
+        "v_step": 0.1,
+        "enhance_window": 10,
+        "mode": "centered",
     }
     assert "SeqSLAM(sequence_length=10" in repr(f)
     assert f.footprint(1000) == {"layers": 0, "params": 0, "neurons": 0}

@@ -299,3 +299,15 @@ def test_save_route_errors(tmp_path):
     assert isinstance(r, SyntheticRoute)
     with pytest.raises(ValueError, match="return_rgb=True"):
         save_route(r, tmp_path, rgb=True)
+
+
+def test_saved_route_reads_as_nordland(tmp_path):
+    from flyvpr.datasets.nordland import load_nordland
+
+    r = make_route(20, conditions=("summer", "fall"), random_state=6)
+    save_route(r, tmp_path)
+    bench = load_nordland(tmp_path, "summer", "fall", tolerance=3)
+    np.testing.assert_array_equal(bench.ground_truth, r.ground_truth(tolerance=3))
+    reference, query = bench.load_images(cache=False, progress=False)
+    np.testing.assert_allclose(reference, r.reference_images, atol=0.5 / 255 + 1e-6)
+    np.testing.assert_allclose(query, r.query_images, atol=0.5 / 255 + 1e-6)

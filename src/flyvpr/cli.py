@@ -48,7 +48,8 @@ def format_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str:
     for n, r in enumerate(cells):
         out.append(
             "  ".join(
-                c.rjust(w) if n and i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True))
+                c.rjust(w) if n and i else c.ljust(w)
+                for i, (c, w) in enumerate(zip(r, widths, strict=True))
             )
         )
         if n == 0:
@@ -229,7 +230,8 @@ def cmd_evaluate(args) -> int:
         "count": protocol.get("count"),
         "n_reference": result["n_reference"],
         "n_query": result["n_query"],
-        "tolerance": protocol.get("tolerance"),
+        "tolerance": _tolerance_value(protocol.get("tolerance")),
+        "tolerance_unit": _tolerance_unit(protocol.get("tolerance")),
         "seed": args.seed,
         "image_size": list(args.size),
         **{
@@ -246,6 +248,19 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def _tolerance_value(tol):
+    """The number of a loader's tolerance dict such as ``{"frames": 20}``."""
+    if isinstance(tol, dict) and len(tol) == 1:
+        return next(iter(tol.values()))
+    return tol
+
+
+def _tolerance_unit(tol):
+    if isinstance(tol, dict) and len(tol) == 1:
+        return next(iter(tol))
+    return None
+
+
 def _print_protocol(protocol: dict, args) -> None:
     keys = (
         "dataset",
@@ -257,7 +272,10 @@ def _print_protocol(protocol: dict, args) -> None:
         "n_query",
         "tolerance",
     )
-    parts = [f"{k}={protocol[k]}" for k in keys if protocol.get(k) is not None]
+    parts = [f"{k}={protocol[k]}" for k in keys[:-1] if protocol.get(k) is not None]
+    tol = protocol.get("tolerance")
+    if tol is not None:
+        parts.append(f"tolerance={_tolerance_value(tol)} {_tolerance_unit(tol) or ''}".rstrip())
     size = getattr(args, "size", DEFAULT_SIZE)
     print(" ".join(parts) + f" size={size[0]}x{size[1]} seed={args.seed}")
 

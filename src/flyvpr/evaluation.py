@@ -97,19 +97,21 @@ def evaluate_method(
         "train_accuracy": model.train_accuracy,
         "timing": timing,
         "footprint": model.footprint(),
-        "frontend_params": _plain(model.frontend.get_params()),
-        "filter_params": _plain(model.filter.get_params()) if model.filter is not None else None,
+        "frontend_params": _plain(model.frontend.get_params(), seed),
+        "filter_params": _plain(model.filter.get_params(), seed) if model.filter else None,
     }
     if return_scores:
         return result, S
     return result
 
 
-def _plain(params: dict) -> dict:
-    """JSON-friendly copy of estimator parameters (Generators become their repr)."""
+def _plain(params: dict, seed) -> dict:
+    """JSON-friendly copy of estimator parameters; a Generator drawn from ``seed`` shows as it."""
     out = {}
     for key, value in params.items():
-        if isinstance(value, (bool, int, float, str, type(None))):
+        if isinstance(value, np.random.Generator):
+            out[key] = f"from seed {seed}"
+        elif isinstance(value, (bool, int, float, str, type(None))):
             out[key] = value
         elif isinstance(value, (np.integer, np.floating)):
             out[key] = value.item()

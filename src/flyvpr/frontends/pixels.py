@@ -91,9 +91,7 @@ def patch_normalize(images, patch_size: int = 8) -> np.ndarray:
 
 def _check_codes(codes, name: str) -> np.ndarray:
     arr = np.asarray(codes)
-    if arr.dtype == object or not (
-        np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_
-    ):
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
         raise TypeError(f"{name} must be a numeric array; got dtype {arr.dtype}")
     if arr.ndim != 2:
         raise ValueError(f"{name} must have shape (n, n_features); got shape {arr.shape}")
@@ -121,8 +119,16 @@ def _get_numba_kernel():
 
 def _build_numba_kernel(numba):
     # fastmath lets LLVM reorder the float sums into SIMD lanes; cache=True keeps the compiled
-    # code on disk so only the first run ever pays the ~1 s compilation.
-    @numba.njit(parallel=True, fastmath=True, cache=True)
+    # code on disk so only the first run ever pays the ~1 s compilation.  Where no cache folder
+    # is writable numba refuses cache=True with a RuntimeError: compile in memory instead.
+    try:
+        jit = numba.njit(parallel=True, fastmath=True, cache=True)
+        return jit(_make_sad_kernel(numba))
+    except RuntimeError:
+        return numba.njit(parallel=True, fastmath=True)(_make_sad_kernel(numba))
+
+
+def _make_sad_kernel(numba):
     def sad_kernel(query, reference, block, out):
         n_query, n_features = query.shape
         n_reference = reference.shape[0]
@@ -159,8 +165,9 @@ def _build_numba_kernel(numba):
     return sad_kernel
 
 
-def sad_matrix(query_codes, reference_codes, *, normalize: bool = False,
-               backend: str = "auto") -> np.ndarray:
+def sad_matrix(
+    query_codes, reference_codes, *, normalize: bool = False, backend: str = "auto"
+) -> np.ndarray:
     """Sum of absolute differences (L1 distance) between every query and every reference.
 
     Parameters

@@ -27,12 +27,15 @@ Conventions and where they differ from OpenSeqSLAM
 - Trajectories.  At query offset ``j`` from the current frame (``j < 0`` in the past) a line
   with velocity ``v`` through place ``r`` reads place ``r + round(v * j)``, rounded to the
   nearest integer with halves away from zero.  Velocities whose lines coincide are searched
-  once.  OpenSeqSLAM checks 9 velocities between 0.8 and 1.2 for ``ds = 20`` and ignores its
-  ``vskip``; here the grid is ``v_min:v_step:v_max`` (5 velocities by default).
+  once.  The velocity grid is ``v_min:v_step:v_max`` (5 velocities by default).  OpenSeqSLAM
+  instead spans ``ds + 1`` frames, rounds the offsets down from the line's first frame, and
+  checks the velocities ``(vmin * ds : vmax * ds) / ds`` (9 for ``ds = 20``), ignoring its
+  ``vskip``.
 - Places outside the reference traverse.  A line that leaves the traverse reads the first (or
-  last) place instead, as if the vehicle waited at the end of the map.  Every place is then
-  scored from the same number of frames; OpenSeqSLAM instead gives such lines infinite cost,
-  which makes the first places of the traverse unreachable.
+  last) place instead, as if the vehicle waited at the end of the map, so every place is
+  scored from the same number of frames.  OpenSeqSLAM gives lines that run past the last place
+  infinite cost and reports a line's first place plus ``ds/2``, so places near either end of
+  the traverse can never be matched.
 - Short sequences and the output scale.  Where fewer frames exist (the first
   ``sequence_length - 1`` queries in causal mode; both ends in centred mode) the line uses the
   ``n`` frames there are, and every line's sum is divided by ``sqrt(n)``.  The metrics rank all
@@ -167,9 +170,10 @@ class SeqSLAM(OnlineFilter):
     -----
     ``filter(S)`` returns ``S'[q, r]`` = minus the lowest sum of contrast-enhanced differences
     along any searched line through place ``r`` at query ``q``, divided by the square root of
-    the line's number of frames: higher = better, same shape as ``S``.  The enhancement works on each query row alone, so the causal filter only ever reads
-    the current and past rows, and ``step`` (one row at a time, with a buffer of the last
-    ``sequence_length`` enhanced rows) returns the same rows as ``filter``.  Cost: about
+    the line's number of frames: higher = better, same shape as ``S``.  The enhancement works
+    on each query row alone, so the causal filter only ever reads the current and past rows,
+    and ``step`` (one row at a time, with a buffer of the last ``sequence_length`` enhanced
+    rows) returns exactly the rows of ``filter``.  Cost: about
     ``n_velocities * sequence_length`` passes over the matrix; nothing loops over places.
     Nothing is learned: the footprint is zero.
 
@@ -216,9 +220,7 @@ class SeqSLAM(OnlineFilter):
         if self.v_step <= 0:
             raise ValueError(f"v_step must be > 0; got {self.v_step}")
         if self.v_min > self.v_max:
-            raise ValueError(
-                f"v_min must be <= v_max; got v_min={self.v_min}, v_max={self.v_max}"
-            )
+            raise ValueError(f"v_min must be <= v_max; got v_min={self.v_min}, v_max={self.v_max}")
         if self.mode not in _MODES:
             raise ValueError(f"mode must be one of {_MODES}; got {self.mode!r}")
 

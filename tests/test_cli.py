@@ -1,0 +1,222 @@
+import json
+
+import numpy as np
+import pytest
+
+from flyvpr.cli import main
+from flyvpr.synthetic import make_route, save_route
+
+
+@pytest.fixture(scope="module")
+def route_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("route")
+    save_route(make_route(n_places=60, random_state=0), root)
+    return root
+
+
+def _eval_args(root, *extra):
+    return [
+        "evaluate",
+        "--dataset",
+        "nordland",
+        "--root",
+        str(root),
+        "--reference",
+        "summer",
+        "--query",
+        "winter",
+        "--tolerance",
+        "2",
+        "--quiet",
+        "--no-cache",
+        *extra,
+    ]
+
+
+REQUIRED = {
+    "method",
+    "dataset",
+    "reference",
+    "query",
+    "first",
+    "count",
+    "n_reference",
+    "n_query",
+    "tolerance",
+    "seed",
+    "auc",
+    "recall_at_1",
+    "recall_at_5",
+    "recall_at_10",
+    "recall_at_100_precision",
+    "precision",
+    "recall",
+    "train_accuracy",
+    "timing",
+    "footprint",
+}
+
+
+@pytest.mark.parametrize("method", ["pixels", "flyhash", "flynet"])
+def test_evaluate_writes_json(route_dir, tmp_path, capsys, method):
+    out = tmp_path / "r.json"
+    rc = main(
+        _eval_args(
+            route_dir, "--method", method, "--seed", "1", "--out", str(out), "--param", "epochs=20"
+        )
+        if method == "flynet"
+        else _eval_args(route_dir, "--method", method, "--seed", "1", "--out", str(out))
+    )
+    assert rc == 0
+    data = json.loads(out.read_text())
+    assert REQUIRED <= set(data)
+    assert data["method"] == method and data["seed"] == 1 and data["n_query"] == 60
+    assert data["tolerance"] == 2 and data["tolerance_unit"] == "frames"
+    assert set(data["timing"]) >= {"load_s", "encode_s", "match_s", "per_query_ms"}
+    assert set(data["footprint"]) == {"layers", "params", "neurons"}
+    assert (data["train_accuracy"] is None) == (method != "flynet")
+    assert 0 <= data["auc"] <= 1 and len(data["precision"]) == len(data["recall"])
+    printed = capsys.readouterr().out
+    assert method in printed and "AUC" in printed
+
+
+def test_evaluate_window(route_dir, tmp_path):
+    out = tmp_path / "r.json"
+    assert (
+        main(
+            _eval_args(
+                route_dir, "--method", "pixels", "--first", "10", "--count", "20", "--out", str(out)
+            )
+        )
+        == 0
+    )
+    data = json.loads(out.read_text())
+    assert (data["first"], data["count"], data["n_reference"]) == (10, 20, 20)
+
+
+def test_corrupt_png_exits_1_naming_the_file(route_dir, tmp_path, capsys):
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(route_dir, root)
+    bad = root / "winter" / "images-00017.png"
+    bad.write_bytes(bad.read_bytes()[:40])
+    out = tmp_path / "r.json"
+    rc = main(_eval_args(root, "--method", "pixels", "--out", str(out)))
+    assert rc == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "images-00017.png" in err
+    assert not out.exists()
+
+
+def test_missing_root_exits_1(tmp_path, capsys):
+    rc = main(_eval_args(tmp_path / "nope", "--method", "pixels"))
+    assert rc == 1
+    assert "nope" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["evaluate", "--dataset", "nordland", "--method", "no-such-method"],
+        ["evaluate", "--dataset", "atlantis", "--method", "pixels"],
+        ["no-such-command"],
+        [],
+    ],
+)
+def test_usage_errors_exit_2(argv, capsys):
+    assert main(argv) == 2
+
+
+def test_option_not_for_dataset_is_usage_error(route_dir, capsys):
+    rc = main(_eval_args(route_dir, "--method", "pixels", "--spacing", "5"))
+    assert rc == 2
+    assert "--spacing" in capsys.readouterr().err
+
+
+def test_unknown_param_is_usage_error(route_dir, capsys):
+    rc = main(_eval_args(route_dir, "--method", "flynet", "--param", "bogus=1"))
+    assert rc == 2
+    assert "bogus" in capsys.readouterr().err
+
+
+def test_help_exits_0(capsys):
+    assert main(["--help"]) == 0
+    assert "evaluate" in capsys.readouterr().out
+    assert main(["evaluate", "--help"]) == 0
+
+
+def test_datasets_lists_every_loader(capsys):
+    from flyvpr.datasets import DATASETS
+
+    assert main(["datasets"]) == 0
+    out = capsys.readouterr().out
+    for name in DATASETS:
+        assert f"{name}:" in out
+
+
+def test_methods_lists_registry(capsys):
+    from flyvpr.methods import METHODS
+
+    assert main(["methods"]) == 0
+    out = capsys.readouterr().out
+    for name in METHODS:
+        assert name in out
+
+
+def test_demo_prints_table(tmp_path, capsys):
+    out = tmp_path / "demo.json"
+    rc = main(
+        ["demo", "--places", "80", "--method", "pixels", "--method", "flyhash", "--out", str(out)]
+    )
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "pixels" in printed and "flyhash" in printed
+    data = json.loads(out.read_text())
+    assert [r["method"] for r in data["results"]] == ["pixels", "flyhash"]
+
+
+def test_python_m_flyvpr_runs():
+    import subprocess
+    import sys
+
+    res = subprocess.run(
+        [sys.executable, "-m", "flyvpr", "--version"], capture_output=True, text=True, check=False
+    )
+    assert res.returncode == 0 and "flyvpr" in res.stdout
+
+
+def test_real_nordland_flynet(nordland_64x32, tmp_path):
+    out = tmp_path / "r.json"
+    rc = main(
+        [
+            "evaluate",
+            "--dataset",
+            "nordland",
+            "--root",
+            str(nordland_64x32),
+            "--reference",
+            "summer",
+            "--query",
+            "winter",
+            "--first",
+            "0",
+            "--count",
+            "300",
+            "--tolerance",
+            "20",
+            "--method",
+            "flynet",
+            "--seed",
+            "0",
+            "--out",
+            str(out),
+            "--quiet",
+            "--no-cache",
+        ]
+    )
+    assert rc == 0
+    data = json.loads(out.read_text())
+    assert data["n_query"] == 300 and 0 < data["train_accuracy"] <= 1
+    assert np.isfinite(data["auc"])

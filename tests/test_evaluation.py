@@ -1,0 +1,41 @@
+import numpy as np
+import pytest
+
+from flyvpr.evaluation import evaluate_method, speed_profile
+
+
+def test_speed_profile_constant():
+    np.testing.assert_array_equal(speed_profile(10, 2.0), [0, 2, 4, 6, 8])
+    np.testing.assert_array_equal(speed_profile(5, 1.0), np.arange(5))
+
+
+def test_speed_profile_random_range_is_seeded_and_bounded():
+    a = speed_profile(1000, (1.0, 1.5), random_state=3)
+    b = speed_profile(1000, (1.0, 1.5), random_state=3)
+    np.testing.assert_array_equal(a, b)
+    steps = np.diff(a)
+    assert steps.min() >= 1 and steps.max() <= 2
+    assert 1000 / 1.5 - 5 < len(a) < 1000 / 1.0
+    assert a[0] == 0 and a[-1] < 1000
+
+
+@pytest.mark.parametrize("speed", [0.0, -1.0, (1.5, 1.0), "fast"])
+def test_speed_profile_errors(speed):
+    with pytest.raises(ValueError, match="speed"):
+        speed_profile(10, speed)
+
+
+def test_evaluate_method_fields(random_images):
+    ref = random_images(30)
+    gt = np.eye(30, dtype=bool)
+    res = evaluate_method("flyhash", ref, ref, gt, seed=0)
+    assert res["auc"] == pytest.approx(1.0)
+    assert res["recall_at_1"] == 1.0
+    assert res["timing"]["per_query_ms"] >= 0
+    assert res["frontend_params"]["random_state"] == "from seed 0"
+
+
+def test_evaluate_method_checks_gt_shape(random_images):
+    ref = random_images(5)
+    with pytest.raises(ValueError, match="ground_truth must have shape"):
+        evaluate_method("pixels", ref, ref[:3], np.eye(5, dtype=bool))
