@@ -149,15 +149,13 @@ def speed_profile(n_frames: int, speed, random_state=None) -> np.ndarray:
     from ._validation import check_positive_int, check_random_state
 
     n_frames = check_positive_int(n_frames, "n_frames")
-    if np.ndim(speed) == 0:
-        low = high = float(speed)
-    else:
-        try:
+    try:
+        if np.ndim(speed) == 0:
+            low = high = float(speed)
+        else:
             low, high = (float(v) for v in speed)
-        except (TypeError, ValueError):
-            raise ValueError(
-                f"speed must be a number or a (low, high) pair; got {speed!r}"
-            ) from None
+    except (TypeError, ValueError):
+        raise ValueError(f"speed must be a number or a (low, high) pair; got {speed!r}") from None
     if not (0 < low <= high) or not np.isfinite(high):
         raise ValueError(f"speed must be positive with low <= high; got {speed!r}")
     # Enough steps to cover the traverse even at the lowest speed.
