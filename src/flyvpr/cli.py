@@ -15,8 +15,10 @@ import textwrap
 import time
 from pathlib import Path
 
+import numpy as np
+
 from . import __version__
-from ._io import write_json_atomic
+from ._io import write_json_atomic, write_text_atomic
 from .datasets import DATASETS, load_benchmark
 from .evaluation import evaluate_method
 from .images import DEFAULT_SIZE
@@ -349,6 +351,68 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def _parse_speed(text: str):
+    try:
+        if "-" in text:
+            low, high = (float(v) for v in text.split("-"))
+            return (low, high)
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a speed such as 2 or 1-1.5; got {text!r}"
+        ) from None
+
+
+def cmd_localize(args) -> int:
+    import csv
+    import io
+
+    from tqdm.auto import tqdm
+
+    from .evaluation import speed_profile
+    from .localizer import Localizer
+
+    if args.method not in METHODS:
+        raise UsageError(f"--method: unknown method {args.method!r}")
+    front_params, filt_params = _split_params(args.method, args.param)
+    bench = load_benchmark(args.dataset, **_dataset_kwargs(args))
+    if args.speed is not None:
+        keep = speed_profile(bench.n_query, args.speed, random_state=args.seed)
+        bench = bench.subset_queries(keep)
+    else:
+        keep = np.arange(bench.n_query)
+    cache = False if args.no_cache else (args.cache_dir or True)
+    progress = False if args.quiet else None
+    ref, qry = bench.load_images(size=args.size, cache=cache, progress=progress)
+    loc = Localizer(args.method, args.seed, front_params, filt_params).fit(ref)
+    gt = bench.ground_truth
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["frame", "source_frame", "place", "confidence", "correct"])
+    correct = 0
+    t0 = time.perf_counter()
+    show = not args.quiet and sys.stderr.isatty()
+    for i in tqdm(range(len(qry)), desc="localizing", unit="frame", disable=not show):
+        velocity = None
+        if args.odometry and i > 0:
+            velocity = float(keep[i] - keep[i - 1])
+        place, conf = loc.update(qry[i], velocity=velocity)
+        ok = bool(gt[i, place])
+        correct += ok
+        writer.writerow([i, int(keep[i]), place, f"{conf:.6g}", int(ok)])
+    elapsed = time.perf_counter() - t0
+    if args.out is not None:
+        write_text_atomic(args.out, buf.getvalue())
+    _print_protocol(bench.protocol(), args)
+    print(
+        f"{args.method}: {len(qry)} frames streamed, {correct / len(qry):.3f} correct "
+        f"(best place within tolerance), {1000 * elapsed / len(qry):.3f} ms/frame"
+    )
+    if args.out is not None:
+        print(f"wrote {args.out}")
+    return 0
+
+
 #: methods the demo runs by default, in table order
 DEMO_METHODS = ("pixels", "flyhash", "flynet", "seqslam", "flynet+seqslam", "flynet+cann")
 
@@ -404,6 +468,48 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="write the result as JSON (atomically)")
     _add_common_data_args(p)
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser(
+        "localize",
+        help="stream a query traverse frame by frame and write one CSV line per frame",
+        description=(
+            "Fit METHOD on the reference traverse, then feed the query frames one at a time to "
+            "the streaming localizer (constant time and memory per frame) and write frame, "
+            "place, confidence and correctness to CSV."
+        ),
+    )
+    _add_dataset_args(p)
+    p.add_argument(
+        "--method",
+        default="flynet+cann",
+        choices=list(METHODS),
+        metavar="METHOD",
+        help="method with an online filter (default flynet+cann)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="random_state (default 0)")
+    p.add_argument(
+        "--param",
+        type=_parse_param,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="constructor parameter of the front end or filter",
+    )
+    p.add_argument(
+        "--speed",
+        type=_parse_speed,
+        metavar="S",
+        help="simulate another robot speed: keep query frames at S places per frame "
+        "(e.g. 2) or a seeded random profile LOW-HIGH (e.g. 1-1.5)",
+    )
+    p.add_argument(
+        "--odometry",
+        action="store_true",
+        help="pass the true places moved per frame to the filter as velocity input",
+    )
+    p.add_argument("--out", type=Path, help="CSV file to write (atomically)")
+    _add_common_data_args(p)
+    p.set_defaults(func=cmd_localize)
 
     p = sub.add_parser("datasets", help="list dataset layouts and their options")
     p.set_defaults(func=cmd_datasets)
