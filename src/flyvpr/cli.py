@@ -202,9 +202,21 @@ def _dataset_kwargs(args) -> dict:
 # commands
 # ---------------------------------------------------------------------------
 def cmd_evaluate(args) -> int:
-    if args.method not in METHODS:
-        raise UsageError(f"--method: unknown method {args.method!r}")
-    front_params, filt_params = _split_params(args.method, args.param)
+    if args.load is not None:
+        if args.param:
+            raise UsageError("--param cannot change a model loaded with --load")
+        from .modelio import load_method
+
+        model = load_method(args.load, size=args.size)
+        if args.method is not None and args.method != model.name:
+            raise UsageError(f"--method {args.method} but {args.load} holds {model.name}")
+        args.method = model.name
+        front_params = filt_params = None
+    elif args.method is None:
+        raise UsageError("give --method METHOD (or --load MODEL.npz)")
+    else:
+        model = args.method
+        front_params, filt_params = _split_params(args.method, args.param)
     bench = load_benchmark(args.dataset, **_dataset_kwargs(args))
     cache = False if args.no_cache else (args.cache_dir or True)
     progress = False if args.quiet else None
@@ -213,7 +225,7 @@ def cmd_evaluate(args) -> int:
     qry = bench.query.load_images(size=args.size, cache=cache, progress=progress)
     load_s = time.perf_counter() - t0
     result = evaluate_method(
-        args.method,
+        model,
         ref,
         qry,
         bench.ground_truth,
@@ -247,6 +259,29 @@ def cmd_evaluate(args) -> int:
     if args.out is not None:
         write_json_atomic(args.out, out)
         print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_fit(args) -> int:
+    from .methods import make_method
+    from .modelio import save_method
+
+    front_params, filt_params = _split_params(args.method, args.param)
+    bench = load_benchmark(args.dataset, **_dataset_kwargs(args))
+    cache = False if args.no_cache else (args.cache_dir or True)
+    ref = bench.reference.load_images(
+        size=args.size, cache=cache, progress=False if args.quiet else None
+    )
+    t0 = time.perf_counter()
+    model = make_method(args.method, args.seed, front_params, filt_params).fit(ref)
+    fit_s = time.perf_counter() - t0
+    path = save_method(model, args.save, size=args.size)
+    acc = model.train_accuracy
+    print(
+        f"{args.method}: fitted on {len(ref)} reference places ({bench.reference.name}) in "
+        f"{fit_s:.2f} s" + (f", train accuracy {acc:.3f}" if acc is not None else "")
+    )
+    print(f"wrote {path} ({path.stat().st_size:,} bytes)")
     return 0
 
 
@@ -448,10 +483,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_dataset_args(p)
     p.add_argument(
         "--method",
-        required=True,
         choices=list(METHODS),
         metavar="METHOD",
-        help="one of: " + ", ".join(METHODS),
+        help="one of: " + ", ".join(METHODS) + " (required unless --load)",
     )
     p.add_argument(
         "--seed", type=int, default=0, help="random_state of every random part (default 0)"
@@ -466,8 +500,50 @@ def build_parser() -> argparse.ArgumentParser:
         "prefix with frontend. or filter. to disambiguate",
     )
     p.add_argument("--out", type=Path, help="write the result as JSON (atomically)")
+    p.add_argument(
+        "--load",
+        type=Path,
+        metavar="MODEL.npz",
+        help="use a model saved by `flyvpr fit --save` instead of fitting",
+    )
     _add_common_data_args(p)
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser(
+        "fit",
+        help="fit a method on a reference traverse and save it to a model file",
+        description=(
+            "Fit METHOD on the reference traverse of a dataset and save front end and filter to "
+            "an .npz model file (no pickle: loading it cannot run code). Use it with "
+            "`flyvpr evaluate --load MODEL.npz`."
+        ),
+    )
+    _add_dataset_args(p)
+    p.add_argument(
+        "--method",
+        required=True,
+        choices=list(METHODS),
+        metavar="METHOD",
+        help="one of: " + ", ".join(METHODS),
+    )
+    p.add_argument("--seed", type=int, default=0, help="random_state (default 0)")
+    p.add_argument(
+        "--param",
+        type=_parse_param,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="constructor parameter of the front end or filter",
+    )
+    p.add_argument(
+        "--save",
+        type=Path,
+        required=True,
+        metavar="MODEL.npz",
+        help="model file to write (atomically)",
+    )
+    _add_common_data_args(p)
+    p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser(
         "localize",

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import metrics
-from .methods import make_method
+from .methods import Method, make_method
 
 __all__ = ["evaluate_method", "RESULT_FIELDS"]
 
@@ -48,8 +48,9 @@ def evaluate_method(
 
     Parameters
     ----------
-    method : str
-        A name of :data:`flyvpr.methods.METHODS`.
+    method : str or Method
+        A name of :data:`flyvpr.methods.METHODS`, or a fitted :class:`Method` (then nothing
+        is trained and ``fit_s`` is 0).
     reference_images, query_images : ndarray, shape (n, H, W)
         Gray float32 images in [0, 1].
     ground_truth : ndarray of bool, shape (n_query, n_reference)
@@ -76,8 +77,18 @@ def evaluate_method(
             f"ground_truth must have shape (n_query, n_reference) = {(n_query, n_ref)}; "
             f"got {gt.shape}"
         )
-    model = make_method(method, seed, frontend_params, filter_params)
-    model.fit(reference_images)
+    if isinstance(method, Method):  # already fitted, e.g. loaded from a model file
+        model = method
+        if model.frontend.n_reference_ != n_ref:
+            raise ValueError(
+                f"the model knows {model.frontend.n_reference_} reference places; the "
+                f"reference traverse has {n_ref}"
+            )
+        model.timing_ = {"fit_s": 0.0}
+        method = model.name
+    else:
+        model = make_method(method, seed, frontend_params, filter_params)
+        model.fit(reference_images)
     S = model.score(query_images)
     scores = metrics.evaluate(S, gt)
     timing = {"load_s": load_s, **model.timing_}

@@ -12,6 +12,4 @@ from .pixels import PixelsEncoder
 __all__ = ["Encoder", "FlyHash", "FlyNet", "PixelsEncoder", "winner_take_all", "FRONTENDS"]
 
 #: name -> encoder class
-FRONTENDS: dict[str, type[Encoder]] = {
-    cls.name: cls for cls in (PixelsEncoder, FlyHash, FlyNet)
-}
+FRONTENDS: dict[str, type[Encoder]] = {cls.name: cls for cls in (PixelsEncoder, FlyHash, FlyNet)}

@@ -116,6 +116,27 @@ class Encoder:
         self._check_fitted()
         return self._footprint()
 
+    # -- saved state (see flyvpr.modelio) --------------------------------------
+    #: fitted attributes written to model files, besides the ones every encoder has
+    _state_names: tuple[str, ...] = ()
+
+    def _get_state(self) -> dict:
+        """Fitted attributes to save: arrays, scalars or nested encoders."""
+        self._check_fitted()
+        state = {
+            "image_shape_": tuple(self.image_shape_),
+            "n_reference_": self.n_reference_,
+            "train_accuracy_": self.train_accuracy_,
+        }
+        state.update({name: getattr(self, name) for name in self._state_names})
+        return state
+
+    def _set_state(self, state: dict) -> None:
+        """Restore what :meth:`_get_state` returned."""
+        for name, value in state.items():
+            setattr(self, name, value)
+        self.image_shape_ = tuple(self.image_shape_)
+
     # -- hooks ----------------------------------------------------------------
     def _check_fitted(self) -> None:
         if not hasattr(self, "n_reference_"):

@@ -181,6 +181,29 @@ class FlyHash(Encoder):
         overlap = codes.astype(np.float32) @ self.reference_codes_.T.astype(np.float32)
         return overlap / np.float32(self.n_active_)
 
+    # -- saved state: 1 bit per connection weight and per code bit --------------
+    _state_names = ("n_inputs_", "n_samples_", "n_active_")
+
+    def _get_state(self) -> dict:
+        state = super()._get_state()
+        state["connections_bits"] = self.packed_connections()
+        state["reference_codes_bits"] = np.packbits(self.reference_codes_, axis=1)
+        return state
+
+    def _set_state(self, state: dict) -> None:
+        state = dict(state)
+        bits = state.pop("connections_bits")
+        codes = state.pop("reference_codes_bits")
+        super()._set_state(state)
+        n_hidden = bits.shape[0]
+        dense = np.unpackbits(bits, axis=1, count=self.n_inputs_).astype(bool)
+        rows, cols = np.nonzero(dense)
+        if not np.all(np.bincount(rows, minlength=n_hidden) == self.n_samples_):
+            raise ValueError("saved FlyHash connections do not have n_samples_ inputs per unit")
+        self.connections_ = cols.reshape(n_hidden, self.n_samples_).astype(np.int32)
+        self.reference_codes_ = np.unpackbits(codes, axis=1, count=n_hidden).astype(bool)
+        self._prepare()
+
     # -- size -----------------------------------------------------------------
     def packed_connections(self) -> np.ndarray:
         """The binary matrix W (n_hidden x m) bit-packed row-wise: 1 bit per weight."""

@@ -103,6 +103,8 @@ class FlyNet(Encoder):
         self.train_accuracy_ = float(np.mean(pred == np.arange(n)))
         logger.info("FlyNet trained on %d places: train accuracy %.3f", n, self.train_accuracy_)
 
+    _state_names = ("hash_", "weights_", "loss_history_", "accuracy_history_")
+
     def _encode(self, images: np.ndarray) -> np.ndarray:
         return self.hash_._encode(images)
 

@@ -272,6 +272,8 @@ class PixelsEncoder(Encoder):
     def __init__(self, patch_size: int = 8):
         self.patch_size = patch_size
 
+    _state_names = ("reference_codes_",)
+
     def _fit(self, images: np.ndarray) -> None:
         self.reference_codes_ = self._encode(images)
 

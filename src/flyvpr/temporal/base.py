@@ -82,6 +82,20 @@ class TemporalFilter:
             )
         return out
 
+    #: fitted attributes written to model files (see flyvpr.modelio)
+    _state_names: tuple[str, ...] = ()
+
+    def _get_state(self) -> dict:
+        """Fitted attributes to save: arrays or scalars (online state is not saved)."""
+        return {name: getattr(self, name) for name in self._state_names if hasattr(self, name)}
+
+    def _set_state(self, state: dict) -> None:
+        """Restore what :meth:`_get_state` returned and start from a clean online state."""
+        for name, value in state.items():
+            setattr(self, name, value)
+        if hasattr(self, "reset"):
+            self.reset()
+
     def footprint(self, n_reference: int) -> dict:
         """Layers, parameters and neurons this filter adds on top of a front end."""
         return {"layers": 0, "params": 0, "neurons": 0}

@@ -1,0 +1,317 @@
+"""Speed benchmark: FlyNet+CANN and SeqSLAM on Nordland, and streaming over a whole railway line.
+
+Usage::
+
+    python benchmarks/speed.py --json out.json [--data ../shared/data] [--repeat 5]
+
+Measures in one run, each figure the median of ``--repeat`` repetitions (seconds unless named):
+
+* ``decode_s``: reading and pre-processing the 2000 PNGs (summer + winter, frames 0-999 of
+  ``nordland_64x32``) with the cache off;
+* ``flynet_fit_s``: training FlyNet on the 1000 summer places (paper settings, 200 epochs);
+* ``flynet_cann_query_s`` / ``flynet_cann_per_query_ms``: encoding the 1000 winter images already
+  in memory and running the CANN over them, to a best place and confidence per query;
+* ``seqslam_s``: the full SeqSLAM (patch normalisation, difference matrix, contrast enhancement,
+  sequence search, length 20) on the same 1000 x 1000, and ``seqslam_2400_s`` on all 2400 x 2400;
+* ``flyhash_images_per_s``: FlyHash encoding of 32x64 images already in memory, batch of 100,000;
+* ``stream_queries_per_s`` / ``stream_peak_rss_mb``: the streaming ``flynet+cann`` Localizer on a
+  35,768-place map, one frame at a time, over 5,000+ query frames; peak resident memory of the
+  whole process.  The map: the 2400 summer frames repeated 15 times (35,768 = 14 x 2400 + 2168),
+  each copy with its own small perturbation (gain 0.9-1.1, offset +-0.03, a shift of up to one
+  pixel, Gaussian noise sd 0.01), as a stand-in for the 35,768 frames of the full Nordland line.
+  FlyNet is trained on it with mini-batches of 512 for ``--stream-epochs`` epochs (full-batch
+  training over 35,768 classes would need a 35,768^2 logit matrix).  It runs in its own
+  process so the peak resident memory is that of the streaming job alone.  The queries are winter
+  frames in route order, wrapping around the 2400 available, with place indices that walk along
+  the map; the accuracy of that stream is printed for information.
+
+Also prints the machine, library versions, and the paper's timing table next to ours.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import resource
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import flyvpr
+from flyvpr._io import write_json_atomic
+from flyvpr.frontends import FlyHash, FlyNet, PixelsEncoder
+from flyvpr.images import list_images, load_images
+from flyvpr.localizer import Localizer
+from flyvpr.methods import Method
+from flyvpr.temporal import FILTERS
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_DATA = HERE.parent.parent / "shared" / "data"
+N_LINE = 35_768
+
+# Paper, Table "Processing time", Nordland 1000 queries x 1000 references.
+PAPER = {
+    "FlyNet+CANN": {"feature_s": 35.0, "matching_s": 25.0, "per_query_s": 0.06, "fps": 16.66},
+    "SeqSLAM": {"feature_s": 50.0, "matching_s": 40.0, "per_query_s": 0.09, "fps": 11.11},
+}
+
+
+def timed(fn, repeat):
+    times, out = [], None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def make_line_map(summer: np.ndarray, n_places: int, rng) -> np.ndarray:
+    """Repeat the real frames with per-copy perturbations up to ``n_places`` frames."""
+    reps = -(-n_places // len(summer))
+    out = np.empty((n_places, *summer.shape[1:]), dtype=np.float32)
+    for r in range(reps):
+        lo = r * len(summer)
+        hi = min(n_places, lo + len(summer))
+        block = summer[: hi - lo]
+        if r:
+            gain = rng.uniform(0.9, 1.1)
+            offset = rng.uniform(-0.03, 0.03)
+            dy, dx = rng.integers(-1, 2, size=2)
+            block = np.roll(block, (dy, dx), axis=(1, 2)) * gain + offset
+            block = block + rng.normal(0.0, 0.01, block.shape).astype(np.float32)
+        out[lo:hi] = np.clip(block, 0.0, 1.0)
+    return out
+
+
+def stream(data: Path, n_queries: int, epochs: int) -> dict:
+    """The 35,768-place streaming figures; run in a fresh process by ``main``."""
+    root = data / "nordland_64x32"
+    summer = load_images(list_images(root / "summer"), progress=False)
+    winter = load_images(list_images(root / "winter"), progress=False)
+    line = make_line_map(summer, N_LINE, np.random.default_rng(0))
+    del summer
+    t0 = time.perf_counter()
+    front = FlyNet(random_state=0, epochs=epochs, batch_size=512)
+    loc = Localizer(Method("flynet+cann", front, FILTERS["cann"]())).fit(line)
+    map_s = time.perf_counter() - t0
+    del line
+    src = np.arange(n_queries) % len(winter)
+    truth = np.arange(n_queries) % N_LINE
+    hits = 0
+    loc.update(winter[0])  # warm-up, then start the drive afresh
+    loc.reset()
+    t0 = time.perf_counter()
+    for i in range(n_queries):
+        place, _ = loc.update(winter[src[i]])
+        hits += abs(place - truth[i]) <= 20
+    stream_s = time.perf_counter() - t0
+    return {
+        "stream_queries_per_s": n_queries / stream_s,
+        "stream_per_query_ms": 1000 * stream_s / n_queries,
+        "stream_n_places": N_LINE,
+        "stream_n_queries": n_queries,
+        "stream_map_build_s": map_s,
+        "stream_within_20_share": hits / n_queries,
+        "stream_peak_rss_mb": peak_rss_mb(),
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    p.add_argument("--json", type=Path, help="write the figures as JSON (atomically)")
+    p.add_argument("--repeat", type=int, default=5, help="repetitions per figure (median)")
+    p.add_argument("--stream-queries", type=int, default=6000)
+    p.add_argument("--stream-epochs", type=int, default=10)
+    p.add_argument("--skip-stream", action="store_true", help="skip the 35,768-place stream")
+    p.add_argument("--stream-only", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.stream_only:
+        import json
+
+        print(json.dumps(stream(args.data, args.stream_queries, args.stream_epochs)))
+        return 0
+    root = args.data / "nordland_64x32"
+    if not root.is_dir():
+        print(f"data folder not found: {root}", file=sys.stderr)
+        return 1
+    summer_files = list_images(root / "summer")
+    winter_files = list_images(root / "winter")
+    rep = args.repeat
+    res: dict = {}
+
+    def log(msg):
+        print(msg, flush=True)
+
+    # -- decoding -----------------------------------------------------------
+    files = summer_files[:1000] + winter_files[:1000]
+    res["decode_s"], imgs = timed(lambda: load_images(files, cache=False, progress=False), rep)
+    ref, qry = imgs[:1000], imgs[1000:]
+    log(f"decode 2000 PNGs: {res['decode_s']:.3f} s")
+
+    # -- FlyNet + CANN --------------------------------------------------------
+    res["flynet_fit_s"], fn = timed(lambda: FlyNet(random_state=0).fit(ref), rep)
+    log(f"FlyNet fit (1000 places, 200 epochs): {res['flynet_fit_s']:.3f} s")
+    cann = FILTERS["cann"]()
+
+    def flynet_cann():
+        codes = fn.encode(qry)
+        S = cann.filter(fn.score_codes(codes))
+        best = S.argmax(axis=1)
+        return best, S[np.arange(len(best)), best]
+
+    def encode_only():
+        return fn.encode(qry)
+
+    res["flynet_cann_query_s"], _ = timed(flynet_cann, rep)
+    res["flynet_cann_per_query_ms"] = 1000 * res["flynet_cann_query_s"] / len(qry)
+    enc_s, _ = timed(encode_only, rep)
+    log(
+        f"FlyNet+CANN on 1000 queries: {res['flynet_cann_query_s']:.4f} s "
+        f"({res['flynet_cann_per_query_ms']:.4f} ms/query); ratio to decode "
+        f"{res['flynet_cann_query_s'] / res['decode_s']:.3f}"
+    )
+
+    # -- SeqSLAM --------------------------------------------------------------
+    def seqslam(r, q):
+        S = PixelsEncoder().fit(r).score(q)
+        return FILTERS["seqslam"]().filter(S)
+
+    seqslam(ref[:50], qry[:50])  # compile the numba kernel outside the timing
+    res["seqslam_s"], _ = timed(lambda: seqslam(ref, qry), rep)
+    all_s = load_images(summer_files, progress=False)
+    all_w = load_images(winter_files, progress=False)
+    res["seqslam_2400_s"], _ = timed(lambda: seqslam(all_s, all_w), rep)
+    pix_s, _ = timed(lambda: PixelsEncoder().fit(ref).encode(qry), rep)
+    log(f"SeqSLAM 1000x1000: {res['seqslam_s']:.3f} s; 2400x2400: {res['seqslam_2400_s']:.3f} s")
+
+    # -- FlyHash throughput ---------------------------------------------------
+    big = np.resize(all_s, (100_000, *all_s.shape[1:]))
+    fh = FlyHash(random_state=0).fit(all_s[:10])
+    t_fh, _ = timed(lambda: fh.encode(big), max(1, rep // 2))
+    res["flyhash_images_per_s"] = len(big) / t_fh
+    log(f"FlyHash: {res['flyhash_images_per_s']:,.0f} images/s (batch of {len(big):,})")
+
+    # -- streaming over a whole line (own process, so its peak memory is its own) ----
+    if not args.skip_stream:
+        import json
+        import subprocess
+
+        cmd = [
+            sys.executable,
+            __file__,
+            "--stream-only",
+            "--data",
+            str(args.data),
+            "--stream-queries",
+            str(args.stream_queries),
+            "--stream-epochs",
+            str(args.stream_epochs),
+        ]
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+        res.update(json.loads(out.stdout.strip().splitlines()[-1]))
+        log(
+            f"stream: {res['stream_queries_per_s']:,.0f} queries/s over {N_LINE:,} places "
+            f"({res['stream_per_query_ms']:.3f} ms/query; map built in "
+            f"{res['stream_map_build_s']:.1f} s; peak RSS {res['stream_peak_rss_mb']:.0f} MB)"
+        )
+
+    # -- context --------------------------------------------------------------
+    import numba
+    import scipy
+
+    res["machine"] = {
+        "cpu": cpu_model(),
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "numba": numba.__version__,
+        "flyvpr": flyvpr.__version__,
+    }
+    half_decode = res["decode_s"] / 2
+    ours = {
+        "FlyNet+CANN": (half_decode + enc_s, res["flynet_cann_query_s"] - enc_s),
+        "SeqSLAM": (half_decode + pix_s, res["seqslam_s"] - pix_s),
+    }
+    res["timing_table"] = {
+        k: {"feature_s": f, "matching_s": m, "per_query_s": (f + m) / 1000, "fps": 1000 / (f + m)}
+        for k, (f, m) in ours.items()
+    }
+    res["targets"] = {
+        "flynet_cann_query_s <= 0.25 decode_s": res["flynet_cann_query_s"]
+        <= 0.25 * res["decode_s"],
+        "seqslam_s <= 0.5": res["seqslam_s"] <= 0.5,
+        "flynet_fit_s <= 2": res["flynet_fit_s"] <= 2.0,
+        "seqslam_2400_s <= 3": res["seqslam_2400_s"] <= 3.0,
+        "flyhash_images_per_s >= 100000": res["flyhash_images_per_s"] >= 100_000,
+    }
+    if "stream_queries_per_s" in res:
+        res["targets"]["stream_queries_per_s >= 2000"] = res["stream_queries_per_s"] >= 2000
+        res["targets"]["stream_peak_rss_mb <= 1000"] = res["stream_peak_rss_mb"] <= 1000
+
+    print()
+    print(
+        f"machine: {res['machine']['cpu']}, {res['machine']['cores']} cores; numpy "
+        f"{np.__version__}, scipy {scipy.__version__}, numba {numba.__version__}"
+    )
+    print(f"{'figure':30s} {'value':>14s}")
+    for key in (
+        "decode_s",
+        "flynet_fit_s",
+        "flynet_cann_query_s",
+        "flynet_cann_per_query_ms",
+        "seqslam_s",
+        "seqslam_2400_s",
+        "flyhash_images_per_s",
+        "stream_queries_per_s",
+        "stream_per_query_ms",
+        "stream_peak_rss_mb",
+    ):
+        if key in res:
+            print(f"{key:30s} {res[key]:14.4f}")
+    print("\nPaper's timing table form (Nordland, 1000 queries x 1000 references):")
+    print(f"{'system':22s} {'feature ext.':>13s} {'matching':>10s} {'per query':>11s} {'fps':>9s}")
+    for name, row in res["timing_table"].items():
+        paper = PAPER[name]
+        print(
+            f"{name + ' (flyvpr)':22s} {row['feature_s']:12.3f}s {row['matching_s']:9.3f}s "
+            f"{row['per_query_s'] * 1000:9.3f}ms {row['fps']:9.0f}"
+        )
+        print(
+            f"{name + ' (paper)':22s} {paper['feature_s']:12.1f}s {paper['matching_s']:9.1f}s "
+            f"{paper['per_query_s'] * 1000:9.0f}ms {paper['fps']:9.2f}"
+        )
+    print(
+        "(flyvpr feature extraction = decoding the 1000 query PNGs + encoding them; matching = "
+        "scoring + temporal filter)"
+    )
+    print("\ntargets:")
+    for k, ok in res["targets"].items():
+        print(f"  {'ok  ' if ok else 'MISS'} {k}")
+    if args.json:
+        write_json_atomic(args.json, res)
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

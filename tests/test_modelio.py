@@ -1,0 +1,135 @@
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+from flyvpr.cli import main
+from flyvpr.methods import METHODS, make_method, method_names
+from flyvpr.modelio import FORMAT_VERSION, load_method, save_method
+
+CORE = [m for m in method_names(available_only=True) if not METHODS[m].extras]
+
+
+@pytest.fixture(scope="module")
+def data():
+    rng = np.random.default_rng(0)
+    ref = rng.random((40, 32, 64), dtype=np.float32)
+    qry = np.clip(ref + rng.normal(0, 0.1, ref.shape).astype(np.float32), 0, 1)
+    return ref, qry
+
+
+@pytest.mark.parametrize("name", CORE)
+def test_roundtrip_is_exact(tmp_path, data, name):
+    ref, qry = data
+    params = {"epochs": 5} if METHODS[name].frontend == "flynet" else None
+    model = make_method(name, 0, frontend_params=params).fit(ref)
+    S = model.score(qry)
+    path = save_method(model, tmp_path / "m.npz")
+    again = load_method(path)
+    assert again.name == name
+    np.testing.assert_array_equal(again.score(qry), S)
+    assert again.footprint() == model.footprint()
+
+
+def _rewrite(path, mutate):
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    mutate(arrays)
+    np.savez(path, **arrays)
+
+
+def test_tampered_weights_refused(tmp_path, data):
+    path = save_method(make_method("flynet", 0, {"epochs": 3}).fit(data[0]), tmp_path / "m.npz")
+
+    def flip(arrays):
+        arrays["frontend/weights_"] = arrays["frontend/weights_"] + np.float32(0.5)
+
+    _rewrite(path, flip)
+    with pytest.raises(ValueError, match="checksum"):
+        load_method(path)
+
+
+def _meta_edit(path, edit):
+    def mutate(arrays):
+        meta = json.loads(arrays["__meta__"].tobytes())
+        edit(meta)
+        arrays["__meta__"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+
+    _rewrite(path, mutate)
+
+
+def test_wrong_format_version_refused(tmp_path, data):
+    path = save_method(make_method("flyhash", 0).fit(data[0]), tmp_path / "m.npz")
+    _meta_edit(path, lambda m: m.update(format_version=FORMAT_VERSION + 1))
+    with pytest.raises(ValueError, match="format version"):
+        load_method(path)
+
+
+def test_other_image_size_refused(tmp_path, data):
+    path = save_method(make_method("flyhash", 0).fit(data[0]), tmp_path / "m.npz")
+    with pytest.raises(ValueError, match="32x64"):
+        load_method(path, size=(16, 32))
+
+
+def test_not_a_model_file(tmp_path):
+    p = tmp_path / "x.npz"
+    np.savez(p, a=np.zeros(3))
+    with pytest.raises(ValueError, match="not a flyvpr model|no flyvpr metadata"):
+        load_method(p)
+    q = tmp_path / "y.npz"
+    q.write_bytes(b"garbage")
+    with pytest.raises(ValueError, match="not a readable"):
+        load_method(q)
+    with pytest.raises(FileNotFoundError, match="missing.npz"):
+        load_method(tmp_path / "missing.npz")
+
+
+def test_pickled_arrays_are_never_loaded(tmp_path, data):
+    path = save_method(make_method("flyhash", 0).fit(data[0]), tmp_path / "m.npz")
+
+    def add_object(arrays):
+        arrays["frontend/evil"] = np.array([{"x": 1}], dtype=object)
+
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    add_object(arrays)
+    np.savez(path, **arrays)  # np.savez pickles object arrays
+    with pytest.raises(ValueError):
+        load_method(path)
+
+
+def test_flyhash_connections_are_bit_packed_on_disk(tmp_path, data):
+    path = save_method(make_method("flyhash", 0).fit(data[0]), tmp_path / "m.npz")
+    with zipfile.ZipFile(path) as z:
+        sizes = {i.filename: i.file_size for i in z.infolist()}
+    assert sizes["frontend/connections_bits.npy"] < 64 * 2048 // 8 + 200
+
+
+def test_cli_fit_save_load(tmp_path):
+    from flyvpr.synthetic import make_route, save_route
+
+    root = tmp_path / "route"
+    save_route(make_route(n_places=40, random_state=0), root)
+    model = tmp_path / "m.npz"
+    common = [
+        "--dataset",
+        "nordland",
+        "--root",
+        str(root),
+        "--reference",
+        "summer",
+        "--quiet",
+        "--no-cache",
+    ]
+    assert (
+        main(["fit", *common, "--method", "flynet", "--param", "epochs=5", "--save", str(model)])
+        == 0
+    )
+    out1, out2 = tmp_path / "a.json", tmp_path / "b.json"
+    ev = ["evaluate", *common, "--query", "winter", "--tolerance", "2"]
+    assert main([*ev, "--load", str(model), "--out", str(out1)]) == 0
+    assert main([*ev, "--method", "flynet", "--param", "epochs=5", "--out", str(out2)]) == 0
+    a, b = json.loads(out1.read_text()), json.loads(out2.read_text())
+    assert a["auc"] == b["auc"] and a["precision"] == b["precision"]
+    assert main([*ev, "--load", str(model), "--size", "16x32"]) == 1
