@@ -17,7 +17,7 @@ $(VENV)/.core: pyproject.toml | $(BIN)/python
 	touch $@
 
 $(VENV)/.test: pyproject.toml | $(BIN)/python
-	$(PIP) -e ".[test,torch]"
+	$(PIP) -e ".[test,torch,netvlad,plot]"
 	touch $@ $(VENV)/.core
 
 demo: $(VENV)/.core

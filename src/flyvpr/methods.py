@@ -42,13 +42,28 @@ class MethodSpec:
             text += " + " + (filt.__doc__ or filt.__name__).strip().splitlines()[0]
         return text
 
+    def _parts(self):
+        yield FRONTENDS[self.frontend]
+        if self.filter is not None:
+            yield FILTERS[self.filter]
+
+    @property
+    def requires(self) -> tuple[str, ...]:
+        """Importable modules the method needs beyond the core install."""
+        return tuple(sorted({m for part in self._parts() for m in getattr(part, "requires", ())}))
+
     @property
     def extras(self) -> tuple[str, ...]:
-        """pip extras the method needs beyond the core install."""
-        needs = set(getattr(FRONTENDS[self.frontend], "requires", ()))
-        if self.filter is not None:
-            needs |= set(getattr(FILTERS[self.filter], "requires", ()))
-        return tuple(sorted(needs))
+        """pip extras (``pip install 'flyvpr[EXTRA]'``) that provide :attr:`requires`."""
+        return tuple(
+            sorted(
+                {
+                    getattr(part, "extra", "torch")
+                    for part in self._parts()
+                    if getattr(part, "requires", ())
+                }
+            )
+        )
 
 
 def _build_registry() -> dict[str, MethodSpec]:
@@ -71,14 +86,14 @@ def method_names(available_only: bool = False) -> list[str]:
     """All method names; with ``available_only`` those whose extras are importable."""
     names = list(METHODS)
     if available_only:
-        names = [n for n in names if _extras_available(METHODS[n].extras)]
+        names = [n for n in names if _modules_available(METHODS[n].requires)]
     return names
 
 
-def _extras_available(extras) -> bool:
+def _modules_available(modules) -> bool:
     import importlib.util
 
-    return all(importlib.util.find_spec(mod) is not None for mod in extras)
+    return all(importlib.util.find_spec(mod) is not None for mod in modules)
 
 
 def make_method(name: str, random_state=None, frontend_params=None, filter_params=None) -> Method:
