@@ -4,9 +4,11 @@
 """
 
 from .base import OnlineFilter, TemporalFilter
+from .cann import CANN
+from .rnn import RNNFilter
 from .seqslam import SeqSLAM
 
-__all__ = ["TemporalFilter", "OnlineFilter", "SeqSLAM", "FILTERS"]
+__all__ = ["TemporalFilter", "OnlineFilter", "SeqSLAM", "CANN", "RNNFilter", "FILTERS"]
 
 #: name -> filter class
-FILTERS: dict[str, type[TemporalFilter]] = {cls.name: cls for cls in (SeqSLAM,)}
+FILTERS: dict[str, type[TemporalFilter]] = {cls.name: cls for cls in (SeqSLAM, CANN, RNNFilter)}

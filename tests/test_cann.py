@@ -1,0 +1,400 @@
+"""The CANN temporal filter: attractor properties, online contract, movement, errors."""
+
+import numpy as np
+import pytest
+
+from flyvpr.temporal.cann import CANN, excitation_kernel
+
+N_PLACES = 300
+
+
+def _rates(u, threshold=1.0):
+    return np.clip(u - threshold, 0.0, 1.0)
+
+
+def _scores(path, n=N_PLACES, amp=3.0, seed=0):
+    """Noise rows with a bump of ``amp`` standard deviations at ``path[t]`` (None: no bump)."""
+    rng = np.random.default_rng(seed)
+    S = rng.normal(size=(len(path), n))
+    for t, place in enumerate(path):
+        if place is not None:
+            S[t, place] += amp
+    return S
+
+
+def _locked(cann, start=20, frames=40, seed=0):
+    """A CANN whose packet sits at ``start + frames - 1`` after ``frames`` supported frames."""
+    S = _scores([start + t for t in range(frames)], seed=seed)
+    for row in S:
+        out = cann.step(row)
+    assert out.argmax() == start + frames - 1
+    return out
+
+
+def _silent(n=N_PLACES):
+    return np.zeros(n)  # a constant row: no input current
+
+
+# -- attractor properties ------------------------------------------------------
+def test_packet_persists_without_input():
+    cann = CANN(movement=1.0)
+    cann.reset()
+    _locked(cann, start=20, frames=40)  # packet at 59
+    for t in range(200):
+        out = cann.step(_silent())
+        r = _rates(out)
+        # One packet of a few units, fully active, exactly where the shift put it.
+        assert out.argmax() == 60 + t or (
+            abs(int(out.argmax()) - (60 + t)) <= 1 and r[60 + t] == 1.0
+        )
+        assert 1 <= np.count_nonzero(r) <= 5
+    assert r.max() == 1.0
+    assert np.flatnonzero(r).min() >= 258 and np.flatnonzero(r).max() <= 260
+
+
+@pytest.mark.parametrize("movement", [0.0, 1.0, 2.0, 0.5, 1.25])
+def test_packet_moves_by_the_shift_without_input(movement):
+    # Adaptation off: at movement 0 the input stays on one place, which would adapt away.
+    cann = CANN(movement=movement, adaptation=None)
+    cann.reset()
+    # Form the packet with input that moves as the packet will.
+    pos = 30.0
+    path = []
+    for _ in range(40):
+        path.append(int(round(pos)))
+        pos += movement
+    S = _scores(path)
+    for row in S:
+        cann.step(row)
+    centre = lambda out: float(np.average(np.arange(N_PLACES), weights=_rates(out)))  # noqa: E731
+    before = centre(cann.step(_silent()))
+    frames = 80
+    for _ in range(frames - 1):
+        out = cann.step(_silent())
+    moved = centre(out) - before
+    assert abs(moved - movement * (frames - 1)) <= 1.0
+    assert np.count_nonzero(_rates(out)) <= 5
+
+
+def test_single_spurious_frame_does_not_move_the_packet():
+    cann = CANN(movement=1.0)
+    cann.reset()
+    _locked(cann, start=20, frames=40)  # packet at 59
+    # One frame with a very strong, sharp input 100 places ahead, then the true input again.
+    spurious = np.zeros(N_PLACES)
+    spurious[160] = 1.0
+    out = cann.step(spurious)
+    assert out.argmax() == 60
+    assert np.count_nonzero(_rates(out)[100:]) == 0  # it ignites nothing
+    S = _scores([61 + t for t in range(30)], seed=1)
+    for t, row in enumerate(S):
+        out = cann.step(row)
+        assert out.argmax() == 61 + t
+        # nothing fires where the spurious frame pointed (it moves on with the shift)
+        assert np.count_nonzero(_rates(out)[158 + t : 165 + t]) == 0
+
+
+def test_spurious_frames_without_support_do_not_move_a_silent_packet():
+    # Even with no input at the packet, isolated strong frames elsewhere (never twice at the
+    # same moving place) are not enough: the attractor holds.
+    cann = CANN(movement=1.0)
+    cann.reset()
+    _locked(cann, start=20, frames=40)
+    rng = np.random.default_rng(5)
+    for t in range(60):
+        row = np.zeros(N_PLACES)
+        row[rng.integers(120, N_PLACES)] = 1.0
+        out = cann.step(row)
+        assert abs(int(out.argmax()) - (60 + t)) <= 1
+
+
+def test_consistent_input_elsewhere_captures_the_packet():
+    """Kidnapped robot: from frame 60 the input says the robot is 150 places further on."""
+    path = [20 + t for t in range(60)] + [230 + t for t in range(60)]
+    S = _scores(path, n=N_PLACES + 100, amp=3.0, seed=2)
+    out = CANN(movement=1.0).filter(S)
+    peak = out.argmax(axis=1)
+    assert np.all(peak[30:60] == np.arange(50, 80))  # locked before the jump
+    on_new = np.abs(peak - np.array(path)) <= 1
+    first = int(np.argmax(on_new[60:]))
+    assert first <= 20
+    assert on_new[60 + first :].all()  # and it stays there
+    rates = _rates(out[-1])
+    assert np.count_nonzero(rates[:200]) == 0  # the old packet is gone
+
+
+def test_weak_noisy_input_is_integrated_over_frames():
+    # A true-place boost of one noise standard deviation is invisible frame by frame but
+    # the packet finds and follows it.
+    path = [10 + t for t in range(250)]
+    S = _scores(path, amp=1.0, seed=3)
+    single = np.mean(np.abs(S.argmax(axis=1) - np.array(path)) <= 1)
+    out = CANN(movement=1.0).filter(S)
+    tracked = np.abs(out.argmax(axis=1) - np.array(path)) <= 1
+    assert single < 0.3
+    assert tracked[100:].mean() > 0.95
+
+
+# -- movement: odometry and estimate ------------------------------------------
+def test_velocity_input_overrides_movement():
+    cann = CANN(movement=1.0)
+    cann.reset()
+    _locked(cann, start=20, frames=40)  # packet at 59, about to move 1 per frame
+    # fractional movements accumulate: 2.5 + 2.5 moves 3 then 2 places (halves round up)
+    for v, expected in [(3.0, 62), (0.0, 62), (2.5, 65), (2.5, 67), (-4.0, 63)]:
+        out = cann.step(_silent(), velocity=v)
+        assert out.argmax() == expected
+        assert cann.velocity_ == v
+
+
+def test_filter_velocity_matches_steps():
+    S = _scores([20 + 2 * t for t in range(50)], seed=4)
+    vel = np.full(50, 2.0)
+    cann = CANN()
+    out = cann.filter(S, velocity=vel)
+    cann.reset()
+    rows = np.stack([cann.step(row, velocity=2.0) for row in S])
+    np.testing.assert_allclose(out, rows, rtol=1e-6, atol=1e-6)
+    assert np.all(out.argmax(axis=1)[25:] == np.arange(70, 120, 2))
+
+
+@pytest.mark.parametrize("speed", [1.0, 1.5, 2.0])
+def test_speed_estimate_converges(speed):
+    n = 500
+    path = [int(round(10 + speed * t)) for t in range(int(400 / speed))]
+    S = _scores(path, n=n, amp=2.0, seed=6)
+    cann = CANN(movement="estimate")
+    cann.reset()
+    estimates = []
+    for row in S:
+        out = cann.step(row)
+        estimates.append(cann.velocity_)
+    estimates = np.array(estimates)
+    assert np.all(estimates[-50:] == speed)
+    assert abs(int(out.argmax()) - path[-1]) <= 1
+
+
+def test_estimate_starts_at_the_candidate_nearest_one():
+    cann = CANN(velocities=(0.5, 0.9, 3.0))
+    cann.step(_silent())
+    assert cann.velocity_ == 0.9
+
+
+# -- the online contract -------------------------------------------------------
+def test_filter_shape_dtype_and_input_untouched():
+    S = _scores([5 + t for t in range(30)]).astype(np.float32)
+    original = S.copy()
+    out = CANN().filter(S)
+    assert out.shape == S.shape and out.dtype == np.float32
+    np.testing.assert_array_equal(S, original)
+    out64 = CANN().filter(S.astype(np.float64))
+    assert out64.dtype == np.float64
+    np.testing.assert_allclose(out64, out, rtol=1e-5, atol=1e-5)
+
+
+def test_step_returns_a_fresh_row_and_leaves_input_alone():
+    cann = CANN()
+    row = _scores([3])[0]
+    original = row.copy()
+    out = cann.step(row)
+    assert out.shape == row.shape and out.dtype == np.float32
+    np.testing.assert_array_equal(row, original)
+    out[:] = 1e9  # the caller's copy, not the state
+    assert cann.step(row).max() < 1e9
+
+
+@pytest.mark.parametrize("movement", [1.0, "estimate"])
+def test_step_matches_filter_and_reset_restarts(movement):
+    S = _scores([5 + t for t in range(60)], seed=7)
+    cann = CANN(movement=movement)
+    out = cann.filter(S)
+    cann.reset()
+    rows = np.stack([cann.step(row) for row in S])
+    np.testing.assert_array_equal(rows, out.astype(np.float32))
+    cann.reset()
+    again = np.stack([cann.step(row) for row in S])
+    np.testing.assert_array_equal(again, rows)
+    # step without an explicit reset starts fresh as well
+    fresh = CANN(movement=movement)
+    np.testing.assert_array_equal(fresh.step(S[0]), rows[0])
+
+
+def test_no_state_grows_with_history():
+    rng = np.random.default_rng(8)
+    cann = CANN()
+    cann.reset()
+
+    def state_size():
+        size = 0
+        for value in vars(cann).values():
+            if isinstance(value, np.ndarray):
+                size += value.size
+            elif isinstance(value, (list, tuple, dict, set)):
+                size += len(value)
+        return size
+
+    for _ in range(10):
+        cann.step(rng.normal(size=200))
+    after_10 = state_size()
+    for _ in range(500):
+        cann.step(rng.normal(size=200))
+    assert state_size() == after_10
+    assert cann.n_frames_ == 510
+
+
+def test_row_length_must_stay_the_same():
+    cann = CANN()
+    cann.step(np.arange(10.0))
+    with pytest.raises(ValueError, match=r"scores_row must have shape \(10,\)"):
+        cann.step(np.arange(11.0))
+    cann.reset()
+    cann.step(np.arange(11.0))  # fine after reset
+
+
+def test_probability_rows_are_read_as_logits():
+    rng = np.random.default_rng(9)
+    logits = rng.normal(size=(40, 80))
+    logits[np.arange(40), 10 + np.arange(40)] += 2.0
+    probs = np.exp(logits) / np.exp(logits).sum(axis=1, keepdims=True)
+    auto = CANN(input_transform="auto").filter(probs)
+    log = CANN(input_transform="log").filter(probs)
+    np.testing.assert_array_equal(auto, log)
+    # a z-score ignores the softmax's constant: the logits themselves give the same input
+    np.testing.assert_allclose(CANN(input_transform="linear").filter(logits), log, atol=1e-4)
+    # other rows are used as they are
+    scores = logits + 5.0
+    np.testing.assert_array_equal(
+        CANN().filter(scores), CANN(input_transform="linear").filter(scores)
+    )
+
+
+def test_log_transform_needs_non_negative_scores():
+    with pytest.raises(ValueError, match="non-negative.*input_transform='log'"):
+        CANN(input_transform="log").step(np.array([0.5, -0.1, 0.6]))
+
+
+def test_constant_rows_inject_nothing():
+    assert np.all(CANN().filter(np.ones((20, 50))) < 1.0)  # nothing fires
+    # Without movement (no units entering at the end), every unit sees the same tonic
+    # inhibition and nothing else: no place is preferred.
+    out = CANN(movement=0.0).filter(np.full((20, 50), 3.0))
+    np.testing.assert_array_equal(out, np.broadcast_to(out[:, :1], out.shape))
+
+
+def test_without_adaptation():
+    S = _scores([5 + t for t in range(60)], seed=10)
+    out = CANN(adaptation=None, movement=1.0).filter(S)
+    assert np.all(out.argmax(axis=1)[30:] == np.arange(35, 65))
+
+
+# -- parameters, footprint -----------------------------------------------------
+@pytest.mark.parametrize(
+    ("params", "error", "match"),
+    [
+        ({"excitation_strength": 0}, ValueError, "excitation_strength must be > 0"),
+        ({"excitation_width": -1.0}, ValueError, "excitation_width must be > 0"),
+        ({"inhibition": -0.5}, ValueError, "inhibition must be >= 0"),
+        ({"threshold": float("nan")}, ValueError, "threshold must be finite"),
+        ({"time_constant": 0.0}, ValueError, "time_constant must be > 0"),
+        ({"synaptic_time_constant": "20"}, TypeError, "synaptic_time_constant must be a number"),
+        ({"input_gain": -1}, ValueError, "input_gain must be >= 0"),
+        ({"n_steps": 0}, ValueError, "n_steps must be >= 1"),
+        ({"n_steps": 2.5}, TypeError, "n_steps must be an int"),
+        ({"n_steps": 1, "time_constant": 0.5}, ValueError, "n_steps \\* time_constant"),
+        ({"movement": "fast"}, ValueError, "movement must be a number or 'estimate'"),
+        ({"movement": float("inf")}, ValueError, "movement must be finite"),
+        ({"velocities": ()}, ValueError, "velocities must be a non-empty"),
+        ({"velocities": (1.0, 1.0)}, ValueError, "velocities must not repeat"),
+        ({"velocities": (1.0, np.nan)}, ValueError, "velocities must be finite"),
+        ({"velocities": ("a", "b")}, TypeError, "velocities must be a sequence of numbers"),
+        ({"velocity_memory": 0}, ValueError, "velocity_memory must be > 0"),
+        ({"velocity_contrast": -1.0}, ValueError, "velocity_contrast must be >= 0"),
+        ({"tonic_inhibition": -1.0}, ValueError, "tonic_inhibition must be >= 0"),
+        ({"input_clip": 0.0}, ValueError, "input_clip must be > 0"),
+        ({"adaptation": 0}, ValueError, "adaptation must be > 0"),
+        ({"input_transform": "rank"}, ValueError, "input_transform must be one of"),
+    ],
+)
+def test_invalid_parameters(params, error, match):
+    cann = CANN(**params)
+    with pytest.raises(error, match=match):
+        cann.filter(np.ones((3, 5)))
+    with pytest.raises(error, match=match):
+        CANN(**params).step(np.ones(5))
+
+
+def test_invalid_inputs():
+    cann = CANN()
+    with pytest.raises(ValueError, match="shape"):
+        cann.step(np.ones((2, 5)))
+    with pytest.raises(ValueError, match="NaN"):
+        cann.step(np.array([1.0, np.nan]))
+    with pytest.raises(TypeError, match="velocity must be a number"):
+        cann.step(np.ones(5), velocity="1")
+    with pytest.raises(ValueError, match="velocity must be finite"):
+        cann.step(np.ones(5), velocity=np.inf)
+    with pytest.raises(ValueError, match=r"velocity must have shape \(3,\)"):
+        cann.filter(np.ones((3, 5)), velocity=np.ones(4))
+    with pytest.raises(ValueError, match=r"velocity must have shape \(3,\)"):
+        cann.filter(np.ones((3, 5)), velocity=np.ones((3, 1)))
+    with pytest.raises(ValueError, match="velocity contains NaN"):
+        cann.filter(np.ones((3, 5)), velocity=[1.0, np.nan, 1.0])
+    with pytest.raises(TypeError, match="velocity must be a numeric array"):
+        cann.filter(np.ones((3, 5)), velocity=["a", "b", "c"])
+
+
+def test_set_params_and_repr():
+    cann = CANN().set_params(inhibition=2.5, movement=1.0)
+    assert cann.get_params()["inhibition"] == 2.5
+    assert "movement=1.0" in repr(cann)
+    with pytest.raises(ValueError, match="invalid parameter"):
+        cann.set_params(tau=3)
+
+
+def test_kernel_is_a_gaussian_of_the_distance():
+    k = excitation_kernel(3.5, 1.0)
+    assert k.shape == (7,) and k.dtype == np.float32
+    np.testing.assert_allclose(k[3], 3.5 / np.sqrt(2 * np.pi), rtol=1e-6)
+    np.testing.assert_allclose(k, k[::-1])
+    assert abs(k.sum() - 3.5) < 0.01
+    assert excitation_kernel(1.0, 0.2).shape == (3,)  # at least the nearest neighbours
+
+
+def test_footprint():
+    fp = CANN(movement=1.0).footprint(1000)
+    assert fp["layers"] == 1
+    assert fp["neurons"] == 1001  # place units + the inhibitor
+    assert fp["params"] == (7 * 1000 - 2 * (1 + 2 + 3)) + 2 * 1000
+    assert fp["distinct_weights"] == 4 + 2  # symmetric kernel taps + inhibitor in/out
+    assert fp["state_variables"] == 2 * 1000 + 1
+    # the velocity bank: one evidence trace per candidate velocity and place
+    assert CANN().footprint(1000)["state_variables"] == (2 + 11) * 1000 + 1
+    with pytest.raises(ValueError, match="n_reference must be >= 1"):
+        CANN().footprint(0)
+
+
+def test_tiny_routes():
+    # Packets wider than the route, routes of one place: nothing breaks.
+    for n in (1, 2, 4):
+        out = CANN().filter(np.random.default_rng(n).random((12, n)))
+        assert out.shape == (12, n) and np.isfinite(out).all()
+
+
+# -- real data -----------------------------------------------------------------
+@pytest.mark.slow
+def test_flynet_cann_on_nordland(nordland_64x32):
+    """FlyNet + CANN on Nordland summer -> winter, frames 1000-1399, tolerance 20 frames."""
+    from flyvpr.frontends.flynet import FlyNet
+    from flyvpr.images import list_images, load_images
+    from flyvpr.metrics import pr_auc
+
+    window = slice(1000, 1400)
+    summer = load_images(list_images(nordland_64x32 / "summer")[window], cache=False)
+    winter = load_images(list_images(nordland_64x32 / "winter")[window], cache=False)
+    S = FlyNet(random_state=0).fit(summer).score(winter)
+    n = S.shape[0]
+    gt = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :]) <= 20
+    single = pr_auc(S, gt)
+    filtered = pr_auc(CANN().filter(S), gt)
+    assert single < 0.2
+    assert filtered > 0.8
