@@ -398,3 +398,40 @@ def test_flynet_cann_on_nordland(nordland_64x32):
     filtered = pr_auc(CANN().filter(S), gt)
     assert single < 0.2
     assert filtered > 0.8
+
+
+# -- compiled path -------------------------------------------------------------
+@pytest.mark.parametrize(
+    "params",
+    [
+        {},
+        {"movement": 1.0},
+        {"movement": 1.37, "adaptation": None, "input_clip": None},
+        {"input_transform": "linear", "n_steps": 2, "excitation_width": 2.0},
+        {"threshold": -0.5, "movement": -1.0},
+    ],
+)
+@pytest.mark.parametrize("kind", ["normal", "probability"])
+def test_compiled_path_matches_numpy_path(monkeypatch, params, kind):
+    import flyvpr.temporal.cann as cann_module
+
+    if cann_module._get_kernels() is None:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(11)
+    S = _scores([30 + t for t in range(80)], n=500, seed=3)
+    S[40:43] = 0.25  # constant rows
+    if kind == "probability":
+        S = np.exp(S)
+        S /= S.sum(axis=1, keepdims=True)
+    velocity = np.where(rng.random(80) < 0.2, rng.uniform(0.5, 2.0, 80), np.nan)
+    compiled = CANN(**params)
+    fast = [
+        compiled.step(row, None if np.isnan(v) else v) for row, v in zip(S, velocity, strict=True)
+    ]
+    monkeypatch.setattr(cann_module, "_kernels", False)  # the numpy path
+    reference = CANN(**params)
+    slow = [
+        reference.step(row, None if np.isnan(v) else v) for row, v in zip(S, velocity, strict=True)
+    ]
+    np.testing.assert_allclose(np.stack(fast), np.stack(slow), rtol=1e-4, atol=1e-4)
+    assert compiled.velocity_ == reference.velocity_
