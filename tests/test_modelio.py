@@ -133,3 +133,27 @@ def test_cli_fit_save_load(tmp_path):
     a, b = json.loads(out1.read_text()), json.loads(out2.read_text())
     assert a["auc"] == b["auc"] and a["precision"] == b["precision"]
     assert main([*ev, "--load", str(model), "--size", "16x32"]) == 1
+
+
+def test_rnn_roundtrip(tmp_path, data):
+    pytest.importorskip("torch")
+    ref, qry = data
+    model = make_method(
+        "flynet+rnn",
+        0,
+        frontend_params={"epochs": 5},
+        filter_params={"epochs": 1, "hidden_size": 16},
+    ).fit(ref)
+    S = model.score(qry)
+    again = load_method(save_method(model, tmp_path / "m.npz"))
+    np.testing.assert_array_equal(again.score(qry), S)
+
+
+@pytest.mark.parametrize("name", ["fc", "cnn"])
+def test_torch_frontend_roundtrip(tmp_path, data, name):
+    pytest.importorskip("torch")
+    ref, qry = data
+    model = make_method(name, 0, frontend_params={"epochs": 3}).fit(ref)
+    S = model.score(qry)
+    again = load_method(save_method(model, tmp_path / "m.npz"))
+    np.testing.assert_allclose(again.score(qry), S, rtol=1e-6, atol=1e-7)
