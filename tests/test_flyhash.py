@@ -170,7 +170,7 @@ def test_get_set_params():
 
 
 def test_large_batch_across_encoding_blocks(random_images):
-    # Encoding runs in blocks of 65536 images; codes must not depend on the block.
+    # Encoding runs in blocks of 2048 images; codes must not depend on the block.
     fh = FlyHash(random_state=0).fit(random_images(2))
     big = np.repeat(random_images(7), 10000, axis=0)
     codes = fh.encode(big)

@@ -30,6 +30,8 @@ __all__ = ["FlyHash", "winner_take_all", "sample_connections"]
 
 #: largest integer that float32 represents exactly, bounds the quantisation
 _F32_EXACT = 2**24
+#: images per block when encoding large batches
+_BLOCK = 2048
 
 
 def sample_connections(n_hidden: int, n_inputs: int, n_samples: int, random_state=None):
@@ -162,17 +164,20 @@ class FlyHash(Encoder):
         """
         self._check_fitted()
         x = np.asarray(images, dtype=np.float32).reshape(len(images), -1)
-        xq = np.rint(x * np.float32(self._levels))
-        return xq @ self._projection
+        out = np.empty((len(x), self.connections_.shape[0]), dtype=np.float32)
+        buf = np.empty((min(len(x), _BLOCK), x.shape[1]), dtype=np.float32)
+        levels = np.float32(self._levels)
+        # Blocks of a few thousand images keep the quantised copy in cache and bound memory.
+        for start in range(0, len(x), _BLOCK):
+            chunk = x[start : start + _BLOCK]
+            q = buf[: len(chunk)]
+            np.multiply(chunk, levels, out=q)
+            np.rint(q, out=q)
+            np.matmul(q, self._projection, out=out[start : start + len(chunk)])
+        return out
 
     def _encode(self, images: np.ndarray) -> np.ndarray:
-        out = np.empty((len(images), self.connections_.shape[0]), dtype=bool)
-        # Blocks bound the temporary memory for very large batches.
-        block = 65536
-        for start in range(0, len(images), block):
-            stop = start + block
-            out[start:stop] = winner_take_all(self.activations(images[start:stop]), self.n_active_)
-        return out
+        return winner_take_all(self.activations(images), self.n_active_)
 
     def _score(self, codes: np.ndarray) -> np.ndarray:
         codes = _check_codes(codes, self.connections_.shape[0])
