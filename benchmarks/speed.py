@@ -22,8 +22,8 @@ Measures in one run, each figure the median of ``--repeat`` repetitions (seconds
   FlyNet is trained on it with mini-batches of 512 for ``--stream-epochs`` epochs (full-batch
   training over 35,768 classes would need a 35,768^2 logit matrix).  It runs in its own
   process so the peak resident memory is that of the streaming job alone.  The queries are winter
-  frames in route order, wrapping around the 2400 available, with place indices that walk along
-  the map; the accuracy of that stream is printed for information.
+  frames in route order, wrapping around the 2400 available; the share of frames whose best
+  place (in any copy) lies within 20 places of the true one is reported for information.
 
 Also prints the machine, library versions, and the paper's timing table next to ours.
 """
@@ -114,14 +114,14 @@ def stream(data: Path, n_queries: int, epochs: int) -> dict:
     map_s = time.perf_counter() - t0
     del line
     src = np.arange(n_queries) % len(winter)
-    truth = np.arange(n_queries) % N_LINE
     hits = 0
     loc.update(winter[0])  # warm-up, then start the drive afresh
     loc.reset()
     t0 = time.perf_counter()
     for i in range(n_queries):
         place, _ = loc.update(winter[src[i]])
-        hits += abs(place - truth[i]) <= 20
+        # The map repeats the 2400 real places, so any copy of the right place is right.
+        hits += abs(place % len(winter) - src[i]) <= 20
     stream_s = time.perf_counter() - t0
     return {
         "stream_queries_per_s": n_queries / stream_s,
@@ -129,7 +129,7 @@ def stream(data: Path, n_queries: int, epochs: int) -> dict:
         "stream_n_places": N_LINE,
         "stream_n_queries": n_queries,
         "stream_map_build_s": map_s,
-        "stream_within_20_share": hits / n_queries,
+        "stream_same_place_within_20_share": hits / n_queries,
         "stream_peak_rss_mb": peak_rss_mb(),
     }
 

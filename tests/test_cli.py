@@ -220,3 +220,35 @@ def test_real_nordland_flynet(nordland_64x32, tmp_path):
     data = json.loads(out.read_text())
     assert data["n_query"] == 300 and 0 < data["train_accuracy"] <= 1
     assert np.isfinite(data["auc"])
+
+
+def test_experiment_and_report_commands(tmp_path, capsys):
+    from flyvpr.cli import main
+    from flyvpr.synthetic import make_route, save_route
+
+    save_route(make_route(20, random_state=0), tmp_path / "route")
+    config = tmp_path / "exp.toml"
+    config.write_text(
+        "[settings]\ncache = false\n"
+        '[[datasets]]\nname = "syn"\nloader = "nordland"\nroot = "route"\n'
+        'reference = "summer"\nquery = "winter"\ntolerance = 2\n'
+        '[[grids]]\nname = "g"\nkind = "evaluate"\ndatasets = ["syn"]\n'
+        'methods = ["pixels", "seqslam"]\n',
+        encoding="utf-8",
+    )
+    out = tmp_path / "out"
+    assert main(["experiment", str(config), "--out", str(out), "--jobs", "2", "-q"]) == 0
+    assert "2 ran now, 0 failed" in capsys.readouterr().out
+    assert main(["experiment", str(config), "--out", str(out), "-q"]) == 0
+    assert "2 already finished, 0 ran now" in capsys.readouterr().out
+    assert main(["report", str(out)]) == 0
+    assert (out / "report.html").is_file() and (out / "report.md").is_file()
+
+
+def test_experiment_command_errors(tmp_path, capsys):
+    from flyvpr.cli import main
+
+    assert main(["experiment", str(tmp_path / "none.toml"), "--out", str(tmp_path)]) == 1
+    assert "experiment config not found" in capsys.readouterr().err
+    assert main(["report", str(tmp_path / "none")]) == 1
+    assert "results folder not found" in capsys.readouterr().err

@@ -101,8 +101,8 @@ class FlyNet(Encoder):
         )
         # In blocks: a whole n x n logit matrix would not fit for a long route.
         correct = 0
-        for start in range(0, n, 4096):
-            pred = np.argmax(codes[start : start + 4096] @ self.weights_, axis=1)
+        for start in range(0, n, 512):
+            pred = np.argmax(codes[start : start + 512] @ self.weights_, axis=1)
             correct += int(np.sum(pred == np.arange(start, start + len(pred))))
         self.train_accuracy_ = correct / n
         logger.info("FlyNet trained on %d places: train accuracy %.3f", n, self.train_accuracy_)

@@ -1,0 +1,470 @@
+"""Run an experiment config: every run of every grid, resumable and in parallel.
+
+Layout of the results folder ``DIR``::
+
+    DIR/experiment.json      the config (text and parsed), sessions, machine
+    DIR/config.toml          a copy of the config file
+    DIR/runs/<run-id>.json   one file per run, written atomically
+
+A run file holds ``status`` (``"ok"`` or ``"error"``), the run's ``spec``,
+the benchmark ``protocol`` (data, frame range, roles, tolerance), the
+``machine`` it ran on and, when it succeeded, its ``result``; evaluation runs
+also store ``predictions`` (best reference per query), ``confidence`` (that
+score) and ``correct`` (1 where the prediction is within tolerance).
+
+Resuming: runs whose file exists with status ``"ok"`` are skipped, so an
+interrupted experiment continues where it stopped.  A run that raises is
+recorded with status ``"error"`` and the exception, the other runs go on, the
+report lists the failure, and the next invocation tries that run again.
+
+Parallelism: runs are spread over processes with :class:`joblib.Parallel`
+(backend ``loky`` by default).  ``backend="dask"`` sends them to a Dask
+cluster (the scheduler in ``DASK_SCHEDULER_ADDRESS``/dask's
+``scheduler-address`` config, else the current client, else a local cluster)
+and ``backend="ray"`` to Ray (``RAY_ADDRESS``); the dataset paths must then be
+readable on the workers.  Results come back to this process, which writes
+the run files.  Timing runs execute afterwards, one at a time in this process,
+so no other run competes for the CPU while they are measured.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import os
+import platform
+import sys
+import time
+import traceback
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from .._io import write_json_atomic, write_text_atomic
+from .config import ExperimentConfig, RunSpec, load_config
+
+__all__ = ["run_experiment", "execute_run", "machine_info", "BACKENDS", "load_run"]
+
+logger = logging.getLogger(__name__)
+
+#: joblib backends accepted by :func:`run_experiment`
+BACKENDS = ("loky", "threading", "multiprocessing", "sequential", "dask", "ray")
+
+#: frames used by the untimed warm-up of timing runs
+_WARMUP_FRAMES = 100
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def machine_info() -> dict:
+    """CPU model, cores and library versions of this machine (for the report's protocol)."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        usable = os.cpu_count()
+    from .. import __version__
+
+    info = {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "usable_cores": usable,
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "flyvpr": __version__,
+    }
+    # torch is reported only when a run loaded it: importing it here would cost seconds.
+    if "torch" in sys.modules:
+        info["torch"] = sys.modules["torch"].__version__
+    return info
+
+
+def _json_safe(obj):
+    """Plain JSON types; non-finite floats become None (the files use strict JSON)."""
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_safe(obj.tolist())
+    if isinstance(obj, (np.bool_, bool)):
+        return bool(obj)
+    if isinstance(obj, (np.integer, int)):
+        return int(obj)
+    if isinstance(obj, (np.floating, float)):
+        value = float(obj)
+        return value if math.isfinite(value) else None
+    if obj is None or isinstance(obj, str):
+        return obj
+    return repr(obj)
+
+
+# -- one run -------------------------------------------------------------------------------------
+def _benchmark(run: RunSpec):
+    from ..datasets import load_benchmark
+    from ..evaluation import speed_profile
+
+    spec = run.spec
+    bench = load_benchmark(spec["dataset"]["loader"], **run.dataset_options)
+    if spec["speed"] is not None:
+        keep = speed_profile(bench.n_query, spec["speed"], random_state=spec["seed"])
+        bench = bench.subset_queries(keep)
+    return bench
+
+
+def execute_run(run: RunSpec) -> dict:
+    """Perform one run and return its record (never raises for a failing run).
+
+    Parameters
+    ----------
+    run : RunSpec
+        From :meth:`ExperimentConfig.runs`.
+
+    Returns
+    -------
+    dict
+        The run file's content: ``status`` ``"ok"`` with ``result``, or
+        ``"error"`` with ``error`` (type and message) and ``traceback``.
+    """
+    started = _now()
+    t0 = time.perf_counter()
+    record = {"run_id": run.run_id, "spec": run.spec, "started": started}
+    try:
+        bench = _benchmark(run)
+        record["protocol"] = {
+            **bench.protocol(),
+            "image_size": run.spec["image_size"],
+            "speed": run.spec["speed"],
+        }
+        task = run.task
+        if task == "train":
+            record.update(_train(run, bench))
+        elif task in ("evaluate", "timing"):
+            record.update(_evaluate(run, bench, timing=task == "timing"))
+        else:
+            raise ValueError(f"unknown task {task!r}")
+        record["status"] = "ok"
+    except Exception as exc:  # recorded, reported, retried on the next invocation
+        logger.warning("run %s failed: %s: %s", run.run_id, type(exc).__name__, exc)
+        record["status"] = "error"
+        record["error"] = f"{type(exc).__name__}: {exc}"
+        record["traceback"] = traceback.format_exc()
+    record["elapsed_s"] = time.perf_counter() - t0
+    record["machine"] = machine_info()
+    return _json_safe(record)
+
+
+def _evaluate(run: RunSpec, bench, timing: bool) -> dict:
+    from .. import metrics
+    from ..evaluation import evaluate_method
+
+    spec = run.spec
+    size = tuple(spec["image_size"])
+    cache = False if timing else run.cache
+    t0 = time.perf_counter()
+    ref = bench.reference.load_images(size, cache=cache, progress=False)
+    t1 = time.perf_counter()
+    qry = bench.query.load_images(size, cache=cache, progress=False)
+    t2 = time.perf_counter()
+    gt = bench.ground_truth
+    kwargs = {
+        "seed": spec["seed"],
+        "frontend_params": spec["frontend_params"],
+        "filter_params": spec["filter_params"],
+    }
+    if timing and run.warmup:
+        # First calls pay JIT compilation and lazy imports; the paper times steady state.
+        n = min(_WARMUP_FRAMES, len(ref), len(qry))
+        evaluate_method(spec["method"], ref[:n], qry[:n], gt[:n, :n], **kwargs)
+    result, S = evaluate_method(
+        spec["method"], ref, qry, gt, load_s=t2 - t0, return_scores=True, **kwargs
+    )
+    result["timing"].update(load_reference_s=t1 - t0, load_query_s=t2 - t1, cached=bool(cache))
+    best, confidence = metrics.best_match(S)
+    correct = gt[np.arange(len(best)), best]
+    return {
+        "result": result,
+        "predictions": best.tolist(),
+        "confidence": [round(float(c), 6) for c in confidence],
+        "correct": correct.astype(int).tolist(),
+    }
+
+
+def _train(run: RunSpec, bench) -> dict:
+    from ..methods import make_method
+
+    spec = run.spec
+    ref = bench.reference.load_images(tuple(spec["image_size"]), cache=run.cache, progress=False)
+    model = make_method(
+        spec["method"], spec["seed"], spec["frontend_params"], spec["filter_params"]
+    )
+    front = model.frontend
+    t0 = time.perf_counter()
+    front.fit(ref)
+    fit_s = time.perf_counter() - t0
+    history = getattr(front, "accuracy_history_", None)
+    if history is None:
+        raise ValueError(
+            f"method {spec['method']!r}: its front end {type(front).__name__} records no "
+            "per-epoch training accuracy (attribute accuracy_history_), which a "
+            "training_curve grid needs"
+        )
+    loss = getattr(front, "loss_history_", None)
+    return {
+        "result": {
+            "method": spec["method"],
+            "seed": spec["seed"],
+            "n_reference": len(ref),
+            "train_accuracy": getattr(front, "train_accuracy_", None),
+            "accuracy_history": np.asarray(history, dtype=float).tolist(),
+            "loss_history": None if loss is None else np.asarray(loss, dtype=float).tolist(),
+            "fit_s": fit_s,
+            "footprint": front.footprint(),
+        }
+    }
+
+
+# -- the experiment ------------------------------------------------------------------------------
+def load_run(path) -> dict | None:
+    """A run file's record, or ``None`` if it is unreadable (then the run is redone)."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            record = json.load(fh)
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        logger.warning("ignoring unreadable run file %s (%s)", path, exc)
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def _check_jobs(n_jobs) -> int:
+    if isinstance(n_jobs, bool) or not isinstance(n_jobs, (int, np.integer)):
+        raise TypeError(f"n_jobs must be an int (-1: all cores); got {type(n_jobs).__name__}")
+    if n_jobs == 0:
+        raise ValueError("n_jobs must be a non-zero int (-1: all cores); got 0")
+    return int(n_jobs)
+
+
+@contextlib.contextmanager
+def _backend_context(backend: str):
+    """joblib's parallel_config for ``backend``, connecting to Dask or Ray when asked."""
+    from joblib import parallel_config
+
+    if backend == "dask":
+        try:
+            import dask
+            import distributed
+        except ImportError as exc:
+            raise ImportError(
+                "backend 'dask' needs dask.distributed: pip install 'dask[distributed]'"
+            ) from exc
+        with contextlib.ExitStack() as stack:
+            address = dask.config.get("scheduler-address", None)
+            if address:
+                client = stack.enter_context(distributed.Client(address))
+            else:
+                try:
+                    client = distributed.get_client()
+                except ValueError:  # no client yet: a local cluster for this experiment
+                    logger.info("no Dask scheduler configured; starting a local cluster")
+                    client = stack.enter_context(distributed.Client())
+            with parallel_config(backend="dask", client=client):
+                yield
+    elif backend == "ray":
+        try:
+            from ray.util.joblib import register_ray
+        except ImportError as exc:
+            raise ImportError("backend 'ray' needs ray: pip install 'ray'") from exc
+        register_ray()
+        with parallel_config(backend="ray"):
+            yield
+    else:
+        with parallel_config(backend=backend):
+            yield
+
+
+def _run_parallel(runs: list[RunSpec], n_jobs: int, backend: str):
+    """Yield run records as they finish."""
+    from joblib import Parallel, delayed, effective_n_jobs
+
+    if not runs:
+        return
+    with _backend_context(backend):
+        tasks = (delayed(execute_run)(run) for run in runs)
+        try:
+            parallel = Parallel(n_jobs=n_jobs, return_as="generator_unordered")
+        except ValueError:
+            # Backends without result generators (multiprocessing, ray): small batches,
+            # so finished runs are still written while the rest go on.
+            parallel = Parallel(n_jobs=n_jobs)
+            batch = max(1, 2 * effective_n_jobs(n_jobs))
+            runs = list(runs)
+            for start in range(0, len(runs), batch):
+                yield from parallel(delayed(execute_run)(r) for r in runs[start : start + batch])
+            return
+        yield from parallel(tasks)
+
+
+def _prepare(config: ExperimentConfig, runs: list[RunSpec], progress: bool) -> None:
+    """Load every benchmark once here: missing data fails before any run starts, and the
+    image cache is filled before parallel workers would each decode the same files."""
+    seen = set()
+    for run in runs:
+        spec = run.spec
+        key = (
+            spec["dataset"]["name"],
+            json.dumps(spec["speed"]),
+            spec["seed"] if spec["speed"] else None,
+            tuple(spec["image_size"]),
+        )
+        if key in seen:
+            continue
+        seen.add(key)
+        bench = _benchmark(run)
+        if run.task != "timing" and run.cache is not False:
+            bench.load_images(tuple(spec["image_size"]), cache=run.cache, progress=progress)
+
+
+def _want_progress(progress) -> bool:
+    if progress is None:
+        return sys.stderr.isatty()
+    return bool(progress)
+
+
+def run_experiment(config_path, out_dir, n_jobs: int = 1, backend: str = "loky", progress=None):
+    """Run every grid of an experiment config, skipping runs already finished.
+
+    Parameters
+    ----------
+    config_path : str or Path
+        TOML experiment file (schema: :mod:`flyvpr.experiments.config`).
+    out_dir : str or Path
+        Results folder; created if needed.  Run files go to ``out_dir/runs``.
+    n_jobs : int
+        Worker processes (joblib convention: -1 = all cores).
+    backend : str
+        A joblib backend: ``'loky'`` (default), ``'dask'`` or ``'ray'``
+        (optional installs), or ``'threading'``/``'multiprocessing'``/``'sequential'``.
+    progress : bool, optional
+        Show a progress bar; ``None``: only when stderr is a terminal.
+
+    Returns
+    -------
+    dict
+        ``n_runs`` (distinct runs in the config), ``n_skipped`` (already
+        finished), ``ran`` (ids run now), ``errors`` (id -> message of runs
+        that failed now), ``elapsed_s`` and ``out_dir``.
+
+    Raises
+    ------
+    FileNotFoundError
+        If the config or a dataset is missing (checked before any run).
+    ValueError, TypeError
+        For an invalid config, ``n_jobs`` or ``backend``.
+    ImportError
+        For the dask/ray backends when they are not installed.
+    """
+    from tqdm.auto import tqdm
+
+    n_jobs = _check_jobs(n_jobs)
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {', '.join(BACKENDS)}; got {backend!r}")
+    config = load_config(config_path)
+    out_dir = Path(out_dir)
+    runs_dir = out_dir / "runs"
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    started = _now()
+
+    runs = config.runs()
+    plan = config.plan()
+    pending = []
+    for run in runs:
+        record = load_run(runs_dir / f"{run.run_id}.json")
+        if record is None or record.get("status") != "ok":
+            pending.append(run)
+    n_skipped = len(runs) - len(pending)
+    logger.info("%d runs, %d already finished, %d to run", len(runs), n_skipped, len(pending))
+
+    show = _want_progress(progress)
+    experiment_file = out_dir / "experiment.json"
+    previous = load_run(experiment_file) or {}
+    sessions = list(previous.get("sessions", []))
+    session = {
+        "started": started,
+        "n_jobs": n_jobs,
+        "backend": backend,
+        "n_runs": len(runs),
+        "n_skipped": n_skipped,
+        "machine": machine_info(),
+    }
+    write_text_atomic(out_dir / "config.toml", config.text)
+    write_json_atomic(
+        experiment_file,
+        _json_safe(
+            {
+                "config_path": str(Path(config_path).resolve()),
+                "config_text": config.text,
+                "config": config.to_dict(),
+                "plan": plan,
+                "sessions": sessions + [session],
+            }
+        ),
+    )
+    _prepare(config, pending, show)
+
+    ran: list[str] = []
+    errors: dict[str, str] = {}
+    parallel_runs = [r for r in pending if r.task != "timing"]
+    timing_runs = [r for r in pending if r.task == "timing"]
+    with tqdm(total=len(pending), desc="runs", unit="run", disable=not show) as bar:
+
+        def store(record: dict) -> None:
+            write_json_atomic(runs_dir / f"{record['run_id']}.json", record)
+            ran.append(record["run_id"])
+            if record["status"] != "ok":
+                errors[record["run_id"]] = record["error"]
+            bar.set_postfix_str(f"{len(errors)} failed" if errors else "", refresh=False)
+            bar.update(1)
+
+        for record in _run_parallel(parallel_runs, n_jobs, backend):
+            store(record)
+        for run in timing_runs:
+            store(execute_run(run))
+
+    session.update(finished=_now(), n_ran=len(ran), n_errors=len(errors))
+    write_json_atomic(
+        experiment_file,
+        _json_safe(
+            {
+                "config_path": str(Path(config_path).resolve()),
+                "config_text": config.text,
+                "config": config.to_dict(),
+                "plan": plan,
+                "sessions": sessions + [session],
+            }
+        ),
+    )
+    return {
+        "n_runs": len(runs),
+        "n_skipped": n_skipped,
+        "ran": ran,
+        "errors": errors,
+        "elapsed_s": time.perf_counter() - t_start,
+        "out_dir": str(out_dir),
+    }
