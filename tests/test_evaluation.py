@@ -39,3 +39,9 @@ def test_evaluate_method_checks_gt_shape(random_images):
     ref = random_images(5)
     with pytest.raises(ValueError, match="ground_truth must have shape"):
         evaluate_method("pixels", ref, ref[:3], np.eye(5, dtype=bool))
+
+
+def test_evaluate_method_measures_model_bytes(random_images):
+    ref = random_images(20)
+    res = evaluate_method("flyhash", ref, ref, np.eye(20, dtype=bool), measure_model_bytes=True)
+    assert 1000 < res["model_bytes"] < 64 * 2048 // 8 + 20_000

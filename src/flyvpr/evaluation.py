@@ -43,6 +43,7 @@ def evaluate_method(
     filter_params=None,
     load_s: float | None = None,
     return_scores: bool = False,
+    measure_model_bytes: bool = False,
 ):
     """Fit ``method`` on the reference images, score the queries and measure it.
 
@@ -62,6 +63,9 @@ def evaluate_method(
         Seconds spent loading the images, copied into ``timing``.
     return_scores : bool
         Also return the score matrix.
+    measure_model_bytes : bool
+        Save the fitted model with :func:`flyvpr.modelio.save_method` to a temporary file and
+        record its size as ``model_bytes``.
 
     Returns
     -------
@@ -111,6 +115,17 @@ def evaluate_method(
         "frontend_params": _plain(model.frontend.get_params(), seed),
         "filter_params": _plain(model.filter.get_params(), seed) if model.filter else None,
     }
+    if measure_model_bytes:
+        import tempfile
+        from pathlib import Path
+
+        from .modelio import save_method
+
+        with tempfile.TemporaryDirectory() as tmp:
+            path = save_method(
+                model, Path(tmp) / "model.npz", size=tuple(np.shape(query_images)[1:])
+            )
+            result["model_bytes"] = path.stat().st_size
     if return_scores:
         return result, S
     return result

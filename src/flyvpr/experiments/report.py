@@ -613,6 +613,7 @@ def _section_footprint(doc: _Doc, g: _Grid, figures: bool, order: list[str]) -> 
                     str(fp["layers"]),
                     f"{fp['params']:,}",
                     f"{fp['neurons']:,}",
+                    f"{res[0]['model_bytes']:,}" if res[0].get("model_bytes") else "-",
                     _pct(auc),
                     str(len(res)),
                 ]
@@ -631,10 +632,33 @@ def _section_footprint(doc: _Doc, g: _Grid, figures: bool, order: list[str]) -> 
             )
         panels.append({"title": g.dataset_label(ds), "points": points})
     doc.table(
-        ["condition", "method", "layers", "trained params", "neurons", "AUC (%)", "seeds"],
+        [
+            "condition",
+            "method",
+            "layers",
+            "trained params",
+            "neurons",
+            "bytes on disk",
+            "AUC (%)",
+            "seeds",
+        ],
         rows,
         "footprint as in the paper's table: layers, trained parameters (fixed random "
-        "connections excluded) and neurons, for the number of reference places of each condition",
+        "connections excluded) and neurons, for the number of reference places of each "
+        "condition; bytes on disk of the saved model file (flyvpr fit --save; FlyHash "
+        "connections bit-packed; pixels/SeqSLAM store the patch-normalised reference images)",
+    )
+    doc.para(
+        "The paper's table (1000 places): FlyNet 2 layers / 64k params / 1064 neurons, "
+        "FlyNet+RNN 4 / 1.3m / 2576, FlyNet+CANN 3 / 72k / 2066. flyvpr counts FlyNet exactly "
+        "as the paper (64 x 1000 trained output weights; the FNA's fixed binary connections "
+        "are not parameters) and FlyNet+RNN within rounding (torch's two bias vectors per "
+        "recurrent block included). For the CANN flyvpr counts its connections (local "
+        "excitation over 7 neighbours per unit plus the links to and from the global "
+        "inhibitor, about 9k for 1000 places) and 1001 units (places + inhibitor): 3 layers, "
+        "73k, 2065 neurons; the paper's 72k/2066 imply about 8k CANN weights and 1002 units, "
+        "which its text does not break down.",
+        "muted",
     )
     if figures and g.ok:
         from . import plots

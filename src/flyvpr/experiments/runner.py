@@ -191,7 +191,14 @@ def _evaluate(run: RunSpec, bench, timing: bool) -> dict:
         n = min(_WARMUP_FRAMES, len(ref), len(qry))
         evaluate_method(spec["method"], ref[:n], qry[:n], gt[:n, :n], **kwargs)
     result, S = evaluate_method(
-        spec["method"], ref, qry, gt, load_s=t2 - t0, return_scores=True, **kwargs
+        spec["method"],
+        ref,
+        qry,
+        gt,
+        load_s=t2 - t0,
+        return_scores=True,
+        measure_model_bytes=True,
+        **kwargs,
     )
     result["timing"].update(load_reference_s=t1 - t0, load_query_s=t2 - t1, cached=bool(cache))
     best, confidence = metrics.best_match(S)
