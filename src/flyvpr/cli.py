@@ -181,6 +181,30 @@ def _add_dataset_args(p: argparse.ArgumentParser) -> None:
             g.add_argument(flag, dest=opt, type=kind, default=None, help=help_text)
 
 
+def _add_method_args(p, required: bool = False, default=None, note: str = "") -> None:
+    """--method (choices from the registry), --seed and --param, shared by several commands."""
+    p.add_argument(
+        "--method",
+        required=required,
+        default=default,
+        choices=list(METHODS),
+        metavar="METHOD",
+        help="one of: " + ", ".join(METHODS) + note,
+    )
+    p.add_argument(
+        "--seed", type=int, default=0, help="random_state of every random part (default 0)"
+    )
+    p.add_argument(
+        "--param",
+        type=_parse_param,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="constructor parameter of the front end or filter (JSON value), e.g. epochs=100; "
+        "prefix with frontend. or filter. to disambiguate",
+    )
+
+
 def _dataset_kwargs(args) -> dict:
     """Pass the given dataset options that the chosen loader accepts; reject the others."""
     spec = DATASETS[args.dataset]
@@ -511,24 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     _add_dataset_args(p)
-    p.add_argument(
-        "--method",
-        choices=list(METHODS),
-        metavar="METHOD",
-        help="one of: " + ", ".join(METHODS) + " (required unless --load)",
-    )
-    p.add_argument(
-        "--seed", type=int, default=0, help="random_state of every random part (default 0)"
-    )
-    p.add_argument(
-        "--param",
-        type=_parse_param,
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="constructor parameter of the front end or filter (JSON value), e.g. epochs=100; "
-        "prefix with frontend. or filter. to disambiguate",
-    )
+    _add_method_args(p, required=False, note=" (required unless --load)")
     p.add_argument("--out", type=Path, help="write the result as JSON (atomically)")
     p.add_argument(
         "--load",
@@ -549,22 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     _add_dataset_args(p)
-    p.add_argument(
-        "--method",
-        required=True,
-        choices=list(METHODS),
-        metavar="METHOD",
-        help="one of: " + ", ".join(METHODS),
-    )
-    p.add_argument("--seed", type=int, default=0, help="random_state (default 0)")
-    p.add_argument(
-        "--param",
-        type=_parse_param,
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="constructor parameter of the front end or filter",
-    )
+    _add_method_args(p, required=True)
     p.add_argument(
         "--save",
         type=Path,
@@ -585,22 +577,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     _add_dataset_args(p)
-    p.add_argument(
-        "--method",
-        default="flynet+cann",
-        choices=list(METHODS),
-        metavar="METHOD",
-        help="method with an online filter (default flynet+cann)",
-    )
-    p.add_argument("--seed", type=int, default=0, help="random_state (default 0)")
-    p.add_argument(
-        "--param",
-        type=_parse_param,
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="constructor parameter of the front end or filter",
-    )
+    _add_method_args(p, default="flynet+cann", note=" (an online filter; default flynet+cann)")
     p.add_argument(
         "--speed",
         type=_parse_speed,

@@ -20,14 +20,13 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
-import tempfile
 import zipfile
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__
+from ._io import atomic_open
 from .frontends import FRONTENDS
 from .images import DEFAULT_SIZE
 from .methods import Method
@@ -166,18 +165,8 @@ def save_method(method: Method, path, *, size=DEFAULT_SIZE) -> Path:
     blob = json.dumps(meta).encode()
     payload = {"__meta__": np.frombuffer(blob, dtype=np.uint8), **arrays}
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **payload)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with atomic_open(path, "wb") as fh:
+        np.savez(fh, **payload)
     return path
 
 

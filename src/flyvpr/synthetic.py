@@ -56,9 +56,7 @@ from __future__ import annotations
 
 import logging
 import numbers
-import os
 import re
-import tempfile
 import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -67,6 +65,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from ._io import atomic_open
 from ._validation import check_fraction, check_positive_int, check_random_state
 from .images import DEFAULT_SIZE, to_gray
 
@@ -912,17 +911,8 @@ def make_route(
 
 def _save_png_atomic(array: np.ndarray, path: Path) -> None:
     data = np.clip(np.rint(array * 255.0), 0, 255).astype(np.uint8)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            Image.fromarray(data).save(fh, format="PNG")
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with atomic_open(path, "wb") as fh:
+        Image.fromarray(data).save(fh, format="PNG")
 
 
 def save_route(

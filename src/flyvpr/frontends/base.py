@@ -9,16 +9,15 @@ raises :class:`~flyvpr.NotFittedError`.
 
 from __future__ import annotations
 
-import inspect
-
 import numpy as np
 
+from .._params import ParamsMixin
 from .._validation import NotFittedError, check_images
 
 __all__ = ["Encoder"]
 
 
-class Encoder:
+class Encoder(ParamsMixin):
     """A single-frame encoder: reference images in, a (n_query, n_reference) score matrix out.
 
     Attributes set by ``fit``
@@ -34,35 +33,6 @@ class Encoder:
 
     #: registry name, set by subclasses
     name = "encoder"
-
-    # -- scikit-learn style parameter handling --------------------------------
-    @classmethod
-    def _param_names(cls) -> list[str]:
-        sig = inspect.signature(cls.__init__)
-        return [
-            p.name
-            for p in sig.parameters.values()
-            if p.name != "self" and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL)
-        ]
-
-    def get_params(self) -> dict:
-        """The constructor's keyword arguments as stored on the instance."""
-        return {name: getattr(self, name) for name in self._param_names()}
-
-    def set_params(self, **params) -> Encoder:
-        """Set constructor parameters; unknown names raise ValueError."""
-        valid = set(self._param_names())
-        for key, value in params.items():
-            if key not in valid:
-                raise ValueError(
-                    f"invalid parameter {key!r} for {type(self).__name__}; valid: {sorted(valid)}"
-                )
-            setattr(self, key, value)
-        return self
-
-    def __repr__(self) -> str:
-        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
-        return f"{type(self).__name__}({args})"
 
     # -- public calls ---------------------------------------------------------
     def fit(self, reference_images) -> Encoder:

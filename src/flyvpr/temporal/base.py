@@ -8,45 +8,18 @@ modifies its input.  Online filters also process one row at a time with
 
 from __future__ import annotations
 
-import inspect
-
 import numpy as np
 
+from .._params import ParamsMixin
 from .._validation import check_scores
 
 __all__ = ["TemporalFilter", "OnlineFilter"]
 
 
-class TemporalFilter:
+class TemporalFilter(ParamsMixin):
     """Base of every temporal filter: validates, copies, and delegates to ``_filter``."""
 
     name = "filter"
-
-    @classmethod
-    def _param_names(cls) -> list[str]:
-        sig = inspect.signature(cls.__init__)
-        return [
-            p.name
-            for p in sig.parameters.values()
-            if p.name != "self" and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL)
-        ]
-
-    def get_params(self) -> dict:
-        return {name: getattr(self, name) for name in self._param_names()}
-
-    def set_params(self, **params):
-        valid = set(self._param_names())
-        for key, value in params.items():
-            if key not in valid:
-                raise ValueError(
-                    f"invalid parameter {key!r} for {type(self).__name__}; valid: {sorted(valid)}"
-                )
-            setattr(self, key, value)
-        return self
-
-    def __repr__(self) -> str:
-        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
-        return f"{type(self).__name__}({args})"
 
     def fit(self, reference_scores=None):
         """Learn from the reference traverse's own scores, where the filter is trained.
