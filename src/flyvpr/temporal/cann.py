@@ -131,6 +131,8 @@ __all__ = ["CANN", "excitation_kernel"]
 logger = logging.getLogger(__name__)
 
 _TRANSFORMS = ("auto", "log", "linear")
+#: smallest positive float32, the floor before the log of a probability row
+_TINY = np.float32(np.finfo(np.float32).tiny)
 #: candidate movements per frame for movement="estimate": 0.75 to 2 places in steps of 1/8
 _DEFAULT_VELOCITIES = (0.75, 0.875, 1.0, 1.125, 1.25, 1.375, 1.5, 1.625, 1.75, 1.875, 2.0)
 #: rows are treated as probability vectors when they sum to 1 within this tolerance
@@ -603,6 +605,9 @@ class CANN(OnlineFilter):
                 self._bank_stats = np.empty((2, vel.size), np.float64)
             self._bank_offset = np.zeros(vel.size)
             self._votes = np.zeros(vel.size)
+            # Candidates nearest 1 place per frame first (then by index): the order in which
+            # ties in the vote are broken.
+            self._preference = sorted(range(vel.size), key=lambda j: (abs(vel[j] - 1.0), j))
             # Before any evidence, the candidate nearest 1 place per frame leads.
             self._votes[np.argmin(np.abs(vel - 1.0))] = 1e-6
         else:
@@ -815,8 +820,10 @@ class CANN(OnlineFilter):
         # Rows holding the same values in other places (early on, or along a blank stretch)
         # tie up to rounding; such ties go to the candidate nearest 1 place per frame, so the
         # vote does not depend on the order of a floating-point sum.
-        tied = contrast >= contrast.max() - 1e-5 * max(1.0, float(np.abs(contrast).max()))
-        best = int(np.flatnonzero(tied)[np.argmin(np.abs(vel[tied] - 1.0))])
+        # (Plain Python over the few candidates: cheaper per frame than small numpy calls.)
+        values = contrast.tolist()
+        level = max(values) - 1e-5 * max(1.0, max(abs(c) for c in values))
+        best = next(j for j in self._preference if values[j] >= level)
         # Rows whose spread is at rounding level (say identical frames, which adaptation turns
         # into rounding residue) carry no evidence and do not vote.
         noise = 1e-4 * (1.0 - float(keep)) * p["input_gain"]
@@ -842,7 +849,7 @@ class CANN(OnlineFilter):
                     "scores_row must be non-negative for input_transform='log'; got minimum "
                     f"{lo:g} (use input_transform='linear' for such scores)"
                 )
-            np.maximum(x, np.finfo(np.float32).tiny, out=x)
+            np.maximum(x, _TINY, out=x)
             np.log(x, out=x)  # numpy's SIMD log beats a compiled scalar loop
             total, d_sum, d_squares = kernels["moments"](x, x)
             lo, hi = float(x.min()), float(x.max())
