@@ -89,8 +89,15 @@ def winner_take_all(activations, k: int) -> np.ndarray:
     kth = np.partition(y, n - k, axis=1)[:, n - k : n - k + 1]
     above = y > kth
     tied = y == kth
-    free = k - above.sum(axis=1, keepdims=True)
-    return above | (tied & (np.cumsum(tied, axis=1) <= free))
+    out = above | tied
+    # Rows where more units tie at the k-th value than there are places left: keep the
+    # leftmost ties.  They are rare, so only those rows pay for the cumulative count.
+    excess = np.flatnonzero(out.sum(axis=1) > k)
+    if excess.size:
+        t = tied[excess]
+        free = k - above[excess].sum(axis=1, keepdims=True)
+        out[excess] = above[excess] | (t & (np.cumsum(t, axis=1) <= free))
+    return out
 
 
 class FlyHash(Encoder):
