@@ -224,14 +224,15 @@ def _make_kernels(numba):
     """Plain-Python kernels for numba: each fuses what the numpy path does in several passes."""
 
     def moments(row, x):
-        # One pass: x = float32(row), its sum, and its first two moments about x[0] (about a
-        # value of the row, so that a constant row has exactly zero spread).  The extremes are
-        # numpy's (a SIMD maximum, which a compiled loop does not get).
+        # One pass: x = float32(row), its sum, its first two moments about x[0] (about a
+        # value of the row, so that a constant row has exactly zero spread) and its extremes.
         n = row.shape[0]
         total = 0.0
         d_sum = 0.0
         d_squares = 0.0
         first = np.float32(row[0]) if n else np.float32(0.0)
+        lo = first
+        hi = first
         for i in range(n):
             v = np.float32(row[i])
             x[i] = v
@@ -239,7 +240,9 @@ def _make_kernels(numba):
             d = np.float64(v - first)
             d_sum += d
             d_squares += d * d
-        return total, d_sum, d_squares
+            lo = min(lo, v)
+            hi = max(hi, v)
+        return total, d_sum, d_squares, float(lo), float(hi)
 
     def finish(x, centre, inv_std, mean, rate, adapt, clip, scale):
         # z-score, adaptation (running mean per place), clipping and the synaptic gain, fused.
@@ -837,8 +840,7 @@ class CANN(OnlineFilter):
         p = self._params
         kernels = self._kernels
         x = self._x
-        total, d_sum, d_squares = kernels["moments"](row, x)
-        lo, hi = float(x.min()), float(x.max())
+        total, d_sum, d_squares, lo, hi = kernels["moments"](row, x)
         transform = p["input_transform"]
         if transform == "auto":
             probability = lo >= 0 and abs(total - 1.0) <= _PROBABILITY_ATOL
@@ -851,8 +853,7 @@ class CANN(OnlineFilter):
                 )
             np.maximum(x, _TINY, out=x)
             np.log(x, out=x)  # numpy's SIMD log beats a compiled scalar loop
-            total, d_sum, d_squares = kernels["moments"](x, x)
-            lo, hi = float(x.min()), float(x.max())
+            total, d_sum, d_squares, lo, hi = kernels["moments"](x, x)
         n = x.size
         # Moments about the first value: a constant row gives exactly zero spread.
         shift = d_sum / n
