@@ -421,18 +421,14 @@ def run_experiment(config_path, out_dir, n_jobs: int = 1, backend: str = "loky",
         "machine": machine_info(),
     }
     write_text_atomic(out_dir / "config.toml", config.text)
-    write_json_atomic(
-        experiment_file,
-        _json_safe(
-            {
-                "config_path": str(Path(config_path).resolve()),
-                "config_text": config.text,
-                "config": config.to_dict(),
-                "plan": plan,
-                "sessions": sessions + [session],
-            }
-        ),
-    )
+    experiment_record = {
+        "config_path": str(Path(config_path).resolve()),
+        "config_text": config.text,
+        "config": config.to_dict(),
+        "plan": plan,
+        "sessions": sessions + [session],  # ``session`` is updated in place when done
+    }
+    write_json_atomic(experiment_file, _json_safe(experiment_record))
     _prepare(config, pending, show)
 
     ran: list[str] = []
@@ -455,18 +451,7 @@ def run_experiment(config_path, out_dir, n_jobs: int = 1, backend: str = "loky",
             store(execute_run(run))
 
     session.update(finished=_now(), n_ran=len(ran), n_errors=len(errors))
-    write_json_atomic(
-        experiment_file,
-        _json_safe(
-            {
-                "config_path": str(Path(config_path).resolve()),
-                "config_text": config.text,
-                "config": config.to_dict(),
-                "plan": plan,
-                "sessions": sessions + [session],
-            }
-        ),
-    )
+    write_json_atomic(experiment_file, _json_safe(experiment_record))
     return {
         "n_runs": len(runs),
         "n_skipped": n_skipped,
