@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from flyvpr.evaluation import evaluate_method, speed_profile
+from flyvpr.evaluation import RESULT_FIELDS, evaluate_method, speed_profile
 
 
 def test_speed_profile_constant():
@@ -29,6 +29,7 @@ def test_evaluate_method_fields(random_images):
     ref = random_images(30)
     gt = np.eye(30, dtype=bool)
     res = evaluate_method("flyhash", ref, ref, gt, seed=0)
+    assert set(RESULT_FIELDS) <= set(res)  # the documented fields are all there
     assert res["auc"] == pytest.approx(1.0)
     assert res["recall_at_1"] == 1.0
     assert res["timing"]["per_query_ms"] >= 0
