@@ -8,7 +8,9 @@ Prints one table (AUC and Recall@1, mean and minimum over seeds) for
 * speed variation for ``flynet+cann`` and ``seqslam`` on the 64x32 windows: every 2nd query frame
   kept (2x) and a seeded random 1-1.5x speed profile (ground truth follows the kept frames);
 * recovery after a kidnap: the query stream jumps 200 places ahead; frames until the
-  ``flynet+cann`` localizer is back within tolerance.
+  ``flynet+cann`` localizer is back within tolerance;
+* the same for ``flynet+cann[fast]``: the CANN with ``flyvpr.temporal.cann.FAST_RECOVERY``
+  (weak attractor, two-timescale evidence), at every speed and in the kidnap test.
 
 Usage::
 
@@ -35,6 +37,7 @@ from flyvpr.datasets import load_benchmark
 from flyvpr.evaluation import speed_profile
 from flyvpr.frontends import FRONTENDS
 from flyvpr.temporal import FILTERS
+from flyvpr.temporal.cann import FAST_RECOVERY
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_DATA = HERE.parent.parent / "shared" / "data"
@@ -48,7 +51,9 @@ CONDITIONS = [
 ]
 METHODS = ["pixels", "flynet", "seqslam", "flynet+seqslam", "flynet+rnn", "flynet+cann"]
 DETERMINISTIC = {"pixels", "seqslam"}
-SPEED_METHODS = ["flynet+cann", "seqslam"]
+SPEED_METHODS = ["flynet+cann", "flynet+cann[fast]", "seqslam"]
+#: the filter and its parameters behind each "+cann" label
+CANN_VARIANTS = {"flynet+cann": {}, "flynet+cann[fast]": FAST_RECOVERY}
 SPEEDS = [("2x", 2.0), ("1-1.5x", (1.0, 1.5))]
 KIDNAP_JUMP = 200
 #: stream frames at which the query stream jumps KIDNAP_JUMP places ahead
@@ -133,28 +138,40 @@ def run_condition(cond, data: Path, seeds, methods, log):
             t0 = time.perf_counter()
             S = _filter(filt, seed, S_ref, S_fn)
             add(m, "1x", seed, S, t_fit + t_fn + time.perf_counter() - t0)
+            if m == "flynet+cann":
+                t0 = time.perf_counter()
+                S = _filter("cann", seed, None, S_fn, **FAST_RECOVERY)
+                add("flynet+cann[fast]", "1x", seed, S, t_fit + t_fn + time.perf_counter() - t0)
         if speed_rows and "flynet+cann" in methods:
-            k = kidnap_recovery(S_fn, tol, seed)
-            kidnap.append({"seed": seed, "jump_at": list(KIDNAP_AT[: len(k)]), "frames": k})
-            log(f"  {name}: kidnap +{KIDNAP_JUMP} seed {seed}: frames to recover {k}")
+            for label, params in CANN_VARIANTS.items():
+                k = kidnap_recovery(S_fn, tol, seed, **params)
+                kidnap.append(
+                    {
+                        "method": label,
+                        "seed": seed,
+                        "jump_at": list(KIDNAP_AT[: len(k)]),
+                        "frames": k,
+                    }
+                )
+                log(f"  {name}: {label} kidnap +{KIDNAP_JUMP} seed {seed}: frames to recover {k}")
         if not speed_rows:
             continue
         for label, speed in SPEEDS:
             keep = speed_profile(len(qry), speed, random_state=seed)
             gt_k = gt[keep]
             for m in SPEED_METHODS:
-                if m not in methods:
+                if m.split("[")[0] not in methods:
                     continue
                 t0 = time.perf_counter()
                 if m == "seqslam":
                     S = _filter("seqslam", seed, None, S_pix[keep])
                 else:
-                    S = _filter(m.split("+", 1)[1], seed, S_ref, S_fn[keep])
+                    S = _filter("cann", seed, S_ref, S_fn[keep], **CANN_VARIANTS[m])
                 add(m, label, seed, S, time.perf_counter() - t0, gt_k)
     return rows, kidnap or None, bench.protocol()
 
 
-def kidnap_recovery(S_fn, tol, seed):
+def kidnap_recovery(S_fn, tol, seed, **params):
     """Frames until flynet+cann is back within ``tol`` after the queries jump KIDNAP_JUMP places.
 
     For every jump position ``p`` in KIDNAP_AT (stream frames), the query stream is frames
@@ -167,7 +184,7 @@ def kidnap_recovery(S_fn, tol, seed):
         if p + KIDNAP_JUMP + 60 > n:
             continue
         order = np.r_[np.arange(p), np.arange(p + KIDNAP_JUMP, n)]
-        S = _filter("cann", seed, None, S_fn[order])
+        S = _filter("cann", seed, None, S_fn[order], **params)
         ok = np.abs(S[p:].argmax(axis=1) - order[p:]) <= tol
         out.append(int(np.argmax(ok)) if ok.any() else None)
     return out
@@ -207,17 +224,22 @@ def to_markdown(table, kidnaps, seeds) -> str:
             f"| {t['condition']} | {t['method']} | {t['speed']} | {t['auc_mean']:.3f} | "
             f"{t['auc_min']:.3f} | {t['r1_mean']:.3f} | {t['r1_min']:.3f} |"
         )
-    for name, k in kidnaps.items():
-        frames = [f if f is not None else np.inf for e in k for f in e["frames"]]
-        lines.append("")
-        lines.append(
-            f"Kidnap ({name}, flynet+cann, query stream jumps +{KIDNAP_JUMP} places at stream "
-            f"frame {', '.join(map(str, KIDNAP_AT))}; {len(frames)} jumps over the seeds): frames "
-            f"until the best place is within tolerance again: median {np.median(frames):.0f}, "
-            f"max {np.max(frames):.0f}, {np.mean(np.array(frames) <= 30):.0%} within 30 frames."
-        )
-        for e in k:
-            lines.append(f"  seed {e['seed']}: {e['frames']}")
+    for name, entries in kidnaps.items():
+        for label in CANN_VARIANTS:
+            k = [e for e in entries if e["method"] == label]
+            frames = [f if f is not None else np.inf for e in k for f in e["frames"]]
+            if not frames:
+                continue
+            lines.append("")
+            lines.append(
+                f"Kidnap ({name}, {label}, query stream jumps +{KIDNAP_JUMP} places at stream "
+                f"frame {', '.join(map(str, KIDNAP_AT))}; {len(frames)} jumps over the seeds): "
+                f"frames until the best place is within tolerance again: median "
+                f"{np.median(frames):.0f}, max {np.max(frames):.0f}, "
+                f"{np.mean(np.array(frames) <= 30):.0%} within 30 frames."
+            )
+            for e in k:
+                lines.append(f"  seed {e['seed']}: {e['frames']}")
     lines.append("")
     lines.append(
         f"Seeds {list(seeds)}; pixels and seqslam are deterministic (same value per seed)."

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from flyvpr.temporal.cann import CANN, excitation_kernel
+from flyvpr.temporal.cann import CANN, FAST_RECOVERY, excitation_kernel
 
 N_PLACES = 300
 
@@ -313,6 +313,14 @@ def test_without_adaptation():
         ({"input_clip": 0.0}, ValueError, "input_clip must be > 0"),
         ({"adaptation": 0}, ValueError, "adaptation must be > 0"),
         ({"input_transform": "rank"}, ValueError, "input_transform must be one of"),
+        ({"slow_time_constant": 0.0}, ValueError, "slow_time_constant must be > 0"),
+        (
+            {"slow_time_constant": 60.0, "slow_fraction": 1.5},
+            ValueError,
+            "slow_fraction must be <= 1",
+        ),
+        ({"slow_fraction": -0.1}, ValueError, "slow_fraction must be >= 0"),
+        ({"adapt_variance": "yes"}, TypeError, "adapt_variance must be True or False"),
     ],
 )
 def test_invalid_parameters(params, error, match):
@@ -369,6 +377,9 @@ def test_footprint():
     assert fp["state_variables"] == 2 * 1000 + 1
     # the velocity bank: one evidence trace per candidate velocity and place
     assert CANN().footprint(1000)["state_variables"] == (2 + 11) * 1000 + 1
+    # two synaptic currents: two traces per place and per candidate velocity
+    two = CANN(slow_time_constant=60.0).footprint(1000)["state_variables"]
+    assert two == (1 + 2 + 2 * 11) * 1000 + 1
     with pytest.raises(ValueError, match="n_reference must be >= 1"):
         CANN().footprint(0)
 
@@ -400,6 +411,57 @@ def test_flynet_cann_on_nordland(nordland_64x32):
     assert filtered > 0.8
 
 
+def test_slow_current_remembers_longer():
+    """After the input stops, the fast current decays as exp(-t / tau); a slow one lingers."""
+    S = _scores([20 + t for t in range(40)], n=200, seed=4)
+    S = np.vstack([S, np.zeros((40, 200))])  # then no input at all
+
+    def kept(cann):
+        for t, row in enumerate(S):
+            cann.step(row)
+            if t == 39:
+                before = float(cann._s[59])  # the evidence where the support ended
+        return float(cann._s[99]) / before  # ... carried 40 places on by the shift
+
+    fast = kept(CANN(movement=1.0, adaptation=None))
+    both = kept(CANN(movement=1.0, adaptation=None, slow_time_constant=80.0))
+    assert fast == pytest.approx(np.exp(-40 / 20), rel=1e-3)
+    assert both > 1.5 * fast
+
+
+def test_variance_adaptation_equalises_noisy_places():
+    # Place 7 is ten times noisier than the rest; without variance adaptation it dominates.
+    rng = np.random.default_rng(6)
+    S = rng.normal(size=(300, 50))
+    S[:, 7] *= 10.0
+    plain = CANN(movement=0.0, input_clip=None).filter(S)
+    adapted = CANN(movement=0.0, input_clip=None, adapt_variance=True).filter(S)
+    top = lambda out: np.mean(out[100:].argmax(axis=1) == 7)  # noqa: E731
+    assert top(plain) > 0.3
+    assert top(adapted) < 0.15
+
+
+@pytest.mark.slow
+def test_fast_recovery_on_nordland_kidnap(nordland_64x32):
+    """Nordland s -> w frames 1000-1999: the stream jumps 200 places at frame 150."""
+    from flyvpr.frontends.flynet import FlyNet
+    from flyvpr.images import list_images, load_images
+
+    window = slice(1000, 2000)
+    summer = load_images(list_images(nordland_64x32 / "summer")[window], cache=False)
+    winter = load_images(list_images(nordland_64x32 / "winter")[window], cache=False)
+    S = FlyNet(random_state=0).fit(summer).score(winter)
+    order = np.r_[np.arange(150), np.arange(350, 1000)]
+
+    def recovery(cann):
+        ok = np.abs(cann.filter(S[order])[150:].argmax(axis=1) - order[150:]) <= 20
+        return int(np.argmax(ok)) if ok.any() else len(ok)
+
+    fast, default = recovery(CANN(**FAST_RECOVERY)), recovery(CANN())
+    assert fast <= 30
+    assert fast < default
+
+
 # -- compiled path -------------------------------------------------------------
 @pytest.mark.parametrize(
     "params",
@@ -409,6 +471,9 @@ def test_flynet_cann_on_nordland(nordland_64x32):
         {"movement": 1.37, "adaptation": None, "input_clip": None},
         {"input_transform": "linear", "n_steps": 2, "excitation_width": 2.0},
         {"threshold": -0.5, "movement": -1.0},
+        FAST_RECOVERY,
+        {**FAST_RECOVERY, "movement": 1.25, "slow_fraction": 0.8},
+        {"slow_time_constant": 40.0, "adapt_variance": True, "input_clip": None},
     ],
 )
 @pytest.mark.parametrize("kind", ["normal", "probability"])

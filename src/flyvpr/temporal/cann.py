@@ -48,6 +48,31 @@ supported, dies.  The tonic inhibition (default 1, the rate of one fully active 
 matters while no packet exists: the first packet must then be ignited by evidence against the
 same inhibition as any later challenger, not by the first noise above threshold.
 
+Two synaptic currents (optional)
+--------------------------------
+With ``slow_time_constant`` set, the evidence is the sum of two currents driven by the same
+input, a fast one (``synaptic_time_constant``) and a slow one (``slow_time_constant``), weighted
+``1 - slow_fraction`` and ``slow_fraction`` (like fast AMPA- and slow NMDA-type synapses).
+The slow current keeps a long memory, which averages out noise; the fast one lets new, consistent
+evidence show within a few frames.  For the same reaction time, this kernel (a mixture of two
+exponentials) is less noisy than a single exponential.
+
+Fast recovery
+-------------
+With the defaults the attractor is strong: a packet coasts through long stretches without
+evidence, which is what makes it accurate on Nordland, but after a kidnap the evidence for the
+new place must first reach the ignition threshold, which on real data takes 8 to 80 frames
+(median 25-32 on the benchmark windows).  :data:`FAST_RECOVERY` is the other end of that
+trade-off: two currents (12 and 60 frames), a per-place variance adaptation
+(``adapt_variance``), a five times larger input gain and a weak recurrent excitation (8, with
+inhibition 1), so the packet follows the place with the most evidence, with a small
+hysteresis.  Measured by ``benchmarks/accuracy.py``: recovery after a 200-place jump in a median
+of 13-18 frames (most within 30; the rest jump into stretches where FlyNet's scores carry no
+evidence for the true place for 40-60 frames), similar AUC at 1x, lower at a random 1-1.5x
+speed.  The attractor properties still hold once remembered evidence has decayed (a packet
+without input persists and moves by the shift), but a packet without support for a long time
+can be taken over by a single strong frame elsewhere, which the defaults resist.
+
 Shift and copy
 --------------
 Before each frame's input, the potentials and the synaptic currents are shifted along the line
@@ -82,7 +107,10 @@ running mean input: a reference that scores high against every query (a "hub") a
 stops drawing the packet.  The running mean is the mean of the frames seen so far at first and
 an exponential average over ``adaptation`` frames later.  Finally ``x`` is clipped to
 ``[-input_clip, input_clip]`` so that no single frame can carry more than that many standard
-deviations of evidence.
+deviations of evidence.  With ``adapt_variance=True`` each place's input is also divided by the
+square root of its running variance (same time constant, starting from a prior of 1, plus a
+floor of 0.1) before clipping: places whose scores swing widely from frame to frame do not
+draw the packet more than steady ones.
 
 Output
 ------
@@ -126,7 +154,7 @@ from scipy.ndimage import correlate1d
 from .._validation import check_positive_int, check_scores
 from .base import OnlineFilter
 
-__all__ = ["CANN", "excitation_kernel"]
+__all__ = ["CANN", "FAST_RECOVERY", "excitation_kernel"]
 
 logger = logging.getLogger(__name__)
 
@@ -144,6 +172,21 @@ _STATS_SAMPLES = 4096
 #: places per block of the compiled Euler step: a block is rescanned for firing units only
 #: when its maximum potential is above threshold, so the full pass stays a plain SIMD loop
 _BLOCK = 512
+#: added to each place's running input variance before dividing by its square root
+_VAR_FLOOR = 0.1
+
+#: Parameters for fast recovery after a kidnap (see "Fast recovery" in the module docstring):
+#: ``CANN(**FAST_RECOVERY)``.  Weak attractor, strong two-timescale evidence.
+FAST_RECOVERY = {
+    "excitation_strength": 8.0,
+    "inhibition": 1.0,
+    "synaptic_time_constant": 12.0,
+    "slow_time_constant": 60.0,
+    "slow_fraction": 0.5,
+    "input_gain": 50.0,
+    "adaptation": 20.0,
+    "adapt_variance": True,
+}
 
 _kernels = None  # compiled on first use so that ``import flyvpr`` does not import numba
 
@@ -244,44 +287,67 @@ def _make_kernels(numba):
             hi = max(hi, v)
         return total, d_sum, d_squares, float(lo), float(hi)
 
-    def finish(x, centre, inv_std, mean, rate, adapt, clip, scale):
-        # z-score, adaptation (running mean per place), clipping and the synaptic gain, fused.
+    def finish(x, centre, inv_std, mean, var, rate, var_rate, adapt, adapt_var, floor, clip, scale):
+        # z-score, adaptation (running mean and optionally variance per place), clipping and
+        # the input gain, fused.
         keep = np.float32(1.0 - rate)
         rate = np.float32(rate)
+        var_keep = np.float32(1.0 - var_rate)
+        var_rate = np.float32(var_rate)
         for i in range(x.shape[0]):
             v = (x[i] - centre) * inv_std
             if adapt:
                 m = mean[i] * keep + v * rate
                 mean[i] = m
                 v = v - m
+                if adapt_var:
+                    q = var[i] * var_keep + (v * v) * var_rate
+                    var[i] = q
+                    v = v / np.sqrt(q + floor)
             v = min(max(v, -clip), clip)
             x[i] = v * scale
 
-    def bank_update(old, new, shifts, keep, x, stride, centre, spread):
-        # Each row j: new = shift(old, shifts[j]) * keep + x (zeros enter at the open end: they
-        # decay to 0, so x alone), then the row's sampled mean and spread.
-        n = old.shape[1]
+    def bank_update(old, new, comb, shifts, keeps, coefs, x, stride, centre, spread):
+        # For each velocity row j and synaptic current c:
+        # new[c, j] = shift(old[c, j], shifts[j]) * keeps[c] + x * coefs[c] (zeros enter at
+        # the open end, so x * coefs[c] alone there); comb[j] = the sum over the currents
+        # (with one current, comb must be new[0] itself), then comb[j]'s sampled statistics.
+        n_cur = old.shape[0]
+        n = old.shape[2]
         m = (n + stride - 1) // stride
-        for j in range(old.shape[0]):
+        for j in range(old.shape[1]):
             k = shifts[j]
-            dst = new[j]
-            lo = min(max(k, 0), n)  # dst[lo:hi] reads old[j, lo - k:hi - k]
+            lo = min(max(k, 0), n)  # dst[lo:hi] reads old[c, j, lo - k:hi - k]
             hi = max(min(n + k, n), lo)
-            # Slices with non-negative loop indices: numba then drops its negative-index
-            # checks and the loop becomes SIMD (about 8x faster).
-            src = old[j, lo - k : hi - k]
-            mid = dst[lo:hi]
-            x_mid = x[lo:hi]
-            for i in range(hi - lo):
-                mid[i] = src[i] * keep + x_mid[i]
-            dst[:lo] = x[:lo]
-            dst[hi:] = x[hi:]
+            out = comb[j]
+            for c in range(n_cur):
+                keep = keeps[c]
+                coef = coefs[c]
+                dst = new[c, j]
+                # Slices with non-negative loop indices: numba then drops its negative-index
+                # checks and the loops become SIMD (about 8x faster).
+                src = old[c, j, lo - k : hi - k]
+                mid = dst[lo:hi]
+                x_mid = x[lo:hi]
+                for i in range(hi - lo):
+                    mid[i] = src[i] * keep + x_mid[i] * coef
+                for i in range(lo):
+                    dst[i] = x[i] * coef
+                for i in range(hi, n):
+                    dst[i] = x[i] * coef
+                if n_cur == 1:
+                    pass  # the caller passes new[0] as comb: nothing to add
+                elif c == 0:
+                    out[:] = dst
+                else:
+                    for i in range(n):
+                        out[i] = out[i] + dst[i]
             # Mean and spread of the sample, from moments about its first value.
-            first = np.float64(dst[0])
+            first = np.float64(out[0])
             d_sum = 0.0
             d_squares = 0.0
             for i in range(0, n, stride):
-                d = dst[i] - first
+                d = out[i] - first
                 d_sum += d
                 d_squares += d * d
             shift = d_sum / m
@@ -371,7 +437,14 @@ class CANN(OnlineFilter):
         Time constant of the place units' potentials, in frames.
     synaptic_time_constant : float, default 20.0
         Time constant of the input synapses, in frames: how long evidence for a place is
-        remembered (the CANN's counterpart of SeqSLAM's sequence length).
+        remembered (the CANN's counterpart of SeqSLAM's sequence length).  With
+        ``slow_time_constant`` set, the fast current's.
+    slow_time_constant : float or None, default None
+        Time constant, in frames, of a second, slow synaptic current driven by the same input;
+        ``None``: a single current.
+    slow_fraction : float, default 0.5
+        Weight of the slow current in the evidence (the fast one gets ``1 - slow_fraction``);
+        only used with ``slow_time_constant``.
     input_gain : float, default 10.0
         Gain from the normalised input (z-scores) to the synaptic current.
     n_steps : int, default 3
@@ -389,6 +462,9 @@ class CANN(OnlineFilter):
     adaptation : float or None, default 50.0
         Time constant, in frames, of each place's input adaptation (subtraction of its running
         mean input); ``None`` switches adaptation off.
+    adapt_variance : bool, default False
+        Also divide each place's input by the square root of its running variance (see
+        "Input" in the module docstring); needs ``adaptation``.
     input_transform : {"auto", "log", "linear"}, default "auto"
         How a score row becomes the input before its z-score; ``"log"`` needs non-negative
         scores.
@@ -447,6 +523,8 @@ class CANN(OnlineFilter):
         threshold=1.0,
         time_constant=1.0,
         synaptic_time_constant=20.0,
+        slow_time_constant=None,
+        slow_fraction=0.5,
         input_gain=10.0,
         n_steps=3,
         movement="estimate",
@@ -454,6 +532,7 @@ class CANN(OnlineFilter):
         velocity_memory=100.0,
         velocity_contrast=4.0,
         adaptation=50.0,
+        adapt_variance=False,
         input_transform="auto",
         input_clip=4.0,
     ):
@@ -464,6 +543,8 @@ class CANN(OnlineFilter):
         self.threshold = threshold
         self.time_constant = time_constant
         self.synaptic_time_constant = synaptic_time_constant
+        self.slow_time_constant = slow_time_constant
+        self.slow_fraction = slow_fraction
         self.input_gain = input_gain
         self.n_steps = n_steps
         self.movement = movement
@@ -471,6 +552,7 @@ class CANN(OnlineFilter):
         self.velocity_memory = velocity_memory
         self.velocity_contrast = velocity_contrast
         self.adaptation = adaptation
+        self.adapt_variance = adapt_variance
         self.input_transform = input_transform
         self.input_clip = input_clip
 
@@ -489,6 +571,7 @@ class CANN(OnlineFilter):
             "synaptic_time_constant": _check_real(
                 self.synaptic_time_constant, "synaptic_time_constant"
             ),
+            "slow_fraction": _check_real(self.slow_fraction, "slow_fraction", inclusive=True),
             "input_gain": _check_real(self.input_gain, "input_gain", inclusive=True),
             "n_steps": check_positive_int(self.n_steps, "n_steps"),
             "velocity_memory": _check_real(self.velocity_memory, "velocity_memory"),
@@ -518,6 +601,25 @@ class CANN(OnlineFilter):
         if np.unique(vel).size != vel.size:
             raise ValueError(f"velocities must not repeat a value; got {vel.tolist()}")
         p["velocities"] = vel
+        if p["slow_fraction"] > 1.0:
+            raise ValueError(f"slow_fraction must be <= 1; got {p['slow_fraction']}")
+        if self.slow_time_constant is None:
+            p["slow_time_constant"] = None
+        else:
+            p["slow_time_constant"] = _check_real(self.slow_time_constant, "slow_time_constant")
+        # The synaptic currents: (time constant, weight) of each, fast first.
+        if p["slow_time_constant"] is None:
+            p["currents"] = ((p["synaptic_time_constant"], 1.0),)
+        else:
+            p["currents"] = (
+                (p["synaptic_time_constant"], 1.0 - p["slow_fraction"]),
+                (p["slow_time_constant"], p["slow_fraction"]),
+            )
+        if not isinstance(self.adapt_variance, (bool, np.bool_)):
+            raise TypeError(
+                f"adapt_variance must be True or False; got {type(self.adapt_variance).__name__}"
+            )
+        p["adapt_variance"] = bool(self.adapt_variance)
         if self.adaptation is None:
             p["adaptation"] = None
         else:
@@ -556,12 +658,13 @@ class CANN(OnlineFilter):
         # Synapses of offset d exist for the n - |d| units whose neighbour lies on the route.
         recurrent = int(np.sum(np.maximum(n - np.abs(offsets), 0)[k != 0]))
         n_bank = 0 if p["movement"] is not None else p["velocities"].size
+        n_cur = len(p["currents"])
         return {
             "layers": 1,
             "params": recurrent + 2 * n,
             "neurons": n + 1,
             "distinct_weights": int(np.unique(k[k != 0]).size) + 2,
-            "state_variables": (2 + n_bank) * n + 1,
+            "state_variables": (1 + n_cur + n_cur * n_bank) * n + 1,
         }
 
     # -- online ---------------------------------------------------------------
@@ -582,27 +685,40 @@ class CANN(OnlineFilter):
 
     def _allocate(self, n: int) -> None:
         p = self._params
+        n_cur = len(p["currents"])
         self._n = n
         self._u = np.zeros(n, np.float32)  # potentials
-        self._s = np.zeros(n, np.float32)  # synaptic currents (evidence)
+        # The synaptic currents, each already weighted (fast first); s is their sum.
+        self._cur = np.zeros((n_cur, 1, n), np.float32)
+        self._s = np.zeros(n, np.float32)
         self._mean = np.zeros(n, np.float32)  # adaptation: running mean input per place
+        self._var = np.ones(n, np.float32)  # and running variance (prior: the row's, 1)
         self._tmp = np.empty(n, np.float32)  # scratch
         self._stats_stride = max(1, n // _STATS_SAMPLES)
         self._g = 0.0  # inhibitor rate
         self._offset = 0.0  # fractional movement not yet applied to the packet
+        # Per frame, current c decays by keeps[c] and adds coefs[c] * (input_gain * x).
+        taus = np.array([tau for tau, _ in p["currents"]])
+        weights = np.array([w for _, w in p["currents"]])
+        alphas = -np.expm1(-1.0 / taus)
+        self._keeps = (1.0 - alphas).astype(np.float32)
+        self._coefs = (alphas * weights).astype(np.float32)
         if self._kernels is not None:
             # Scratch of the compiled path: the input row, the next synaptic currents (updates
             # are out of place, which keeps them plain SIMD loops), the firing units and their
             # rates, and [lo, hi], a bracket around the units above threshold.
             self._x = np.empty(n, np.float32)
-            self._s_next = np.empty((1, n), np.float32)
+            self._cur_next = np.empty_like(self._cur)
             self._rates = np.empty(n, np.float32)
             self._firing = np.empty(n, np.int64)
             self._stats = np.empty((2, 1), np.float64)
             self._bracket = (0, n - 1)  # a loose bracket is correct, just slower
         vel = p["velocities"]
         if p["movement"] is None:
-            self._bank = np.zeros((vel.size, n), np.float32)
+            # bank[c, j]: current c of the evidence along lines of slope velocities[j];
+            # comb[j]: their sum.
+            self._bank = np.zeros((n_cur, vel.size, n), np.float32)
+            self._comb = np.zeros((vel.size, n), np.float32)
             if self._kernels is not None:
                 self._bank_next = np.empty_like(self._bank)
                 self._bank_stats = np.empty((2, vel.size), np.float64)
@@ -721,13 +837,17 @@ class CANN(OnlineFilter):
             )
         t = self.n_frames_
         kernels = self._kernels
-        alpha = -np.expm1(-1.0 / p["synaptic_time_constant"])
-        keep = np.float32(1.0 - alpha)
-        # Running mean of each place's input: the mean of the frames so far at first, then an
-        # exponential average over ``adaptation`` frames.
-        rate = 0.0 if p["adaptation"] is None else max(1.0 / (t + 1), 1.0 / p["adaptation"])
+        # Running mean (and variance) of each place's input: the mean of the frames so far at
+        # first, then an exponential average over ``adaptation`` frames.  The variance starts
+        # from a prior of 1 (the z-scored row's) worth one frame.
+        if p["adaptation"] is None:
+            rate = var_rate = 0.0
+        else:
+            rate = max(1.0 / (t + 1), 1.0 / p["adaptation"])
+            var_rate = max(1.0 / (t + 2), 1.0 / p["adaptation"])
+        gain = np.float32(p["input_gain"])
         if kernels is not None:
-            x = self._input_compiled(row, rate, np.float32(alpha * p["input_gain"]))
+            x = self._input_compiled(row, rate, var_rate, gain)
         else:
             x = self._normalise(row)
             if p["adaptation"] is not None:
@@ -735,13 +855,20 @@ class CANN(OnlineFilter):
                 np.multiply(x, np.float32(rate), out=self._tmp)
                 self._mean += self._tmp
                 x -= self._mean
+                if p["adapt_variance"]:
+                    self._var *= np.float32(1.0 - var_rate)
+                    np.multiply(x, x, out=self._tmp)
+                    self._tmp *= np.float32(var_rate)
+                    self._var += self._tmp
+                    np.add(self._var, np.float32(_VAR_FLOOR), out=self._tmp)
+                    np.sqrt(self._tmp, out=self._tmp)
+                    x /= self._tmp
             if p["input_clip"] is not None:
                 np.clip(x, -p["input_clip"], p["input_clip"], out=x)
-            # s <- s + alpha (input_gain x - s), with the gain folded into one factor
-            np.multiply(x, np.float32(alpha * p["input_gain"]), out=x)
+            x *= gain
 
         if self._bank is not None:
-            self._update_bank(x, keep)
+            self._update_bank(x)
         if velocity is not None:
             v = velocity
         elif p["movement"] is not None:
@@ -756,24 +883,36 @@ class CANN(OnlineFilter):
             self._offset = total - k
             fill = np.float32(-p["inhibition"] * self._g)
             _shift(self._u, k, fill)
-        from_bank = self._bank is not None and velocity is None
+        if self._bank is not None and velocity is None:
+            # The evidence follows the estimated speed: the bank's row of that velocity.
+            self._cur[:, 0] = self._bank[:, self._estimate_index]
+            self._s[:] = self._comb[self._estimate_index]
+        elif kernels is None:
+            for c in range(self._cur.shape[0]):
+                _shift(self._cur[c, 0], k, 0.0)
+                self._cur[c, 0] *= self._keeps[c]
+                np.multiply(x, self._coefs[c], out=self._tmp)
+                self._cur[c, 0] += self._tmp
+            np.sum(self._cur[:, 0], axis=0, out=self._s)
+        else:
+            single = self._cur.shape[0] == 1
+            kernels["bank_update"](
+                self._cur,
+                self._cur_next,
+                self._cur_next[0] if single else self._s[None, :],
+                np.array([k]),
+                self._keeps,
+                self._coefs,
+                x,
+                n,
+                *self._stats,
+            )
+            self._cur, self._cur_next = self._cur_next, self._cur
+            if single:
+                self._s[:] = self._cur[0, 0]
         if kernels is None:
-            _shift(self._s, k, 0.0)
-            if from_bank:
-                # The evidence follows the estimated speed: the bank's row of that velocity.
-                self._s[:] = self._bank[self._estimate_index]
-            else:
-                self._s *= keep
-                self._s += x
             self._integrate()
         else:
-            if from_bank:
-                self._s[:] = self._bank[self._estimate_index]
-            else:
-                kernels["bank_update"](
-                    self._s[None, :], self._s_next, np.array([k]), keep, x, n, *self._stats
-                )
-                self._s[:] = self._s_next[0]
             lo, hi = self._bracket
             if k != 0:
                 lo, hi = max(lo + k, 0), min(hi + k, n - 1)
@@ -784,7 +923,7 @@ class CANN(OnlineFilter):
         self.velocity_ = float(v)
         return self._u.copy()
 
-    def _update_bank(self, x_alpha: np.ndarray, keep: np.float32) -> None:
+    def _update_bank(self, x: np.ndarray) -> None:
         p = self._params
         vel = p["velocities"]
         bank = self._bank
@@ -799,24 +938,39 @@ class CANN(OnlineFilter):
         # similar-looking consecutive frames of one place more than once.  The spread is
         # estimated on every ``n // 4096``-th place: plenty for a mean and a standard
         # deviation, and it keeps the vote cheap for long routes.
+        single = bank.shape[0] == 1
         if self._kernels is not None:
-            # One fused pass per row (shift, decay, add, maximum) into the spare buffer.
+            # One fused pass per row and current (shift, decay, add) into the spare buffer,
+            # then the rows' sums and their sampled statistics.
             centre, spread = self._bank_stats
+            comb = self._bank_next[0] if single else self._comb
             self._kernels["bank_update"](
-                bank, self._bank_next, shifts, keep, x_alpha, self._stats_stride, centre, spread
+                bank,
+                self._bank_next,
+                comb,
+                shifts,
+                self._keeps,
+                self._coefs,
+                x,
+                self._stats_stride,
+                centre,
+                spread,
             )
             self._bank, self._bank_next = self._bank_next, bank
-            top = self._bank.max(axis=1)
         else:
-            # One shift per candidate velocity: a constant number of O(n) copies per frame.
-            for j, k in enumerate(shifts):
-                _shift(bank[j], int(k), 0.0)
-            bank *= keep
-            bank += x_alpha[None, :]
-            sample = bank[:, :: self._stats_stride]
-            top = bank.max(axis=1)
+            # One shift per candidate velocity and current: a constant number of O(n) copies.
+            for c in range(bank.shape[0]):
+                for j, k in enumerate(shifts):
+                    _shift(bank[c, j], int(k), 0.0)
+                bank[c] *= self._keeps[c]
+                np.multiply(x, self._coefs[c], out=self._tmp)
+                bank[c] += self._tmp[None, :]
+            comb = bank[0] if single else np.sum(bank, axis=0, out=self._comb)
+            sample = comb[:, :: self._stats_stride]
             centre = sample.mean(axis=1)
             spread = sample.std(axis=1)
+        self._comb = comb  # the evidence per velocity (with one current, a view of the bank)
+        top = comb.max(axis=1)
         contrast = (top - centre) / np.maximum(spread, 1e-12)
         decay = -np.expm1(-1.0 / p["velocity_memory"])
         self._votes *= 1.0 - decay
@@ -829,13 +983,15 @@ class CANN(OnlineFilter):
         best = next(j for j in self._preference if values[j] >= level)
         # Rows whose spread is at rounding level (say identical frames, which adaptation turns
         # into rounding residue) carry no evidence and do not vote.
-        noise = 1e-4 * (1.0 - float(keep)) * p["input_gain"]
+        noise = 1e-4 * float(self._coefs.sum()) * p["input_gain"]
         if spread[best] > noise and contrast[best] >= p["velocity_contrast"]:
             self._votes[best] += decay
         self._estimate_index = int(np.argmax(self._votes))
         self._estimate = float(vel[self._estimate_index])
 
-    def _input_compiled(self, row: np.ndarray, rate: float, scale: np.float32) -> np.ndarray:
+    def _input_compiled(
+        self, row: np.ndarray, rate: float, var_rate: float, scale: np.float32
+    ) -> np.ndarray:
         """What the numpy path's input steps compute, in two or three fused passes."""
         p = self._params
         kernels = self._kernels
@@ -869,8 +1025,12 @@ class CANN(OnlineFilter):
             np.float32(centre),
             inv_std,
             self._mean,
+            self._var,
             rate,
+            var_rate,
             p["adaptation"] is not None,
+            p["adapt_variance"],
+            np.float32(_VAR_FLOOR),
             np.float32(clip),
             scale,
         )
