@@ -110,8 +110,8 @@ def test_spurious_frames_without_support_do_not_move_a_silent_packet():
 
 def test_consistent_input_elsewhere_captures_the_packet():
     """Kidnapped robot: from frame 60 the input says the robot is 150 places further on."""
-    path = [20 + t for t in range(60)] + [230 + t for t in range(60)]
-    S = _scores(path, n=N_PLACES + 100, amp=3.0, seed=2)
+    path = [20 + t for t in range(60)] + [230 + t for t in range(120)]
+    S = _scores(path, n=N_PLACES + 200, amp=3.0, seed=2)
     out = CANN(movement=1.0).filter(S)
     peak = out.argmax(axis=1)
     assert np.all(peak[30:60] == np.arange(50, 80))  # locked before the jump
@@ -119,8 +119,35 @@ def test_consistent_input_elsewhere_captures_the_packet():
     first = int(np.argmax(on_new[60:]))
     assert first <= 20
     assert on_new[60 + first :].all()  # and it stays there
+    # The old packet, held up for a while by the slow current's memory of the old places,
+    # falls silent once that memory has decayed.
     rates = _rates(out[-1])
-    assert np.count_nonzero(rates[:200]) == 0  # the old packet is gone
+    assert np.count_nonzero(rates[: path[-1] - 50]) == 0
+
+
+def test_relocation_moves_the_packet_to_evidence_that_leads():
+    """Weak evidence after a kidnap: relocation is faster than waiting for ignition."""
+    path = [20 + t for t in range(80)] + [230 + t for t in range(100)]
+    S = _scores(path, n=N_PLACES + 200, amp=1.0, seed=3)
+
+    def run(**params):
+        cann = CANN(movement=1.0, **params)
+        peaks, moves = [], []
+        for row in S:
+            peaks.append(int(cann.step(row).argmax()))
+            moves.append(cann.n_relocations_)
+        on = np.abs(np.array(peaks) - np.array(path)) <= 1
+        return on, int(np.argmax(on[80:])), moves
+
+    on, first, moves = run()
+    on_off, first_off, moves_off = run(relocation_margin=None)
+    assert on[40:80].all() and on_off[40:80].all()  # locked before the jump
+    assert moves[79] == 0 and moves[-1] == 1  # one relocation, after the jump
+    assert moves_off[-1] == 0
+    assert first <= 30 < first_off
+    assert on[80 + first :].all()
+    # A margin nothing reaches switches it off as well.
+    assert run(relocation_margin=1e6)[2][-1] == 0
 
 
 def test_weak_noisy_input_is_integrated_over_frames():
@@ -311,6 +338,8 @@ def test_without_adaptation():
         ({"velocity_contrast": -1.0}, ValueError, "velocity_contrast must be >= 0"),
         ({"tonic_inhibition": -1.0}, ValueError, "tonic_inhibition must be >= 0"),
         ({"input_clip": 0.0}, ValueError, "input_clip must be > 0"),
+        ({"relocation_margin": -1.0}, ValueError, "relocation_margin must be >= 0"),
+        ({"relocation_margin": "2"}, TypeError, "relocation_margin must be a number"),
         ({"adaptation": 0}, ValueError, "adaptation must be > 0"),
         ({"input_transform": "rank"}, ValueError, "input_transform must be one of"),
         ({"slow_time_constant": 0.0}, ValueError, "slow_time_constant must be > 0"),
@@ -423,8 +452,12 @@ def test_slow_current_remembers_longer():
                 before = float(cann._s[59])  # the evidence where the support ended
         return float(cann._s[99]) / before  # ... carried 40 places on by the shift
 
-    fast = kept(CANN(movement=1.0, adaptation=None))
-    both = kept(CANN(movement=1.0, adaptation=None, slow_time_constant=80.0))
+    fast = kept(
+        CANN(movement=1.0, adaptation=None, synaptic_time_constant=20.0, slow_time_constant=None)
+    )
+    both = kept(
+        CANN(movement=1.0, adaptation=None, synaptic_time_constant=20.0, slow_time_constant=80.0)
+    )
     assert fast == pytest.approx(np.exp(-40 / 20), rel=1e-3)
     assert both > 1.5 * fast
 
@@ -434,7 +467,7 @@ def test_variance_adaptation_equalises_noisy_places():
     rng = np.random.default_rng(6)
     S = rng.normal(size=(300, 50))
     S[:, 7] *= 10.0
-    plain = CANN(movement=0.0, input_clip=None).filter(S)
+    plain = CANN(movement=0.0, input_clip=None, adapt_variance=False).filter(S)
     adapted = CANN(movement=0.0, input_clip=None, adapt_variance=True).filter(S)
     top = lambda out: np.mean(out[100:].argmax(axis=1) == 7)  # noqa: E731
     assert top(plain) > 0.3
@@ -442,7 +475,7 @@ def test_variance_adaptation_equalises_noisy_places():
 
 
 @pytest.mark.slow
-def test_fast_recovery_on_nordland_kidnap(nordland_64x32):
+def test_kidnap_recovery_on_nordland(nordland_64x32):
     """Nordland s -> w frames 1000-1999: the stream jumps 200 places at frame 150."""
     from flyvpr.frontends.flynet import FlyNet
     from flyvpr.images import list_images, load_images
@@ -457,9 +490,10 @@ def test_fast_recovery_on_nordland_kidnap(nordland_64x32):
         ok = np.abs(cann.filter(S[order])[150:].argmax(axis=1) - order[150:]) <= 20
         return int(np.argmax(ok)) if ok.any() else len(ok)
 
-    fast, default = recovery(CANN(**FAST_RECOVERY)), recovery(CANN())
-    assert fast <= 30
-    assert fast < default
+    # Both configurations are back within tolerance within 30 frames (27 and 19 frames when
+    # this was written).
+    assert recovery(CANN()) <= 30
+    assert recovery(CANN(**FAST_RECOVERY)) <= 30
 
 
 # -- compiled path -------------------------------------------------------------
@@ -474,6 +508,8 @@ def test_fast_recovery_on_nordland_kidnap(nordland_64x32):
         FAST_RECOVERY,
         {**FAST_RECOVERY, "movement": 1.25, "slow_fraction": 0.8},
         {"slow_time_constant": 40.0, "adapt_variance": True, "input_clip": None},
+        {"relocation_margin": 0.3},  # relocations, place found from the velocity bank
+        {"movement": 1.0, "relocation_margin": 0.3, "adapt_variance": False},  # ... by a scan
     ],
 )
 @pytest.mark.parametrize("kind", ["normal", "probability"])
@@ -483,8 +519,9 @@ def test_compiled_path_matches_numpy_path(monkeypatch, params, kind):
     if cann_module._get_kernels() is None:
         pytest.skip("numba is not installed")
     rng = np.random.default_rng(11)
-    S = _scores([30 + t for t in range(80)], n=500, seed=3)
-    S[40:43] = 0.25  # constant rows
+    # A kidnap at frame 50 (relocation), constant rows at 40-42.
+    S = _scores([30 + t for t in range(50)] + [300 + t for t in range(30)], n=500, seed=3, amp=1.5)
+    S[40:43] = 0.25
     if kind == "probability":
         S = np.exp(S)
         S /= S.sum(axis=1, keepdims=True)
@@ -500,3 +537,6 @@ def test_compiled_path_matches_numpy_path(monkeypatch, params, kind):
     ]
     np.testing.assert_allclose(np.stack(fast), np.stack(slow), rtol=1e-4, atol=1e-4)
     assert compiled.velocity_ == reference.velocity_
+    assert compiled.n_relocations_ == reference.n_relocations_
+    if params.get("relocation_margin") == 0.3:
+        assert compiled.n_relocations_ >= 1

@@ -28,9 +28,10 @@ times are in frame periods, all distances in places.
   with weight ``inhibition``.
 - *Input*: each frame's score row, normalised to ``x`` (see "Input"), drives a synaptic
   current with time constant ``synaptic_time_constant`` (``tau_s``):
-  ``s <- s + (1 - exp(-1 / tau_s)) * (input_gain * x - s)``.  ``s`` is the leaky memory of the
-  evidence for each place along the route (it is shifted with the packet), so a place is
-  judged by many consecutive frames, as SeqSLAM judges a sequence.
+  ``s <- s + (1 - exp(-1 / tau_s)) * (input_gain * x - s)`` (optionally the sum of a fast and
+  a slow current, see "Two synaptic currents").  ``s`` is the leaky memory of the evidence for
+  each place along the route (it is shifted with the packet), so a place is judged by many
+  consecutive frames, as SeqSLAM judges a sequence.
 - *Rate dynamics*: ``tau du/dt = -u + K * r - inhibition * g + s``, ``tau = time_constant``,
   integrated with ``n_steps`` explicit Euler steps of ``1 / n_steps`` frame per frame.
 
@@ -41,10 +42,12 @@ without input: their summed inhibition exceeds either one's self-excitation, so 
 packet survives only where the evidence holds it up, and the packet with less evidence falls
 silent.  A new packet ignites only where ``s`` beats ``threshold + inhibition * g`` (4.2 to 7.4
 with the defaults, where the inhibitor rate ``g`` is 1 to 2).  One frame changes ``s`` by at
-most ``(1 - exp(-1 / tau_s)) * input_gain * input_clip`` (about 2), so a single spurious frame
-does not move the packet, while evidence that stays consistent over many frames at another
-place (the robot was "kidnapped") ignites a packet there, and the old one, no longer
-supported, dies.  The tonic inhibition (default 1, the rate of one fully active unit) only
+most ``(1 - exp(-1 / tau_s)) * input_gain * input_clip`` (1.57 with the defaults; with two
+currents, the sum of both currents' share), so a single spurious frame does not move the
+packet, while evidence that stays consistent over many frames at another place (the robot was
+"kidnapped") ignites a packet there (or relocates the packet, see "Relocation"), and the old
+one, once its remembered evidence has
+decayed, dies.  The tonic inhibition (default 1, the rate of one fully active unit) only
 matters while no packet exists: the first packet must then be ignited by evidence against the
 same inhibition as any later challenger, not by the first noise above threshold.
 
@@ -55,23 +58,42 @@ input, a fast one (``synaptic_time_constant``) and a slow one (``slow_time_const
 ``1 - slow_fraction`` and ``slow_fraction`` (like fast AMPA- and slow NMDA-type synapses).
 The slow current keeps a long memory, which averages out noise; the fast one lets new, consistent
 evidence show within a few frames.  For the same reaction time, this kernel (a mixture of two
-exponentials) is less noisy than a single exponential.
+exponentials) is less noisy than a single exponential, but with ``movement="estimate"`` it
+doubles the velocity bank, the largest cost per frame on long routes.
+
+Relocation
+----------
+A strong attractor is slow to give up a packet that the evidence no longer supports: after a
+kidnap the evidence for the new place must first reach the ignition threshold, which on weak
+evidence (FlyNet summer -> winter) takes 20 to 80 frames, while the evidence ``s`` itself
+usually shows the new place sooner.  So after each frame's integration, if the place with the
+most evidence, ``q = argmax s``, lies more than ``2 R`` places (``R`` the excitation kernel's
+radius) from the packet's peak ``p = argmax u`` (a unit above threshold), and
+``s_q - max(s over p - R .. p + R) > relocation_margin``, the packet is *relocated*: the
+potentials of the ``2 R + 1`` units around ``p`` are copied to the units around ``q`` and the
+units around ``p`` are set to rest (``-inhibition * g``), the paper's shift and copy of the
+packet applied to a jump.  The default margin, 2.5, is well above the most that one frame can
+add to ``s`` (1.57), so a single spurious frame cannot relocate a packet where the evidence was
+level: the lead must build up over several frames.  ``relocation_margin=None`` switches
+relocation off and leaves only the attractor dynamics.  The evidence itself is not touched, so
+a packet ignited by the old places' remembered evidence can live on for a while; it loses the
+competition and dies once that memory has decayed.  Cost: the maximum of ``u`` over the few
+units above threshold, and the position of each velocity row's maximum, which the velocity vote
+computes anyway (one extra O(n) pass when the movement is given).
 
 Fast recovery
 -------------
 With the defaults the attractor is strong: a packet coasts through long stretches without
-evidence, which is what makes it accurate on Nordland, but after a kidnap the evidence for the
-new place must first reach the ignition threshold, which on real data takes 8 to 80 frames
-(median 25-32 on the benchmark windows).  :data:`FAST_RECOVERY` is the other end of that
-trade-off: two currents (12 and 60 frames), a per-place variance adaptation
-(``adapt_variance``), a five times larger input gain and a weak recurrent excitation (8, with
-inhibition 1), so the packet follows the place with the most evidence, with a small
-hysteresis.  Measured by ``benchmarks/accuracy.py``: recovery after a 200-place jump in a median
-of 13-18 frames (most within 30; the rest jump into stretches where FlyNet's scores carry no
-evidence for the true place for 40-60 frames), similar AUC at 1x, lower at a random 1-1.5x
-speed.  The attractor properties still hold once remembered evidence has decayed (a packet
-without input persists and moves by the shift), but a packet without support for a long time
-can be taken over by a single strong frame elsewhere, which the defaults resist.
+evidence, which is what makes it accurate on Nordland, and relocation brings it back after a
+kidnap.  :data:`FAST_RECOVERY` is another point of that trade-off, without relocation: two
+currents (12 and 60 frames), variance adaptation over 20 frames, a five times larger input
+gain and a weak recurrent excitation (8, with inhibition 1), so the packet follows the place
+with the most evidence, with a small hysteresis.  Measured by ``benchmarks/accuracy.py``: it
+recovers from a 200-place jump faster on one benchmark window and as fast on the other, with
+similar AUC at 1x and lower AUC at a random 1-1.5x speed and on the 100-place subset.  The
+attractor properties still hold once remembered evidence has decayed (a packet without input
+persists and moves by the shift), but a packet without support for a long time can be taken
+over by a single strong frame elsewhere, which the defaults resist.
 
 Shift and copy
 --------------
@@ -186,6 +208,7 @@ FAST_RECOVERY = {
     "input_gain": 50.0,
     "adaptation": 20.0,
     "adapt_variance": True,
+    "relocation_margin": None,
 }
 
 _kernels = None  # compiled on first use so that ``import flyvpr`` does not import numba
@@ -254,13 +277,17 @@ def _build_kernels(numba):
     # The flags allow SIMD reductions (max, sums) but no fused multiply-adds ("contract"), so
     # the updates round exactly as the numpy path's separate operations.  cache=True keeps the
     # compiled code on disk; where no cache folder is writable numba refuses it with a
-    # RuntimeError, and the kernels are compiled in memory instead.
+    # RuntimeError, and the kernels are compiled in memory instead.  The numpy error model
+    # drops the zero-divisor check of every division, which otherwise keeps the variance
+    # adaptation's division out of SIMD (10x slower); no kernel divides by zero (the
+    # divisors are a sample size >= 1 and square roots of at least the variance floor).
     flags = {"nnan", "ninf", "nsz", "reassoc"}
+    opts = {"fastmath": flags, "error_model": "numpy"}
     funcs = _make_kernels(numba)
     try:
-        return {k: numba.njit(cache=True, fastmath=flags)(f) for k, f in funcs.items()}
+        return {k: numba.njit(cache=True, **opts)(f) for k, f in funcs.items()}
     except RuntimeError:
-        return {k: numba.njit(fastmath=flags)(f) for k, f in funcs.items()}
+        return {k: numba.njit(**opts)(f) for k, f in funcs.items()}
 
 
 def _make_kernels(numba):
@@ -435,7 +462,7 @@ class CANN(OnlineFilter):
         Potential above which a place unit fires (its rate is ``u - threshold``, at most 1).
     time_constant : float, default 1.0
         Time constant of the place units' potentials, in frames.
-    synaptic_time_constant : float, default 20.0
+    synaptic_time_constant : float, default 25.0
         Time constant of the input synapses, in frames: how long evidence for a place is
         remembered (the CANN's counterpart of SeqSLAM's sequence length).  With
         ``slow_time_constant`` set, the fast current's.
@@ -462,7 +489,7 @@ class CANN(OnlineFilter):
     adaptation : float or None, default 50.0
         Time constant, in frames, of each place's input adaptation (subtraction of its running
         mean input); ``None`` switches adaptation off.
-    adapt_variance : bool, default False
+    adapt_variance : bool, default True
         Also divide each place's input by the square root of its running variance (see
         "Input" in the module docstring); needs ``adaptation``.
     input_transform : {"auto", "log", "linear"}, default "auto"
@@ -470,6 +497,10 @@ class CANN(OnlineFilter):
         scores.
     input_clip : float or None, default 4.0
         Bound on the normalised input, in standard deviations; ``None``: no bound.
+    relocation_margin : float or None, default 2.5
+        Lead of the best evidence elsewhere over the packet's own evidence (in units of ``s``)
+        at which the packet is moved there (see "Relocation" in the module docstring);
+        ``None`` switches relocation off.
 
     Attributes
     ----------
@@ -477,6 +508,8 @@ class CANN(OnlineFilter):
         Movement applied at the last step (places per frame; NaN before the first step).
     n_frames_ : int
         Frames seen since the last :meth:`reset`.
+    n_relocations_ : int
+        Relocations since the last :meth:`reset`.
 
     Notes
     -----
@@ -484,13 +517,15 @@ class CANN(OnlineFilter):
     summer (reference) -> winter (query) at 64 x 32, frame-aligned, windows of frames 0-999 and
     1000-1999, ground truth within 20 frames, at 1x, 2x and a random 1-1.5x speed, and on a
     query stream that jumps 200 places; the attractor properties above were required of every
-    candidate.  A wide range of nearby values does as well.  Measured there (PR AUC, mean over
-    seeds and both windows): 0.92 at 1x (FlyNet alone 0.02, FlyNet + SeqSLAM 0.59), 0.91 at the
-    random 1-1.5x speed, 0.94 at 2x; the same defaults on pixel (SAD) scores give 0.95 / 1.00
-    on the two windows (pixels + SeqSLAM 0.88 / 0.95).  After a jump of 200 places (the
-    kidnap of ``benchmarks/accuracy.py``) the argmax is first back within 20 places after 18
-    to 53 frames (median 41): the evidence for the new place must build up over about
-    ``synaptic_time_constant`` frames, and on these windows it does so slowly.
+    candidate; the 100-place summer -> winter subset (tolerance 2) served as a check.  A wide
+    range of nearby values does as well.  Measured there (PR AUC, mean over seeds, windows
+    0-999 / 1000-1999): 0.89 / 0.98 at 1x (FlyNet alone 0.02, FlyNet + SeqSLAM 0.57 and
+    0.62), 0.85 / 0.97 at the random 1-1.5x speed, 0.92 / 0.97 at 2x; the same defaults on
+    pixel (SAD) scores give 0.975 / 0.995 (pixels + SeqSLAM 0.88 / 0.95).  After a jump of 200
+    places (the kidnap of ``benchmarks/accuracy.py``, 35 jumps per window) the argmax is first
+    back within 20 places after a median of 24 / 18 frames (at most 64 / 35); without
+    relocation 32 / 24 (at most 74 / 60), with 1x AUC 0.91 / 0.97.  The slowest jumps land
+    where FlyNet's scores hold almost no evidence for the true place for 40-60 frames.
 
     Differences from the authors' demo: the route is a line, not a ring; rates saturate at 1
     (the demo clips at 100); the input drives a slow synaptic current instead of the potential
@@ -522,7 +557,7 @@ class CANN(OnlineFilter):
         tonic_inhibition=1.0,
         threshold=1.0,
         time_constant=1.0,
-        synaptic_time_constant=20.0,
+        synaptic_time_constant=25.0,
         slow_time_constant=None,
         slow_fraction=0.5,
         input_gain=10.0,
@@ -532,9 +567,10 @@ class CANN(OnlineFilter):
         velocity_memory=100.0,
         velocity_contrast=4.0,
         adaptation=50.0,
-        adapt_variance=False,
+        adapt_variance=True,
         input_transform="auto",
         input_clip=4.0,
+        relocation_margin=2.5,
     ):
         self.excitation_strength = excitation_strength
         self.excitation_width = excitation_width
@@ -555,6 +591,7 @@ class CANN(OnlineFilter):
         self.adapt_variance = adapt_variance
         self.input_transform = input_transform
         self.input_clip = input_clip
+        self.relocation_margin = relocation_margin
 
     # -- parameters -----------------------------------------------------------
     def _check_params(self) -> dict:
@@ -633,6 +670,12 @@ class CANN(OnlineFilter):
             p["input_clip"] = None
         else:
             p["input_clip"] = _check_real(self.input_clip, "input_clip")
+        if self.relocation_margin is None:
+            p["relocation_margin"] = None
+        else:
+            p["relocation_margin"] = _check_real(
+                self.relocation_margin, "relocation_margin", inclusive=True
+            )
         return p
 
     # -- footprint ------------------------------------------------------------
@@ -681,6 +724,7 @@ class CANN(OnlineFilter):
         self._n = None  # the state is allocated by the first row, which fixes n_reference
         self._kernels = _get_kernels()  # None: the numpy path
         self.n_frames_ = 0
+        self.n_relocations_ = 0
         self.velocity_ = float("nan")
 
     def _allocate(self, n: int) -> None:
@@ -883,10 +927,12 @@ class CANN(OnlineFilter):
             self._offset = total - k
             fill = np.float32(-p["inhibition"] * self._g)
             _shift(self._u, k, fill)
+        peak = None  # the place with the most evidence, where already known
         if self._bank is not None and velocity is None:
             # The evidence follows the estimated speed: the bank's row of that velocity.
             self._cur[:, 0] = self._bank[:, self._estimate_index]
             self._s[:] = self._comb[self._estimate_index]
+            peak = int(self._row_peak[self._estimate_index])
         elif kernels is None:
             for c in range(self._cur.shape[0]):
                 _shift(self._cur[c, 0], k, 0.0)
@@ -919,9 +965,51 @@ class CANN(OnlineFilter):
                 if fill > p["threshold"]:  # units entering at an end fire (a negative threshold)
                     lo, hi = 0, n - 1
             self._integrate_compiled(lo, hi)
+        if p["relocation_margin"] is not None:
+            self._relocate(p["relocation_margin"], peak)
         self.n_frames_ = t + 1
         self.velocity_ = float(v)
         return self._u.copy()
+
+    def _relocate(self, margin: float, q: int | None) -> None:
+        """Move the packet to ``q``, the place with the most evidence, if it leads by ``margin``.
+
+        See "Relocation" in the module docstring.  ``q=None``: find it here (one O(n) pass).
+        The packet's peak is searched among the units above threshold only (the compiled
+        path's bracket); the potentials are copied over ``2 R + 1`` units, ``R`` the kernel
+        radius.
+        """
+        u, s = self._u, self._s
+        n = u.shape[0]
+        theta = self._params["threshold"]
+        if self._kernels is not None:
+            lo, hi = self._bracket  # every unit above threshold lies in [lo, hi]
+            if lo > hi:
+                return
+            p = lo + int(np.argmax(u[lo : hi + 1]))
+        else:
+            p = int(np.argmax(u))
+        if not u[p] > theta:  # no packet: evidence ignites one by the dynamics
+            return
+        radius = (self._kernel.size - 1) // 2
+        if q is None:
+            q = int(np.argmax(s))
+        if abs(q - p) <= 2 * radius:
+            return
+        lo, hi = max(p - radius, 0), min(p + radius + 1, n)
+        if not s[q] - s[lo:hi].max() > margin:
+            return
+        rest = np.float32(-self._params["inhibition"] * self._g)
+        packet = np.full(2 * radius + 1, rest, np.float32)
+        packet[lo - (p - radius) : hi - (p - radius)] = u[lo:hi]
+        u[lo:hi] = rest
+        a, b = max(q - radius, 0), min(q + radius + 1, n)
+        u[a:b] = packet[a - (q - radius) : b - (q - radius)]
+        self.n_relocations_ += 1
+        if self._kernels is not None:
+            # Widen the bracket of the compiled Euler step to the packet's new place.
+            blo, bhi = self._bracket
+            self._bracket = (min(blo, a), max(bhi, b - 1))
 
     def _update_bank(self, x: np.ndarray) -> None:
         p = self._params
@@ -970,7 +1058,9 @@ class CANN(OnlineFilter):
             centre = sample.mean(axis=1)
             spread = sample.std(axis=1)
         self._comb = comb  # the evidence per velocity (with one current, a view of the bank)
-        top = comb.max(axis=1)
+        # Where each row peaks (relocation reads the chosen row's) and its maximum.
+        self._row_peak = comb.argmax(axis=1)
+        top = comb[np.arange(comb.shape[0]), self._row_peak]
         contrast = (top - centre) / np.maximum(spread, 1e-12)
         decay = -np.expm1(-1.0 / p["velocity_memory"])
         self._votes *= 1.0 - decay
