@@ -290,6 +290,41 @@ def _build_kernels(numba):
         return {k: numba.njit(**opts)(f) for k, f in funcs.items()}
 
 
+def _relocate_packet(u, s, lo, hi, theta, q, radius, margin, rest, packet):
+    """Relocation (see the module docstring): move the packet to place ``q`` if it leads.
+
+    ``[lo, hi]`` brackets the units above threshold (the packet's peak is searched there),
+    ``q`` is the place with the most evidence, ``packet`` is scratch of ``2 radius + 1``
+    floats.  Returns whether the packet moved and a bracket of the units above threshold.
+    Plain Python for the numpy path, compiled for the numba path.
+    """
+    if lo > hi:
+        return False, lo, hi
+    n = u.shape[0]
+    p = lo
+    for i in range(lo + 1, hi + 1):
+        if u[i] > u[p]:
+            p = i
+    if not u[p] > theta or abs(q - p) <= 2 * radius:
+        return False, lo, hi
+    a0 = max(p - radius, 0)
+    b0 = min(p + radius + 1, n)
+    own = s[a0]
+    for i in range(a0 + 1, b0):
+        own = max(own, s[i])
+    if not s[q] - own > margin:
+        return False, lo, hi
+    packet[:] = rest
+    for i in range(a0, b0):
+        packet[i - (p - radius)] = u[i]
+        u[i] = rest
+    a = max(q - radius, 0)
+    b = min(q + radius + 1, n)
+    for i in range(a, b):
+        u[i] = packet[i - (q - radius)]
+    return True, min(lo, a), max(hi, b - 1)
+
+
 def _make_kernels(numba):
     """Plain-Python kernels for numba: each fuses what the numpy path does in several passes."""
 
@@ -435,41 +470,12 @@ def _make_kernels(numba):
             hi = new_hi
         return g, lo, hi
 
-    def relocate(u, s, lo, hi, theta, q, radius, margin, rest, packet):
-        # CANN._relocate in one call: [lo, hi] brackets the units above threshold, q is the
-        # place with the most evidence.  Returns whether the packet moved and the new bracket.
-        if lo > hi:
-            return False, lo, hi
-        n = u.shape[0]
-        p = lo
-        for i in range(lo + 1, hi + 1):
-            if u[i] > u[p]:
-                p = i
-        if not u[p] > theta or abs(q - p) <= 2 * radius:
-            return False, lo, hi
-        a0 = max(p - radius, 0)
-        b0 = min(p + radius + 1, n)
-        own = s[a0]
-        for i in range(a0 + 1, b0):
-            own = max(own, s[i])
-        if not s[q] - own > margin:
-            return False, lo, hi
-        packet[:] = rest
-        for i in range(a0, b0):
-            packet[i - (p - radius)] = u[i]
-            u[i] = rest
-        a = max(q - radius, 0)
-        b = min(q + radius + 1, n)
-        for i in range(a, b):
-            u[i] = packet[i - (q - radius)]
-        return True, min(lo, a), max(hi, b - 1)
-
     return {
         "moments": moments,
         "finish": finish,
         "bank_update": bank_update,
         "integrate": integrate,
-        "relocate": relocate,
+        "relocate": _relocate_packet,
     }
 
 
@@ -769,6 +775,7 @@ class CANN(OnlineFilter):
         # The synaptic currents, each already weighted (fast first); s is their sum.
         self._cur = np.zeros((n_cur, 1, n), np.float32)
         self._s = np.zeros(n, np.float32)
+        self._packet = np.empty(self._kernel.size, np.float32)  # scratch of relocation
         self._mean = np.zeros(n, np.float32)  # adaptation: running mean input per place
         self._var = np.ones(n, np.float32)  # and running variance (prior: the row's, 1)
         self._tmp = np.empty(n, np.float32)  # scratch
@@ -791,8 +798,6 @@ class CANN(OnlineFilter):
             self._firing = np.empty(n, np.int64)
             self._stats = np.empty((2, 1), np.float64)
             self._bracket = (0, n - 1)  # a loose bracket is correct, just slower
-            radius = (self._kernel.size - 1) // 2
-            self._packet = np.empty(2 * radius + 1, np.float32)  # relocation's copy
         vel = p["velocities"]
         if p["movement"] is None:
             # bank[c, j]: current c of the evidence along lines of slope velocities[j];
@@ -1015,37 +1020,30 @@ class CANN(OnlineFilter):
         path's bracket); the potentials are copied over ``2 R + 1`` units, ``R`` the kernel
         radius.
         """
-        u, s = self._u, self._s
-        n = u.shape[0]
-        theta = self._params["threshold"]
-        radius = (self._kernel.size - 1) // 2
         if q is None:
-            q = int(np.argmax(s))
+            q = int(np.argmax(self._s))
         if self._kernels is not None:
-            rest = np.float32(-self._params["inhibition"] * self._g)
+            relocate = self._kernels["relocate"]
             lo, hi = self._bracket  # every unit above threshold lies in [lo, hi]
-            moved, lo, hi = self._kernels["relocate"](
-                u, s, lo, hi, np.float32(theta), q, radius, margin, rest, self._packet
-            )
-            if moved:
-                self.n_relocations_ += 1
+        else:
+            relocate = _relocate_packet
+            lo = hi = int(np.argmax(self._u))  # the packet's peak, if it is above threshold
+        moved, lo, hi = relocate(
+            self._u,
+            self._s,
+            lo,
+            hi,
+            np.float32(self._params["threshold"]),
+            q,
+            (self._kernel.size - 1) // 2,
+            margin,
+            np.float32(-self._params["inhibition"] * self._g),
+            self._packet,
+        )
+        if moved:
+            self.n_relocations_ += 1
+            if self._kernels is not None:
                 self._bracket = (lo, hi)
-            return
-        p = int(np.argmax(u))
-        if not u[p] > theta:  # no packet: evidence ignites one by the dynamics
-            return
-        if abs(q - p) <= 2 * radius:
-            return
-        lo, hi = max(p - radius, 0), min(p + radius + 1, n)
-        if not s[q] - s[lo:hi].max() > margin:
-            return
-        rest = np.float32(-self._params["inhibition"] * self._g)
-        packet = np.full(2 * radius + 1, rest, np.float32)
-        packet[lo - (p - radius) : hi - (p - radius)] = u[lo:hi]
-        u[lo:hi] = rest
-        a, b = max(q - radius, 0), min(q + radius + 1, n)
-        u[a:b] = packet[a - (q - radius) : b - (q - radius)]
-        self.n_relocations_ += 1
 
     def _update_bank(self, x: np.ndarray) -> None:
         p = self._params
