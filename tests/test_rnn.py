@@ -142,8 +142,14 @@ def test_learns_a_diagonal_route(rng):
     n = 60
     R = _reference_scores(n, rng, noise=0.02)
     filt = RNNFilter(
-        hidden_size=64, sequence_length=20, epochs=60, batch_size=32, learning_rate=0.003,
-        speed_range=1.0, noise=(0.5, 0.85), random_state=1,
+        hidden_size=64,
+        sequence_length=20,
+        epochs=60,
+        batch_size=32,
+        learning_rate=0.003,
+        speed_range=1.0,
+        noise=(0.5, 0.85),
+        random_state=1,
     ).fit(R)
     # Queries revisit the route frame by frame with a weak, noisy view of their place.
     q = np.arange(n)

@@ -32,8 +32,7 @@ class ParamsMixin:
         for key, value in params.items():
             if key not in valid:
                 raise ValueError(
-                    f"invalid parameter {key!r} for {type(self).__name__}; "
-                    f"valid: {sorted(valid)}"
+                    f"invalid parameter {key!r} for {type(self).__name__}; valid: {sorted(valid)}"
                 )
             setattr(self, key, value)
         return self
