@@ -128,7 +128,7 @@ def test_consistent_input_elsewhere_captures_the_packet():
 def test_relocation_moves_the_packet_to_evidence_that_leads():
     """Weak evidence after a kidnap: relocation is faster than waiting for ignition."""
     path = [20 + t for t in range(80)] + [230 + t for t in range(100)]
-    S = _scores(path, n=N_PLACES + 200, amp=1.0, seed=3)
+    S = _scores(path, n=N_PLACES + 200, amp=1.5, seed=3)
 
     def run(**params):
         cann = CANN(movement=1.0, **params)
@@ -146,8 +146,49 @@ def test_relocation_moves_the_packet_to_evidence_that_leads():
     assert moves_off[-1] == 0
     assert first <= 30 < first_off
     assert on[80 + first :].all()
-    # A margin nothing reaches switches it off as well.
+    # A margin or a floor that nothing reaches switches it off as well.
     assert run(relocation_margin=1e6)[2][-1] == 0
+    assert run(relocation_floor=1e6)[2][-1] == 0
+
+
+def test_relocation_rule():
+    """The rule itself: the best place must pass the floor, lead the packet's own evidence by
+    the margin and lie outside the packet; then the packet's potentials move there."""
+    from flyvpr.temporal.cann import _relocate_packet
+
+    def attempt(q_evidence, q=100, own=1.0, floor=5.5, margin=0.5, firing=True):
+        u = np.full(200, -3.2, np.float32)
+        u[40:43] = [1.5, 2.0, 1.5] if firing else [0.5, 0.9, 0.5]
+        s = np.zeros(200, np.float32)
+        s[41] = own
+        s[q] = q_evidence
+        moved, lo, hi = _relocate_packet(
+            u,
+            s,
+            40,
+            42,
+            np.float32(1.0),
+            q,
+            3,
+            floor,
+            margin,
+            np.float32(-3.2),
+            np.empty(7, np.float32),
+        )
+        return moved, u, (lo, hi)
+
+    moved, u, bracket = attempt(6.0)
+    assert moved and bracket == (40, 103)
+    np.testing.assert_array_equal(u[99:102], [1.5, 2.0, 1.5])  # the packet, copied
+    assert np.all(u[:99] == -3.2) and np.all(u[102:] == -3.2)  # and nothing else fires
+    assert not attempt(5.0)[0]  # under the floor
+    assert not attempt(6.0, own=5.8)[0]  # leads by less than the margin
+    assert not attempt(6.0, q=47)[0]  # within 2 R = 6 places of the packet's peak (41)
+    assert attempt(6.0, q=48)[0]
+    assert not attempt(6.0, firing=False)[0]  # no packet: ignition is the dynamics' job
+    assert attempt(3.0, floor=2.0)[0]
+    moved, u, _ = attempt(6.0, q=199)  # at the end of the route: the packet is clipped
+    assert moved and np.array_equal(u[198:], [1.5, 2.0])
 
 
 def test_weak_noisy_input_is_integrated_over_frames():
@@ -340,6 +381,7 @@ def test_without_adaptation():
         ({"input_clip": 0.0}, ValueError, "input_clip must be > 0"),
         ({"relocation_margin": -1.0}, ValueError, "relocation_margin must be >= 0"),
         ({"relocation_margin": "2"}, TypeError, "relocation_margin must be a number"),
+        ({"relocation_floor": np.nan}, ValueError, "relocation_floor must be finite"),
         ({"adaptation": 0}, ValueError, "adaptation must be > 0"),
         ({"input_transform": "rank"}, ValueError, "input_transform must be one of"),
         ({"slow_time_constant": 0.0}, ValueError, "slow_time_constant must be > 0"),
@@ -508,8 +550,9 @@ def test_kidnap_recovery_on_nordland(nordland_64x32):
         FAST_RECOVERY,
         {**FAST_RECOVERY, "movement": 1.25, "slow_fraction": 0.8},
         {"slow_time_constant": 40.0, "adapt_variance": True, "input_clip": None},
-        {"relocation_margin": 0.3},  # relocations, place found from the velocity bank
-        {"movement": 1.0, "relocation_margin": 0.3, "adapt_variance": False},  # ... by a scan
+        # relocations, the place found from the velocity bank, or by a scan
+        {"relocation_margin": 0.3, "relocation_floor": 2.0},
+        {"movement": 1.0, "relocation_margin": 0.3, "relocation_floor": 2.0},
     ],
 )
 @pytest.mark.parametrize("kind", ["normal", "probability"])

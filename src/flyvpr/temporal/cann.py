@@ -68,32 +68,40 @@ kidnap the evidence for the new place must first reach the ignition threshold, w
 evidence (FlyNet summer -> winter) takes 20 to 80 frames, while the evidence ``s`` itself
 usually shows the new place sooner.  So after each frame's integration, if the place with the
 most evidence, ``q = argmax s``, lies more than ``2 R`` places (``R`` the excitation kernel's
-radius) from the packet's peak ``p = argmax u`` (a unit above threshold), and
-``s_q - max(s over p - R .. p + R) > relocation_margin``, the packet is *relocated*: the
-potentials of the ``2 R + 1`` units around ``p`` are copied to the units around ``q`` and the
-units around ``p`` are set to rest (``-inhibition * g``), the paper's shift and copy of the
-packet applied to a jump.  The default margin, 2.5, is well above the most that one frame can
-add to ``s`` (1.57), so a single spurious frame cannot relocate a packet where the evidence was
-level: the lead must build up over several frames.  ``relocation_margin=None`` switches
-relocation off and leaves only the attractor dynamics.  The evidence itself is not touched, so
-a packet ignited by the old places' remembered evidence can live on for a while; it loses the
-competition and dies once that memory has decayed.  Cost: the maximum of ``u`` over the few
-units above threshold, and the position of each velocity row's maximum, which the velocity vote
-computes anyway (one extra O(n) pass when the movement is given).
+radius) from the packet's peak ``p = argmax u`` (a unit above threshold), and its evidence is
+both high in absolute terms, ``s_q > relocation_floor``, and higher than the packet's own,
+``s_q - max(s over p - R .. p + R) > relocation_margin``, the packet is *relocated*: the potentials
+of the ``2 R + 1`` units around ``p`` are copied to the units around ``q`` and the units around
+``p`` are set to rest (``-inhibition * g``), the paper's shift and copy of the packet applied to
+a jump.  The floor is what tells a kidnap from a stretch where the camera sees nothing useful:
+there the packet's own evidence fades, but no place gathers consistent evidence either.  With
+the defaults it is 5.5, the level of an input that stays 0.55 standard deviations above its
+place's running mean (``s`` tends to ``input_gain`` times the input's average).  The leaky
+average of pure noise has a standard deviation of 1.4 with the defaults, so its largest value
+over 1000 places is typically about 4.5, below the floor (over 35,768 places about 5.8: on very
+long routes raise the floor).  One frame adds at most 1.57 to ``s``, so a single spurious frame
+cannot carry a place without evidence over the floor: it takes several consistent frames.  The
+margin (0.5) only keeps two places of nearly equal evidence from trading the packet back and
+forth.  ``relocation_margin=None`` switches relocation off and leaves only the attractor
+dynamics.  The evidence itself is not touched, so a packet ignited by the old places' remembered
+evidence can live on for a while; it loses the competition and dies once that memory has
+decayed.  Cost: the maximum of ``u`` over the few units above threshold, and the position of
+each velocity row's maximum, which the velocity vote computes anyway (one extra O(n) pass when
+the movement is given).
 
 Fast recovery
 -------------
 With the defaults the attractor is strong: a packet coasts through long stretches without
 evidence, which is what makes it accurate on Nordland, and relocation brings it back after a
-kidnap.  :data:`FAST_RECOVERY` is another point of that trade-off, without relocation: two
-currents (12 and 60 frames), variance adaptation over 20 frames, a five times larger input
-gain and a weak recurrent excitation (8, with inhibition 1), so the packet follows the place
-with the most evidence, with a small hysteresis.  Measured by ``benchmarks/accuracy.py``: it
-recovers from a 200-place jump faster on one benchmark window and as fast on the other, with
-similar AUC at 1x and lower AUC at a random 1-1.5x speed and on the 100-place subset.  The
-attractor properties still hold once remembered evidence has decayed (a packet without input
-persists and moves by the shift), but a packet without support for a long time can be taken
-over by a single strong frame elsewhere, which the defaults resist.
+kidnap.  :data:`FAST_RECOVERY` is the other way to recover fast, without relocation: two
+currents (12 and 60 frames), variance adaptation over 20 frames, a five times larger input gain
+and a weak recurrent excitation (8, with inhibition 1), so the packet follows the place with the
+most evidence, with a small hysteresis.  Measured by ``benchmarks/accuracy.py``: it recovers
+from a 200-place jump about as fast as the defaults, with similar AUC at 1x and lower AUC at a
+random 1-1.5x speed and on the 100-place subset; it is kept as the weak-attractor point of
+comparison.  The attractor properties still hold once remembered evidence has decayed (a packet
+without input persists and moves by the shift), but a packet without support for a long time can
+be taken over by a single strong frame elsewhere, which the defaults resist.
 
 Shift and copy
 --------------
@@ -290,15 +298,16 @@ def _build_kernels(numba):
         return {k: numba.njit(**opts)(f) for k, f in funcs.items()}
 
 
-def _relocate_packet(u, s, lo, hi, theta, q, radius, margin, rest, packet):
+def _relocate_packet(u, s, lo, hi, theta, q, radius, floor, margin, rest, packet):
     """Relocation (see the module docstring): move the packet to place ``q`` if it leads.
 
     ``[lo, hi]`` brackets the units above threshold (the packet's peak is searched there),
-    ``q`` is the place with the most evidence, ``packet`` is scratch of ``2 radius + 1``
-    floats.  Returns whether the packet moved and a bracket of the units above threshold.
-    Plain Python for the numpy path, compiled for the numba path.
+    ``q`` is the place with the most evidence, which must exceed ``floor`` and the packet's
+    own evidence by ``margin``; ``packet`` is scratch of ``2 radius + 1`` floats.  Returns
+    whether the packet moved and a bracket of the units above threshold.  Plain Python for the
+    numpy path, compiled for the numba path.
     """
-    if lo > hi:
+    if lo > hi or not s[q] > floor:
         return False, lo, hi
     n = u.shape[0]
     p = lo
@@ -537,10 +546,12 @@ class CANN(OnlineFilter):
         scores.
     input_clip : float or None, default 4.0
         Bound on the normalised input, in standard deviations; ``None``: no bound.
-    relocation_margin : float or None, default 2.5
-        Lead of the best evidence elsewhere over the packet's own evidence (in units of ``s``)
-        at which the packet is moved there (see "Relocation" in the module docstring);
-        ``None`` switches relocation off.
+    relocation_floor : float, default 5.5
+        Evidence (in units of ``s``) that a place must exceed before the packet can be
+        relocated there (see "Relocation" in the module docstring).
+    relocation_margin : float or None, default 0.5
+        Lead of that place's evidence over the packet's own evidence (in units of ``s``) at
+        which the packet is relocated there; ``None`` switches relocation off.
 
     Attributes
     ----------
@@ -560,10 +571,10 @@ class CANN(OnlineFilter):
     candidate; the 100-place summer -> winter subset (tolerance 2) served as a check.  A wide
     range of nearby values does as well.  Measured there (PR AUC, mean over seeds, windows
     0-999 / 1000-1999): 0.89 / 0.98 at 1x (FlyNet alone 0.02, FlyNet + SeqSLAM 0.57 and
-    0.62), 0.85 / 0.97 at the random 1-1.5x speed, 0.92 / 0.97 at 2x; the same defaults on
-    pixel (SAD) scores give 0.975 / 0.995 (pixels + SeqSLAM 0.88 / 0.95).  After a jump of 200
+    0.62), 0.82 / 0.95 at the random 1-1.5x speed, 0.91 / 0.97 at 2x; the same defaults on
+    pixel (SAD) scores give 0.98 / 0.995 (pixels + SeqSLAM 0.88 / 0.95).  After a jump of 200
     places (the kidnap of ``benchmarks/accuracy.py``, 35 jumps per window) the argmax is first
-    back within 20 places after a median of 24 / 18 frames (at most 64 / 35); without
+    back within 20 places after a median of 20 / 14 frames (at most 59 / 27); without
     relocation 32 / 24 (at most 74 / 60), with 1x AUC 0.91 / 0.97.  The slowest jumps land
     where FlyNet's scores hold almost no evidence for the true place for 40-60 frames.
 
@@ -610,7 +621,8 @@ class CANN(OnlineFilter):
         adapt_variance=True,
         input_transform="auto",
         input_clip=4.0,
-        relocation_margin=2.5,
+        relocation_floor=5.5,
+        relocation_margin=0.5,
     ):
         self.excitation_strength = excitation_strength
         self.excitation_width = excitation_width
@@ -631,6 +643,7 @@ class CANN(OnlineFilter):
         self.adapt_variance = adapt_variance
         self.input_transform = input_transform
         self.input_clip = input_clip
+        self.relocation_floor = relocation_floor
         self.relocation_margin = relocation_margin
 
     # -- parameters -----------------------------------------------------------
@@ -710,6 +723,7 @@ class CANN(OnlineFilter):
             p["input_clip"] = None
         else:
             p["input_clip"] = _check_real(self.input_clip, "input_clip")
+        p["relocation_floor"] = _check_real(self.relocation_floor, "relocation_floor", low=None)
         if self.relocation_margin is None:
             p["relocation_margin"] = None
         else:
@@ -1007,15 +1021,16 @@ class CANN(OnlineFilter):
                     lo, hi = 0, n - 1
             self._integrate_compiled(lo, hi)
         if p["relocation_margin"] is not None:
-            self._relocate(p["relocation_margin"], peak)
+            self._relocate(p["relocation_floor"], p["relocation_margin"], peak)
         self.n_frames_ = t + 1
         self.velocity_ = float(v)
         return self._u.copy()
 
-    def _relocate(self, margin: float, q: int | None) -> None:
-        """Move the packet to ``q``, the place with the most evidence, if it leads by ``margin``.
+    def _relocate(self, floor: float, margin: float, q: int | None) -> None:
+        """Move the packet to ``q``, the place with the most evidence, if the evidence allows.
 
-        See "Relocation" in the module docstring.  ``q=None``: find it here (one O(n) pass).
+        ``q``'s evidence must exceed ``floor`` and the packet's own by ``margin``; see
+        "Relocation" in the module docstring.  ``q=None``: find it here (one O(n) pass).
         The packet's peak is searched among the units above threshold only (the compiled
         path's bracket); the potentials are copied over ``2 R + 1`` units, ``R`` the kernel
         radius.
@@ -1036,6 +1051,7 @@ class CANN(OnlineFilter):
             np.float32(self._params["threshold"]),
             q,
             (self._kernel.size - 1) // 2,
+            floor,
             margin,
             np.float32(-self._params["inhibition"] * self._g),
             self._packet,
