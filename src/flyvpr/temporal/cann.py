@@ -160,8 +160,8 @@ is spread from the firing units only, a handful of places), and with ``movement=
 a shift-decay-add pass over each of the ``len(velocities)`` bank rows plus their maxima and
 sampled spreads.  When numba is importable these passes run as compiled, fused SIMD loops
 (normalisation and adaptation in three passes, each bank row in one, each Euler step in one
-over the route): about 40 us per frame for 1000 places and 200 us for 35,768 (2-core machine,
-default parameters), against 110 us and 450 us for the numpy path, which is used without
+over the route): about 36 us per frame for 1000 places and 220 us for 35,768 (2-core machine,
+default parameters), against 130 us and 520 us for the numpy path, which is used without
 numba and gives the same results up to float rounding.  Updates of the bank and of the
 synaptic currents are written into a second buffer (out of place), which keeps them plain SIMD
 loops.  For speed-critical use with a known, constant speed pass ``movement=1.0`` (no bank) or
