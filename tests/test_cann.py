@@ -532,9 +532,11 @@ def test_kidnap_recovery_on_nordland(nordland_64x32):
         ok = np.abs(cann.filter(S[order])[150:].argmax(axis=1) - order[150:]) <= 20
         return int(np.argmax(ok)) if ok.any() else len(ok)
 
-    # Both configurations are back within tolerance within 30 frames (27 and 19 frames when
-    # this was written).
-    assert recovery(CANN()) <= 30
+    # Both configurations are back within tolerance within 30 frames (20 and 19 frames when
+    # this was written); relocation makes the difference (29 frames without it).
+    default = recovery(CANN())
+    assert default <= 30
+    assert default < recovery(CANN(relocation_margin=None))
     assert recovery(CANN(**FAST_RECOVERY)) <= 30
 
 
