@@ -6,9 +6,12 @@ Prints one table (AUC and Recall@1, mean and minimum over seeds) for
 * conditions: Nordland 64x32 summer -> winter, frames 0-999 and 1000-1999 (tolerance 20 frames),
   and the 100-place FlyNet subset summer -> fall and summer -> winter (tolerance 2 frames);
 * speed variation for ``flynet+cann`` and ``seqslam`` on the 64x32 windows: every 2nd query frame
-  kept (2x) and a seeded random 1-1.5x speed profile (ground truth follows the kept frames);
+  kept (2x), every 1.5th (1.5x) and a seeded random 1-1.5x speed profile (ground truth follows
+  the kept frames);
 * recovery after a kidnap: the query stream jumps 200 places ahead; frames until the
-  ``flynet+cann`` localizer is back within tolerance;
+  ``flynet+cann`` localizer is back within tolerance, next to how much evidence FlyNet's single
+  frames hold for the true place after each landing (the median rank of the true place among
+  the references over the next 30 frames; 1 = best, half the references = chance);
 * the same for ``flynet+cann[fast]``: the CANN with ``flyvpr.temporal.cann.FAST_RECOVERY``
   (weak attractor, two-timescale evidence), at every speed and in the kidnap test.
 
@@ -54,10 +57,12 @@ DETERMINISTIC = {"pixels", "seqslam"}
 SPEED_METHODS = ["flynet+cann", "flynet+cann[fast]", "seqslam"]
 #: the filter and its parameters behind each "+cann" label
 CANN_VARIANTS = {"flynet+cann": {}, "flynet+cann[fast]": FAST_RECOVERY}
-SPEEDS = [("2x", 2.0), ("1-1.5x", (1.0, 1.5))]
+SPEEDS = [("2x", 2.0), ("1.5x", 1.5), ("1-1.5x", (1.0, 1.5))]
 KIDNAP_JUMP = 200
 #: stream frames at which the query stream jumps KIDNAP_JUMP places ahead
 KIDNAP_AT = (100, 200, 300, 400, 500, 600, 700)
+#: frames after each landing over which FlyNet's own evidence for the true place is summarised
+EVIDENCE_FRAMES = 30
 
 
 def _filter(name: str, seed: int, reference_scores, S, **params):
@@ -143,6 +148,9 @@ def run_condition(cond, data: Path, seeds, methods, log):
                 S = _filter("cann", seed, None, S_fn, **FAST_RECOVERY)
                 add("flynet+cann[fast]", "1x", seed, S, t_fit + t_fn + time.perf_counter() - t0)
         if speed_rows and "flynet+cann" in methods:
+            kidnap.append(
+                {"method": "flynet", "seed": seed, "evidence_rank": flynet_evidence_rank(S_fn)}
+            )
             for label, params in CANN_VARIANTS.items():
                 k = kidnap_recovery(S_fn, tol, seed, **params)
                 kidnap.append(
@@ -190,6 +198,25 @@ def kidnap_recovery(S_fn, tol, seed, **params):
     return out
 
 
+def flynet_evidence_rank(S_fn):
+    """Median rank of the true place in FlyNet's scores over the frames after each landing.
+
+    For every jump position ``p`` in KIDNAP_AT, the stream lands on query frame
+    ``p + KIDNAP_JUMP``; over that frame and the next ``EVIDENCE_FRAMES - 1`` the true place's
+    rank among the references (1 = scored highest) is taken per frame and the median reported.
+    """
+    n = S_fn.shape[0]
+    rows = np.arange(n)
+    rank = 1 + (S_fn > S_fn[rows, rows][:, None]).sum(axis=1)  # frame-aligned: true place = row
+    out = []
+    for p in KIDNAP_AT:
+        land = p + KIDNAP_JUMP
+        if land + 60 > n:
+            continue
+        out.append(int(np.median(rank[land : land + EVIDENCE_FRAMES])))
+    return out
+
+
 def summarise(rows):
     groups = {}
     for r in rows:
@@ -225,6 +252,17 @@ def to_markdown(table, kidnaps, seeds) -> str:
             f"{t['auc_min']:.3f} | {t['r1_mean']:.3f} | {t['r1_min']:.3f} |"
         )
     for name, entries in kidnaps.items():
+        ranks = [e for e in entries if e["method"] == "flynet"]
+        if ranks:
+            n_ref = {c[0]: c[5] for c in CONDITIONS}.get(name, "?")
+            lines.append("")
+            lines.append(
+                f"FlyNet's evidence after each landing ({name}): median rank of the true place "
+                f"among the {n_ref} references over the {EVIDENCE_FRAMES} frames after the jump "
+                "(1 = best; chance = half), per jump as below:"
+            )
+            for e in ranks:
+                lines.append(f"  seed {e['seed']}: {e['evidence_rank']}")
         for label in CANN_VARIANTS:
             k = [e for e in entries if e["method"] == label]
             frames = [f if f is not None else np.inf for e in k for f in e["frames"]]
