@@ -157,7 +157,7 @@ def run_condition(cond, data: Path, seeds, methods, log):
                     {
                         "method": label,
                         "seed": seed,
-                        "jump_at": list(KIDNAP_AT[: len(k)]),
+                        "jump_at": _jump_positions(len(S_fn)),
                         "frames": k,
                     }
                 )
@@ -179,6 +179,11 @@ def run_condition(cond, data: Path, seeds, methods, log):
     return rows, kidnap or None, bench.protocol()
 
 
+def _jump_positions(n: int) -> list:
+    """The jump positions of KIDNAP_AT that leave at least 60 frames after the landing."""
+    return [p for p in KIDNAP_AT if p + KIDNAP_JUMP + 60 <= n]
+
+
 def kidnap_recovery(S_fn, tol, seed, **params):
     """Frames until flynet+cann is back within ``tol`` after the queries jump KIDNAP_JUMP places.
 
@@ -188,9 +193,7 @@ def kidnap_recovery(S_fn, tol, seed, **params):
     """
     n = S_fn.shape[0]
     out = []
-    for p in KIDNAP_AT:
-        if p + KIDNAP_JUMP + 60 > n:
-            continue
+    for p in _jump_positions(n):
         order = np.r_[np.arange(p), np.arange(p + KIDNAP_JUMP, n)]
         S = _filter("cann", seed, None, S_fn[order], **params)
         ok = np.abs(S[p:].argmax(axis=1) - order[p:]) <= tol
@@ -208,13 +211,10 @@ def flynet_evidence_rank(S_fn):
     n = S_fn.shape[0]
     rows = np.arange(n)
     rank = 1 + (S_fn > S_fn[rows, rows][:, None]).sum(axis=1)  # frame-aligned: true place = row
-    out = []
-    for p in KIDNAP_AT:
-        land = p + KIDNAP_JUMP
-        if land + 60 > n:
-            continue
-        out.append(int(np.median(rank[land : land + EVIDENCE_FRAMES])))
-    return out
+    return [
+        int(np.median(rank[p + KIDNAP_JUMP : p + KIDNAP_JUMP + EVIDENCE_FRAMES]))
+        for p in _jump_positions(n)
+    ]
 
 
 def summarise(rows):
