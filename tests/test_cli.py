@@ -156,13 +156,46 @@ def test_datasets_lists_every_loader(capsys):
         assert f"{name}:" in out
 
 
-def test_methods_lists_registry(capsys):
-    from flyvpr.methods import METHODS
+def test_methods_lists_parts_within_a_terminal_width(capsys):
+    from flyvpr.frontends import FRONTENDS
+    from flyvpr.temporal import FILTERS
 
     assert main(["methods"]) == 0
     out = capsys.readouterr().out
-    for name in METHODS:
-        assert name in out
+    for name in [*FRONTENDS, *FILTERS]:
+        assert f"  {name} " in out
+    assert max(len(line) for line in out.splitlines()) <= 100
+
+
+def test_methods_all_lists_every_name_once(capsys):
+    from flyvpr.methods import METHODS
+
+    assert main(["methods", "--all"]) == 0
+    names = [line.split()[0] for line in capsys.readouterr().out.splitlines()]
+    assert names == list(METHODS)
+
+
+def test_closed_pipe_ends_quietly():
+    """`flyvpr methods | head`: no traceback and no message when the reader goes away."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from flyvpr.cli import main; sys.exit(main(sys.argv[1:]))",
+        ]
+        + ["methods", "--all"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    proc.stdout.close()  # the reader leaves before the first line is written
+    err = proc.stderr.read().decode()
+    proc.wait(timeout=60)
+    proc.stderr.close()
+    assert err == ""
+    assert proc.returncode == 141
 
 
 def test_demo_prints_table(tmp_path, capsys):

@@ -1,0 +1,79 @@
+"""Command-line interface: ``flyvpr <command> ...``.
+
+``main(argv) -> int`` returns 0 on success, 1 after a runtime error (one line on
+stderr) and 2 for a usage error.  Each subcommand lives in its own module beside
+its options (``evaluate``/``fit``, ``localize``, ``demo``, ``experiment``/``report``,
+``datasets``/``methods``); :func:`build_parser` collects them.  Nothing else in
+the package imports this package.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+
+from .. import __version__
+from . import demo, evaluate, experiment, info, localize
+from ._common import UsageError
+
+__all__ = ["main", "build_parser"]
+
+logger = logging.getLogger("flyvpr")
+
+#: subcommand modules in the order ``flyvpr --help`` lists them
+COMMAND_MODULES = (evaluate, localize, info, demo, experiment)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``flyvpr`` argument parser with every subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="flyvpr",
+        description=(
+            "Visual place recognition with FlyNet+CANN. A reference traverse is learned; every "
+            "query frame is matched to a reference place; results are scored with precision-"
+            "recall AUC and Recall@K."
+        ),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="Run `flyvpr COMMAND --help` for the options of a command.",
+    )
+    parser.add_argument("--version", action="version", version=f"flyvpr {__version__}")
+    parser.add_argument("--verbose", "-v", action="count", default=0, help="more log output")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for module in COMMAND_MODULES:
+        module.register(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Run the CLI; returns the process exit code."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse: --help/--version (0) or usage error (2)
+        return int(exc.code or 0)
+    logging.basicConfig(
+        level=logging.WARNING - 10 * min(args.verbose, 2),
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        code = int(args.func(args))
+        sys.stdout.flush()  # a closed pipe shows here, inside the handlers below
+        return code
+    except BrokenPipeError:
+        # `flyvpr methods | head`: the reader left; stop quietly, as `ls | head` does.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
+    except UsageError as exc:
+        print(f"flyvpr {args.command}: usage error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("flyvpr: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, TypeError, OSError, ImportError, RuntimeError) as exc:
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"flyvpr {args.command}: error: {message}", file=sys.stderr)
+        logger.debug("traceback", exc_info=True)
+        return 1

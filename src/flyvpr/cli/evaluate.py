@@ -1,0 +1,149 @@
+"""``flyvpr evaluate`` and ``flyvpr fit``: score a benchmark, or fit and save a model file."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from .. import __version__
+from .._io import write_json_atomic
+from ..datasets import load_benchmark
+from ..evaluation import evaluate_method
+from ._common import (
+    RESULT_COLUMNS,
+    UsageError,
+    add_dataset_args,
+    add_image_args,
+    add_method_args,
+    dataset_kwargs,
+    format_table,
+    image_options,
+    print_protocol,
+    split_params,
+    table_rows,
+    tolerance_unit,
+    tolerance_value,
+)
+
+
+def cmd_evaluate(args) -> int:
+    if args.load is not None:
+        if args.param:
+            raise UsageError("--param cannot change a model loaded with --load")
+        from ..modelio import load_method
+
+        model = load_method(args.load, size=args.size)
+        if args.method is not None and args.method != model.name:
+            raise UsageError(f"--method {args.method} but {args.load} holds {model.name}")
+        args.method = model.name
+        front_params = filt_params = None
+    elif args.method is None:
+        raise UsageError("give --method METHOD (or --load MODEL.npz)")
+    else:
+        model = args.method
+        front_params, filt_params = split_params(args.method, args.param)
+    bench = load_benchmark(args.dataset, **dataset_kwargs(args))
+    t0 = time.perf_counter()
+    ref, qry = bench.load_images(size=args.size, **image_options(args))
+    load_s = time.perf_counter() - t0
+    result = evaluate_method(
+        model,
+        ref,
+        qry,
+        bench.ground_truth,
+        seed=args.seed,
+        frontend_params=front_params,
+        filter_params=filt_params,
+        load_s=load_s,
+    )
+    protocol = bench.protocol()
+    out = {
+        "method": args.method,
+        "dataset": args.dataset,
+        "reference": protocol.get("reference"),
+        "query": protocol.get("query"),
+        "first": protocol.get("first"),
+        "count": protocol.get("count"),
+        "n_reference": result["n_reference"],
+        "n_query": result["n_query"],
+        "tolerance": tolerance_value(protocol.get("tolerance")),
+        "tolerance_unit": tolerance_unit(protocol.get("tolerance")),
+        "seed": args.seed,
+        "image_size": list(args.size),
+        **{
+            k: v for k, v in result.items() if k not in ("method", "seed", "n_reference", "n_query")
+        },
+        "protocol": protocol,
+        "flyvpr_version": __version__,
+    }
+    print_protocol(protocol, args)
+    print(format_table(table_rows([result]), RESULT_COLUMNS))
+    if args.out is not None:
+        write_json_atomic(args.out, out)
+        print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_fit(args) -> int:
+    from ..methods import make_method
+    from ..modelio import save_method
+
+    front_params, filt_params = split_params(args.method, args.param)
+    bench = load_benchmark(args.dataset, **dataset_kwargs(args))
+    ref = bench.reference.load_images(size=args.size, **image_options(args))
+    t0 = time.perf_counter()
+    model = make_method(args.method, args.seed, front_params, filt_params).fit(ref)
+    fit_s = time.perf_counter() - t0
+    path = save_method(model, args.save, size=args.size)
+    acc = model.train_accuracy
+    print(
+        f"{args.method}: fitted on {len(ref)} reference places ({bench.reference.name}) in "
+        f"{fit_s:.2f} s" + (f", train accuracy {acc:.3f}" if acc is not None else "")
+    )
+    print(f"wrote {path} ({path.stat().st_size:,} bytes)")
+    return 0
+
+
+def register(sub) -> None:
+    """Add ``evaluate`` and ``fit`` to the subcommand parsers ``sub``."""
+    p = sub.add_parser(
+        "evaluate",
+        help="fit a method on a reference traverse and score a query traverse",
+        description=(
+            "Fit METHOD on the reference traverse, score every query frame against every "
+            "reference place, and report PR-AUC, Recall@1/5/10 and recall at 100%% precision. "
+            "Each query's best reference is its prediction, with that score as confidence."
+        ),
+    )
+    add_dataset_args(p)
+    add_method_args(p, required=False, note=" (required unless --load)")
+    p.add_argument("--out", type=Path, help="write the result as JSON (atomically)")
+    p.add_argument(
+        "--load",
+        type=Path,
+        metavar="MODEL.npz",
+        help="use a model saved by `flyvpr fit --save` instead of fitting",
+    )
+    add_image_args(p)
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser(
+        "fit",
+        help="fit a method on a reference traverse and save it to a model file",
+        description=(
+            "Fit METHOD on the reference traverse of a dataset and save front end and filter to "
+            "an .npz model file (no pickle: loading it cannot run code). Use it with "
+            "`flyvpr evaluate --load MODEL.npz`."
+        ),
+    )
+    add_dataset_args(p)
+    add_method_args(p, required=True)
+    p.add_argument(
+        "--save",
+        type=Path,
+        required=True,
+        metavar="MODEL.npz",
+        help="model file to write (atomically)",
+    )
+    add_image_args(p)
+    p.set_defaults(func=cmd_fit)
