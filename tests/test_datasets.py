@@ -222,7 +222,7 @@ def test_traverse_load_images_and_cache(tmp_path):
     images = t.load_images(size=(4, 8), cache=cache, progress=False)
     assert images.shape == (4, 4, 8) and images.dtype == np.float32
     np.testing.assert_allclose(images[:, 0, 0], np.arange(4) * 40 / 255, atol=1e-6)
-    assert len(list(cache.glob("*.npy"))) == 1
+    assert len(list(cache.glob("*.npz"))) == 1
     np.testing.assert_array_equal(t.load_images(size=(4, 8), cache=cache), images)
 
 
@@ -386,8 +386,11 @@ def test_nordland_empty_and_non_image_folders(tmp_path):
     (tmp_path / "winter").mkdir()
     with pytest.raises(ValueError, match="no image files.*winter.*expected layout"):
         load_nordland(tmp_path)
-    (tmp_path / "winter" / "notes.txt").write_text("not an image")
+    (tmp_path / "winter" / ".notes.txt").write_text("hidden: skipped")
     with pytest.raises(ValueError, match="no image files.*winter"):
+        load_nordland(tmp_path)
+    (tmp_path / "winter" / "notes.txt").write_text("not an image")
+    with pytest.raises(ValueError, match=r"winter/notes.txt: not an image file"):
         load_nordland(tmp_path)
 
 

@@ -126,8 +126,8 @@ def test_generic_folder_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"image folder not found: .*qry.*expected layout"):
         load_generic(tmp_path, "ref", "qry")
     (tmp_path / "qry").mkdir()
-    (tmp_path / "qry" / "readme.md").write_text("no images here")
+    (tmp_path / "qry" / ".readme.md").write_text("hidden: skipped")
     with pytest.raises(ValueError, match="no image files .*qry"):
         load_generic(tmp_path, "ref", "qry")
     with pytest.raises(NotADirectoryError, match="expected a folder of images"):
-        load_generic(tmp_path, "ref", "qry/readme.md")
+        load_generic(tmp_path, "ref", "qry/.readme.md")

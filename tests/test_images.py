@@ -90,7 +90,7 @@ def test_demosaic_rejects_unknown_pattern():
 def test_list_images_natural_order(tmp_path):
     for i in (10, 2, 1):
         _save(tmp_path / f"{i}.png", np.zeros((4, 4), np.uint8))
-    (tmp_path / "notes.txt").write_text("x")
+    (tmp_path / ".DS_Store").write_text("x")  # hidden entries are skipped
     assert [p.name for p in im.list_images(tmp_path)] == ["1.png", "2.png", "10.png"]
 
 
@@ -120,7 +120,7 @@ def test_cache_roundtrip_and_invalidation(tmp_path):
     paths = _folder(tmp_path / "imgs")
     cache = tmp_path / "cache"
     a = im.load_images(paths, cache=cache, progress=False)
-    files = list(cache.glob("*.npy"))
+    files = list(cache.glob("*.npz"))
     assert len(files) == 1
     # A second load reads the cache: prove it by corrupting nothing but the source decoder.
     b = im.load_images(paths, cache=cache, progress=False)
@@ -129,7 +129,7 @@ def test_cache_roundtrip_and_invalidation(tmp_path):
     _save(paths[0], np.zeros((32, 64, 3), np.uint8))
     os.utime(paths[0], ns=(1, 1))
     c = im.load_images(paths, cache=cache, progress=False)
-    assert len(list(cache.glob("*.npy"))) == 2
+    assert len(list(cache.glob("*.npz"))) == 2
     assert not np.array_equal(a[0], c[0])
 
 
@@ -186,7 +186,7 @@ def test_corrupt_cache_file_is_ignored(tmp_path):
     paths = _folder(tmp_path / "imgs")
     cache = tmp_path / "cache"
     a = im.load_images(paths, cache=cache, progress=False)
-    (f,) = cache.glob("*.npy")
+    (f,) = cache.glob("*.npz")
     f.write_bytes(b"garbage")
     b = im.load_images(paths, cache=cache, progress=False)
     np.testing.assert_array_equal(a, b)

@@ -1,37 +1,219 @@
-"""Atomic writes of result files: a crash never leaves a half-written file."""
+"""Safe writes of output files: atomic, only where the user asked, with the usual permissions.
+
+Rules (see ``docs/guide/reliability.md``):
+
+* A file is written to a temporary name beside it and renamed over the target at the end, so
+  a crash, Ctrl-C or SIGTERM never leaves a half-written file; the temporary file is removed.
+* The target must be a regular file or not exist yet.  A symbolic link is followed: its
+  target is written (as a shell's ``>`` does) and the link stays.  A folder, FIFO, socket or
+  device is refused.
+* A new file gets the permissions the umask allows (``0644`` under the usual ``022``); an
+  existing file keeps its mode.
+* :func:`check_output_path` tells before any work whether a path can be written: its folder
+  exists, is a folder and is writable, the temporary name is not too long, and it is not one
+  of the run's input files.
+
+Kept free of any other flyvpr import so every layer can use it.
+"""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["atomic_open", "write_bytes_atomic", "write_text_atomic", "write_json_atomic"]
+__all__ = [
+    "OutputPathError",
+    "atomic_open",
+    "check_output_path",
+    "resolve_output",
+    "write_bytes_atomic",
+    "write_text_atomic",
+    "write_json_atomic",
+]
+
+#: characters the temporary name adds to the target's name: "." + name + "." + 8 + ".tmp"
+_TMP_EXTRA = 1 + 1 + 8 + 4
+
+
+class OutputPathError(ValueError):
+    """An output path that must not or cannot be written (checked before any work)."""
+
+
+def _umask() -> int:
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)  # the only portable way to read it is to set it
+    os.umask(mask)
+    return mask
+
+
+def resolve_output(path) -> Path:
+    """The file that writing ``path`` would replace: ``path``, or a symlink's final target.
+
+    Raises
+    ------
+    OutputPathError
+        For a symlink loop, or an existing target that is not a regular file.
+    """
+    path = Path(path)
+    target = path
+    if path.is_symlink():
+        try:
+            target = Path(os.path.realpath(path, strict=False))
+            os.stat(path)  # raises ELOOP on a loop; a dangling link is fine (writes its target)
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            raise OutputPathError(
+                f"{path}: cannot write through this link ({exc.strerror})"
+            ) from None
+    try:
+        st = os.stat(target)
+    except FileNotFoundError:
+        return target
+    except OSError as exc:
+        raise OutputPathError(f"{path}: cannot write it ({exc.strerror})") from None
+    if not stat.S_ISREG(st.st_mode):
+        kind = _kind(st.st_mode)
+        raise OutputPathError(
+            f"{path} is {kind}, not a regular file: refusing to replace it; name a file"
+        )
+    return target
+
+
+def _kind(mode: int) -> str:
+    if stat.S_ISDIR(mode):
+        return "a folder"
+    if stat.S_ISFIFO(mode):
+        return "a FIFO (named pipe)"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    return "not a regular file"
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def check_output_path(path, inputs: Iterable = (), *, what: str = "output") -> Path:
+    """Check, before any work, that ``path`` can and may be written; return the file to write.
+
+    Parameters
+    ----------
+    path : str or Path
+        The output the user named.
+    inputs : iterable of str or Path
+        Every file the run reads (images, model, CSV, ground truth, config): the output must
+        be none of them.  Folders among them are skipped.
+    what : str
+        How the message names the output, e.g. ``"--out"``.
+
+    Returns
+    -------
+    Path
+        The file that will be replaced or created (a symlink's target).
+
+    Raises
+    ------
+    OutputPathError
+        If the output is an input of the run, is not a regular file, its folder is missing,
+        not a folder or not writable, or its name is too long for the temporary file beside it.
+    """
+    path = Path(path)
+    target = resolve_output(path)
+    shown = f"{what} {path}"
+    for item in inputs:
+        item = Path(item)
+        if _same_file(target, item):
+            raise OutputPathError(
+                f"{shown} is an input of this run ({item}): refusing to overwrite it; "
+                "choose another output file"
+            )
+    folder = target.parent
+    if not folder.exists():
+        raise OutputPathError(f"{shown}: folder {folder} does not exist; create it first")
+    if not folder.is_dir():
+        raise OutputPathError(f"{shown}: {folder} is not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputPathError(f"{shown}: folder {folder} is not writable")
+    try:
+        name_max = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = 255
+    if len(os.fsencode(target.name)) + _TMP_EXTRA > name_max:
+        raise OutputPathError(
+            f"{shown}: file name too long ({len(os.fsencode(target.name))} bytes; at most "
+            f"{name_max - _TMP_EXTRA} here, to leave room for the temporary file)"
+        )
+    return target
 
 
 @contextmanager
 def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
-    """Open a temporary file beside ``path``; on success rename it to ``path``.
+    """Open a temporary file beside ``path``; on success rename it over ``path``.
 
-    On any exception inside the ``with`` block the temporary file is removed and ``path`` is
-    left as it was.  Parent folders are created.
+    On any exception inside the ``with`` block (including ``KeyboardInterrupt`` and the
+    CLI's SIGTERM exit) the temporary file is removed and ``path`` is left as it was.  Parent
+    folders are created.  A symlink is followed (its target is written); a target that exists
+    and is not a regular file is refused.  A new file gets ``0666 & ~umask``; an existing one
+    keeps its mode.
+
+    Raises
+    ------
+    OutputPathError
+        If the target is a folder, FIFO, socket or device, or a symlink loop.
+    OSError
+        If writing fails (a full disk, ...): the message names ``path``.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    target = resolve_output(path)
     try:
+        mode_bits = stat.S_IMODE(os.stat(target).st_mode)
+    except FileNotFoundError:
+        mode_bits = 0o666 & ~_umask()
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    except OSError as exc:
+        raise _named(exc, path) from None
+    try:
+        os.fchmod(fd, mode_bits)
         with os.fdopen(fd, mode, **kwargs) as fh:
             yield fh
-        os.replace(tmp, path)
-    except BaseException:
+        os.replace(tmp, target)
+    except BaseException as exc:
         try:
             os.unlink(tmp)
         except OSError:
             pass
+        # Errors of the write itself carry no file name (ENOSPC, EFBIG, EIO): name ours.
+        if isinstance(exc, OSError) and exc.filename is None:
+            raise _named(exc, path) from None
         raise
+
+
+def _named(exc: OSError, path: Path) -> OSError:
+    """The same error, with a message that names the file being written."""
+    reason = exc.strerror or str(exc)
+    if exc.errno == errno.ENOSPC:
+        reason = "no space left on the device"
+    return OSError(exc.errno, f"cannot write {path}: {reason}")
 
 
 def write_bytes_atomic(path, data: bytes) -> Path:

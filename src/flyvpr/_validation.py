@@ -5,7 +5,9 @@ Kept free of any other flyvpr import so every layer can use it.
 
 from __future__ import annotations
 
+import math
 import numbers
+import os
 
 import numpy as np
 
@@ -16,7 +18,15 @@ __all__ = [
     "check_scores",
     "check_positive_int",
     "check_fraction",
+    "InsufficientMemoryError",
+    "available_memory",
+    "format_bytes",
+    "array_nbytes",
+    "check_memory",
 ]
+
+#: Environment variable capping the memory flyvpr plans for, in bytes (``4e9``, ``4GB``).
+MEMORY_LIMIT_ENV = "FLYVPR_MAX_MEMORY"
 
 
 class NotFittedError(ValueError, AttributeError):
@@ -118,3 +128,117 @@ def check_fraction(value, name: str, low: float = 0.0, high: float = 1.0) -> flo
     if not (low < value <= high) or not np.isfinite(value):
         raise ValueError(f"{name} must be in ({low}, {high}]; got {value}")
     return value
+
+
+# -- memory ------------------------------------------------------------------------------------
+class InsufficientMemoryError(ValueError):
+    """A request needs more memory than the machine has available; raised before allocating."""
+
+
+_UNITS = {"": 1, "B": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
+
+
+def _parse_bytes(text: str) -> int:
+    t = text.strip().upper().removesuffix("IB").removesuffix("B")
+    unit = t[-1] if t and t[-1] in _UNITS else ""
+    number = float(t[: len(t) - len(unit)])
+    if not math.isfinite(number) or number <= 0:
+        raise ValueError
+    return int(number * _UNITS[unit])
+
+
+def _meminfo_available() -> int | None:
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def available_memory() -> int:
+    """Bytes of memory a computation may plan to use now.
+
+    ``MemAvailable`` of ``/proc/meminfo`` (free memory plus what the kernel can reclaim) on
+    Linux; elsewhere the free physical pages, else all physical memory.  The environment
+    variable ``FLYVPR_MAX_MEMORY`` (bytes, or with a unit: ``512M``, ``4G``) lowers the figure,
+    e.g. on a machine shared with other jobs.
+
+    Returns
+    -------
+    int
+    """
+    avail = _meminfo_available()
+    if avail is None:
+        for pages in ("SC_AVPHYS_PAGES", "SC_PHYS_PAGES"):
+            try:
+                avail = os.sysconf(pages) * os.sysconf("SC_PAGE_SIZE")
+                break
+            except (ValueError, OSError, AttributeError):
+                continue
+    if avail is None or avail <= 0:
+        avail = 1 << 62  # unknown: do not refuse on a guess
+    cap = os.environ.get(MEMORY_LIMIT_ENV)
+    if cap:
+        try:
+            avail = min(avail, _parse_bytes(cap))
+        except ValueError:
+            raise ValueError(
+                f"{MEMORY_LIMIT_ENV} must be a positive number of bytes such as 4000000000 or 4G; "
+                f"got {cap!r}"
+            ) from None
+    return int(avail)
+
+
+def format_bytes(n: int) -> str:
+    """``n`` bytes in a short human form: ``'1.5 GB'`` (powers of 1000)."""
+    n = int(n)
+    for unit, scale in (("TB", 10**12), ("GB", 10**9), ("MB", 10**6), ("kB", 10**3)):
+        if abs(n) >= scale:
+            value = n / scale
+            return f"{value:.3g} {unit}" if value < 1000 else f"{value:,.0f} {unit}"
+    return f"{n} bytes"
+
+
+def array_nbytes(shape, dtype=np.float32) -> int:
+    """Bytes of an array of ``shape`` and ``dtype``, in exact Python integers (never overflows)."""
+    return math.prod(int(d) for d in shape) * np.dtype(dtype).itemsize
+
+
+def check_memory(n_bytes: int, what: str) -> int:
+    """Refuse, before allocating, a request for more memory than is available.
+
+    Parameters
+    ----------
+    n_bytes : int
+        Bytes the request would allocate (an estimate of its peak).
+    what : str
+        The request in the caller's words, naming the parameter or option, e.g.
+        ``"n_hidden=10**9 (projection of 2048 x 10**9 float32)"``.
+
+    Returns
+    -------
+    int
+        ``n_bytes``.
+
+    Raises
+    ------
+    InsufficientMemoryError
+        If ``n_bytes`` exceeds :func:`available_memory`; the message names ``what``, the size
+        it would need and what is available.
+
+    Examples
+    --------
+    >>> check_memory(1000, "a small buffer")
+    1000
+    """
+    n_bytes = int(n_bytes)
+    avail = available_memory()
+    if n_bytes > avail:
+        raise InsufficientMemoryError(
+            f"{what} would need {format_bytes(n_bytes)} of memory; "
+            f"{format_bytes(avail)} is available"
+        )
+    return n_bytes

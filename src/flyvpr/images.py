@@ -6,32 +6,47 @@ used OpenCV's area interpolation, which for down-sampling is the exact average
 of the source pixels each target pixel covers.  Pillow's ``BOX`` filter computes
 the same average, so that is what we use.
 
-Decoded stacks are cached on disk (``.npy``, no pickle) under a key built from
-the file list with each file's size and modification time, the target size
-and the pre-processing version, so a second run does not decode again.
-Cache files are written atomically: a crash never leaves a partial cache.
+What is read (see :data:`FOLDER_RULES` and ``docs/guide/reliability.md``): every entry of
+an image folder is a frame or is refused by name, except hidden entries; integer pixels are
+scaled by their type's white level; float pixels must already lie in [0, 1]; a frame larger
+than Pillow's ``MAX_IMAGE_PIXELS`` is refused before it is decoded.
+
+Decoded stacks are cached on disk (no pickle) under a key built from the file list with each
+file's size, modification time, inode and status-change time, the target size and the
+pre-processing version, so a second run does not decode again.  Each cache file carries its
+key and a SHA-256 of its pixels; an entry that fails any check (unreadable, swapped, damaged,
+NaN or out of range) is named in a warning and rebuilt.  Cache files are written atomically:
+a crash never leaves a partial cache.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import logging
 import os
 import re
+import stat
 import sys
-import tempfile
 import warnings
+import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from ._io import atomic_open
+from ._npy import ArrayFileError, read_npz_member
+from ._validation import array_nbytes, check_memory
+
 __all__ = [
     "DEFAULT_SIZE",
     "IMAGE_EXTENSIONS",
     "ImageReadError",
+    "ImageFolderError",
+    "FOLDER_RULES",
     "to_gray",
     "resize_area",
     "demosaic_bilinear",
@@ -54,8 +69,27 @@ _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 _BAYER_PATTERNS = ("gbrg", "grbg", "rggb", "bggr")
 
 
+#: What :func:`list_images` reads, shown by ``flyvpr datasets``.
+FOLDER_RULES = (
+    "Image folders: every entry is read or refused by name, never skipped silently.\n"
+    "- frames: regular files (or links to them) ending in "
+    + " ".join(IMAGE_EXTENSIONS)
+    + " (any case), in natural name order (2.png before 10.png);\n"
+    "- skipped: hidden entries, whose name starts with '.' (.DS_Store, ._* AppleDouble files);\n"
+    "- refused: anything else (another extension such as .gif, .webp or .txt, a sub-folder, a "
+    "dangling link, a link loop, a FIFO, a device, an unreadable file).\n"
+    "Pixels: 8/16-bit integers are scaled by 255/65535; float images must lie in [0, 1] (other "
+    "ranges and NaN are refused); frames over PIL.Image.MAX_IMAGE_PIXELS pixels are refused "
+    "before decoding."
+)
+
+
 class ImageReadError(ValueError):
     """An image file could not be decoded (corrupt, truncated or not an image)."""
+
+
+class ImageFolderError(ValueError):
+    """An entry of an image folder that is neither a frame nor skipped (named in the message)."""
 
 
 def _check_size(size) -> tuple[int, int]:
@@ -71,8 +105,16 @@ def _check_size(size) -> tuple[int, int]:
 def to_gray(array: np.ndarray) -> np.ndarray:
     """Convert an image array to float32 gray in [0, 1].
 
-    Accepts (H, W) gray, (H, W, 3) RGB and (H, W, 4) RGBA (alpha ignored), with
-    dtype uint8, uint16 (full 16-bit range) or float (taken as already in [0, 1]).
+    Accepts (H, W) gray, (H, W, 3) RGB and (H, W, 4) RGBA (alpha ignored), with dtype
+    uint8 (divided by 255), uint16 (divided by 65535), other integers holding values in
+    [0, 65535] (16-bit data in Pillow's 32-bit mode ``I``, divided by 65535), bool, or float
+    already in [0, 1].  No value is clipped: anything else is refused.
+
+    Raises
+    ------
+    ValueError
+        For a wrong shape, NaN or infinite values, float values outside [0, 1] or integers
+        outside [0, 65535] (the message gives the range found).
 
     Examples
     --------
@@ -82,23 +124,40 @@ def to_gray(array: np.ndarray) -> np.ndarray:
     a = np.asarray(array)
     if a.dtype == np.uint8:
         a = a.astype(np.float32) / np.float32(255.0)
-    elif a.dtype == np.uint16:
-        a = a.astype(np.float32) / np.float32(65535.0)
-    elif np.issubdtype(a.dtype, np.integer):
-        # 32-bit integer modes hold 16-bit data in practice (Pillow's "I" for PNG).
-        a = a.astype(np.float32) / np.float32(65535.0)
-    else:
+    elif a.dtype == np.bool_:
         a = a.astype(np.float32)
+    elif np.issubdtype(a.dtype, np.integer):
+        if a.dtype.itemsize > 2 or np.issubdtype(a.dtype, np.signedinteger):
+            lo, hi = (int(a.min()), int(a.max())) if a.size else (0, 0)
+            if lo < 0 or hi > 65535:
+                raise ValueError(
+                    f"integer pixels must lie in [0, 65535] (8 or 16-bit data); got range "
+                    f"[{lo}, {hi}] in a {a.dtype} image: convert it to 8 or 16 bits"
+                )
+        a = a.astype(np.float32) / np.float32(255.0 if a.dtype.itemsize == 1 else 65535.0)
+    elif np.issubdtype(a.dtype, np.floating):
+        a = a.astype(np.float32)
+        if a.size and not np.isfinite(a).all():
+            raise ValueError("float pixels contain NaN or infinite values")
+        lo, hi = (float(a.min()), float(a.max())) if a.size else (0.0, 0.0)
+        if lo < 0.0 or hi > 1.0:
+            raise ValueError(
+                f"float pixels must lie in [0, 1]; got range [{lo:g}, {hi:g}]: flyvpr does not "
+                "guess the white level of a float image, scale it to [0, 1] (or save 8/16-bit)"
+            )
+    else:
+        raise ValueError(f"image must hold numbers; got dtype {a.dtype}")
     if a.ndim == 3:
         if a.shape[2] == 1:
             a = a[:, :, 0]
         elif a.shape[2] in (3, 4):
-            a = a[:, :, :3] @ _LUMA
+            # The weights sum to 1, so this is a weighted mean; the clip only removes rounding.
+            a = np.clip(a[:, :, :3] @ _LUMA, 0.0, 1.0)
         else:
             raise ValueError(f"image must have 1, 3 or 4 channels; got shape {a.shape}")
     elif a.ndim != 2:
         raise ValueError(f"image must have shape (H, W) or (H, W, C); got shape {a.shape}")
-    return np.clip(a, 0.0, 1.0, out=a if a.flags.writeable else None).astype(np.float32, copy=False)
+    return a.astype(np.float32, copy=False)
 
 
 def resize_area(gray: np.ndarray, size=DEFAULT_SIZE) -> np.ndarray:
@@ -161,6 +220,7 @@ def _decode(path: Path, bayer: str | None) -> np.ndarray:
     """Decode one file to a float32 gray array in [0, 1] at its native size."""
     try:
         with Image.open(path) as img:
+            _check_pixels(path, img)
             img.load()
             mode = img.mode
             if mode == "P":
@@ -176,15 +236,43 @@ def _decode(path: Path, bayer: str | None) -> np.ndarray:
         raise FileNotFoundError(f"image file not found: {path}") from None
     except UnidentifiedImageError:
         raise ImageReadError(f"{path}: not a readable image file") from None
+    except Image.DecompressionBombError as exc:
+        raise ImageReadError(f"{path}: refused before decoding ({exc})") from None
+    except IsADirectoryError:
+        raise ImageReadError(f"{path}: is a folder, not an image file") from None
+    except PermissionError:
+        raise ImageReadError(f"{path}: not readable (permission denied)") from None
     except (OSError, SyntaxError, ValueError) as exc:
+        if isinstance(exc, ImageReadError):
+            raise
         raise ImageReadError(f"{path}: corrupt or truncated image ({exc})") from None
-    if bayer is not None:
-        if arr.ndim != 2:
-            raise ImageReadError(
-                f"{path}: expected a single-channel raw Bayer image; got shape {arr.shape}"
-            )
-        return demosaic_bilinear(arr, bayer) @ _LUMA
-    return to_gray(arr)
+    try:
+        if bayer is not None:
+            if arr.ndim != 2:
+                raise ImageReadError(
+                    f"{path}: expected a single-channel raw Bayer image; got shape {arr.shape}"
+                )
+            return demosaic_bilinear(arr, bayer) @ _LUMA
+        return to_gray(arr)
+    except ImageReadError:
+        raise
+    except ValueError as exc:
+        raise ImageReadError(f"{path}: {exc}") from None
+
+
+def _check_pixels(path: Path, img) -> None:
+    """Refuse, from the header alone, a frame too large to decode."""
+    w, h = img.size
+    limit = Image.MAX_IMAGE_PIXELS
+    if limit is not None and w * h > limit:
+        raise ImageReadError(
+            f"{path}: declares {w}x{h} pixels ({w * h / 1e6:.0f} MP), more than the "
+            f"{limit / 1e6:.0f} MP that PIL.Image.MAX_IMAGE_PIXELS allows; refused before "
+            "decoding (resize it, or raise that limit if the file is trusted)"
+        )
+    # decoded bands plus the float32 gray copy and its resize
+    bands = max(1, len(img.getbands()))
+    check_memory(w * h * (bands * 4 + 8), f"{path} ({w}x{h} pixels, {bands} bands)")
 
 
 def load_image(path, size=DEFAULT_SIZE, *, bayer: str | None = None) -> np.ndarray:
@@ -205,11 +293,13 @@ def load_image(path, size=DEFAULT_SIZE, *, bayer: str | None = None) -> np.ndarr
     FileNotFoundError
         If the file does not exist.
     ImageReadError
-        If it is corrupt, truncated or not an image (message names the file).
+        If it is corrupt, truncated or not an image, holds float values outside [0, 1] or
+        NaN, or declares more pixels than ``PIL.Image.MAX_IMAGE_PIXELS`` (the message names
+        the file).
     """
     size = _check_size(size)
     with warnings.catch_warnings():
-        # Pillow warns on very large images; they are still decoded correctly.
+        # Pillow warns on very large images; _check_pixels refuses those itself.
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)
         gray = _decode(Path(path), bayer)
     return resize_area(gray, size)
@@ -220,8 +310,49 @@ def _natural_key(path: Path):
     return [int(p) if p.isdigit() else p.lower() for p in parts]
 
 
+def _refusal(entry: os.DirEntry, extensions: tuple[str, ...]) -> str | None:
+    """Why a (non-hidden) folder entry is not a frame, or None when it is one."""
+    try:
+        st = os.stat(entry.path)  # follows links
+    except FileNotFoundError:
+        try:
+            target = os.readlink(entry.path)
+        except OSError:
+            target = "?"
+        return f"dangling symbolic link (its target {target} does not exist)"
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return "symbolic link loop"
+        return f"cannot be examined ({exc.strerror})"
+    if stat.S_ISDIR(st.st_mode):
+        return "a sub-folder: frames must be files directly in the image folder"
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else "not a regular file"
+        if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode):
+            kind = "a device"
+        elif stat.S_ISSOCK(st.st_mode):
+            kind = "a socket"
+        return kind
+    suffix = os.path.splitext(entry.name)[1].lower()
+    if suffix not in extensions:
+        shown = " ".join(extensions)
+        if suffix in Image.registered_extensions():
+            return f"a {suffix} image, a format not read here (frames must end in {shown})"
+        what = f"extension {suffix!r}" if suffix else "no extension"
+        return f"not an image file ({what}; frames must end in {shown}): move it out"
+    if not os.access(entry.path, os.R_OK):
+        return "not readable (permission denied)"
+    return None
+
+
 def list_images(folder, extensions: Sequence[str] = IMAGE_EXTENSIONS) -> list[Path]:
-    """List the image files of ``folder`` in natural order (``2.png`` before ``10.png``).
+    """List the frames of an image folder in natural order (``2.png`` before ``10.png``).
+
+    Every entry is a frame or refused by name (see :data:`FOLDER_RULES`): a frame is a
+    regular file, or a link to one, whose extension is in ``extensions`` (any case); hidden
+    entries (name starting with ``.``) are skipped; anything else (another extension, a
+    sub-folder, a dangling link, a link loop, a FIFO, a device, an unreadable file) is refused,
+    so a stray file can never shift an index-matched ground truth.
 
     Raises
     ------
@@ -229,6 +360,8 @@ def list_images(folder, extensions: Sequence[str] = IMAGE_EXTENSIONS) -> list[Pa
         If the folder does not exist.
     NotADirectoryError
         If it is a file.
+    ImageFolderError
+        Naming the first entry that is not a frame and why (and how many more there are).
     ValueError
         If it holds no image file.
     """
@@ -238,7 +371,23 @@ def list_images(folder, extensions: Sequence[str] = IMAGE_EXTENSIONS) -> list[Pa
     if not folder.is_dir():
         raise NotADirectoryError(f"expected a folder of images; got a file: {folder}")
     exts = tuple(e.lower() for e in extensions)
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in exts]
+    files, hidden, refused = [], 0, []
+    with os.scandir(folder) as entries:
+        for entry in entries:
+            if entry.name.startswith("."):
+                hidden += 1
+                continue
+            reason = _refusal(entry, exts)
+            if reason is None:
+                files.append(Path(entry.path))
+            else:
+                refused.append((entry.name, reason))
+    if refused:
+        name, reason = min(refused)
+        more = f" (and {len(refused) - 1} more such entries)" if len(refused) > 1 else ""
+        raise ImageFolderError(f"{folder / name}: {reason}{more}")
+    if hidden:
+        logger.info("%s: skipped %d hidden entries (names starting with '.')", folder, hidden)
     if not files:
         raise ValueError(f"no image files ({', '.join(exts)}) in folder {folder}")
     return sorted(files, key=_natural_key)
@@ -256,33 +405,75 @@ def default_cache_dir() -> Path:
     return Path(base) / "flyvpr"
 
 
+#: Format name and version written into every cache file.
+_CACHE_FORMAT = "flyvpr-image-cache"
+_CACHE_VERSION = 2
+
+
 def _cache_key(paths: Sequence[Path], size, bayer) -> str:
+    """Key of a stack: every file's path, size, mtime, device, inode and ctime, and settings.
+
+    The status-change time (ctime) is set by the kernel on every write, rename or ``touch``
+    and cannot be set back, so a picture replaced with the same size and mtime still gets a
+    new key; a ``chmod`` also changes it (the stack is then decoded again, which is safe).
+    """
     entries = []
     for p in paths:
         try:
             st = p.stat()
         except FileNotFoundError:
             raise FileNotFoundError(f"image file not found: {p}") from None
-        entries.append([str(p.resolve()), st.st_size, st.st_mtime_ns])
+        entries.append(
+            [str(p.resolve()), st.st_size, st.st_mtime_ns, st.st_dev, st.st_ino, st.st_ctime_ns]
+        )
     blob = json.dumps(
         {"v": _PREPROCESS_VERSION, "size": list(size), "bayer": bayer, "files": entries}
     )
     return hashlib.sha256(blob.encode()).hexdigest()[:32]
 
 
-def _write_atomic_npy(path: Path, array: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+def _digest(array: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(array).data).hexdigest()
+
+
+def _write_cache(path: Path, array: np.ndarray, key: str) -> None:
+    meta = {
+        "format": _CACHE_FORMAT,
+        "version": _CACHE_VERSION,
+        "key": key,
+        "shape": list(array.shape),
+        "sha256": _digest(array),
+    }
+    with atomic_open(path, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED) as zf:
+        zf.writestr("meta.json", json.dumps(meta))
+        with zf.open("images.npy", "w", force_zip64=True) as member:
+            np.lib.format.write_array(member, array, allow_pickle=False)
+
+
+def _read_cache(path: Path, key: str, shape: tuple[int, ...]) -> np.ndarray:
+    """The cached stack, or ValueError saying why the entry cannot be trusted."""
+    if path.stat().st_size == 0:
+        raise ValueError("empty file")
     try:
-        with os.fdopen(fd, "wb") as fh:
-            np.save(fh, array, allow_pickle=False)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+        with zipfile.ZipFile(path) as zf:
+            names = sorted(zf.namelist())
+            if names != ["images.npy", "meta.json"]:
+                raise ValueError(f"unexpected entries {names}")
+            if zf.getinfo("meta.json").file_size > 4096:
+                raise ValueError("oversized metadata")
+            meta = json.loads(zf.read("meta.json"))
+            if not isinstance(meta, dict) or meta.get("format") != _CACHE_FORMAT:
+                raise ValueError("not a flyvpr image cache")
+            if meta.get("version") != _CACHE_VERSION or meta.get("key") != key:
+                raise ValueError("written for other files or settings (swapped or renamed)")
+            arr = read_npz_member(zf, "images", str(path), dtype=np.float32, shape=shape)
+    except (zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError, ArrayFileError) as exc:
+        raise ValueError(str(exc).replace(f"{path}, ", "")) from None
+    if meta.get("sha256") != _digest(arr):
+        raise ValueError("pixels fail their SHA-256 checksum (damaged or edited)")
+    if not np.isfinite(arr).all() or (arr.size and (arr.min() < 0.0 or arr.max() > 1.0)):
+        raise ValueError("pixels are NaN or outside [0, 1]")
+    return arr
 
 
 def _want_progress(progress) -> bool:
@@ -310,7 +501,9 @@ def load_images(
         Target (H, W).
     cache : bool or path
         ``True`` caches under :func:`default_cache_dir`, a path caches there,
-        ``False`` never reads or writes a cache.
+        ``False`` never reads or writes a cache.  A cache entry is used only if its key,
+        shape, dtype, SHA-256 checksum and value range all check out; otherwise a warning
+        names it and it is rebuilt.
     progress : bool, optional
         Show a progress bar; ``None`` shows one only when stderr is a terminal.
     bayer : str, optional
@@ -322,6 +515,8 @@ def load_images(
     ------
     ValueError
         If ``paths`` is empty.
+    flyvpr._validation.InsufficientMemoryError
+        If the stack would not fit in the available memory (before decoding anything).
     FileNotFoundError, ImageReadError
         For a missing or undecodable file; nothing is cached then.
     """
@@ -331,20 +526,24 @@ def load_images(
     paths = [Path(p) for p in paths]
     if not paths:
         raise ValueError("paths is empty: expected at least one image file")
+    shape = (len(paths), *size)
+    check_memory(
+        array_nbytes(shape, np.float32),
+        f"{len(paths)} images at size {size[0]}x{size[1]} (float32)",
+    )
     cache_file = None
     if cache is not False and cache is not None:
         cache_dir = default_cache_dir() if cache is True else Path(cache)
-        cache_file = cache_dir / f"images-{_cache_key(paths, size, bayer)}.npy"
+        key = _cache_key(paths, size, bayer)
+        cache_file = cache_dir / f"images-{key}.npz"
         if cache_file.is_file():
             try:
-                arr = np.load(cache_file, allow_pickle=False)
-                if arr.shape == (len(paths), *size) and arr.dtype == np.float32:
-                    logger.debug("image cache hit: %s", cache_file)
-                    return arr
-                logger.warning("ignoring cache file with unexpected shape: %s", cache_file)
+                arr = _read_cache(cache_file, key, shape)
+                logger.debug("image cache hit: %s", cache_file)
+                return arr
             except (OSError, ValueError) as exc:
-                logger.warning("ignoring unreadable cache file %s (%s)", cache_file, exc)
-    out = np.empty((len(paths), *size), dtype=np.float32)
+                logger.warning("image cache %s is unusable (%s); rebuilding it", cache_file, exc)
+    out = np.empty(shape, dtype=np.float32)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)
         for i, p in enumerate(
@@ -353,7 +552,7 @@ def load_images(
             out[i] = resize_area(_decode(p, bayer), size)
     if cache_file is not None:
         try:
-            _write_atomic_npy(cache_file, out)
-        except OSError as exc:  # a read-only cache must not stop the work
+            _write_cache(cache_file, out, key)
+        except (OSError, ValueError) as exc:  # a read-only cache must not stop the work
             logger.warning("could not write image cache %s (%s)", cache_file, exc)
     return out

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .._validation import check_positive_int
-from ..images import DEFAULT_SIZE, list_images, load_images
+from ..images import DEFAULT_SIZE, ImageFolderError, list_images, load_images
 
 __all__ = [
     "Traverse",
@@ -112,6 +112,8 @@ def _list_images_or_explain(folder: Path, layout: str, **kwargs) -> list[Path]:
         raise FileNotFoundError(f"{exc}; expected layout:\n{layout}") from None
     except NotADirectoryError as exc:
         raise NotADirectoryError(f"{exc}; expected layout:\n{layout}") from None
+    except ImageFolderError:
+        raise  # names the entry and why; the layout would not help
     except ValueError as exc:
         raise ValueError(f"{exc}; expected layout:\n{layout}") from None
 
