@@ -173,9 +173,7 @@ def npz_member_header(zf: zipfile.ZipFile, name: str, what: str):
     return shape, fortran, dtype, info
 
 
-def read_npz_member(
-    zf: zipfile.ZipFile, name: str, what: str, *, dtype=None, shape=None
-):
+def read_npz_member(zf: zipfile.ZipFile, name: str, what: str, *, dtype=None, shape=None):
     """Read one ``.npz`` member after checking its header, dtype, shape and size.
 
     The data are copied in 1 MB chunks into the final array, so a compressed member costs

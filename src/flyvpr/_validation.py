@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import numbers
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -23,6 +24,9 @@ __all__ = [
     "format_bytes",
     "array_nbytes",
     "check_memory",
+    "ScalarSpec",
+    "ArraySpec",
+    "PartSpec",
 ]
 
 #: Environment variable capping the memory flyvpr plans for, in bytes (``4e9``, ``4GB``).
@@ -242,3 +246,71 @@ def check_memory(n_bytes: int, what: str) -> int:
             f"{format_bytes(avail)} is available"
         )
     return n_bytes
+
+
+# -- saved state -------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ScalarSpec:
+    """Expected form of a scalar attribute in a model file (see :mod:`flyvpr.modelio`).
+
+    Parameters
+    ----------
+    kind : {'int', 'float', 'bool', 'str', 'shape'}
+        ``'shape'`` is a pair of positive ints (an image size).
+    low, high : float, optional
+        Inclusive bounds of ints and floats.
+    optional : bool
+        ``None`` is accepted too.
+    """
+
+    kind: str
+    low: float | None = None
+    high: float | None = None
+    optional: bool = False
+
+    def check(self, value, name: str):
+        """Return ``value`` (a tuple for shapes) or raise ValueError naming ``name``."""
+        if value is None and self.optional:
+            return None
+        kind = self.kind
+        if kind == "shape":
+            ok = (
+                isinstance(value, (list, tuple))
+                and len(value) == 2
+                and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in value)
+            )
+            if not ok:
+                raise ValueError(f"{name} must be a pair of positive ints; got {value!r}")
+            return tuple(value)
+        types = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}[kind]
+        if not isinstance(value, types) or (kind != "bool" and isinstance(value, bool)):
+            article = "an" if kind == "int" else "a"
+            raise ValueError(f"{name} must be {article} {kind}; got {value!r}")
+        if kind in ("int", "float"):
+            if not math.isfinite(value):
+                raise ValueError(f"{name} must be finite; got {value!r}")
+            if (self.low is not None and value < self.low) or (
+                self.high is not None and value > self.high
+            ):
+                raise ValueError(f"{name} must lie in [{self.low}, {self.high}]; got {value!r}")
+        return value
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Expected dtype and shape of an array attribute in a model file.
+
+    ``dtype=None`` accepts any numeric dtype; ``shape=None`` any shape; a ``None`` entry in
+    ``shape`` any length on that axis.  Float arrays must be finite unless ``finite=False``.
+    """
+
+    dtype: str | None
+    shape: tuple | None
+    finite: bool = True
+
+
+@dataclass(frozen=True)
+class PartSpec:
+    """A nested saved part (e.g. FlyNet's hash layer): one of the registry ``names``."""
+
+    names: tuple[str, ...]

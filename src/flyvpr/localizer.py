@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validation import check_images
+from ._validation import NotFittedError, check_images
 from .methods import Method, make_method
 from .temporal.base import OnlineFilter
 
@@ -68,12 +68,30 @@ class Localizer:
             self.method.filter.reset()
         self.n_frames_ = 0
 
+    def _check_fitted(self, call: str) -> None:
+        if not hasattr(self.method.frontend, "n_reference_"):
+            raise NotFittedError(
+                f"Localizer.{call} needs a reference map: call fit(reference_images) first"
+            )
+
     @property
     def n_places(self) -> int:
+        """Number of reference places (raises NotFittedError before :meth:`fit`)."""
+        self._check_fitted("n_places")
         return self.method.frontend.n_reference_
 
     def scores(self, image, velocity=None) -> np.ndarray:
-        """Advance by one frame and return the filtered score row (n_reference,)."""
+        """Advance by one frame and return the filtered score row (n_reference,).
+
+        Raises
+        ------
+        NotFittedError
+            Before :meth:`fit`.
+        """
+        self._check_fitted("scores")
+        return self._scores(image, velocity)
+
+    def _scores(self, image, velocity) -> np.ndarray:
         frontend = self.method.frontend
         frame = check_images(np.asarray(image)[None], "image", frontend.image_shape_)
         row = frontend.score_codes(frontend._encode(frame))[0]
@@ -99,7 +117,13 @@ class Localizer:
             Index of the best reference place.
         confidence : float
             Its score (the filtered activity or similarity; higher = surer).
+
+        Raises
+        ------
+        NotFittedError
+            Before :meth:`fit`.
         """
-        row = self.scores(image, velocity)
+        self._check_fitted("update")
+        row = self._scores(image, velocity)
         place = int(np.argmax(row))
         return place, float(row[place])

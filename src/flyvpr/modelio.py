@@ -1,24 +1,33 @@
 """Save and load fitted methods as ``.npz`` files that cannot execute code when loaded.
 
-A model file is a NumPy ``.npz`` archive read with ``allow_pickle=False``:
+A model file is a NumPy ``.npz`` archive (uncompressed zip) read without pickle:
 
 * ``__meta__``: a UTF-8 JSON document (stored as a uint8 array) with the format name and
   version, the flyvpr version, the method name, the front end's and the filter's registry names
   and constructor parameters, the pre-processing settings (image size, gray conversion, resize
   rule) and a SHA-256 checksum of everything else in the file;
 * one array per saved attribute, named ``frontend/<attr>`` or ``filter/<attr>`` (nested parts
-  such as FlyNet's hash layer add another level: ``frontend/hash_/connections_``).
+  such as FlyNet's hash layer add another level: ``frontend/hash_/connections_``);
+* the zip comment: the SHA-256 (hex) of every byte before it, so a change anywhere in the file,
+  even in zip fields numpy ignores, is refused.
 
 Classes are looked up by their registry names only, never by an import path from the file, and
 scalar attributes live in the JSON, so nothing in the file is ever unpickled or evaluated.
-A file from another format version, for another image size, or whose checksum does not match
-(modified or truncated) is refused with a ValueError naming the file.
+
+Loading trusts nothing in the file, not even a recomputed checksum: every field of the JSON
+must be present with the right type; the method name must match the saved front end and
+filter; each part's saved state must hold exactly the attributes its class declares
+(``_state_scalars`` and ``_state_arrays``), each scalar in range and each array with the
+declared dtype and shape, which is checked on the array's header before its data are read
+(so a header or a deflate bomb that claims gigabytes costs nothing); and the restored method
+must score a test frame.  Every refusal is a :class:`ModelFileError` (a ValueError) whose one
+line names the file and the field.
 """
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
-import io
 import json
 import zipfile
 from pathlib import Path
@@ -27,16 +36,44 @@ import numpy as np
 
 from . import __version__
 from ._io import atomic_open
+from ._npy import ArrayFileError, npz_member_header, read_npz_member
+from ._validation import ArraySpec, PartSpec, check_memory
 from .frontends import FRONTENDS
 from .images import DEFAULT_SIZE
-from .methods import Method
+from .methods import METHODS, Method
 from .temporal import FILTERS
+from .temporal.base import OnlineFilter
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "save_method", "load_method", "preprocessing_settings"]
+__all__ = [
+    "FORMAT",
+    "FORMAT_VERSION",
+    "ModelFileError",
+    "save_method",
+    "load_method",
+    "preprocessing_settings",
+]
 
 FORMAT = "flyvpr-model"
 #: bumped whenever the layout of saved state changes incompatibly
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: length of the file checksum (hex SHA-256) kept in the zip comment
+_TRAILER = 64
+#: largest accepted ``__meta__`` entry
+_MAX_META = 1 << 20
+_META_FIELDS = {
+    "format": str,
+    "format_version": int,
+    "flyvpr_version": str,
+    "method": str,
+    "preprocessing": dict,
+    "frontend": dict,
+    "filter": (dict, type(None)),
+    "checksum": str,
+}
+
+
+class ModelFileError(ValueError):
+    """A model file that is not a valid flyvpr model (the message names file and field)."""
 
 
 def preprocessing_settings(size=DEFAULT_SIZE) -> dict:
@@ -52,9 +89,9 @@ def preprocessing_settings(size=DEFAULT_SIZE) -> dict:
 
 
 # ---------------------------------------------------------------------------
-# state <-> (json, arrays)
+# saving
 # ---------------------------------------------------------------------------
-def _flatten(obj, prefix: str, arrays: dict, registry_of) -> dict:
+def _flatten(obj, prefix: str, arrays: dict) -> dict:
     """Split ``obj``'s saved state into JSON-able scalars and arrays (added to ``arrays``)."""
     meta = {}
     for name, value in obj._get_state().items():
@@ -68,28 +105,11 @@ def _flatten(obj, prefix: str, arrays: dict, registry_of) -> dict:
             meta[name] = {
                 "object": type(value).name,
                 "params": _json_params(value.get_params()),
-                "state": _flatten(value, key + "/", arrays, registry_of),
+                "state": _flatten(value, key + "/", arrays),
             }
         else:
             meta[name] = {"value": _json_value(value, key)}
     return meta
-
-
-def _unflatten(meta: dict, arrays, path: Path) -> dict:
-    state = {}
-    for name, entry in meta.items():
-        if "array" in entry:
-            state[name] = arrays[entry["array"]]
-        elif "object" in entry:
-            cls = FRONTENDS.get(entry["object"])
-            if cls is None:
-                raise ValueError(f"model file {path}: unknown part {entry['object']!r}")
-            part = cls(**entry["params"])
-            part._set_state(_unflatten(entry["state"], arrays, path))
-            state[name] = part
-        else:
-            state[name] = entry["value"]
-    return state
 
 
 def _json_value(value, key):
@@ -121,9 +141,20 @@ def _checksum(meta: dict, arrays: dict) -> str:
     return h.hexdigest()
 
 
-# ---------------------------------------------------------------------------
-# public API
-# ---------------------------------------------------------------------------
+def _file_digest(fh, n_bytes: int) -> str:
+    """SHA-256 (hex) of the first ``n_bytes`` of ``fh``, read in chunks."""
+    h = hashlib.sha256()
+    fh.seek(0)
+    left = n_bytes
+    while left > 0:
+        chunk = fh.read(min(1 << 20, left))
+        if not chunk:
+            break
+        h.update(chunk)
+        left -= len(chunk)
+    return h.hexdigest()
+
+
 def save_method(method: Method, path, *, size=DEFAULT_SIZE) -> Path:
     """Write a fitted method to ``path`` (``.npz``, atomically).
 
@@ -132,7 +163,8 @@ def save_method(method: Method, path, *, size=DEFAULT_SIZE) -> Path:
     method : Method
         Fitted (``fit`` was called).
     path : str or Path
-        Destination; parent folders are created.
+        Destination; parent folders are created.  A symlink is followed; a folder, FIFO or
+        device is refused (see :func:`flyvpr._io.atomic_open`).
     size : (int, int)
         The (H, W) the images were pre-processed to.
 
@@ -151,7 +183,7 @@ def save_method(method: Method, path, *, size=DEFAULT_SIZE) -> Path:
         "frontend": {
             "name": method.frontend.name,
             "params": _json_params(method.frontend.get_params()),
-            "state": _flatten(method.frontend, "frontend/", arrays, FRONTENDS),
+            "state": _flatten(method.frontend, "frontend/", arrays),
         },
         "filter": None,
     }
@@ -159,15 +191,244 @@ def save_method(method: Method, path, *, size=DEFAULT_SIZE) -> Path:
         meta["filter"] = {
             "name": method.filter.name,
             "params": _json_params(method.filter.get_params()),
-            "state": _flatten(method.filter, "filter/", arrays, FILTERS),
+            "state": _flatten(method.filter, "filter/", arrays),
         }
     meta["checksum"] = _checksum(meta, arrays)
     blob = json.dumps(meta).encode()
     payload = {"__meta__": np.frombuffer(blob, dtype=np.uint8), **arrays}
     path = Path(path)
-    with atomic_open(path, "wb") as fh:
-        np.savez(fh, **payload)
+    with atomic_open(path, "w+b") as fh:
+        with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+            for key, value in payload.items():
+                with zf.open(key + ".npy", "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
+            zf.comment = b"0" * _TRAILER
+        fh.flush()
+        end = fh.seek(0, 2)
+        digest = _file_digest(fh, end - _TRAILER)
+        fh.seek(end - _TRAILER)
+        fh.write(digest.encode("ascii"))
     return path
+
+
+# ---------------------------------------------------------------------------
+# loading
+# ---------------------------------------------------------------------------
+class _Reader:
+    """State of one load: the open archive and the arrays read so far."""
+
+    def __init__(self, path: Path, zf: zipfile.ZipFile):
+        self.path = path
+        self.zf = zf
+        self.arrays: dict = {}
+
+    def error(self, field: str | None, problem: str) -> ModelFileError:
+        where = f"model file {self.path}" + (f": {field}" if field else "")
+        return ModelFileError(f"{where}: {problem}")
+
+    def array(self, key: str, field: str, spec: ArraySpec | None) -> np.ndarray:
+        try:
+            arr = read_npz_member(
+                self.zf,
+                key,
+                f"model file {self.path}",
+                dtype=None if spec is None else spec.dtype,
+                shape=None if spec is None else spec.shape,
+            )
+        except ArrayFileError as exc:
+            raise self.error(field, str(exc).split(": ", 1)[-1]) from None
+        if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
+            raise self.error(field, f"entry {key!r} must hold numbers; got dtype {arr.dtype}")
+        finite = True if spec is None else spec.finite
+        if finite and np.issubdtype(arr.dtype, np.inexact) and not np.isfinite(arr).all():
+            raise self.error(field, f"entry {key!r} contains NaN or infinite values")
+        self.arrays[key] = arr
+        return arr
+
+    def part(self, name, params, state, field: str, registry: dict, kind: str, prefix: str):
+        """Build one saved part (front end, filter or nested part) after checking every field."""
+        if not isinstance(name, str) or name not in registry:
+            raise self.error(f"{field}.name", f"unknown {kind} {name!r}")
+        cls = registry[name]
+        if not isinstance(params, dict):
+            raise self.error(f"{field}.params", f"must be a JSON object; got {params!r}")
+        allowed = set(cls._param_names())
+        for key in params:
+            if key not in allowed:
+                raise self.error(f"{field}.params.{key}", f"not a parameter of {name}")
+        obj = cls(**params)
+        if not isinstance(state, dict):
+            raise self.error(f"{field}.state", f"must be a JSON object; got {state!r}")
+        scalars = {}
+        for key, spec in cls._state_scalars.items():
+            entry = state.get(key)
+            if entry is None:
+                raise self.error(f"{field}.state.{key}", "missing")
+            if not isinstance(entry, dict) or set(entry) != {"value"}:
+                raise self.error(f"{field}.state.{key}", f"must be a value; got {entry!r}")
+            try:
+                scalars[key] = spec.check(entry["value"], key)
+            except ValueError as exc:
+                raise self.error(f"{field}.state.{key}", str(exc)) from None
+        try:
+            declared = obj._state_arrays(scalars)
+        except (ValueError, TypeError) as exc:
+            raise self.error(f"{field}", f"state does not fit the parameters ({exc})") from None
+        restored = dict(scalars)
+        for key, entry in state.items():
+            if key in scalars:
+                continue
+            sub = f"{field}.state.{key}"
+            spec = _lookup(declared, key)
+            if declared is not None and spec is None:
+                raise self.error(sub, f"not part of a saved {name}")
+            if not isinstance(entry, dict):
+                raise self.error(sub, f"malformed entry {entry!r}")
+            if set(entry) == {"array"}:
+                if entry["array"] != prefix + key:
+                    raise self.error(
+                        sub, f"must name entry {prefix + key!r}; got {entry['array']!r}"
+                    )
+                if declared is not None and not isinstance(spec, ArraySpec):
+                    raise self.error(sub, "must be a nested part, not an array")
+                restored[key] = self.array(prefix + key, sub, spec)
+            elif set(entry) == {"object", "params", "state"}:
+                if declared is not None and (
+                    not isinstance(spec, PartSpec) or entry["object"] not in spec.names
+                ):
+                    raise self.error(sub, f"unexpected nested part {entry['object']!r}")
+                restored[key] = self.part(
+                    entry["object"], entry["params"], entry["state"], sub, FRONTENDS, "part",
+                    prefix + key + "/",
+                )  # fmt: skip
+            elif set(entry) == {"value"} and declared is None:
+                restored[key] = entry["value"]
+            else:
+                raise self.error(sub, f"malformed entry {entry!r}")
+        for key in declared or {}:
+            if not key.endswith("*") and key not in state:
+                raise self.error(f"{field}.state.{key}", "missing")
+        try:
+            obj._set_state(restored)
+        except (ValueError, TypeError, KeyError, IndexError, AttributeError, RuntimeError) as exc:
+            problem = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
+            raise self.error(f"{field}.state", f"does not restore a {name} ({problem})") from None
+        return obj
+
+
+def _lookup(declared: dict | None, key: str):
+    if declared is None:
+        return None
+    if key in declared:
+        return declared[key]
+    for pattern, spec in declared.items():
+        if pattern.endswith("*") and fnmatch.fnmatchcase(key, pattern):
+            return spec
+    return None
+
+
+def _read_meta(r: _Reader) -> dict:
+    try:
+        shape, _, dtype, info = npz_member_header(r.zf, "__meta__", f"model file {r.path}")
+    except ArrayFileError:
+        raise r.error(None, "has no flyvpr metadata: not a flyvpr model") from None
+    if dtype != np.uint8 or len(shape) != 1 or info.file_size > _MAX_META:
+        raise r.error("__meta__", "must be a JSON document of at most 1 MB")
+    raw = r.array("__meta__", "__meta__", ArraySpec("uint8", (None,)))
+    del r.arrays["__meta__"]
+    try:
+        meta = json.loads(raw.tobytes().decode("utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise r.error("__meta__", "metadata is not valid JSON (file modified?)") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise r.error("format", f"not a flyvpr model ({FORMAT!r} expected)")
+    version = meta.get("format_version")
+    if version != FORMAT_VERSION:
+        raise r.error(
+            "format_version",
+            f"the file has format version {version!r}; this flyvpr ({__version__}) reads "
+            f"version {FORMAT_VERSION}: "
+            "re-fit and save the model with this version",
+        )
+    return meta
+
+
+def _check_trailer(r: _Reader) -> None:
+    size = r.path.stat().st_size
+    with open(r.path, "rb") as fh:
+        digest = _file_digest(fh, size - _TRAILER)
+        fh.seek(size - _TRAILER)
+        stored = fh.read(_TRAILER)
+    if size <= _TRAILER or stored != digest.encode("ascii") or r.zf.comment != stored:
+        raise r.error(None, "failed its file checksum: it was modified or is damaged")
+
+
+def _check_fields(r: _Reader, meta: dict, size) -> tuple[int, int]:
+    for key, kind in _META_FIELDS.items():
+        if key not in meta:
+            raise r.error(key, "missing")
+        if not isinstance(meta[key], kind) or isinstance(meta[key], bool):
+            raise r.error(key, f"has the wrong type: {type(meta[key]).__name__}")
+    extra = sorted(set(meta) - set(_META_FIELDS))
+    if extra:
+        raise r.error(extra[0], "not a field of a flyvpr model")
+    from .images import _PREPROCESS_VERSION
+
+    pre = meta["preprocessing"]
+    if pre.get("preprocess_version") != _PREPROCESS_VERSION:
+        raise r.error(
+            "preprocessing.preprocess_version",
+            f"{pre.get('preprocess_version')!r}; this flyvpr uses {_PREPROCESS_VERSION}: "
+            "re-fit the model",
+        )
+    saved = pre.get("image_size")
+    if (
+        not isinstance(saved, list)
+        or len(saved) != 2
+        or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in saved)
+    ):
+        raise r.error("preprocessing.image_size", f"must be [H, W]; got {saved!r}")
+    if size is not None and tuple(size) != tuple(saved):
+        raise r.error(
+            None,
+            f"was fitted on {saved[0]}x{saved[1]} images; got --size {size[0]}x{size[1]}",
+        )
+    spec = METHODS.get(meta["method"])
+    front = meta["frontend"].get("name")
+    filt = None if meta["filter"] is None else meta["filter"].get("name")
+    if spec is None:
+        raise r.error("method", f"unknown method {meta['method']!r}")
+    if (spec.frontend, spec.filter) != (front, filt):
+        raise r.error(
+            "method",
+            f"{meta['method']!r} is {spec.frontend}"
+            + (f"+{spec.filter}" if spec.filter else "")
+            + f", but the file holds front end {front!r} and filter {filt!r}",
+        )
+    for part in ("frontend", "filter"):
+        if meta[part] is not None and set(meta[part]) != {"name", "params", "state"}:
+            raise r.error(part, "must hold exactly name, params and state")
+    return tuple(saved)
+
+
+def _probe(r: _Reader, method: Method, image_shape) -> None:
+    """The restored method must score two test frames into finite (2, n_reference) rows."""
+    h, w = image_shape
+    ramp = np.linspace(0.0, 1.0, h * w, dtype=np.float32).reshape(1, h, w)
+    frames = np.concatenate([ramp, ramp[:, ::-1, ::-1]])
+    n = method.frontend.n_reference_
+    try:
+        S = method.frontend.score(frames)
+        if S.shape != (2, n) or not np.isfinite(S).all():
+            raise ValueError(f"scores of shape {S.shape} (finite: {np.isfinite(S).all()})")
+        if method.filter is not None:
+            F = method.filter.filter(S)
+            if F.shape != (2, n) or not np.isfinite(F).all():
+                raise ValueError(f"filtered scores of shape {F.shape}")
+            if isinstance(method.filter, OnlineFilter):
+                method.filter.reset()
+    except (ValueError, TypeError, IndexError, KeyError, AttributeError, RuntimeError) as exc:
+        raise r.error(None, f"the restored model fails on a test frame ({exc})") from None
 
 
 def load_method(path, *, size=None) -> Method:
@@ -183,62 +444,55 @@ def load_method(path, *, size=None) -> Method:
     ------
     FileNotFoundError
         If the file does not exist.
-    ValueError
-        If it is not a flyvpr model file, comes from an incompatible format version, was
-        saved for another image size, or fails its checksum (modified or truncated).
+    ModelFileError
+        (a ValueError) If it is not a regular file or not a flyvpr model file, comes from an
+        incompatible format version, was saved for another image size, fails its file or
+        content checksum, misses a field or entry, holds an array of another dtype or shape,
+        an unknown or inconsistent method, front end, filter or parameter, or does not score a
+        test frame.  The message names the file and the field.
+    flyvpr._validation.InsufficientMemoryError
+        If the arrays it declares would not fit in the available memory.
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(f"model file not found: {path}")
+    if not path.is_file():
+        raise ModelFileError(f"model file {path} is not a regular file")
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise ValueError(f"model file {path} is not a readable .npz archive ({exc})") from None
-    raw = arrays.pop("__meta__", None)
-    if raw is None or raw.dtype != np.uint8 or raw.ndim != 1:
-        raise ValueError(f"model file {path} has no flyvpr metadata: not a flyvpr model")
-    try:
-        meta = json.load(io.BytesIO(raw.tobytes()))
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        raise ValueError(
-            f"model file {path}: metadata is not valid JSON (file modified?)"
-        ) from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise ValueError(f"model file {path} is not a flyvpr model (format {FORMAT!r} expected)")
-    version = meta.get("format_version")
-    if version != FORMAT_VERSION:
-        raise ValueError(
-            f"model file {path} has format version {version}; this flyvpr ({__version__}) reads "
-            f"version {FORMAT_VERSION}: re-fit and save the model with this version"
+        zf = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+        raise ModelFileError(f"model file {path} is not a readable .npz archive ({exc})") from None
+    with zf:
+        r = _Reader(path, zf)
+        meta = _read_meta(r)
+        _check_trailer(r)
+        image_shape = _check_fields(r, meta, size)
+        check_memory(
+            sum(info.file_size for info in zf.infolist()), f"model file {path} (its arrays)"
         )
-    expected = meta.pop("checksum", None)
-    if expected != _checksum(meta, arrays):
-        raise ValueError(f"model file {path} failed its checksum: it was modified or is damaged")
-    from .images import _PREPROCESS_VERSION
-
-    if meta["preprocessing"].get("preprocess_version") != _PREPROCESS_VERSION:
-        raise ValueError(
-            f"model file {path} expects pre-processing version "
-            f"{meta['preprocessing'].get('preprocess_version')}; this flyvpr uses "
-            f"{_PREPROCESS_VERSION}: re-fit the model"
-        )
-    saved_size = tuple(meta["preprocessing"]["image_size"])
-    if size is not None and tuple(size) != saved_size:
-        raise ValueError(
-            f"model file {path} was fitted on {saved_size[0]}x{saved_size[1]} images; "
-            f"got --size {size[0]}x{size[1]}"
-        )
-    front_meta = meta["frontend"]
-    if front_meta["name"] not in FRONTENDS:
-        raise ValueError(f"model file {path}: unknown front end {front_meta['name']!r}")
-    frontend = FRONTENDS[front_meta["name"]](**front_meta["params"])
-    frontend._set_state(_unflatten(front_meta["state"], arrays, path))
-    filt = None
-    if meta["filter"] is not None:
-        filt_meta = meta["filter"]
-        if filt_meta["name"] not in FILTERS:
-            raise ValueError(f"model file {path}: unknown filter {filt_meta['name']!r}")
-        filt = FILTERS[filt_meta["name"]](**filt_meta["params"])
-        filt._set_state(_unflatten(filt_meta["state"], arrays, path))
-    return Method(meta["method"], frontend, filt)
+        front = meta["frontend"]
+        frontend = r.part(
+            front["name"], front["params"], front["state"], "frontend", FRONTENDS, "front end",
+            "frontend/",
+        )  # fmt: skip
+        if tuple(frontend.image_shape_) != image_shape:
+            raise r.error(
+                "frontend.state.image_shape_",
+                f"{frontend.image_shape_} differs from preprocessing.image_size {image_shape}",
+            )
+        filt = None
+        if meta["filter"] is not None:
+            fm = meta["filter"]
+            filt = r.part(
+                fm["name"], fm["params"], fm["state"], "filter", FILTERS, "filter", "filter/"
+            )
+        expected = {"__meta__.npy"} | {key + ".npy" for key in r.arrays}
+        extra = sorted(set(zf.namelist()) - expected)
+        if extra:
+            raise r.error(None, f"entry {extra[0]!r} is not part of the saved model")
+        stored = meta.pop("checksum")
+        if stored != _checksum(meta, r.arrays):
+            raise r.error("checksum", "content checksum mismatch: modified or damaged")
+    method = Method(meta["method"], frontend, filt)
+    _probe(r, method, image_shape)
+    return method

@@ -118,6 +118,33 @@ def _list_images_or_explain(folder: Path, layout: str, **kwargs) -> list[Path]:
         raise ValueError(f"{exc}; expected layout:\n{layout}") from None
 
 
+def _read_csv_text(path: Path, what: str) -> str:
+    """The text of a CSV file: UTF-8, a leading byte-order mark dropped.
+
+    Raises
+    ------
+    FileNotFoundError
+        If the file does not exist.
+    ValueError
+        If it is not a regular file or not UTF-8 (the message names the file, the line and
+        the byte).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{what} not found: {path}")
+    if not path.is_file():
+        raise ValueError(f"{what} {path} is not a regular file")
+    data = path.read_bytes()
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise ValueError(
+            f"{path}, line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
+            f"{exc.start}); save the file as UTF-8"
+        ) from None
+
+
 def _subfolders(root: Path) -> list[str]:
     return sorted(p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
 

@@ -19,6 +19,7 @@ Every image of both folders needs exactly one row.
 from __future__ import annotations
 
 import csv
+import io
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,7 @@ from .base import (
     _check_nonnegative_number,
     _check_window,
     _list_images_or_explain,
+    _read_csv_text,
     ground_truth_from_frames,
     ground_truth_from_positions,
 )
@@ -74,19 +76,19 @@ def read_positions_csv(path, reference_paths, query_paths):
     FileNotFoundError
         If the CSV is missing.
     ValueError
-        For missing columns, an unknown traverse, a non-numeric position, a
-        file named twice or not in its folder, or an image without a row
-        (the message names the CSV, the line and the file).
+        For a file that is not UTF-8 text (a byte-order mark is fine), missing columns,
+        an unknown traverse, a non-numeric position, a file named twice or not in its
+        folder, or an image without a row (the message names the CSV, the line and the
+        file).
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"positions CSV not found: {path}")
+    text = _read_csv_text(path, "positions CSV")
     index = {
         "reference": {p.name: i for i, p in enumerate(reference_paths)},
         "query": {p.name: i for i, p in enumerate(query_paths)},
     }
     out = {role: np.full((len(files), 2), np.nan) for role, files in index.items()}
-    with open(path, newline="") as fh:
+    with io.StringIO(text, newline="") as fh:
         reader = csv.reader(fh)
         header = [h.strip() for h in next(reader, [])]
         missing = [c for c in CSV_COLUMNS if c not in header]

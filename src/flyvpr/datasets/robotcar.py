@@ -15,6 +15,7 @@ run of identical places.
 from __future__ import annotations
 
 import csv
+import io
 import logging
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from .base import (
     _check_root,
     _check_window,
     _list_images_or_explain,
+    _read_csv_text,
     _subfolders,
     ground_truth_from_positions,
 )
@@ -68,6 +70,8 @@ GPS_COLUMNS = (
     "down",
     "utm_zone",
 )
+#: Longest accepted time stamp: 18 digits always fit int64 (microseconds until year 33658).
+_MAX_DIGITS = 18
 #: The columns this loader reads from either file.
 _NEEDED = ("timestamp", "northing", "easting")
 
@@ -112,14 +116,14 @@ def read_poses(path) -> tuple[np.ndarray, np.ndarray]:
     FileNotFoundError
         If the file does not exist.
     ValueError
-        For an empty file, missing columns (named), a row with the wrong number
-        of fields, a non-numeric or non-increasing time stamp, or a
+        For a file that is not UTF-8 text, an empty file, missing columns (named), a row
+        with the wrong number of fields, a non-numeric, overlong (over 18 digits) or
+        non-increasing time stamp, or a
         non-numeric position (the message names the file and line).
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"pose file not found: {path}")
-    with open(path, newline="") as fh:
+    text = _read_csv_text(path, "pose file")
+    with io.StringIO(text, newline="") as fh:
         reader = csv.reader(fh)
         header = next((row for row in reader if row), None)
         if header is None:
@@ -151,12 +155,12 @@ def read_poses(path) -> tuple[np.ndarray, np.ndarray]:
     cols = {name: [row[i].strip() for row in rows] for name, i in where.items()}
 
     stamps = np.array(cols["timestamp"])
-    digits = np.char.isdigit(stamps)
+    digits = np.char.isdigit(stamps) & (np.char.str_len(stamps) <= _MAX_DIGITS)
     if not digits.all():
         i = int(np.argmin(digits))
         raise ValueError(
-            f"{path}, line {lines[i]}: timestamp must be an integer number of microseconds; "
-            f"got {str(stamps[i])!r}"
+            f"{path}, line {lines[i]}: timestamp must be an integer number of microseconds "
+            f"with at most {_MAX_DIGITS} digits; got {str(stamps[i])!r}"
         )
     timestamps = stamps.astype(np.int64)
     positions = np.empty((len(rows), 2), dtype=np.float64)
@@ -222,10 +226,10 @@ def _image_timestamps(folder: Path) -> tuple[list[Path], np.ndarray]:
     paths = _list_images_or_explain(folder, LAYOUT, extensions=(".png",))
     stems = [p.stem for p in paths]
     for p, s in zip(paths, stems, strict=True):
-        if not s.isdigit():
+        if not s.isdigit() or len(s) > _MAX_DIGITS:
             raise ValueError(
-                f"image file name must be a numeric timestamp in microseconds: {p}; "
-                f"expected layout:\n{LAYOUT}"
+                f"image file name must be a numeric timestamp in microseconds: {p} "
+                f"(digits only, at most {_MAX_DIGITS})"
             )
     stamps = np.array(stems).astype(np.int64)
     order = np.argsort(stamps, kind="stable")

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._npy import load_npy, npy_header
 from .base import Benchmark, Traverse, _check_root, _list_images_or_explain
 
 __all__ = ["load_vprbench", "parse_vprbench_rows", "LAYOUT"]
@@ -43,16 +44,40 @@ def _pickle_refusal(path: Path) -> ValueError:
     )
 
 
-def _load_plain(path: Path):
-    """The array in ``path`` if it loads without pickle, else None (it is pickled)."""
-    try:
-        return np.load(path, allow_pickle=False)
-    except ValueError as exc:
-        if "pickle" in str(exc).lower():
+def _load_plain(path: Path, n_query: int, n_reference: int):
+    """The matrix in ``path`` if it is a plain .npy array, else None (it is pickled).
+
+    The header is checked (dtype, shape, data size, memory) before any allocation, so a
+    small file that claims a huge matrix is refused at no cost.
+    """
+    with open(path, "rb") as fh:
+        head = fh.read(6)
+    if head != b"\x93NUMPY":
+        if head[:1] == b"\x80":  # a bare pickle stream (protocol 2 or later)
             return None
-        raise ValueError(f"{path}: not a readable .npy file ({exc})") from None
-    except (OSError, EOFError) as exc:
-        raise ValueError(f"{path}: not a readable .npy file ({exc})") from None
+        raise ValueError(f"{path}: not a readable .npy file (no .npy header)")
+    shape, _, dtype = npy_header(path)
+    if dtype.hasobject:
+        return None
+    if not (dtype == np.bool_ or np.issubdtype(dtype, np.integer)):
+        raise _dtype_error(path, n_query, n_reference, dtype, shape)
+    _check_shape(path, n_query, n_reference, shape)
+    return load_npy(path, shape=(n_query, n_reference))
+
+
+def _dtype_error(path, n_query, n_reference, dtype, shape) -> ValueError:
+    return ValueError(
+        f"{path}: expected a boolean ground-truth matrix (n_query, n_reference) = "
+        f"({n_query}, {n_reference}); got dtype {dtype}, shape {shape}"
+    )
+
+
+def _check_shape(path, n_query, n_reference, shape) -> None:
+    if tuple(shape) != (n_query, n_reference):
+        raise ValueError(
+            f"{path}: ground-truth matrix must have shape (n_query, n_reference) = "
+            f"({n_query}, {n_reference}) to match the query/ and ref/ folders; got {shape}"
+        )
 
 
 def _check_matrix(gt, path: Path, n_query: int, n_reference: int) -> np.ndarray:
@@ -61,15 +86,8 @@ def _check_matrix(gt, path: Path, n_query: int, n_reference: int) -> np.ndarray:
         if np.issubdtype(gt.dtype, np.integer) and np.isin(gt, (0, 1)).all():
             gt = gt.astype(bool)
         else:
-            raise ValueError(
-                f"{path}: expected a boolean ground-truth matrix (n_query, n_reference) = "
-                f"({n_query}, {n_reference}); got dtype {gt.dtype}, shape {gt.shape}"
-            )
-    if gt.shape != (n_query, n_reference):
-        raise ValueError(
-            f"{path}: ground-truth matrix must have shape (n_query, n_reference) = "
-            f"({n_query}, {n_reference}) to match the query/ and ref/ folders; got {gt.shape}"
-        )
+            raise _dtype_error(path, n_query, n_reference, gt.dtype, gt.shape)
+    _check_shape(path, n_query, n_reference, gt.shape)
     return gt
 
 
@@ -191,7 +209,7 @@ def load_vprbench(root, trust_pickle=False) -> Benchmark:
     gt = source = None
     pickled = []
     for path in candidates:
-        arr = _load_plain(path)
+        arr = _load_plain(path, n_q, n_r)
         if arr is None:
             pickled.append(path)
         elif arr.dtype != object:

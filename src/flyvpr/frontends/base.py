@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._params import ParamsMixin
-from .._validation import NotFittedError, check_images
+from .._validation import NotFittedError, ScalarSpec, check_images
 
 __all__ = ["Encoder"]
 
@@ -100,6 +100,23 @@ class Encoder(ParamsMixin):
         }
         state.update({name: getattr(self, name) for name in self._state_names})
         return state
+
+    #: saved scalar attributes and their checks (model files are validated against them)
+    _state_scalars: dict = {
+        "image_shape_": ScalarSpec("shape"),
+        "n_reference_": ScalarSpec("int", low=1),
+        "train_accuracy_": ScalarSpec("float", low=0.0, high=1.0, optional=True),
+    }
+
+    def _state_arrays(self, scalars: dict) -> dict | None:
+        """Expected arrays and nested parts of the saved state, given its checked scalars.
+
+        Returns ``name -> ArraySpec or PartSpec`` (a name ending in ``*`` matches every
+        name with that prefix), or None when the class declares nothing: its model files then
+        get only the generic checks.  Called on an instance built with the saved parameters;
+        raises ValueError when the scalars and parameters contradict each other.
+        """
+        return None
 
     def _set_state(self, state: dict) -> None:
         """Restore what :meth:`_get_state` returned."""

@@ -23,7 +23,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._validation import check_fraction, check_positive_int, check_random_state
+from .._validation import (
+    ArraySpec,
+    ScalarSpec,
+    check_fraction,
+    check_positive_int,
+    check_random_state,
+)
 from .base import Encoder
 
 __all__ = ["FlyHash", "winner_take_all", "sample_connections"]
@@ -195,6 +201,29 @@ class FlyHash(Encoder):
 
     # -- saved state: 1 bit per connection weight and per code bit --------------
     _state_names = ("n_inputs_", "n_samples_", "n_active_")
+    _state_scalars = {
+        **Encoder._state_scalars,
+        "n_inputs_": ScalarSpec("int", low=1),
+        "n_samples_": ScalarSpec("int", low=1),
+        "n_active_": ScalarSpec("int", low=1),
+    }
+
+    def _state_arrays(self, scalars: dict) -> dict:
+        n_hidden = check_positive_int(self.n_hidden, "n_hidden")
+        h, w = scalars["image_shape_"]
+        n_inputs = scalars["n_inputs_"]
+        if n_inputs != h * w:
+            raise ValueError(f"n_inputs_ must be H*W = {h * w}; got {n_inputs}")
+        if scalars["n_samples_"] > n_inputs or scalars["n_active_"] > n_hidden:
+            raise ValueError(
+                f"n_samples_ ({scalars['n_samples_']}) must be <= n_inputs_ ({n_inputs}) and "
+                f"n_active_ ({scalars['n_active_']}) <= n_hidden ({n_hidden})"
+            )
+        n_reference = scalars["n_reference_"]
+        return {
+            "connections_bits": ArraySpec("uint8", (n_hidden, -(-n_inputs // 8))),
+            "reference_codes_bits": ArraySpec("uint8", (n_reference, -(-n_hidden // 8))),
+        }
 
     def _get_state(self) -> dict:
         state = super()._get_state()

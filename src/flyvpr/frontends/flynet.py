@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from .._validation import check_positive_int, check_random_state
+from .._validation import ArraySpec, PartSpec, check_positive_int, check_random_state
 from .base import Encoder
 from .flyhash import FlyHash, _check_codes
 
@@ -108,6 +108,16 @@ class FlyNet(Encoder):
         logger.info("FlyNet trained on %d places: train accuracy %.3f", n, self.train_accuracy_)
 
     _state_names = ("hash_", "weights_", "loss_history_", "accuracy_history_")
+
+    def _state_arrays(self, scalars: dict) -> dict:
+        n_hidden = check_positive_int(self.n_hidden, "n_hidden")
+        epochs = check_positive_int(self.epochs, "epochs")
+        return {
+            "hash_": PartSpec(("flyhash",)),
+            "weights_": ArraySpec("float32", (n_hidden, scalars["n_reference_"])),
+            "loss_history_": ArraySpec("float64", (epochs,)),
+            "accuracy_history_": ArraySpec("float64", (epochs,)),
+        }
 
     def _encode(self, images: np.ndarray) -> np.ndarray:
         return self.hash_._encode(images)

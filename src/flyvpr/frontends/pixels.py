@@ -18,7 +18,7 @@ import logging
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from .._validation import check_images, check_positive_int
+from .._validation import ArraySpec, check_images, check_positive_int
 from .base import Encoder
 
 __all__ = ["PixelsEncoder", "patch_normalize", "sad_matrix"]
@@ -273,6 +273,10 @@ class PixelsEncoder(Encoder):
         self.patch_size = patch_size
 
     _state_names = ("reference_codes_",)
+
+    def _state_arrays(self, scalars: dict) -> dict:
+        h, w = scalars["image_shape_"]
+        return {"reference_codes_": ArraySpec("float32", (scalars["n_reference_"], h * w))}
 
     def _fit(self, images: np.ndarray) -> None:
         self.reference_codes_ = self._encode(images)

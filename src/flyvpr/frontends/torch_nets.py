@@ -61,7 +61,7 @@ import numbers
 
 import numpy as np
 
-from .._validation import check_positive_int, check_random_state
+from .._validation import ArraySpec, check_positive_int, check_random_state
 from .base import Encoder
 from .flynet import softmax
 
@@ -253,6 +253,15 @@ class TorchClassifier(Encoder):
 
     # -- saved state (flyvpr.modelio) -----------------------------------------------------
     _state_names = ("weights_", "loss_history_", "accuracy_history_")
+
+    def _state_arrays(self, scalars: dict) -> dict:
+        epochs = check_positive_int(self.epochs, "epochs")
+        return {
+            "weights_": ArraySpec("float32", (None, scalars["n_reference_"])),
+            "loss_history_": ArraySpec("float64", (epochs,)),
+            "accuracy_history_": ArraySpec("float64", (epochs,)),
+            "layer_*": ArraySpec("float32", None),
+        }
 
     def _get_state(self) -> dict:
         state = super()._get_state()

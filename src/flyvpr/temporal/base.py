@@ -62,6 +62,19 @@ class TemporalFilter(ParamsMixin):
         """Fitted attributes to save: arrays or scalars (online state is not saved)."""
         return {name: getattr(self, name) for name in self._state_names if hasattr(self, name)}
 
+    #: saved scalar attributes and their checks (model files are validated against them)
+    _state_scalars: dict = {}
+
+    def _state_arrays(self, scalars: dict) -> dict | None:
+        """Expected arrays of the saved state (see ``Encoder._state_arrays``).
+
+        A filter that saves nothing declares an empty state; one that overrides
+        :meth:`_get_state` without declaring its arrays returns None (generic checks only).
+        """
+        if not self._state_names and type(self)._get_state is TemporalFilter._get_state:
+            return {}
+        return None
+
     def _set_state(self, state: dict) -> None:
         """Restore what :meth:`_get_state` returned and start from a clean online state."""
         for name, value in state.items():
