@@ -12,7 +12,10 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
+import threading
+from contextlib import contextmanager
 
 from .. import __version__
 from . import demo, evaluate, experiment, info, localize
@@ -47,8 +50,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(BaseException):
+    """SIGTERM arrived: unwinds like Ctrl-C, so every temporary file is removed on the way out."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated
+
+
+@contextmanager
+def _sigterm_unwinds():
+    """While the CLI runs, SIGTERM raises :class:`Terminated` instead of killing the process.
+
+    Only the main thread can install handlers; elsewhere (a test runner's worker thread) the
+    default stays.  The previous handler is restored on the way out.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv=None) -> int:
-    """Run the CLI; returns the process exit code."""
+    """Run the CLI; returns the process exit code.
+
+    0 on success; 1 after a runtime error (one line on stderr naming the file, option or
+    parameter); 2 for a usage error (one line naming the option); 130 after Ctrl-C and 143
+    after SIGTERM, with no output file written or half-written.
+    """
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -59,9 +92,13 @@ def main(argv=None) -> int:
         format="%(levelname)s %(name)s: %(message)s",
     )
     try:
-        code = int(args.func(args))
-        sys.stdout.flush()  # a closed pipe shows here, inside the handlers below
+        with _sigterm_unwinds():
+            code = int(args.func(args))
+            sys.stdout.flush()  # a closed pipe shows here, inside the handlers below
         return code
+    except Terminated:
+        print("flyvpr: terminated (SIGTERM); nothing was written", file=sys.stderr)
+        return 143
     except BrokenPipeError:
         # `flyvpr methods | head`: the reader left; stop quietly, as `ls | head` does.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -72,6 +109,13 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("flyvpr: interrupted", file=sys.stderr)
         return 130
+    except MemoryError:
+        print(
+            f"flyvpr {args.command}: error: out of memory: an option or --param value asks for "
+            "more memory than this machine has available",
+            file=sys.stderr,
+        )
+        return 1
     except (ValueError, TypeError, OSError, ImportError, RuntimeError) as exc:
         message = " ".join(str(exc).split()) or type(exc).__name__
         print(f"flyvpr {args.command}: error: {message}", file=sys.stderr)

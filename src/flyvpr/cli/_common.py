@@ -8,8 +8,11 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 from pathlib import Path
 
+from .._io import OutputPathError, check_output_path
+from .._validation import check_memory
 from ..datasets import DATASETS
 from ..images import DEFAULT_SIZE
 from ..methods import METHODS
@@ -67,6 +70,42 @@ def table_rows(results):
     return [{**r, "per_query_ms": r["timing"]["per_query_ms"]} for r in results]
 
 
+def _number(kind, low, strict: bool, expected: str):
+    """An argparse type: ``kind`` (int or float), finite, ``> low`` (strict) or ``>= low``."""
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {expected}; got {text!r}") from None
+        if not math.isfinite(value) or value < low or (strict and value == low):
+            raise argparse.ArgumentTypeError(f"expected {expected}; got {text!r}")
+        return value
+
+    parse.__name__ = expected  # argparse shows the type's name in some messages
+    return parse
+
+
+#: argparse types of counts and distances: the option's name is in argparse's message
+positive_int = _number(int, 1, False, "an integer >= 1")
+nonnegative_int = _number(int, 0, False, "an integer >= 0")
+positive_float = _number(float, 0.0, True, "a finite number > 0")
+nonnegative_float = _number(float, 0.0, False, "a finite number >= 0")
+
+
+def parse_jobs(text: str) -> int:
+    """``--jobs``: a number of processes >= 1, or -1 for every core."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1 and value != -1:
+        raise argparse.ArgumentTypeError(
+            f"expected an integer >= 1 or -1 (all cores); got {text!r}"
+        )
+    return value
+
+
 def parse_size(text: str) -> tuple[int, int]:
     try:
         h, w = (int(v) for v in text.lower().split("x"))
@@ -85,6 +124,8 @@ def parse_param(text: str) -> tuple[str, object]:
         value = json.loads(raw)
     except json.JSONDecodeError:
         value = raw
+    if isinstance(value, float) and not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{key.strip()}: expected a finite number; got {raw!r}")
     return key.strip(), value
 
 
@@ -110,6 +151,11 @@ def split_params(method: str, params: list[tuple[str, object]]):
             target = filt
         else:
             target = None
+        if key == "random_state":
+            raise UsageError(
+                "--param random_state: set the seed with --seed, which the results record "
+                "(one seed drives every random part)"
+            )
         if target is None:
             raise UsageError(
                 f"--param {key}: not a parameter of method {method!r}; front end takes "
@@ -143,12 +189,15 @@ DATASET_OPTIONS = {
     "root": (Path, "dataset root folder"),
     "reference": (str, "reference traverse (a season, a run folder or an image folder)"),
     "query": (str, "query traverse (e.g. winter)"),
-    "first": (int, "first frame of the window (0-based position in the traverse)"),
-    "count": (int, "number of consecutive frames in the window"),
-    "tolerance": (int, "ground truth: a reference within this many frames is a match"),
-    "tolerance_m": (float, "ground truth: a reference within this many metres is a match"),
-    "radius": (float, "ground truth by positions CSV: match radius in metres"),
-    "spacing": (float, "keep one frame every this many metres along the route"),
+    "first": (nonnegative_int, "first frame of the window (0-based position in the traverse)"),
+    "count": (positive_int, "number of consecutive frames in the window"),
+    "tolerance": (nonnegative_int, "ground truth: a reference within this many frames is a match"),
+    "tolerance_m": (
+        nonnegative_float,
+        "ground truth: a reference within this many metres is a match",
+    ),
+    "radius": (nonnegative_float, "ground truth by positions CSV: match radius in metres"),
+    "spacing": (positive_float, "keep one frame every this many metres along the route"),
     "positions_csv": (Path, "CSV with header traverse,filename,x,y (metres)"),
     "trust_pickle": (
         bool,
@@ -184,7 +233,10 @@ def add_method_args(p, required: bool = False, default=None, note: str = "") -> 
         help="one of: " + ", ".join(METHODS) + note,
     )
     p.add_argument(
-        "--seed", type=int, default=0, help="random_state of every random part (default 0)"
+        "--seed",
+        type=nonnegative_int,
+        default=0,
+        help="random_state of every random part, an integer >= 0 (default 0)",
     )
     p.add_argument(
         "--param",
@@ -197,21 +249,52 @@ def add_method_args(p, required: bool = False, default=None, note: str = "") -> 
     )
 
 
+def flag(option: str) -> str:
+    """The command-line form of a loader option: ``positions_csv -> --positions-csv``."""
+    return "--" + option.replace("_", "-")
+
+
 def dataset_kwargs(args) -> dict:
-    """Pass the given dataset options that the chosen loader accepts; reject the others."""
+    """The given dataset options, checked against the chosen layout's rules (usage errors)."""
     spec = DATASETS[args.dataset]
-    kwargs = {}
-    for opt in DATASET_OPTIONS:
-        value = getattr(args, opt, None)
+    kwargs = {o: getattr(args, o) for o in DATASET_OPTIONS if getattr(args, o, None) is not None}
+    try:
+        spec.check_options(kwargs, name=flag)
+    except ValueError as exc:
+        raise UsageError(f"dataset {args.dataset!r}: {exc}") from None
+    return kwargs
+
+
+def check_outputs(args, inputs=(), options=("out",)) -> None:
+    """Before any work: each output option names a writable regular file that is no input.
+
+    Raises
+    ------
+    UsageError
+        Naming the option and what is wrong (see :func:`flyvpr._io.check_output_path`).
+    """
+    inputs = list(inputs)
+    for option in options:
+        value = getattr(args, option, None)
         if value is None:
             continue
-        if opt not in spec.options:
-            raise UsageError(
-                f"--{opt.replace('_', '-')} does not apply to dataset {args.dataset!r} "
-                f"(it takes: {', '.join('--' + o.replace('_', '-') for o in spec.options)})"
-            )
-        kwargs[opt] = value
-    return kwargs
+        try:
+            check_output_path(value, inputs, what=flag(option))
+        except OutputPathError as exc:
+            raise UsageError(str(exc)) from None
+
+
+def check_run_memory(args, n_reference: int, n_query: int, score_rows: int | None = None) -> None:
+    """Refuse, before loading, a run whose images and score matrices cannot fit in memory.
+
+    Counts the two image stacks (float32) and three score matrices of ``score_rows`` rows
+    (default ``n_query``; float64: the front end's, the filter's output and the metrics'
+    working copy); the run needs at least that.
+    """
+    h, w = args.size
+    rows = n_query if score_rows is None else score_rows
+    need = (n_reference + n_query) * h * w * 4 + 3 * n_reference * rows * 8
+    check_memory(need, f"--size {h}x{w} with {n_reference} reference and {n_query} query frames")
 
 
 def tolerance_value(tol):
@@ -247,15 +330,19 @@ def print_protocol(protocol: dict, args) -> None:
 
 
 def parse_speed(text: str):
+    """``--speed``: places per frame, a finite number > 0, or a range LOW-HIGH with LOW <= HIGH."""
+    expected = f"a speed > 0 such as 2, or a range LOW-HIGH such as 1-1.5; got {text!r}"
     try:
-        if "-" in text:
-            low, high = (float(v) for v in text.split("-"))
-            return (low, high)
-        return float(text)
+        values = [float(v) for v in text.split("-")] if "-" in text else [float(text)]
     except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected a speed such as 2 or 1-1.5; got {text!r}"
-        ) from None
+        raise argparse.ArgumentTypeError(f"expected {expected}") from None
+    if len(values) > 2 or not all(math.isfinite(v) and v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected {expected}")
+    if len(values) == 2:
+        if values[0] > values[1]:
+            raise argparse.ArgumentTypeError(f"LOW must be <= HIGH: expected {expected}")
+        return (values[0], values[1])
+    return values[0]
 
 
 def image_options(args) -> dict:

@@ -7,9 +7,19 @@ import time
 from pathlib import Path
 
 from .._io import write_json_atomic
+from .._validation import check_memory
 from ..evaluation import evaluate_method
+from ..images import DEFAULT_SIZE
 from ..methods import METHODS, method_names
-from ._common import RESULT_COLUMNS, UsageError, format_table, table_rows
+from ._common import (
+    RESULT_COLUMNS,
+    UsageError,
+    check_outputs,
+    format_table,
+    nonnegative_int,
+    positive_int,
+    table_rows,
+)
 
 logger = logging.getLogger("flyvpr")
 
@@ -20,6 +30,11 @@ DEMO_METHODS = ("pixels", "flyhash", "flynet", "seqslam", "flynet+seqslam", "fly
 def cmd_demo(args) -> int:
     from ..synthetic import make_route
 
+    check_outputs(args, (), ("out",))
+    n = args.places
+    h, w = DEFAULT_SIZE
+    # two traverses of images and three score matrices (front end, filter, metrics)
+    check_memory(2 * n * h * w * 4 + 3 * n * n * 8, f"--places {n}")
     t0 = time.perf_counter()
     route = make_route(n_places=args.places, random_state=args.seed)
     gt = route.ground_truth(tolerance=args.tolerance)
@@ -65,12 +80,20 @@ def register(sub) -> None:
             "reference, winter as query), evaluate the methods and print the table."
         ),
     )
-    p.add_argument("--places", type=int, default=500, help="number of places (default 500)")
     p.add_argument(
-        "--tolerance", type=int, default=2, help="ground-truth tolerance in frames (default 2)"
+        "--places", type=positive_int, default=500, help="number of places (default 500)"
     )
     p.add_argument(
-        "--seed", type=int, default=0, help="seed of the route and the methods (default 0)"
+        "--tolerance",
+        type=nonnegative_int,
+        default=2,
+        help="ground-truth tolerance in frames (default 2)",
+    )
+    p.add_argument(
+        "--seed",
+        type=nonnegative_int,
+        default=0,
+        help="seed of the route and the methods (default 0)",
     )
     p.add_argument("--method", action="append", metavar="METHOD", help="method to run (repeatable)")
     p.add_argument("--out", type=Path, help="write all results as JSON (atomically)")

@@ -15,6 +15,8 @@ from ._common import (
     add_dataset_args,
     add_image_args,
     add_method_args,
+    check_outputs,
+    check_run_memory,
     dataset_kwargs,
     format_table,
     image_options,
@@ -27,6 +29,7 @@ from ._common import (
 
 
 def cmd_evaluate(args) -> int:
+    kwargs = dataset_kwargs(args)
     if args.load is not None:
         if args.param:
             raise UsageError("--param cannot change a model loaded with --load")
@@ -42,7 +45,10 @@ def cmd_evaluate(args) -> int:
     else:
         model = args.method
         front_params, filt_params = split_params(args.method, args.param)
-    bench = load_benchmark(args.dataset, **dataset_kwargs(args))
+    bench = load_benchmark(args.dataset, **kwargs)
+    loaded = [args.load] if args.load is not None else []
+    check_outputs(args, [*bench.input_files(), *loaded], ("out",))
+    check_run_memory(args, bench.n_reference, bench.n_query)
     t0 = time.perf_counter()
     ref, qry = bench.load_images(size=args.size, **image_options(args))
     load_s = time.perf_counter() - t0
@@ -90,6 +96,8 @@ def cmd_fit(args) -> int:
 
     front_params, filt_params = split_params(args.method, args.param)
     bench = load_benchmark(args.dataset, **dataset_kwargs(args))
+    check_outputs(args, bench.input_files(), ("save",))
+    check_run_memory(args, bench.n_reference, 0)
     ref = bench.reference.load_images(size=args.size, **image_options(args))
     t0 = time.perf_counter()
     model = make_method(args.method, args.seed, front_params, filt_params).fit(ref)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from ._common import parse_jobs
+
 
 def cmd_experiment(args) -> int:
     from ..experiments import run_experiment
@@ -53,7 +55,7 @@ def register(sub) -> None:
     p.add_argument(
         "--jobs",
         "-j",
-        type=int,
+        type=parse_jobs,
         default=1,
         metavar="N",
         help="parallel worker processes (-1: all cores; default 1)",

@@ -18,6 +18,8 @@ from ._common import (
     add_dataset_args,
     add_image_args,
     add_method_args,
+    check_outputs,
+    check_run_memory,
     dataset_kwargs,
     image_options,
     parse_speed,
@@ -41,6 +43,8 @@ def cmd_localize(args) -> int:
         bench = bench.subset_queries(keep)
     else:
         keep = np.arange(bench.n_query)
+    check_outputs(args, bench.input_files(), ("out",))
+    check_run_memory(args, bench.n_reference, bench.n_query, score_rows=1)
     ref, qry = bench.load_images(size=args.size, **image_options(args))
     loc = Localizer(args.method, args.seed, front_params, filt_params).fit(ref)
     gt = bench.ground_truth

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from . import generic, nordland, robotcar, vprbench
 from .base import Benchmark, Traverse, ground_truth_from_frames, ground_truth_from_positions
@@ -54,12 +54,50 @@ class DatasetSpec:
     options : tuple of str
         The loader's keyword arguments the CLI may pass (each is a parameter
         of ``loader``).
+    requires : dict
+        Option -> the option it needs (``radius`` needs ``positions_csv``).
+    conflicts : tuple of pairs
+        Options that cannot be given together.
     """
 
     loader: Callable[..., Benchmark]
     description: str
     layout: str
     options: tuple[str, ...]
+    requires: dict = field(default_factory=dict)
+    conflicts: tuple[tuple[str, str], ...] = ()
+
+    def required_options(self) -> tuple[str, ...]:
+        """Options the loader has no default for (``root`` for most layouts)."""
+        params = inspect.signature(self.loader).parameters
+        return tuple(o for o in self.options if params[o].default is inspect.Parameter.empty)
+
+    def check_options(self, given, name=str) -> None:
+        """Raise ValueError naming the options if ``given`` breaks a rule of this layout.
+
+        Parameters
+        ----------
+        given : iterable of str
+            The options set (loader keyword names).
+        name : callable
+            How messages show an option (the CLI passes ``radius -> --radius``).
+        """
+        given = set(given)
+        unknown = sorted(given - set(self.options))
+        if unknown:
+            raise ValueError(
+                f"{name(unknown[0])} does not apply to this dataset (it takes: "
+                f"{', '.join(name(o) for o in self.options)})"
+            )
+        missing = [o for o in self.required_options() if o not in given]
+        if missing:
+            raise ValueError(f"{name(missing[0])} is required for this dataset")
+        for option, needed in self.requires.items():
+            if option in given and needed not in given:
+                raise ValueError(f"{name(option)} needs {name(needed)}")
+        for a, b in self.conflicts:
+            if a in given and b in given:
+                raise ValueError(f"{name(a)} and {name(b)} cannot be given together")
 
 
 #: Registry: dataset name -> spec.  The CLI's choices come from here.
@@ -102,6 +140,8 @@ DATASETS: dict[str, DatasetSpec] = {
             "first",
             "count",
         ),
+        requires={"radius": "positions_csv", "positions_csv": "radius"},
+        conflicts=(("tolerance", "positions_csv"),),
     ),
 }
 

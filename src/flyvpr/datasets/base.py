@@ -314,6 +314,10 @@ class Benchmark:
         Window of frames that was kept (``count=None``: every frame from ``first``).
     details : dict
         Further protocol facts for reports (JSON-serialisable values).
+    sources : tuple of Path
+        The files besides the images that the ground truth was built from (a positions CSV,
+        pose logs, a ground-truth matrix): with the images, the run's inputs, which an output
+        must never overwrite (see :meth:`input_files`).
 
     Raises
     ------
@@ -331,8 +335,10 @@ class Benchmark:
     first: int = 0
     count: int | None = None
     details: dict = field(default_factory=dict)
+    sources: tuple = ()
 
     def __post_init__(self):
+        object.__setattr__(self, "sources", tuple(Path(p) for p in self.sources))
         for role in ("reference", "query"):
             if not isinstance(getattr(self, role), Traverse):
                 raise TypeError(
@@ -387,6 +393,10 @@ class Benchmark:
         }
         out.update(self.details)
         return out
+
+    def input_files(self) -> list[Path]:
+        """Every file this benchmark reads: the images of both traverses and its ``sources``."""
+        return [*self.reference.paths, *self.query.paths, *self.sources]
 
     def load_images(self, size=DEFAULT_SIZE, cache=True, progress=None):
         """Decode both traverses: returns ``(reference_images, query_images)``.

@@ -200,8 +200,10 @@ def load_generic(
     ref_paths = _list_images_or_explain(ref_dir, LAYOUT)
     query_paths = _list_images_or_explain(query_dir, LAYOUT)
     ref_pos = query_pos = None
+    sources = ()
     if positions_csv is not None:
         csv_path = _folder(root, positions_csv, "positions_csv")
+        sources = (csv_path,)
         ref_pos, query_pos = read_positions_csv(csv_path, ref_paths, query_paths)
 
     ref = Traverse(ref_dir.name, ref_paths, positions=ref_pos, frame_ids=np.arange(len(ref_paths)))
@@ -229,4 +231,5 @@ def load_generic(
         first=windows[0][0],
         count=count,
         details={"reference_dir": str(ref_dir), "query_dir": str(query_dir)},
+        sources=sources,
     )

@@ -241,7 +241,7 @@ def _image_timestamps(folder: Path) -> tuple[list[Path], np.ndarray]:
 
 
 def _load_run(root: Path, run, role: str, spacing: float):
-    """Read one run; returns (traverse, pose file name) before windowing."""
+    """Read one run; returns (traverse, pose file) before windowing."""
     if not isinstance(run, str) or not run:
         raise TypeError(f"{role} must be a run folder name (str); got {run!r}")
     run_dir = root / run
@@ -296,7 +296,7 @@ def _load_run(root: Path, run, role: str, spacing: float):
         frame_ids=frame_ids[keep],
         bayer="gbrg",
     )
-    return traverse, pose_name
+    return traverse, pose_file
 
 
 def load_robotcar(
@@ -370,6 +370,7 @@ def load_robotcar(
         count=count,
         details={
             "spacing_m": spacing,
-            "pose_source": {"reference": ref_source, "query": query_source},
+            "pose_source": {"reference": ref_source.name, "query": query_source.name},
         },
+        sources=(ref_source, query_source),
     )

@@ -237,4 +237,5 @@ def load_vprbench(root, trust_pickle=False) -> Benchmark:
         first=0,
         count=None,
         details={"trust_pickle": trust_pickle},
+        sources=tuple(candidates),
     )
