@@ -21,8 +21,8 @@ from __future__ import annotations
 import errno
 import json
 import os
+import secrets
 import stat
-import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -39,23 +39,11 @@ __all__ = [
 
 #: characters the temporary name adds to the target's name: "." + name + "." + 8 + ".tmp"
 _TMP_EXTRA = 1 + 1 + 8 + 4
+_O_BINARY = getattr(os, "O_BINARY", 0)
 
 
 class OutputPathError(ValueError):
     """An output path that must not or cannot be written (checked before any work)."""
-
-
-def _umask() -> int:
-    try:
-        with open("/proc/self/status", encoding="ascii") as fh:
-            for line in fh:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    mask = os.umask(0o022)  # the only portable way to read it is to set it
-    os.umask(mask)
-    return mask
 
 
 def resolve_output(path) -> Path:
@@ -136,8 +124,11 @@ def check_output_path(path, inputs: Iterable = (), *, what: str = "output") -> P
         not a folder or not writable, or its name is too long for the temporary file beside it.
     """
     path = Path(path)
-    target = resolve_output(path)
     shown = f"{what} {path}"
+    try:
+        target = resolve_output(path)
+    except OutputPathError as exc:
+        raise OutputPathError(f"{what} {exc}") from None
     for item in inputs:
         item = Path(item)
         if _same_file(target, item):
@@ -184,28 +175,45 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
     path = Path(path)
     target = resolve_output(path)
     try:
-        mode_bits = stat.S_IMODE(os.stat(target).st_mode)
+        keep_mode = stat.S_IMODE(os.stat(target).st_mode)
     except FileNotFoundError:
-        mode_bits = 0o666 & ~_umask()
+        keep_mode = None  # a new file: os.open applies the umask to 0o666
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     except OSError as exc:
         raise _named(exc, path) from None
+    tmp = None
     try:
-        os.fchmod(fd, mode_bits)
+        for _ in range(100):
+            # The name is set before the file exists, so a signal arriving at any point after
+            # os.open still finds the name to remove; a random name is never another's file.
+            tmp = target.parent / f".{target.name}.{secrets.token_hex(4)}.tmp"
+            try:
+                fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | _O_BINARY, 0o666)
+                break
+            except FileExistsError:
+                tmp = None
+        else:
+            raise OSError(errno.EEXIST, "no free temporary name")
+        if keep_mode is not None:
+            os.fchmod(fd, keep_mode)
         with os.fdopen(fd, mode, **kwargs) as fh:
             yield fh
         os.replace(tmp, target)
     except BaseException as exc:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
+        if tmp is not None:
+            _unlink(tmp)
         # Errors of the write itself carry no file name (ENOSPC, EFBIG, EIO): name ours.
-        if isinstance(exc, OSError) and exc.filename is None:
+        if isinstance(exc, OSError) and (exc.filename is None or exc.filename == str(tmp)):
             raise _named(exc, path) from None
         raise
+
+
+def _unlink(path: Path) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
 
 
 def _named(exc: OSError, path: Path) -> OSError:

@@ -12,7 +12,9 @@ header first and refuse, naming the file, before allocating:
 * an array larger than the memory available (:func:`flyvpr._validation.check_memory`).
 
 Only then is the data read, in chunks into the final array, so the peak memory is the array
-itself.  Kept free of flyvpr imports other than ``_validation`` so every layer can use it.
+itself.  ``.npz`` members must be stored uncompressed (as flyvpr writes them), so no member can
+expand beyond the bytes it occupies on disk.  Kept free of flyvpr imports other than
+``_validation`` so every layer can use it.
 """
 
 from __future__ import annotations
@@ -145,17 +147,25 @@ def load_npy(path, *, what: str | None = None, dtype=None, shape=None):
 def npz_member_header(zf: zipfile.ZipFile, name: str, what: str):
     """``(shape, fortran_order, dtype, info)`` of the member ``name`` (``.npy`` added).
 
+    Only uncompressed (stored) members are read: flyvpr never writes compressed ones, and
+    refusing them rules out deflate bombs whatever their headers claim.
+
     Raises
     ------
     ArrayFileError
-        If the member is missing, its header is malformed, or its declared size disagrees
-        with the header.
+        If the member is missing or compressed, its header is malformed, or its declared size
+        disagrees with the header.
     """
     member = name if name.endswith(".npy") else name + ".npy"
     try:
         info = zf.getinfo(member)
     except KeyError:
         raise ArrayFileError(f"{what}: missing entry {name!r}") from None
+    if info.compress_type != zipfile.ZIP_STORED:
+        # flyvpr writes uncompressed entries; refusing the others rules out deflate bombs
+        raise ArrayFileError(
+            f"{what}, entry {name!r}: is compressed; flyvpr reads uncompressed entries only"
+        )
     try:
         with zf.open(info) as fh:
             shape, fortran, dtype = _parse_header(fh, f"{what}, entry {name!r}")

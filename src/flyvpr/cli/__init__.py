@@ -29,9 +29,16 @@ logger = logging.getLogger("flyvpr")
 COMMAND_MODULES = (evaluate, localize, info, demo, experiment)
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line on stderr (exit code 2)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: usage error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``flyvpr`` argument parser with every subcommand."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="flyvpr",
         description=(
             "Visual place recognition with FlyNet+CANN. A reference traverse is learned; every "
@@ -75,6 +82,17 @@ def _sigterm_unwinds():
         signal.signal(signal.SIGTERM, previous)
 
 
+def _sizing_options(args) -> str:
+    """The options that set how much a run allocates, as given (for an out-of-memory line)."""
+    parts = [f"--param {k}={v!r}" for k, v in getattr(args, "param", None) or []]
+    for name in ("size", "count", "places", "first"):
+        value = getattr(args, name, None)
+        if value is not None:
+            shown = f"{value[0]}x{value[1]}" if name == "size" else value
+            parts.append(f"--{name} {shown}")
+    return ", ".join(parts) or "none"
+
+
 def main(argv=None) -> int:
     """Run the CLI; returns the process exit code.
 
@@ -97,7 +115,7 @@ def main(argv=None) -> int:
             sys.stdout.flush()  # a closed pipe shows here, inside the handlers below
         return code
     except Terminated:
-        print("flyvpr: terminated (SIGTERM); nothing was written", file=sys.stderr)
+        print("flyvpr: terminated by SIGTERM; no half-written file left", file=sys.stderr)
         return 143
     except BrokenPipeError:
         # `flyvpr methods | head`: the reader left; stop quietly, as `ls | head` does.
@@ -111,8 +129,8 @@ def main(argv=None) -> int:
         return 130
     except MemoryError:
         print(
-            f"flyvpr {args.command}: error: out of memory: an option or --param value asks for "
-            "more memory than this machine has available",
+            f"flyvpr {args.command}: error: out of memory: the run asked for more memory than "
+            f"this machine has available; options given: {_sizing_options(args)}",
             file=sys.stderr,
         )
         return 1

@@ -8,6 +8,7 @@ import textwrap
 
 from ..datasets import DATASETS
 from ..frontends import FRONTENDS
+from ..images import FOLDER_RULES
 from ..methods import ALIASES, METHODS, method_names
 from ..temporal import FILTERS
 
@@ -18,6 +19,9 @@ def cmd_datasets(args) -> int:
         print(textwrap.indent(spec.layout.strip(), "    "))
         print(f"    options: {', '.join('--' + o.replace('_', '-') for o in spec.options)}")
         print()
+    width = max(60, min(100, shutil.get_terminal_size((100, 24)).columns))
+    for line in FOLDER_RULES.splitlines():
+        print(textwrap.fill(line, width, subsequent_indent="  "))
     return 0
 
 

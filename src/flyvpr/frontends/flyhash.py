@@ -27,6 +27,7 @@ from .._validation import (
     ArraySpec,
     ScalarSpec,
     check_fraction,
+    check_memory,
     check_positive_int,
     check_random_state,
 )
@@ -151,6 +152,10 @@ class FlyHash(Encoder):
         n_hidden = check_positive_int(self.n_hidden, "n_hidden")
         sampling = check_fraction(self.sampling_ratio, "sampling_ratio")
         wta = check_fraction(self.wta_ratio, "wta_ratio")
+        # dense projection (float32) and the permuted index table drawn per unit (int32, x2)
+        check_memory(
+            12 * n_hidden * int(n_inputs), f"n_hidden={n_hidden} with {n_inputs} inputs per image"
+        )
         self.n_inputs_ = int(n_inputs)
         self.n_samples_ = max(1, int(round(sampling * n_inputs)))
         self.n_active_ = min(n_hidden, max(1, int(round(wta * n_hidden))))

@@ -14,7 +14,13 @@ import logging
 
 import numpy as np
 
-from .._validation import ArraySpec, PartSpec, check_positive_int, check_random_state
+from .._validation import (
+    ArraySpec,
+    PartSpec,
+    check_memory,
+    check_positive_int,
+    check_random_state,
+)
 from .base import Encoder
 from .flyhash import FlyHash, _check_codes
 
@@ -92,6 +98,12 @@ class FlyNet(Encoder):
             raise ValueError(f"learning_rate must be a positive number; got {self.learning_rate}")
         n = images.shape[0]
         batch = n if self.batch_size is None else check_positive_int(self.batch_size, "batch_size")
+        n_hidden = check_positive_int(self.n_hidden, "n_hidden")
+        # weights, Adam's two moments and the gradient, plus a batch of logits and softmax
+        check_memory(
+            16 * n_hidden * n + 8 * min(batch, n) * n,
+            f"n_hidden={n_hidden}, batch_size={self.batch_size} with {n} reference places",
+        )
         rng = check_random_state(self.random_state)
         self.hash_ = FlyHash(self.n_hidden, self.sampling_ratio, self.wta_ratio, random_state=rng)
         self.hash_.fit(images)
