@@ -68,8 +68,8 @@ def resolve_output(path) -> Path:
             ) from None
     try:
         st = os.stat(target)
-    except FileNotFoundError:
-        return target
+    except (FileNotFoundError, NotADirectoryError):
+        return target  # nothing to replace; the folder is checked by the caller
     except OSError as exc:
         raise OutputPathError(f"{path}: cannot write it ({exc.strerror})") from None
     if not stat.S_ISREG(st.st_mode):

@@ -193,10 +193,15 @@ def save_method(method: Method, path, *, size=DEFAULT_SIZE) -> Path:
             "params": _json_params(method.filter.get_params()),
             "state": _flatten(method.filter, "filter/", arrays),
         }
+    return _write_archive(Path(path), meta, arrays)
+
+
+def _write_archive(path: Path, meta: dict, arrays: dict) -> Path:
+    """Seal ``meta`` (content checksum added) and ``arrays`` into a model file at ``path``."""
+    meta = {k: v for k, v in meta.items() if k != "checksum"}
     meta["checksum"] = _checksum(meta, arrays)
     blob = json.dumps(meta).encode()
     payload = {"__meta__": np.frombuffer(blob, dtype=np.uint8), **arrays}
-    path = Path(path)
     with atomic_open(path, "w+b") as fh:
         with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
             for key, value in payload.items():
@@ -252,10 +257,13 @@ class _Reader:
         cls = registry[name]
         if not isinstance(params, dict):
             raise self.error(f"{field}.params", f"must be a JSON object; got {params!r}")
-        allowed = set(cls._param_names())
+        allowed = cls._param_names()
         for key in params:
             if key not in allowed:
                 raise self.error(f"{field}.params.{key}", f"not a parameter of {name}")
+        for key in allowed:
+            if key not in params:
+                raise self.error(f"{field}.params.{key}", "missing")
         obj = cls(**params)
         if not isinstance(state, dict):
             raise self.error(f"{field}.state", f"must be a JSON object; got {state!r}")
@@ -353,14 +361,19 @@ def _read_meta(r: _Reader) -> dict:
     return meta
 
 
-def _check_trailer(r: _Reader) -> None:
-    size = r.path.stat().st_size
-    with open(r.path, "rb") as fh:
+def _trailer_ok(path: Path) -> bool:
+    """Whether the file ends with the SHA-256 (hex) of every byte before it."""
+    size = path.stat().st_size
+    if size <= _TRAILER:
+        return False
+    with open(path, "rb") as fh:
         digest = _file_digest(fh, size - _TRAILER)
         fh.seek(size - _TRAILER)
-        stored = fh.read(_TRAILER)
-    if size <= _TRAILER or stored != digest.encode("ascii") or r.zf.comment != stored:
-        raise r.error(None, "failed its file checksum: it was modified or is damaged")
+        return fh.read(_TRAILER) == digest.encode("ascii")
+
+
+def _damaged(path: Path) -> str:
+    return f"model file {path} failed its file checksum: it was modified or is damaged"
 
 
 def _check_fields(r: _Reader, meta: dict, size) -> tuple[int, int]:
@@ -388,6 +401,13 @@ def _check_fields(r: _Reader, meta: dict, size) -> tuple[int, int]:
         or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in saved)
     ):
         raise r.error("preprocessing.image_size", f"must be [H, W]; got {saved!r}")
+    expected = preprocessing_settings(saved)
+    for key in sorted(set(pre) | set(expected)):
+        if pre.get(key) != expected.get(key):
+            raise r.error(
+                f"preprocessing.{key}",
+                f"{pre.get(key)!r}; this flyvpr pre-processes as {expected.get(key)!r}",
+            )
     if size is not None and tuple(size) != tuple(saved):
         raise r.error(
             None,
@@ -458,14 +478,18 @@ def load_method(path, *, size=None) -> Method:
         raise FileNotFoundError(f"model file not found: {path}")
     if not path.is_file():
         raise ModelFileError(f"model file {path} is not a regular file")
+    sealed = _trailer_ok(path)
     try:
         zf = zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
-        raise ModelFileError(f"model file {path} is not a readable .npz archive ({exc})") from None
+    except Exception as exc:  # zipfile raises many kinds on damaged directories
+        raise ModelFileError(
+            f"model file {path} is not a readable .npz archive ({type(exc).__name__}: {exc})"
+        ) from None
     with zf:
         r = _Reader(path, zf)
-        meta = _read_meta(r)
-        _check_trailer(r)
+        meta = _read_meta(r)  # says why a file is not a model of this format version
+        if not sealed:
+            raise ModelFileError(_damaged(path))
         image_shape = _check_fields(r, meta, size)
         check_memory(
             sum(info.file_size for info in zf.infolist()), f"model file {path} (its arrays)"

@@ -1,0 +1,142 @@
+"""Tests of flyvpr._io: atomic writes, where outputs may go, permissions, errors naming files."""
+
+import errno
+import os
+import stat
+
+import pytest
+
+from flyvpr import _io
+from flyvpr._io import (
+    OutputPathError,
+    atomic_open,
+    check_output_path,
+    write_json_atomic,
+    write_text_atomic,
+)
+
+
+def _mode(path):
+    return stat.S_IMODE(os.stat(path).st_mode)
+
+
+def test_new_file_follows_umask(tmp_path):
+    old = os.umask(0o022)
+    try:
+        write_text_atomic(tmp_path / "a.txt", "x")
+        os.umask(0o077)
+        write_text_atomic(tmp_path / "b.txt", "x")
+    finally:
+        os.umask(old)
+    assert _mode(tmp_path / "a.txt") == 0o644
+    assert _mode(tmp_path / "b.txt") == 0o600
+
+
+def test_existing_file_keeps_its_mode(tmp_path):
+    path = tmp_path / "a.json"
+    path.write_text("{}")
+    path.chmod(0o640)
+    write_json_atomic(path, {"x": 1})
+    assert _mode(path) == 0o640 and '"x": 1' in path.read_text()
+
+
+def test_symlink_is_followed_and_kept(tmp_path):
+    target = tmp_path / "target.txt"
+    target.write_text("old")
+    link = tmp_path / "link.txt"
+    link.symlink_to(target)
+    write_text_atomic(link, "new")
+    assert link.is_symlink() and target.read_text() == "new"
+
+
+def test_dangling_symlink_writes_its_target(tmp_path):
+    link = tmp_path / "link.txt"
+    link.symlink_to(tmp_path / "later.txt")
+    write_text_atomic(link, "new")
+    assert (tmp_path / "later.txt").read_text() == "new" and link.is_symlink()
+
+
+@pytest.mark.parametrize("kind", ["folder", "fifo", "device", "loop"])
+def test_non_regular_targets_are_refused(tmp_path, kind):
+    path = tmp_path / "out"
+    if kind == "folder":
+        path.mkdir()
+    elif kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "device":
+        path.symlink_to("/dev/null")
+    else:
+        path.symlink_to(path)
+    with pytest.raises(OutputPathError, match="out"):
+        write_text_atomic(path, "x")
+    with pytest.raises(OutputPathError, match="--out"):
+        check_output_path(path, what="--out")
+    assert not list(tmp_path.glob("*.tmp")) and not list(tmp_path.glob(".*.tmp"))
+
+
+def test_failure_inside_the_block_leaves_the_old_file(tmp_path):
+    path = tmp_path / "a.txt"
+    path.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_open(path, "w") as fh:
+            fh.write("half")
+            raise RuntimeError("boom")
+    assert path.read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+
+
+def test_full_disk_is_named_and_cleaned(tmp_path, monkeypatch):
+    real_fdopen = os.fdopen
+
+    class Full:
+        def __init__(self, fh):
+            self.fh = fh
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.fh.close()
+
+    monkeypatch.setattr(_io.os, "fdopen", lambda fd, *a, **k: Full(real_fdopen(fd, *a, **k)))
+    with pytest.raises(OSError, match=r"cannot write .*a\.json: no space left") as info:
+        write_json_atomic(tmp_path / "a.json", {"x": 1})
+    assert info.value.errno == errno.ENOSPC
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_output_that_is_an_input_is_refused(tmp_path):
+    image = tmp_path / "1.png"
+    image.write_bytes(b"x")
+    link = tmp_path / "alias.png"
+    link.symlink_to(image)
+    for out in (image, link, tmp_path / "." / "1.png"):
+        with pytest.raises(OutputPathError, match="is an input of this run"):
+            check_output_path(out, [image], what="--out")
+    assert check_output_path(tmp_path / "new.json", [image]) == tmp_path / "new.json"
+
+
+def test_output_folder_checks(tmp_path):
+    with pytest.raises(OutputPathError, match="does not exist"):
+        check_output_path(tmp_path / "missing" / "a.json")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(OutputPathError, match="not a folder"):
+        check_output_path(tmp_path / "file" / "a.json")
+    with pytest.raises(OutputPathError, match="too long"):
+        check_output_path(tmp_path / ("x" * 250))
+
+
+def test_read_only_folder(tmp_path):
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        if os.access(folder, os.W_OK):
+            pytest.skip("running as root: permissions are not enforced")
+        with pytest.raises(OutputPathError, match="not writable"):
+            check_output_path(folder / "a.json")
+    finally:
+        folder.chmod(0o755)

@@ -1,0 +1,139 @@
+"""Model files trust nothing: every dropped key, every flipped byte, every crafted field."""
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from flyvpr.methods import make_method
+from flyvpr.modelio import ModelFileError, _write_archive, load_method, save_method
+
+
+def _read(path):
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    return json.loads(arrays.pop("__meta__").tobytes()), arrays
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """A FlyNet+CANN model of 3 places of 8x16 images: a file of a few kB."""
+    rng = np.random.default_rng(0)
+    ref = rng.random((3, 8, 16), dtype=np.float32)
+    model = make_method("flynet+cann", 0, {"n_hidden": 8, "epochs": 2}).fit(ref)
+    path = save_method(model, tmp_path_factory.mktemp("m") / "tiny.npz", size=(8, 16))
+    return path, model.score(ref), ref
+
+
+def _key_paths(obj, prefix=()):
+    """Every dict key of the JSON metadata, as a path of keys."""
+    if isinstance(obj, dict):
+        for key, value in obj.items():
+            yield (*prefix, key)
+            yield from _key_paths(value, (*prefix, key))
+
+
+def test_every_dropped_key_is_refused_naming_the_file(tiny, tmp_path):
+    path, _, _ = tiny
+    meta, arrays = _read(path)
+    paths = [p for p in _key_paths(meta) if p != ("checksum",)]
+    assert len(paths) > 40
+    for key_path in paths:
+        edited = json.loads(json.dumps(meta))
+        node = edited
+        for key in key_path[:-1]:
+            node = node[key]
+        del node[key_path[-1]]
+        out = _write_archive(tmp_path / "x.npz", edited, arrays)  # checksums recomputed
+        with pytest.raises(ModelFileError, match=r"model file .*x\.npz") as info:
+            load_method(out)
+        assert "\n" not in str(info.value), key_path
+
+
+def test_every_dropped_array_is_refused(tiny, tmp_path):
+    path, _, _ = tiny
+    meta, arrays = _read(path)
+    for key in arrays:
+        kept = {k: v for k, v in arrays.items() if k != key}
+        out = _write_archive(tmp_path / "x.npz", meta, kept)
+        with pytest.raises(ModelFileError, match=key.rsplit("/", 1)[-1]):
+            load_method(out)
+
+
+def test_every_single_byte_corruption_is_refused(tiny, tmp_path):
+    path, _, _ = tiny
+    data = path.read_bytes()
+    out = tmp_path / "x.npz"
+    for i in range(len(data)):
+        flipped = bytearray(data)
+        flipped[i] ^= 0xFF
+        out.write_bytes(bytes(flipped))
+        with pytest.raises((ModelFileError, FileNotFoundError)):
+            load_method(out)
+
+
+@pytest.mark.parametrize(
+    "edit, field",
+    [
+        (lambda m, a: a.update({"frontend/weights_": a["frontend/weights_"].astype(np.float64)}),
+         "weights_"),
+        (lambda m, a: a.update({"frontend/weights_": a["frontend/weights_"][:, :2]}), "weights_"),
+        (lambda m, a: a.update({"frontend/weights_": a["frontend/weights_"] * np.nan}), "NaN"),
+        (lambda m, a: m.update(method="flyhash+cann"), "method"),
+        (lambda m, a: m.update(method="flynet"), "method"),
+        (lambda m, a: m["frontend"]["params"].update(n_hidden=16), "frontend"),
+        (lambda m, a: m["frontend"]["params"].update(bogus=1), "frontend.params.bogus"),
+        (lambda m, a: m["frontend"]["state"]["n_reference_"].update(value=-3), "n_reference_"),
+        (lambda m, a: m["frontend"]["state"].update(extra={"value": 1}), "extra"),
+        (lambda m, a: m["frontend"].update(state={}), "frontend.state"),
+        (lambda m, a: m["filter"].update(name="seqslam"), "method"),
+        (lambda m, a: m["preprocessing"].update(gray="green channel"), "preprocessing.gray"),
+        (lambda m, a: m["frontend"]["state"]["hash_"]["state"]["n_inputs_"].update(value=100),
+         "n_inputs_"),
+    ],
+)  # fmt: skip
+def test_crafted_fields_are_refused_even_with_recomputed_checksums(tiny, tmp_path, edit, field):
+    path, _, _ = tiny
+    meta, arrays = _read(path)
+    edit(meta, arrays)
+    out = _write_archive(tmp_path / "x.npz", meta, arrays)
+    with pytest.raises(ModelFileError, match=rf"x\.npz.*{field}"):
+        load_method(out)
+
+
+def test_compressed_entries_are_refused(tiny, tmp_path):
+    import zipfile
+
+    path, _, _ = tiny
+    out = tmp_path / "z.npz"
+    with zipfile.ZipFile(path) as src, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as dst:
+        for info in src.infolist():
+            dst.writestr(info.filename, src.read(info), zipfile.ZIP_DEFLATED)
+        dst.comment = src.comment
+    with pytest.raises(ModelFileError):
+        load_method(out)
+
+
+def test_loaded_model_matches_and_filter_starts_clean(tiny):
+    path, S, ref = tiny
+    again = load_method(path)
+    np.testing.assert_array_equal(again.score(ref), S)
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    method=st.sampled_from(["pixels", "flyhash", "flynet", "flyhash+cann", "pixels+seqslam"]),
+    n=st.integers(2, 6),
+    seed=st.integers(0, 2**31),
+)
+def test_roundtrip_property(tmp_path, method, n, seed):
+    rng = np.random.default_rng(seed)
+    ref = rng.random((n, 8, 16), dtype=np.float32)
+    qry = rng.random((3, 8, 16), dtype=np.float32)
+    params = {"epochs": 2} if method.startswith("flynet") else None
+    model = make_method(method, seed, params).fit(ref)
+    again = load_method(save_method(model, tmp_path / "m.npz", size=(8, 16)), size=(8, 16))
+    np.testing.assert_array_equal(again.score(qry), model.score(qry))
+    assert again.name == method
