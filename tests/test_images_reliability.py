@@ -111,7 +111,9 @@ def test_to_gray_never_clips():
 
 def _png_declaring(path, w, h):
     def chunk(kind, data):
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
 
     ihdr = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
     path.write_bytes(
@@ -198,7 +200,9 @@ def test_picture_replaced_with_same_size_and_mtime(tmp_path):
     np.testing.assert_array_equal(again[1], again[2])
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(data=st.binary(max_size=2000))
 def test_cache_on_random_bytes(tmp_path_factory, data):
     tmp = tmp_path_factory.mktemp("c")
@@ -207,7 +211,9 @@ def test_cache_on_random_bytes(tmp_path_factory, data):
     np.testing.assert_array_equal(im.load_images(paths, cache=cache, progress=False), clean)
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(data=st.binary(max_size=400), suffix=st.sampled_from([".png", ".jpg", ".tif", ".bmp"]))
 def test_decoder_on_random_bytes(tmp_path, data, suffix):
     path = tmp_path / f"r{suffix}"

@@ -122,7 +122,9 @@ def test_loaded_model_matches_and_filter_starts_clean(tiny):
     np.testing.assert_array_equal(again.score(ref), S)
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(
     method=st.sampled_from(["pixels", "flyhash", "flynet", "flyhash+cann", "pixels+seqslam"]),
     n=st.integers(2, 6),

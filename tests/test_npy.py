@@ -81,7 +81,9 @@ def test_npz_members(tmp_path):
         read_npz_member(compressed, "a", "f.npz")
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(data=st.binary(max_size=300))
 def test_random_bytes_never_escape_as_anything_but_a_clear_error(tmp_path, data):
     path = tmp_path / "r.npy"
@@ -92,7 +94,9 @@ def test_random_bytes_never_escape_as_anything_but_a_clear_error(tmp_path, data)
         assert "r.npy" in str(exc)
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(data=st.binary(min_size=1, max_size=200), at=st.integers(0, 200))
 def test_random_header_bytes(tmp_path, data, at):
     path = tmp_path / "a.npy"

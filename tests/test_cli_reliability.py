@@ -1,0 +1,141 @@
+"""The CLI's argument checks, output checks, SIGTERM and out-of-memory handling."""
+
+import os
+import signal
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from flyvpr.cli import main
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("data")
+    rng = np.random.default_rng(0)
+    for role in ("reference", "query"):
+        (root / role).mkdir()
+        for i in range(6):
+            img = rng.integers(0, 256, (32, 64), dtype=np.uint8)
+            Image.fromarray(img).save(root / role / f"{i}.png")
+    (root / "pos.csv").write_text(
+        "traverse,filename,x,y\n"
+        + "".join(f"{r},{i}.png,{i},0\n" for r in ("reference", "query") for i in range(6))
+    )
+    return root
+
+
+def _args(root, *extra):
+    return ["evaluate", "--dataset", "generic", "--root", str(root), "--method", "flyhash",
+            "--quiet", "--no-cache", *extra]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "extra, option",
+    [
+        (["--count", "0"], "--count"),
+        (["--first", "-1"], "--first"),
+        (["--tolerance", "-1"], "--tolerance"),
+        (["--seed", "-1"], "--seed"),
+        (["--size", "0x4"], "--size"),
+        (["--radius", "5"], "--radius"),
+        (["--positions-csv", "pos.csv"], "--positions-csv"),
+        (["--positions-csv", "pos.csv", "--radius", "-1"], "--radius"),
+        (["--positions-csv", "pos.csv", "--radius", "5", "--tolerance", "1"], "--tolerance"),
+        (["--param", "random_state=5"], "random_state"),
+        (["--param", "frontend.random_state=5"], "random_state"),
+        (["--param", "n_hidden=Infinity"], "n_hidden"),
+    ],
+)
+def test_usage_errors_exit_2_in_one_line_naming_the_option(data, capsys, extra, option):
+    assert main(_args(data, *extra)) == 2
+    err = capsys.readouterr().err
+    assert option in err and len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.parametrize(
+    "argv, option",
+    [
+        (["localize", "--dataset", "generic", "--speed", "0"], "--speed"),
+        (["localize", "--dataset", "generic", "--speed", "nan"], "--speed"),
+        (["localize", "--dataset", "generic", "--speed", "inf"], "--speed"),
+        (["localize", "--dataset", "generic", "--speed", "2-1"], "--speed"),
+        (["localize", "--dataset", "generic", "--speed", "1-2-3"], "--speed"),
+        (["demo", "--places", "0"], "--places"),
+        (["demo", "--tolerance", "-2"], "--tolerance"),
+        (["experiment", "c.toml", "--out", "x", "--jobs", "0"], "--jobs"),
+        (["evaluate", "--dataset", "nordland", "--method", "pixels"], "--root"),
+        (["evaluate", "--dataset", "robotcar", "--root", ".", "--spacing", "0"], "--spacing"),
+    ],
+)
+def test_more_usage_errors(capsys, argv, option):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert option in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_outputs_are_checked_before_any_work(data, tmp_path, capsys):
+    image = data / "query" / "2.png"
+    before = image.read_bytes()
+    assert main(_args(data, "--out", str(image))) == 2
+    assert image.read_bytes() == before
+    assert "--out" in capsys.readouterr().err
+    cache = tmp_path / "cache"
+    argv = [a for a in _args(data) if a != "--no-cache"]
+    missing = tmp_path / "nowhere" / "r.json"
+    assert main([*argv, "--cache-dir", str(cache), "--out", str(missing)]) == 2
+    assert not cache.exists()  # refused before a single image was decoded
+    csv = data / "pos.csv"
+    rc = main(_args(data, "--positions-csv", "pos.csv", "--radius", "3", "--out", str(csv)))
+    assert rc == 2 and csv.read_text().startswith("traverse")
+
+
+def test_fit_save_onto_an_input_and_load_then_out_onto_the_model(data, tmp_path, capsys):
+    fit = ["fit", "--dataset", "generic", "--root", str(data), "--method", "flyhash", "--quiet",
+           "--no-cache"]  # fmt: skip
+    assert main([*fit, "--save", str(data / "reference" / "0.png")]) == 2
+    model = tmp_path / "m.npz"
+    assert main([*fit, "--save", str(model)]) == 0
+    before = model.read_bytes()
+    assert main(_args(data, "--load", str(model), "--out", str(model))) == 2
+    assert model.read_bytes() == before
+
+
+def test_sigterm_unwinds_to_143_and_restores_the_handler(data, tmp_path, capsys, monkeypatch):
+    import flyvpr.cli.evaluate as ev
+
+    def terminated(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        raise AssertionError("SIGTERM did not interrupt")
+
+    monkeypatch.setattr(ev, "evaluate_method", terminated)
+    previous = signal.getsignal(signal.SIGTERM)
+    out = tmp_path / "r.json"
+    assert main(_args(data, "--out", str(out))) == 143
+    assert "SIGTERM" in capsys.readouterr().err and not out.exists()
+    assert signal.getsignal(signal.SIGTERM) is previous
+
+
+def test_memory_error_is_one_line_naming_the_sizing_options(data, capsys, monkeypatch):
+    import flyvpr.cli.evaluate as ev
+
+    def boom(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr(ev, "evaluate_method", boom)
+    assert main(_args(data, "--param", "n_hidden=64")) == 1
+    err = capsys.readouterr().err
+    assert "out of memory" in err and "n_hidden=64" in err and len(err.splitlines()) == 1
+
+
+def test_oversized_run_refused_naming_size(data, capsys):
+    assert main(_args(data, "--size", "100000x100000")) == 1
+    err = capsys.readouterr().err
+    assert "--size 100000x100000" in err and "would need" in err
+
+
+def test_datasets_says_what_is_read(capsys):
+    assert main(["datasets"]) == 0
+    out = capsys.readouterr().out
+    assert "hidden" in out and ".gif" in out and "[0, 1]" in out
