@@ -434,15 +434,22 @@ def _filter_param(method, param, name):
     return run
 
 
+# 10**12 rather than 10**9: a grid of 10**9 offsets is 8 GB that a filter may allocate and
+# fill before failing, and the battery must stay safe to run on a shared machine.
 for _id, _method, _param_text, _name in (
     (
-        "resources/sequence_length-1e9",
+        "resources/sequence_length-1e12",
         "flyhash+seqslam",
-        "sequence_length=1000000000",
+        "sequence_length=" + str(10**12),
         "sequence_length",
     ),
     ("resources/v_step-1e-12", "flyhash+seqslam", "v_step=1e-12", "v_step"),
-    ("resources/excitation_width-1e9", "flyhash+cann", "excitation_width=1e9", "excitation_width"),
+    (
+        "resources/excitation_width-1e12",
+        "flyhash+cann",
+        "excitation_width=1e12",
+        "excitation_width",
+    ),
 ):
     case(_id, "resources", f"exit 1 in one line naming {_name}")(
         _filter_param(_method, _param_text, _name)

@@ -342,7 +342,7 @@ def _after(seconds):
 
 
 def _big_dataset(path):
-    fx.write_folder(path / "reference", fx.frames(300, 0, size=(128, 256)))
+    fx.write_folder(path / "reference", fx.frames(200, 0, size=(128, 256)))
     fx.write_folder(path / "query", fx.frames(4, 1, size=(128, 256)))
 
 

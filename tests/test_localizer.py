@@ -73,3 +73,12 @@ def test_bad_frame(route):
         loc.update(np.zeros((16, 32), np.float32))
     with pytest.raises(ValueError, match="NaN"):
         loc.update(np.full((32, 64), np.nan, np.float32))
+
+
+@pytest.mark.parametrize("call", ["update", "scores", "n_places"])
+def test_calls_before_fit_raise_not_fitted_naming_the_call(call):
+    from flyvpr import NotFittedError
+
+    loc = Localizer("flyhash", random_state=0)
+    with pytest.raises(NotFittedError, match=f"Localizer.{call}"):
+        getattr(loc, call) if call == "n_places" else getattr(loc, call)(np.zeros((32, 64)))

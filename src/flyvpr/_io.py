@@ -129,7 +129,8 @@ def check_output_path(path, inputs: Iterable = (), *, what: str = "output") -> P
         target = resolve_output(path)
     except OutputPathError as exc:
         raise OutputPathError(f"{what} {exc}") from None
-    for item in inputs:
+    # A file that does not exist yet is no input; otherwise compare (device, inode) pairs.
+    for item in inputs if os.path.lexists(target) else ():
         item = Path(item)
         if _same_file(target, item):
             raise OutputPathError(
