@@ -139,6 +139,12 @@ def _cached(tmp_path, n=4):
     return paths, cache, entry, clean
 
 
+def _flip(path, at):
+    data = bytearray(path.read_bytes())
+    data[at] ^= 0x10
+    path.write_bytes(bytes(data))
+
+
 def _rewrite(entry, edit):
     with zipfile.ZipFile(entry) as zf:
         import json
@@ -155,6 +161,7 @@ def _rewrite(entry, edit):
         (lambda e: e.write_bytes(b""), "empty file"),
         (lambda e: e.write_bytes(os.urandom(3000)), "is unusable"),
         (lambda e: e.write_bytes(e.read_bytes()[:-100]), "is unusable"),
+        (lambda e: _flip(e, e.stat().st_size // 2), "CRC"),
         (lambda e: _rewrite(e, lambda a: np.where(a > 0.5, np.nan, a)), "NaN or outside"),
         (lambda e: _rewrite(e, lambda a: a * 3), "NaN or outside"),
         (lambda e: _rewrite(e, lambda a: a[:, ::-1].copy()), None),  # valid but other pixels

@@ -14,9 +14,9 @@ than Pillow's ``MAX_IMAGE_PIXELS`` is refused before it is decoded.
 Decoded stacks are cached on disk (no pickle) under a key built from the file list with each
 file's size, modification time, inode and status-change time, the target size and the
 pre-processing version, so a second run does not decode again.  Each cache file carries its
-key and a SHA-256 of its pixels; an entry that fails any check (unreadable, swapped, damaged,
-NaN or out of range) is named in a warning and rebuilt.  Cache files are written atomically:
-a crash never leaves a partial cache.
+key, and the zip's CRC-32 of its pixels is checked on every read; an entry that fails any check
+(unreadable, swapped, damaged, NaN or out of range) is named in a warning and rebuilt.  Cache
+files are written atomically: a crash never leaves a partial cache.
 """
 
 from __future__ import annotations
@@ -427,17 +427,14 @@ def _cache_key(paths: Sequence[Path], size, bayer) -> str:
             st = p.stat()
         except FileNotFoundError:
             raise FileNotFoundError(f"image file not found: {p}") from None
+        # (device, inode) names the file itself, so the path need not be resolved (slow)
         entries.append(
-            [str(p.resolve()), st.st_size, st.st_mtime_ns, st.st_dev, st.st_ino, st.st_ctime_ns]
+            [os.path.abspath(p), st.st_size, st.st_mtime_ns, st.st_dev, st.st_ino, st.st_ctime_ns]
         )
     blob = json.dumps(
         {"v": _PREPROCESS_VERSION, "size": list(size), "bayer": bayer, "files": entries}
     )
     return hashlib.sha256(blob.encode()).hexdigest()[:32]
-
-
-def _digest(array: np.ndarray) -> str:
-    return hashlib.sha256(np.ascontiguousarray(array).data).hexdigest()
 
 
 def _write_cache(path: Path, array: np.ndarray, key: str) -> None:
@@ -446,7 +443,6 @@ def _write_cache(path: Path, array: np.ndarray, key: str) -> None:
         "version": _CACHE_VERSION,
         "key": key,
         "shape": list(array.shape),
-        "sha256": _digest(array),
     }
     with atomic_open(path, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED) as zf:
         zf.writestr("meta.json", json.dumps(meta))
@@ -470,13 +466,12 @@ def _read_cache(path: Path, key: str, shape: tuple[int, ...]) -> np.ndarray:
                 raise ValueError("not a flyvpr image cache")
             if meta.get("version") != _CACHE_VERSION or meta.get("key") != key:
                 raise ValueError("written for other files or settings (swapped or renamed)")
+            # read_npz_member reads to the end, so zipfile checks the entry's CRC-32
             arr = read_npz_member(zf, "images", str(path), dtype=np.float32, shape=shape)
     except ValueError:
         raise
     except Exception as exc:  # zipfile raises many kinds on a damaged archive
         raise ValueError(f"{type(exc).__name__}: {exc}") from None
-    if meta.get("sha256") != _digest(arr):
-        raise ValueError("pixels fail their SHA-256 checksum (damaged or edited)")
     if not np.isfinite(arr).all() or (arr.size and (arr.min() < 0.0 or arr.max() > 1.0)):
         raise ValueError("pixels are NaN or outside [0, 1]")
     return arr
@@ -508,7 +503,7 @@ def load_images(
     cache : bool or path
         ``True`` caches under :func:`default_cache_dir`, a path caches there,
         ``False`` never reads or writes a cache.  A cache entry is used only if its key,
-        shape, dtype, SHA-256 checksum and value range all check out; otherwise a warning
+        shape, dtype, CRC-32 checksum and value range all check out; otherwise a warning
         names it and it is rebuilt.
     progress : bool, optional
         Show a progress bar; ``None`` shows one only when stderr is a terminal.
