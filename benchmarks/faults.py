@@ -11,6 +11,7 @@ computed from the observation; nothing is hard-coded.
 Usage::
 
     python benchmarks/faults.py [--json faults.json] [--only PREFIX ...] [--markdown out.md]
+                                [--docs docs/guide/reliability.md] [--from-json faults.json]
 
 Prints the table (case, class, expected, observed, verdict); exit status 0 when every case
 is OK, 1 otherwise.  ``render_markdown(json.load(...))`` renders the table for the docs.
@@ -239,6 +240,7 @@ def run_battery(only=(), workdir: Path | None = None, progress=None) -> dict:
     return {
         "benchmark": "flyvpr fault battery (benchmarks/faults.py)",
         "flyvpr_version": flyvpr.__version__,
+        "commit": _commit(),
         "python": platform.python_version(),
         "platform": platform.platform(terse=True),
         "as_root": hasattr(os, "geteuid") and os.geteuid() == 0,
@@ -247,13 +249,32 @@ def run_battery(only=(), workdir: Path | None = None, progress=None) -> dict:
     }
 
 
+def _commit() -> str | None:
+    """The checkout's commit (with ``+dirty`` for uncommitted changes), if git is there."""
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
+            capture_output=True, text=True, timeout=10, check=True,
+        ).stdout.strip()  # fmt: skip
+        dirty = subprocess.run(
+            ["git", "-C", str(REPO), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True, text=True, timeout=10, check=True,
+        ).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head + ("+dirty" if dirty else "")
+
+
 def render_markdown(data: dict) -> str:
     """The battery's table as Markdown (for ``docs/guide/reliability.md``)."""
     c = data["counts"]
     lines = [
         f"{len(data['cases'])} cases: {c.get('OK', 0)} OK, {c.get('FAIL', 0)} FAIL, "
-        f"{c.get('n/a', 0)} not applicable (flyvpr {data['flyvpr_version']}, Python "
-        f"{data['python']}, {data['platform']}{', as root' if data.get('as_root') else ''}).",
+        f"{c.get('n/a', 0)} not applicable (flyvpr {data['flyvpr_version']}"
+        + (f", commit {data['commit']}" if data.get("commit") else "")
+        + f", Python {data['python']}, {data['platform']}"
+        + (", as root" if data.get("as_root") else "")
+        + ").",
         "",
         "| case | class | expected | observed | verdict |",
         "|---|---|---|---|---|",
@@ -268,6 +289,20 @@ def render_markdown(data: dict) -> str:
             f"{cell(r['observed'])} | {cell(r['verdict'])} |"
         )
     return "\n".join(lines) + "\n"
+
+
+#: markers around the generated table in docs/guide/reliability.md
+DOC_BEGIN = (
+    "<!-- BEGIN faults table: generated from benchmarks/faults.json by faults.render_markdown -->"
+)
+DOC_END = "<!-- END faults table -->"
+
+
+def splice_table(doc: Path, data: dict) -> None:
+    """Replace the table between the markers of ``doc`` with ``render_markdown(data)``."""
+    text = doc.read_text()
+    start, end = text.index(DOC_BEGIN) + len(DOC_BEGIN), text.index(DOC_END)
+    doc.write_text(text[:start] + "\n" + render_markdown(data) + text[end:])
 
 
 def render_text(data: dict) -> str:
@@ -290,17 +325,28 @@ def main(argv=None) -> int:
     parser.add_argument("--markdown", type=Path, help="write the table as Markdown")
     parser.add_argument("--only", nargs="*", default=(), help="case id prefixes to run")
     parser.add_argument("--keep", type=Path, help="run in this folder and keep it")
+    parser.add_argument(
+        "--docs", type=Path, help="splice the table into this page (docs/guide/reliability.md)"
+    )
+    parser.add_argument(
+        "--from-json", type=Path, help="render an earlier run's JSON instead of running"
+    )
     args = parser.parse_args(argv)
 
     def show(row):
         print(f"{row['verdict']:>4}  {row['case']}  ({row['seconds']:.1f} s)", file=sys.stderr)
 
-    data = run_battery(args.only, args.keep, progress=show)
+    if args.from_json:
+        data = json.loads(args.from_json.read_text())
+    else:
+        data = run_battery(args.only, args.keep, progress=show)
     print(render_text(data))
     if args.json:
         args.json.write_text(json.dumps(data, indent=2) + "\n")
     if args.markdown:
         args.markdown.write_text(render_markdown(data))
+    if args.docs:
+        splice_table(args.docs, data)
     return 0 if data["counts"]["FAIL"] == 0 else 1
 
 

@@ -34,7 +34,17 @@ def workdir(tmp_path_factory):
     return base, shared
 
 
-@pytest.mark.parametrize("case_id", list(CASES))
+#: groups that take longest (subprocesses, 500-frame routes, real data): also marked slow
+SLOW_GROUPS = ("evidence", "signals")
+
+
+@pytest.mark.parametrize(
+    "case_id",
+    [
+        pytest.param(i, marks=pytest.mark.slow) if c.group in SLOW_GROUPS else i
+        for i, c in CASES.items()
+    ],
+)
 def test_fault_case(workdir, case_id):
     base, shared = workdir
     row = faults.run_case(CASES[case_id], base, shared)
