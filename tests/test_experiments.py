@@ -159,30 +159,91 @@ def grid(**overrides) -> str:
 @pytest.mark.parametrize(
     "grids, error, match",
     [
-        (grid(methods='["flynet", "nope"]'), ValueError, r"unknown method 'nope'.*flynet"),
-        (grid(datasets='["other"]'), ValueError, r"unknown dataset 'other'.*syn"),
-        (grid(kind='"plot"'), ValueError, r"kind must be one of .*training_curve"),
-        (grid(seeds='"0"'), TypeError, r"seeds: must be a non-empty list of ints"),
-        (grid(seeds="[0, 0]"), ValueError, r"holds a value twice"),
-        (grid(methods="[]"), TypeError, r"methods must be a non-empty list"),
-        (grid(methods=None), ValueError, r"missing required key 'methods'"),
-        (grid(params="{ epochs = [] }"), ValueError, r"params.epochs is an empty list"),
+        (
+            grid(methods='["flynet", "nope"]'),
+            ValueError,
+            r'methods must be a non-empty list of distinct method names; got \["flynet", "nope"\]: '
+            r'item 2, "nope", is not a method name; known methods: .*flynet',
+        ),
+        (
+            grid(datasets='["other"]'),
+            ValueError,
+            r'"other", is not a dataset name; known datasets: syn',
+        ),
+        (grid(datasets='"syn"'), TypeError, r"datasets must be a non-empty list .*\(string\)"),
+        (
+            grid(kind='"plot"'),
+            ValueError,
+            r"kind must be one of .*'training_curve'.*; got \"plot\"",
+        ),
+        (
+            grid(seeds='"0"'),
+            TypeError,
+            r'seeds must be a non-empty list of distinct integers >= 0; got "0" \(string\)',
+        ),
+        (grid(seeds="[0, 0]"), ValueError, r"seeds must be .*; got \[0, 0\]: it holds 0 twice"),
+        (grid(seeds="[0, -1]"), ValueError, r"item 2, -1, is not an integer >= 0"),
+        (grid(methods="[]"), ValueError, r"methods must be a non-empty list .*; got \[\]"),
+        (grid(methods=None), ValueError, r"missing required key 'methods': a non-empty list"),
+        (grid(params="{ epochs = [] }"), ValueError, r"params\.epochs must be .*; got \[\]"),
         (grid(params="{ nonsense = 1 }"), ValueError, r"'nonsense' is not a parameter of method"),
         (grid(params="{ random_state = 1 }"), ValueError, r"random_state through 'seeds'"),
-        (grid(colour='"red"'), ValueError, r"unknown key\(s\) 'colour'"),
-        (grid(name='"a b"'), ValueError, r"name 'a b' must start"),
+        (grid(params="3"), TypeError, r"params must be a table of PARAMETER = .*\(integer\)"),
+        (
+            grid(method_params="{ flynet = 3 }"),
+            TypeError,
+            r"method_params\.flynet must be a table of PARAMETER = a value; got 3 \(integer\)",
+        ),
+        (
+            grid(method_seeds='{ flynet = ["a"] }'),
+            TypeError,
+            r"method_seeds\.flynet must be a non-empty list of distinct integers >= 0",
+        ),
+        (grid(colour='"red"'), ValueError, r"unknown key\(s\) 'colour'; allowed: name, kind"),
+        (grid(name='"a b"'), ValueError, r'name must be a name of letters.*; got "a b"'),
+        (grid(title="3"), TypeError, r"title must be a string; got 3 \(integer\)"),
         (grid(kind='"sensitivity"'), ValueError, r"exactly one params axis"),
         (grid(examples="3"), ValueError, r"examples applies to kind 'qualitative' only"),
-        (grid(speed="-1"), TypeError, r"speed must be a positive number"),
+        (grid(warmup="false"), ValueError, r"warmup applies to kind 'timing' only"),
+        (
+            grid(kind='"qualitative"', examples="0"),
+            ValueError,
+            r"examples must be an integer >= 1; got 0",
+        ),
+        (grid(speed="-1"), ValueError, r"speed must be a number > 0 or .*; got -1"),
+        (
+            grid(speed="[2, 1]"),
+            ValueError,
+            r"speed must be .*the first <= the second; got \[2, 1\]",
+        ),
+        (grid(speed='"fast"'), TypeError, r"speed must be a number > 0 .*\(string\)"),
+        (grid(speed="nan"), ValueError, r"speed must be a number > 0"),
         (grid(method_params="{ pixels = {} }"), ValueError, r"not in this grid's methods"),
-        (grid() + "\n" + grid(), ValueError, r"grid name 'g' is used by two blocks"),
-        ("", ValueError, r"at least one \[\[grids\]\] block"),
+        (grid() + "\n" + grid(), ValueError, r"\[\[grids\]\] name 'g' is used by two blocks"),
+        ("", ValueError, r"missing required key 'grids': one or more \[\[grids\]\] blocks"),
+        ("[grids]\nname = 1", TypeError, r"grids must be one or more \[\[grids\]\] blocks"),
         (grid() + "\nwhat = ", ValueError, r"not valid TOML"),
     ],
 )
 def test_invalid_grids_raise_clear_errors(tmp_path, grids, error, match):
-    with pytest.raises(error, match=match):
+    with pytest.raises(error, match=match) as info:
         load_config(write_config(tmp_path, grids))
+    assert str(tmp_path / "config.toml") in str(info.value)  # every message names the file
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "top, error, match",
+    [
+        ('colour = "red"', ValueError, r"^<config>: unknown key\(s\) 'colour'; allowed: title"),
+        ("title = 3", TypeError, r"^<config>: title must be a string; got 3 \(integer\)"),
+        ("settings = 3", TypeError, r"settings must be a \[settings\] table; got 3"),
+    ],
+)
+def test_invalid_top_level_keys(tmp_path, top, error, match):
+    datasets = BASE.replace('[settings]\ncache = "cache"\n', "")
+    with pytest.raises(error, match=match):
+        parse_config(top + "\n" + datasets + grid(), base_dir=tmp_path)
 
 
 def test_unknown_method_lists_the_known_ones(tmp_path):
@@ -196,25 +257,38 @@ def test_unknown_method_lists_the_known_ones(tmp_path):
 @pytest.mark.parametrize(
     "dataset, error, match",
     [
-        ('name = "d"\nloader = "kitti"\nroot = "x"', ValueError, r"unknown loader 'kitti'"),
+        (
+            'name = "d"\nloader = "kitti"\nroot = "x"',
+            ValueError,
+            r"\('d'\): loader must be one of .*'nordland'.*; got \"kitti\"",
+        ),
         (
             'name = "d"\nloader = "nordland"\nroot = "x"\nradius = 3',
             ValueError,
-            r"takes no option\(s\) 'radius'",
+            r"loader 'nordland' takes no option\(s\) 'radius'; its options: root, reference",
         ),
         (
             'name = "d"\nloader = "nordland"\nroot = "x"\ncount = "10"',
             TypeError,
-            r"option count must be int; got str",
+            r'count must be an integer >= 1; got "10" \(string\)',
         ),
         (
             'name = "d"\nloader = "nordland"\nroot = "x"\nfirst = true',
             TypeError,
-            r"option first must be int; got bool",
+            r"first must be an integer >= 0; got true \(boolean\)",
         ),
-        ('name = "d"\nloader = "nordland"', ValueError, r"missing required key 'root'"),
-        ('loader = "nordland"\nroot = "x"', ValueError, r"missing required key 'name'"),
-        ('name = "syn"\nloader = "nordland"\nroot = "x"', ValueError, r"'syn' is used by two"),
+        (
+            'name = "d"\nloader = "robotcar"\nroot = "x"\nspacing = 0',
+            ValueError,
+            r"spacing must be a number > 0; got 0",
+        ),
+        ('name = "d"\nloader = "nordland"', ValueError, r"missing required key 'root': a path"),
+        ('loader = "nordland"\nroot = "x"', ValueError, r"#2: missing required key 'name'"),
+        (
+            'name = "syn"\nloader = "nordland"\nroot = "x"',
+            ValueError,
+            r"\[\[datasets\]\] name 'syn' is used by two",
+        ),
     ],
 )
 def test_invalid_dataset_blocks_raise_clear_errors(tmp_path, dataset, error, match):
@@ -226,8 +300,9 @@ def test_invalid_dataset_blocks_raise_clear_errors(tmp_path, dataset, error, mat
 @pytest.mark.parametrize(
     "settings, error, match",
     [
-        ("image_size = [32]", TypeError, r"image_size must be two positive ints"),
-        ("cache = 3", TypeError, r"cache must be true, false or a folder path"),
+        ("image_size = [32]", ValueError, r"image_size must be a list of 2 integers >= 1"),
+        ("image_size = [32, 0]", ValueError, r"item 2, 0, is not an integer >= 1"),
+        ("cache = 3", TypeError, r"cache must be true or false or a path"),
         ("jobs = 3", ValueError, r"unknown key\(s\) 'jobs'"),
     ],
 )

@@ -219,10 +219,10 @@ def test_report_renders_in_chromium(report, tmp_path):
 def test_report_follows_the_plan_stored_at_experiment_time(results, tmp_path, monkeypatch):
     # A constructor default changed since the experiment ran: re-expanding the grids now
     # would give other run ids, yet the report must still show the runs that were made.
-    import flyvpr.experiments.config as config_module
+    import flyvpr.experiments.runs as runs_module
 
-    real = config_module._defaults
-    monkeypatch.setattr(config_module, "_defaults", lambda cls: {**real(cls), "new_default": 1})
+    real = runs_module._defaults
+    monkeypatch.setattr(runs_module, "_defaults", lambda cls: {**real(cls), "new_default": 1})
     copy = tmp_path / "copy"
     shutil.copytree(results, copy)
     _, md_path = write_report(copy, figures=False)
