@@ -35,7 +35,9 @@ import logging
 import math
 import os
 import platform
+import signal
 import sys
+import threading
 import time
 import traceback
 from datetime import datetime, timezone
@@ -45,8 +47,9 @@ import numpy as np
 
 from .._io import write_json_atomic, write_text_atomic
 from .config import ExperimentConfig, RunSpec, load_config
+from .records import read_experiment, read_run
 
-__all__ = ["run_experiment", "execute_run", "machine_info", "BACKENDS", "load_run"]
+__all__ = ["run_experiment", "execute_run", "machine_info", "BACKENDS"]
 
 logger = logging.getLogger(__name__)
 
@@ -246,17 +249,42 @@ def _train(run: RunSpec, bench) -> dict:
 
 
 # -- the experiment ------------------------------------------------------------------------------
-def load_run(path) -> dict | None:
-    """A run file's record, or ``None`` if it is unreadable (then the run is redone)."""
+def _finished(path: Path) -> bool:
+    """True if the run file exists and records a finished run (a broken file is refused)."""
+    return path.exists() and read_run(path)["status"] == "ok"
+
+
+class Terminated(SystemExit):
+    """Raised in the main thread on SIGTERM while an experiment runs (exit status 143)."""
+
+
+@contextlib.contextmanager
+def _exit_on_sigterm():
+    """Turn SIGTERM into :class:`Terminated` while the block runs, so it unwinds like Ctrl-C.
+
+    Unwinding runs the clean-ups a plain SIGTERM would skip: joblib terminates
+    its worker processes and an atomic write in progress removes its temporary
+    file.  Installed only from the main thread and only over the default
+    handler, so an application's own SIGTERM handler is left alone.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    if signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Terminated(128 + signal.SIGTERM)
+
+    signal.signal(signal.SIGTERM, handler)
     try:
-        with open(path, encoding="utf-8") as fh:
-            record = json.load(fh)
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError) as exc:
-        logger.warning("ignoring unreadable run file %s (%s)", path, exc)
-        return None
-    return record if isinstance(record, dict) else None
+        yield
+    except Terminated:
+        logger.warning("terminated (SIGTERM); finished runs are kept, the rest run next time")
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _check_jobs(n_jobs) -> int:
@@ -386,11 +414,16 @@ def run_experiment(config_path, out_dir, n_jobs: int = 1, backend: str = "loky",
     ImportError
         For the dask/ray backends when they are not installed.
     """
-    from tqdm.auto import tqdm
-
     n_jobs = _check_jobs(n_jobs)
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {', '.join(BACKENDS)}; got {backend!r}")
+    with _exit_on_sigterm():
+        return _run(config_path, out_dir, n_jobs, backend, progress)
+
+
+def _run(config_path, out_dir, n_jobs: int, backend: str, progress) -> dict:
+    from tqdm.auto import tqdm
+
     config = load_config(config_path)
     out_dir = Path(out_dir)
     runs_dir = out_dir / "runs"
@@ -400,18 +433,13 @@ def run_experiment(config_path, out_dir, n_jobs: int = 1, backend: str = "loky",
 
     runs = config.runs()
     plan = config.plan()
-    pending = []
-    for run in runs:
-        record = load_run(runs_dir / f"{run.run_id}.json")
-        if record is None or record.get("status") != "ok":
-            pending.append(run)
+    pending = [run for run in runs if not _finished(runs_dir / f"{run.run_id}.json")]
     n_skipped = len(runs) - len(pending)
     logger.info("%d runs, %d already finished, %d to run", len(runs), n_skipped, len(pending))
 
     show = _want_progress(progress)
     experiment_file = out_dir / "experiment.json"
-    previous = load_run(experiment_file) or {}
-    sessions = list(previous.get("sessions", []))
+    sessions = read_experiment(experiment_file)["sessions"] if experiment_file.exists() else []
     session = {
         "started": started,
         "n_jobs": n_jobs,
@@ -445,8 +473,11 @@ def run_experiment(config_path, out_dir, n_jobs: int = 1, backend: str = "loky",
             bar.set_postfix_str(f"{len(errors)} failed" if errors else "", refresh=False)
             bar.update(1)
 
-        for record in _run_parallel(parallel_runs, n_jobs, backend):
-            store(record)
+        # Closing the generator on any exit (an error, Ctrl-C, SIGTERM) makes joblib
+        # terminate its worker processes instead of leaving them to finish their runs.
+        with contextlib.closing(_run_parallel(parallel_runs, n_jobs, backend)) as records:
+            for record in records:
+                store(record)
         for run in timing_runs:
             store(execute_run(run))
 
