@@ -4,13 +4,17 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
 
+from flyvpr.cli import main
 from flyvpr.experiments import load_config, parse_config, run_experiment
 from flyvpr.experiments.config import KINDS, run_id_of
 from flyvpr.methods import METHODS
@@ -463,3 +467,129 @@ def test_paper_config(shared_data):
         for r in config.grid_runs(g)
     }
     assert {r.run_id for r in config.runs()} == base
+
+
+# -- faults: files that are not what they should be, signals --------------------------------------
+def test_config_with_a_latin1_byte_names_the_file_and_line(tmp_path, capsys):
+    path = write_config(tmp_path, EVAL_GRID)
+    data = path.read_bytes().replace(b'name = "eval"', b'name = "eval"\ntitle = "caf\xe9"')
+    path.write_bytes(data)
+    line = data[: data.index(b"\xe9")].count(b"\n") + 1
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: line {line}: not UTF-8"):
+        load_config(path)
+    assert main(["experiment", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(path) in err and f"line {line}" in err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    "damage, match",
+    [
+        (lambda p: p.write_text(p.read_text()[:100]), r"not valid JSON .*truncated or garbled"),
+        (lambda p: p.write_bytes(b"\xff\xfe" + p.read_bytes()), r"not UTF-8 text"),
+        (lambda p: _drop_key(p, "result"), r"with key 'result' \(a finished evaluate run\)"),
+        (lambda p: _drop_key(p, "status"), r"with key 'status'"),
+        (lambda p: p.write_text("[1, 2]"), r"a JSON object\); got a list"),
+    ],
+    ids=["truncated", "latin1", "no-result", "no-status", "a-list"],
+)
+def test_a_broken_run_file_stops_a_resumed_experiment_naming_it(workdir, capsys, damage, match):
+    config = write_config(workdir, EVAL_GRID.replace("seeds = [0, 1]", "seeds = [0]"))
+    out = workdir / "out"
+    run_experiment(config, out, progress=False)
+    victim = sorted(run_files(out).values())[0]
+    damage(victim)
+    before = {p: p.read_bytes() for p in run_files(out).values()}
+    with pytest.raises(ValueError, match=match) as info:
+        run_experiment(config, out, progress=False)
+    assert str(info.value).startswith(f"{victim}: ")
+    assert {p: p.read_bytes() for p in run_files(out).values()} == before  # nothing rewritten
+    assert main(["experiment", str(config), "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(victim) in err and "Traceback" not in err
+
+
+def _drop_key(path: Path, key: str) -> None:
+    record = json.loads(path.read_text())
+    del record[key]
+    path.write_text(json.dumps(record))
+
+
+@pytest.mark.parametrize("content", ["{}", '{"sessions": 3}', "nonsense"])
+def test_an_experiment_json_of_something_else_is_refused(workdir, content):
+    out = workdir / "out"
+    out.mkdir()
+    (out / "experiment.json").write_text(content)
+    with pytest.raises(ValueError, match=r"experiment.json: expected the record of `flyvpr exp"):
+        run_experiment(write_config(workdir, EVAL_GRID), out, progress=False)
+    assert (out / "experiment.json").read_text() == content
+    assert not run_files(out)
+
+
+def _descendants(pid: int) -> set[int]:
+    """Process ids below ``pid`` (Linux /proc)."""
+    found, todo = set(), [pid]
+    while todo:
+        parent = todo.pop()
+        for task in Path(f"/proc/{parent}/task").glob("*"):
+            try:
+                children = (task / "children").read_text().split()
+            except OSError:
+                continue
+            for child in map(int, children):
+                if child not in found:
+                    found.add(child)
+                    todo.append(child)
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux /proc")
+@pytest.mark.parametrize("entry", ["cli", "library"])
+def test_sigterm_takes_the_worker_processes_down(workdir, entry):
+    grid = EVAL_GRID.replace('"pixels", "flynet", "seqslam"', '"flynet"').replace(
+        "epochs = 5", "epochs = 100000"
+    )
+    config, out = write_config(workdir, grid), workdir / "out"
+    if entry == "cli":
+        code = "from flyvpr.cli import main; import sys; sys.exit(main(sys.argv[1:]))"
+    else:
+        code = (
+            "import sys; from flyvpr.experiments import run_experiment; "
+            "run_experiment(sys.argv[2], sys.argv[4], n_jobs=2, progress=False)"
+        )
+    args = ["experiment", str(config), "--out", str(out), "--jobs", "2", "--quiet"]
+    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+    proc = subprocess.Popen([sys.executable, "-c", code, *args], env=env, stderr=subprocess.PIPE)
+    workers: set[int] = set()
+    deadline = time.monotonic() + 120
+    while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+        workers = {p for p in _descendants(proc.pid) if "Loky" in _cmdline(p)}
+    assert len(workers) >= 2, "the two workers never started"
+    time.sleep(1.0)  # the workers are in the middle of their runs (100000 epochs)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    deadline = time.monotonic() + 10
+    while any(map(_alive, workers)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(map(_alive, workers)), "worker processes outlived the experiment"
+    assert not [p for p in out.rglob("*") if p.name.endswith(".tmp")]
+    assert not run_files(out)
+    assert b"Traceback" not in err
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+    except OSError:
+        return ""

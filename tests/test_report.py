@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import io
+import json
 import re
 import shutil
 import subprocess
@@ -229,3 +230,132 @@ def test_report_follows_the_plan_stored_at_experiment_time(results, tmp_path, mo
     text = md_path.read_text(encoding="utf-8")
     assert "0 not run" in text
     assert "belong to no grid" not in text
+
+
+# -- faults: a results folder whose files are not what they should be ----------------------------
+def _edit_json(path: Path, edit) -> None:
+    record = json.loads(path.read_text(encoding="utf-8"))
+    edit(record)
+    path.write_text(json.dumps(record), encoding="utf-8")
+
+
+def _a_run_file(folder: Path, prefix: str = "evaluate-syn-pixels-s0-") -> Path:
+    return next((folder / "runs").glob(f"{prefix}*.json"))
+
+
+FAULTS = {
+    "experiment-empty-object": (
+        lambda d: (d / "experiment.json").write_text("{}"),
+        "experiment.json",
+        r"expected the record of `flyvpr experiment` with key 'config_text'; it has none",
+    ),
+    "experiment-truncated": (
+        lambda d: (d / "experiment.json").write_text((d / "experiment.json").read_text()[:50]),
+        "experiment.json",
+        r"not valid JSON .*truncated or garbled",
+    ),
+    "experiment-plan-of-another-grid": (
+        lambda d: _edit_json(
+            d / "experiment.json", lambda r: r["plan"]["eval"][0].update(method="seqslam")
+        ),
+        "experiment.json",
+        r"plan\.eval lists run .* which grid 'eval' of its config_text does not have",
+    ),
+    "experiment-config-text-broken": (
+        lambda d: _edit_json(d / "experiment.json", lambda r: r.update(config_text="x = ")),
+        "experiment.json",
+        r"\(config_text\): not valid TOML",
+    ),
+    "run-without-result": (
+        lambda d: _edit_json(_a_run_file(d), lambda r: r.pop("result")),
+        "run",
+        r"with key 'result' \(a finished evaluate run\); it has none",
+    ),
+    "run-without-auc": (
+        lambda d: _edit_json(_a_run_file(d), lambda r: r["result"].pop("auc")),
+        "run",
+        r"with key 'result.auc'",
+    ),
+    "run-auc-a-string": (
+        lambda d: _edit_json(_a_run_file(d), lambda r: r["result"].update(auc="high")),
+        "run",
+        r"its 'result.auc' must be a number or null, got \"high\"",
+    ),
+    "run-truncated": (
+        lambda d: _a_run_file(d).write_text(_a_run_file(d).read_text()[:200]),
+        "run",
+        r"expected a run file of `flyvpr experiment` \(JSON\); it is not valid JSON",
+    ),
+    "run-garbled-bytes": (
+        lambda d: _a_run_file(d).write_bytes(b"\x80\x81" * 50),
+        "run",
+        r"line 1: not UTF-8 text \(byte 0x80\)",
+    ),
+    "run-of-another-name": (
+        lambda d: _a_run_file(d).rename(d / "runs" / "evaluate-syn-pixels-s0-000000000000.json"),
+        "evaluate-syn-pixels-s0-000000000000.json",
+        r"holds run 'evaluate-syn-pixels-s0-\w+', not the run its name says",
+    ),
+    "training-run-without-history": (
+        lambda d: _edit_json(
+            _a_run_file(d, "train-syn-flynet-s0-"), lambda r: r["result"].pop("accuracy_history")
+        ),
+        "train-syn-flynet-s0-",
+        r"with key 'result.accuracy_history' \(a finished train run\)",
+    ),
+    "failed-run-without-error": (
+        lambda d: _edit_json(_a_run_file(d, "train-syn-pixels-s0-"), lambda r: r.pop("error")),
+        "train-syn-pixels-s0-",
+        r"with key 'error' \(status 'error'\)",
+    ),
+}
+
+
+@pytest.mark.parametrize("fault", sorted(FAULTS))
+def test_a_broken_results_file_is_named_in_one_line(results, tmp_path, capsys, fault):
+    from flyvpr.cli import main
+
+    damage, file_hint, match = FAULTS[fault]
+    copy = tmp_path / "copy"
+    shutil.copytree(results, copy)
+    for name in ("report.html", "report.md"):
+        (copy / name).unlink(missing_ok=True)
+    damage(copy)
+    with pytest.raises(ValueError, match=match) as info:
+        write_report(copy, figures=False)
+    named = str(info.value).split(": ", 1)[0]
+    assert named.startswith(str(copy)) and file_hint in named, str(info.value)
+    assert main(["report", str(copy), "--no-figures"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and named in err and "Traceback" not in err
+    assert not (copy / "report.html").exists() and not (copy / "report.md").exists()
+
+
+def test_html_escapes_every_text():
+    from flyvpr.experiments.document import Document
+
+    doc = Document('<b>"title"</b>')
+    doc.heading(1, "<script>alert(1)</script>", anchor='x" onclick="y')
+    doc.table(["<th>"], [["a & b"]], caption="<i>")
+    doc.items([("<li>", "a<b")])
+    text = doc.html()
+    assert "<script>alert" not in text and "&lt;script&gt;alert(1)&lt;/script&gt;" in text
+    assert "<b>" not in text and 'onclick="y' not in text and "a &amp; b" in text
+    assert "<th>&lt;th&gt;</th>" in text and "<caption>&lt;i&gt;</caption>" in text
+    # Markdown is not HTML: text stays as written, but a | in a cell cannot split the table
+    doc.table(["a|b"], [["c\nd"]])
+    assert "| a\\|b |\n|---|\n| c d |" in doc.markdown("figures")
+
+
+def test_templates_ship_as_package_data():
+    from importlib import resources
+
+    import tomllib
+
+    globs = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"][
+        "package-data"
+    ]["flyvpr.experiments"]
+    folder = resources.files("flyvpr.experiments") / "templates"
+    names = {p.name for p in folder.iterdir() if not p.name.startswith(".")}
+    shipped = {n for n in names if any(Path(n).match(Path(g).name) for g in globs)}
+    assert names and shipped == names
