@@ -593,3 +593,50 @@ def _cmdline(pid: int) -> str:
         return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
     except OSError:
         return ""
+
+
+# -- the user guide documents the schema -----------------------------------------------------------
+GUIDE = REPO / "docs" / "guide" / "experiments.md"
+
+
+def test_guide_reference_is_generated_from_the_schema():
+    from flyvpr.experiments.reference import _BEGIN, _END, reference_markdown
+
+    text = GUIDE.read_text(encoding="utf-8")
+    generated = text.split(_BEGIN, 1)[1].split(_END, 1)[0].strip()
+    assert generated == reference_markdown().strip(), (
+        "docs/guide/experiments.md is out of date: run "
+        "python -m flyvpr.experiments.reference docs/guide/experiments.md"
+    )
+
+
+def test_every_schema_key_and_loader_option_is_documented():
+    from flyvpr.datasets import DATASETS
+    from flyvpr.experiments.config import DatasetBlock, ExperimentConfig, GridBlock, Settings
+    from flyvpr.experiments.schema import schema_fields
+
+    text = GUIDE.read_text(encoding="utf-8")
+    for cls in (ExperimentConfig, Settings, DatasetBlock, GridBlock):
+        for name, spec in schema_fields(cls):
+            assert f"| `{name}` |" in text, f"{cls.__name__}.{name} is not in the guide"
+            assert spec.doc and spec.value.expected
+    options = {o for spec in DATASETS.values() for o in spec.options}
+    assert options <= set(DatasetBlock.option_keys())  # a new loader option needs a schema key
+    for kind in KINDS:
+        assert f"| `{kind}` |" in text
+
+
+def test_guide_example_config_is_valid(tmp_path):
+    text = GUIDE.read_text(encoding="utf-8")
+    example = re.search(r"```toml\n(.*?)```", text, re.S).group(1)
+    config = parse_config(example, base_dir=tmp_path / "experiments")
+    assert [len(config.grid_runs(g)) for g in config.grids] == [9, 3]
+    assert config.datasets["sw"].resolved["root"] == str(
+        (tmp_path / "experiments" / "../../shared/data/nordland_64x32").resolve()
+    )
+    refused = example.replace(
+        'method_params = { flynet = { epochs = 100 }, "flynet+cann" = { epochs = 100 } }',
+        "params = { epochs = 100 }",
+    )
+    with pytest.raises(ValueError, match=r"\('auc'\): 'epochs' is not a parameter of method 'pix"):
+        parse_config(refused, base_dir=tmp_path)

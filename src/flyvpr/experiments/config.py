@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .records import read_text
-from .runs import RunSpec, expand_grid, route_params, run_id_of
+from .runs import RunSpec, expand_grid, route_params, run_id_of  # noqa: F401 (re-exported)
 from .schema import (
     Axis,
     Block,
@@ -84,8 +84,6 @@ __all__ = [
     "GridBlock",
     "Settings",
     "ExperimentConfig",
-    "RunSpec",
-    "run_id_of",
     "load_config",
     "parse_config",
 ]
@@ -461,7 +459,10 @@ class ExperimentConfig:
         return [item["run"] for item in self.grid_items(grid)]
 
     def grid_items(self, grid: GridBlock) -> list[dict]:
-        """The runs of one grid with their coordinates (see :func:`~.runs.expand_grid`)."""
+        """The runs of one grid with their coordinates.
+
+        See :func:`~flyvpr.experiments.runs.expand_grid`.
+        """
         return expand_grid(grid, self.datasets, self.settings.image_size, self.settings.cache)
 
     def plan(self) -> dict[str, list[dict]]:

@@ -16,7 +16,7 @@ import json
 import re
 from dataclasses import dataclass
 
-__all__ = ["RunSpec", "run_id_of", "route_params", "full_params"]
+__all__ = ["RunSpec", "run_id_of", "route_params", "full_params", "expand_grid"]
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,7 @@ def run_id_of(spec: dict) -> str:
     Parameters
     ----------
     spec : dict
-        :attr:`RunSpec.spec`.
+        The ``spec`` of a :class:`RunSpec`.
 
     Returns
     -------

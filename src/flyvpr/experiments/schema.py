@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
+    "Invalid",
     "Value",
     "Text",
     "Flag",
@@ -45,6 +46,7 @@ __all__ = [
     "Blocks",
     "Context",
     "key",
+    "build",
     "check_table",
     "schema_fields",
     "markdown_table",

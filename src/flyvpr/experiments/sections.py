@@ -68,7 +68,7 @@ class GridRuns:
         self.items = [{**item, "record": records.get(item["run_id"])} for item in plan]
 
     def run_spec(self, item: dict) -> RunSpec:
-        """The :class:`RunSpec` of a finished run (to reload its benchmark)."""
+        """A finished run's :class:`~flyvpr.experiments.runs.RunSpec` (to reload its data)."""
         return RunSpec(
             item["run_id"],
             item["record"]["spec"],
