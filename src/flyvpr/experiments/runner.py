@@ -46,8 +46,9 @@ from pathlib import Path
 import numpy as np
 
 from .._io import write_json_atomic, write_text_atomic
-from .config import ExperimentConfig, RunSpec, load_config
+from .config import ExperimentConfig, load_config
 from .records import read_experiment, read_run
+from .runs import RunSpec, load_benchmark_of
 
 __all__ = ["run_experiment", "execute_run", "machine_info", "BACKENDS"]
 
@@ -117,18 +118,6 @@ def _json_safe(obj):
 
 
 # -- one run -------------------------------------------------------------------------------------
-def _benchmark(run: RunSpec):
-    from ..datasets import load_benchmark
-    from ..evaluation import speed_profile
-
-    spec = run.spec
-    bench = load_benchmark(spec["dataset"]["loader"], **run.dataset_options)
-    if spec["speed"] is not None:
-        keep = speed_profile(bench.n_query, spec["speed"], random_state=spec["seed"])
-        bench = bench.subset_queries(keep)
-    return bench
-
-
 def execute_run(run: RunSpec) -> dict:
     """Perform one run and return its record (never raises for a failing run).
 
@@ -147,7 +136,7 @@ def execute_run(run: RunSpec) -> dict:
     t0 = time.perf_counter()
     record = {"run_id": run.run_id, "spec": run.spec, "started": started}
     try:
-        bench = _benchmark(run)
+        bench = load_benchmark_of(run)
         record["protocol"] = {
             **bench.protocol(),
             "image_size": run.spec["image_size"],
@@ -370,7 +359,7 @@ def _prepare(config: ExperimentConfig, runs: list[RunSpec], progress: bool) -> N
         if key in seen:
             continue
         seen.add(key)
-        bench = _benchmark(run)
+        bench = load_benchmark_of(run)
         if run.task != "timing" and run.cache is not False:
             bench.load_images(tuple(spec["image_size"]), cache=run.cache, progress=progress)
 

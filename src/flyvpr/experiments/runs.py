@@ -16,7 +16,14 @@ import json
 import re
 from dataclasses import dataclass
 
-__all__ = ["RunSpec", "run_id_of", "route_params", "full_params", "expand_grid"]
+__all__ = [
+    "RunSpec",
+    "run_id_of",
+    "route_params",
+    "full_params",
+    "expand_grid",
+    "load_benchmark_of",
+]
 
 
 @dataclass(frozen=True)
@@ -49,6 +56,33 @@ class RunSpec:
     def task(self) -> str:
         """``'evaluate'``, ``'train'`` or ``'timing'``."""
         return self.spec["task"]
+
+
+def load_benchmark_of(run: RunSpec):
+    """The benchmark a run reads: its dataset, its queries thinned to its speed profile.
+
+    Parameters
+    ----------
+    run : RunSpec
+
+    Returns
+    -------
+    flyvpr.datasets.Benchmark
+
+    Raises
+    ------
+    FileNotFoundError, ValueError
+        From the loader, for missing or malformed data.
+    """
+    from ..datasets import load_benchmark
+    from ..evaluation import speed_profile
+
+    spec = run.spec
+    bench = load_benchmark(spec["dataset"]["loader"], **run.dataset_options)
+    if spec["speed"] is not None:
+        keep = speed_profile(bench.n_query, spec["speed"], random_state=spec["seed"])
+        bench = bench.subset_queries(keep)
+    return bench
 
 
 def run_id_of(spec: dict) -> str:

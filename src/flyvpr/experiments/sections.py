@@ -18,8 +18,9 @@ import math
 
 import numpy as np
 
-from .config import ExperimentConfig, GridBlock, RunSpec
+from .config import ExperimentConfig, GridBlock
 from .document import Document
+from .runs import RunSpec, load_benchmark_of
 
 __all__ = ["GridRuns", "SECTIONS"]
 
@@ -437,8 +438,6 @@ def _section_footprint(doc: Document, g: GridRuns, figures: bool, order: list[st
 
 
 def _section_qualitative(doc: Document, g: GridRuns, figures: bool, order: list[str]) -> None:
-    from .runner import _benchmark
-
     rows = []
     for ds in g.grid.datasets:
         items = [i for i in g.first_seed_items() if i["dataset"] == ds]
@@ -462,7 +461,7 @@ def _section_qualitative(doc: Document, g: GridRuns, figures: bool, order: list[
         if not figures:
             continue
         try:
-            bench = _benchmark(g.run_spec(items[0]))
+            bench = load_benchmark_of(g.run_spec(items[0]))
             fig_rows = _qualitative_rows(bench, items, queries, g)
         except (OSError, ValueError) as exc:
             doc.para(f"{g.dataset_label(ds)}: no thumbnails ({exc}).", "error")
