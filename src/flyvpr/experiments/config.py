@@ -146,6 +146,11 @@ def _method_names(ctx) -> list[str]:
     return list(METHODS)
 
 
+def _option(value: Value, doc: str, default_doc: str = "the loader's"):
+    """A loader option: absent (``None``) unless the block gives it; the loader's default then."""
+    return key(value, doc, default=None, default_doc=default_doc)
+
+
 # -- blocks --------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Settings:
@@ -183,57 +188,33 @@ class DatasetBlock:
     )
     label: str = key(Text(), "Name in tables and legends.", default=None, default_doc="the name")
     root: str = key(PathText(), "The dataset folder.")
-    reference: str | None = key(
-        Text(),
-        "The reference traverse: a sub-folder (a run for robotcar).",
-        default=None,
-        default_doc="the loader's",
+    reference: str | None = _option(
+        Text(), "The reference traverse: a sub-folder (a run for robotcar)."
     )
-    query: str | None = key(
-        Text(),
-        "The query traverse: a sub-folder (a run for robotcar).",
-        default=None,
-        default_doc="the loader's",
+    query: str | None = _option(Text(), "The query traverse: a sub-folder (a run for robotcar).")
+    first: int | None = _option(Int(0), "Position (0-based) of the first frame kept.", "0")
+    count: int | None = _option(Int(1), "Number of frames kept.", "all")
+    tolerance: int | None = _option(
+        Int(0), "A query matches the references within this many frames."
     )
-    first: int | None = key(
-        Int(0), "Position (0-based) of the first frame kept.", default=None, default_doc="0"
+    tolerance_m: int | float | None = _option(
+        Number(0, strict=False), "A query matches the references within this many metres."
     )
-    count: int | None = key(Int(1), "Number of frames kept.", default=None, default_doc="all")
-    tolerance: int | None = key(
-        Int(0),
-        "A query matches the references within this many frames.",
-        default=None,
-        default_doc="the loader's",
+    spacing: int | float | None = _option(
+        Number(0), "Keep one frame every this many metres driven."
     )
-    tolerance_m: int | float | None = key(
-        Number(0, strict=False),
-        "A query matches the references within this many metres.",
-        default=None,
-        default_doc="the loader's",
+    positions_csv: str | None = _option(
+        PathText(), "CSV of the images' positions: the ground truth is by distance.", "none"
     )
-    spacing: int | float | None = key(
-        Number(0),
-        "Keep one frame every this many metres driven.",
-        default=None,
-        default_doc="the loader's",
-    )
-    positions_csv: str | None = key(
-        PathText(),
-        "CSV of the images' positions: the ground truth is by distance.",
-        default=None,
-        default_doc="none",
-    )
-    radius: int | float | None = key(
+    radius: int | float | None = _option(
         Number(0, strict=False),
         "With positions_csv: a query matches the references within this distance.",
-        default=None,
-        default_doc="none",
+        "none",
     )
-    trust_pickle: bool | None = key(
+    trust_pickle: bool | None = _option(
         Flag(),
         "Read a pickled ground-truth file (only a file you trust: unpickling can run code).",
-        default=None,
-        default_doc="false",
+        "false",
     )
     base_dir: Path = field(default=Path("."), kw_only=True, compare=False)
 
