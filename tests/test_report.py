@@ -361,31 +361,16 @@ def test_templates_ship_as_package_data():
     assert names and shipped == names
 
 
-def test_every_result_file_is_written_like_flyvpr_io_writes(report, results, tmp_path):
-    # Everything in the results folder goes through flyvpr._io's atomic writers, so it gets
-    # the permissions they give: the umask's (0644 under 022) once _io follows it.
+def test_every_result_file_follows_the_umask(report, results):
+    # Everything in the results folder goes through flyvpr._io's atomic writers: no file is
+    # left half-written or as a temporary, and each gets the umask's permissions (0644 under 022).
     import os
 
-    from flyvpr._io import write_text_atomic
-
-    reference = write_text_atomic(results / "probe.txt", "x")
-    mode = reference.stat().st_mode & 0o777
-    reference.unlink()
-    written = [p for p in results.rglob("*") if p.is_file() and "cache" not in p.parts]
-    names = {p.relative_to(results).parts[0] for p in written}
-    assert names == {
-        "experiment.json",
-        "config.toml",
-        "runs",
-        "figures",
-        "report.html",
-        "report.md",
-    }
-    assert {p: p.stat().st_mode & 0o777 for p in written} == {p: mode for p in written}
-    assert not [p for p in written if p.name.endswith(".tmp")]
     umask = os.umask(0)
     os.umask(umask)
-    if mode != 0o666 & ~umask:
-        pytest.xfail(
-            f"flyvpr._io writes mode {mode:o}, not the umask's (its fix is on branch reliab)"
-        )
+    written = [p for p in results.rglob("*") if p.is_file() and "cache" not in p.parts]
+    names = {p.relative_to(results).parts[0] for p in written}
+    expected = {"experiment.json", "config.toml", "runs", "figures", "report.html", "report.md"}
+    assert names == expected
+    assert {p: p.stat().st_mode & 0o777 for p in written} == {p: 0o666 & ~umask for p in written}
+    assert not [p for p in written if p.name.endswith(".tmp")]
