@@ -244,7 +244,7 @@ def main(argv=None) -> int:
         done = time.perf_counter() - t_start
         log(
             f"[{i}/{len(tasks)}] {res['dataset']} seed {res['seed']}: {len(res['rows'])} rows, "
-            f"{res['seconds']:.1f} s (elapsed {done:.0f} s, about "
+            f"{res['seconds']:.1f} s, {res['cpu_seconds']:.1f} CPU s (elapsed {done:.0f} s, about "
             f"{done / i * (len(tasks) - i):.0f} s left)"
             + "".join(f"\n    ERROR {e['method']}: {e['error']}" for e in res["errors"])
         )
@@ -278,6 +278,7 @@ def main(argv=None) -> int:
         },
         "errors": [{**e, "dataset": r["dataset"]} for r in results for e in r["errors"]],
         "task_seconds": {f"{r['dataset']}/{r['seed']}": r["seconds"] for r in results},
+        "task_cpu_seconds": {f"{r['dataset']}/{r['seed']}": r["cpu_seconds"] for r in results},
         "elapsed_s": time.perf_counter() - t_start,
     }
     print()

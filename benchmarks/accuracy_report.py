@@ -221,10 +221,15 @@ def _protocol_lines(data: dict) -> list[str]:
         view = c.get("view", {})
         extra = ", ".join(f"{k} {v}" for k, v in view.items() if k not in ("group", "tolerances"))
         p = c.get("protocol", {})
-        where = p.get("root") or p.get("dataset", "")
-        span = f"frames {p['first']}-{p['first'] + p['count'] - 1}" if "count" in p else ""
+        # The folder's name, not this machine's path to it.
+        where = (p.get("root") or p.get("dataset", "")).replace("\\", "/").rsplit("/", 1)[-1]
+        first, count = p.get("first"), p.get("count")
+        span = f" frames {first}-{first + count - 1}," if first is not None and count else ""
+        route = p.get("make_route")
+        if route:
+            span = " " + ", ".join(f"{k}={v}" for k, v in route.items()) + ","
         lines.append(
-            f"{c['label']}: {where} {span} reference {p.get('reference')} query "
+            f"{c['label']}: {where}{span} reference {p.get('reference')}, query "
             f"{p.get('query')}, tolerances {c.get('tolerances')} frames; "
             f"{c.get('tuning', '')}" + (f"; {extra}" if extra else "")
         )
