@@ -271,6 +271,22 @@ def _intro(data: dict) -> list[str]:
     ]
 
 
+def _check_document(data: dict) -> None:
+    if not isinstance(data, dict) or "conditions" not in data or "rows" not in data:
+        raise ValueError(
+            "not an accuracy benchmark document: expected the JSON written by "
+            "`python benchmarks/accuracy.py --json FILE` (keys 'conditions' and 'rows')"
+        )
+    missing = [
+        k for k in ("extended_precision", "top_share") if data["rows"] and k not in data["rows"][0]
+    ]
+    if missing:
+        raise ValueError(
+            f"the benchmark document's rows lack {missing}: it was written by an older "
+            "benchmarks/accuracy.py; run it again"
+        )
+
+
 def render_markdown(data: dict) -> str:
     """Markdown tables of a benchmark JSON document (pure: no I/O, no flyvpr import).
 
@@ -284,7 +300,13 @@ def render_markdown(data: dict) -> str:
     str
         Markdown: the protocol, one table per view group, bytes per place, the control
         verdicts, the kidnap test and any errors.
+
+    Raises
+    ------
+    ValueError
+        If ``data`` is not such a document (or one written by an older version).
     """
+    _check_document(data)
     parts = ["## Accuracy benchmark", "", *(f"{line}\n" for line in _intro(data))]
     for _group, title, header, rows in _main_tables(data):
         parts += [f"### {title}", "", _md_table(header, rows), ""]
@@ -328,6 +350,7 @@ def render_markdown(data: dict) -> str:
 
 def render_text(data: dict) -> str:
     """The same tables as :func:`render_markdown`, aligned for a terminal."""
+    _check_document(data)
     parts = [*_intro(data), ""]
     for _group, title, header, rows in _main_tables(data):
         parts += [title, _text_table(header, rows), ""]

@@ -247,3 +247,13 @@ def test_render_markdown_importable_from_the_benchmark_script():
     from benchmarks.accuracy import render_markdown
 
     assert render_markdown is accuracy_report.render_markdown
+
+
+def test_render_markdown_refuses_other_documents():
+    with pytest.raises(ValueError, match="not an accuracy benchmark document"):
+        accuracy_report.render_markdown({"rows": []})
+    old = _document()
+    for row in old["rows"]:
+        del row["extended_precision"]
+    with pytest.raises(ValueError, match="older benchmarks/accuracy.py"):
+        accuracy_report.render_markdown(old)
