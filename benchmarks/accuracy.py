@@ -1,343 +1,297 @@
-"""Accuracy benchmark: the paper's single- and multi-frame methods on real Nordland data.
-
-Prints one table (AUC and Recall@1, mean and minimum over seeds) for
-
-* methods ``pixels``, ``flynet``, ``seqslam``, ``flynet+seqslam``, ``flynet+rnn``, ``flynet+cann``;
-* conditions: Nordland 64x32 summer -> winter, frames 0-999 and 1000-1999 (tolerance 20 frames),
-  and the 100-place FlyNet subset summer -> fall and summer -> winter (tolerance 2 frames);
-* speed variation for ``flynet+cann`` and ``seqslam`` on the 64x32 windows: every 2nd query frame
-  kept (2x), every 1.5th (1.5x) and a seeded random 1-1.5x speed profile (ground truth follows
-  the kept frames);
-* recovery after a kidnap: the query stream jumps 200 places ahead; frames until the
-  ``flynet+cann`` localizer is back within tolerance, next to how much evidence FlyNet's single
-  frames hold for the true place after each landing (the median rank of the true place among
-  the references over the next 30 frames; 1 = best, half the references = chance);
-* the same for ``flynet+cann[fast]``: the CANN with ``flyvpr.temporal.cann.FAST_RECOVERY``
-  (weak attractor, two-timescale evidence), at every speed and in the kidnap test.
+"""Accuracy benchmark: every method on every condition, seeds 0-9, with the protocol written out.
 
 Usage::
 
-    python benchmarks/accuracy.py [--data ../shared/data] [--seeds 0 1 2 3 4]
-                                  [--json benchmarks/accuracy.json] [--markdown FILE]
+    python benchmarks/accuracy.py [--data ../shared/data] [--seeds 0 1 ... 9] [--jobs N]
+                                  [--json FILE] [--markdown FILE] [--quick]
+                                  [--views KEY ...] [--methods LABEL ...] [--list]
 
-Every number comes from this run; the protocol is printed with the table.
+What it measures (the tables live in ``benchmarks/accuracy_setup.py``; adding a method is one
+line in ``METHODS`` there):
+
+* conditions: Nordland 64x32 summer -> winter windows 0-999, 1000-1999 and 1400-2399 at
+  tolerance 20 (and 10 and 2 on the same runs), a held-out window 2000-2399 that tuned nothing,
+  winter -> summer 0-999, FlyNet's 100-place subset summer -> fall and summer -> winter
+  (tolerance 2), the windows at 1.5x, 2x and a random 1-1.5x speed, the built-in synthetic
+  route's hardest conditions (night; viewpoint jitter 3), the drifting-viewpoint Nordland set
+  0-999 and 1000-1999, and control rows: blank frames, shuffled queries, and a query that
+  starts part-way along the reference (winter 300-999 against summer 0-999);
+* methods: single frames (pixels, flyhash, flynet), SeqSLAM at lengths 20/40/60 with
+  OpenSeqSLAM's velocity grid (0.8-1.2) and, on the 1x windows and the speed rows, with the
+  CANN's speed range (0.75-2), FlyNet + SeqSLAM / RNN / CANN, pixels+cann, flyhash+cann and
+  netvlad+cann (first seed only: slow; skipped when its extra is not installed);
+* per condition and method: AUC mean, worst seed and spread (max - min), R@1, R@100%P and
+  VPR-Bench's extended precision (means), the largest share of frames on one place, and the
+  bytes per reference place each method stores for matching;
+* the kidnap test: on windows 0-999 and 1000-1999 the query stream jumps 200 places ahead at
+  stream frames 100, 200, ..., 700; frames until every ``+cann`` method is back within
+  tolerance, next to the front end's own evidence for the true place after each landing.
+
+Deterministic methods run once (first seed).  Output: a terminal table, ``--json`` (machine,
+versions, protocol per condition, every per-seed value) and ``--markdown``
+(:func:`benchmarks.accuracy_report.render_markdown` of the same JSON).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import importlib.util
+import os
 import platform
+import subprocess
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
+if __package__ in (None, ""):  # run as a script: make the ``benchmarks`` package importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flyvpr import metrics
-from flyvpr._io import write_json_atomic, write_text_atomic
-from flyvpr.datasets import load_benchmark
-from flyvpr.evaluation import speed_profile
-from flyvpr.frontends import FRONTENDS
-from flyvpr.temporal import FILTERS
-from flyvpr.temporal.cann import FAST_RECOVERY
+from benchmarks.accuracy_report import render_markdown, render_text, summarise  # noqa: E402
+from benchmarks.accuracy_run import (  # noqa: E402
+    EVIDENCE_FRAMES,
+    KIDNAP_AT,
+    KIDNAP_JUMP,
+    Task,
+    run_task,
+)
+from benchmarks.accuracy_setup import (  # noqa: E402
+    DATASETS,
+    METHODS,
+    QUICK_METHODS,
+    QUICK_VIEWS,
+    VIEWS,
+    check_tables,
+)
+
+__all__ = ["main", "render_markdown", "build_tasks"]
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_DATA = HERE.parent.parent / "shared" / "data"
 
-CONDITIONS = [
-    # name, folder, reference, query, first, count, tolerance
-    ("nordland64 s->w 0-999", "nordland_64x32", "summer", "winter", 0, 1000, 20),
-    ("nordland64 s->w 1000-1999", "nordland_64x32", "summer", "winter", 1000, 1000, 20),
-    ("subset100 s->f", "nordland_flynet_subset100", "summer", "fall", 0, 100, 2),
-    ("subset100 s->w", "nordland_flynet_subset100", "summer", "winter", 0, 100, 2),
-]
-METHODS = ["pixels", "flynet", "seqslam", "flynet+seqslam", "flynet+rnn", "flynet+cann"]
-DETERMINISTIC = {"pixels", "seqslam"}
-SPEED_METHODS = ["flynet+cann", "flynet+cann[fast]", "seqslam"]
-#: the filter and its parameters behind each "+cann" label
-CANN_VARIANTS = {"flynet+cann": {}, "flynet+cann[fast]": FAST_RECOVERY}
-SPEEDS = [("2x", 2.0), ("1.5x", 1.5), ("1-1.5x", (1.0, 1.5))]
-KIDNAP_JUMP = 200
-#: stream frames at which the query stream jumps KIDNAP_JUMP places ahead
-KIDNAP_AT = (100, 200, 300, 400, 500, 600, 700)
-#: frames after each landing over which FlyNet's own evidence for the true place is summarised
-EVIDENCE_FRAMES = 30
+#: what each front end stores per place (see Encoder.bytes_per_place)
+BYTES_NOTE = {
+    "pixels": "patch-normalised image, 2048 float32",
+    "flyhash": "64-bit code, bit-packed",
+    "flynet": "one classifier column, 64 float32",
+    "netvlad": "one classifier column, 64 float32",
+}
 
 
-def _filter(name: str, seed: int, reference_scores, S, **params):
-    filt = FILTERS[name](**params)
-    if "random_state" in filt.get_params():
-        filt.set_params(random_state=seed)
-    if getattr(filt, "needs_reference_scores", False):
-        filt.fit(reference_scores)
-    return filt.filter(S)
-
-
-def _score(S, gt):
-    return {"auc": metrics.pr_auc(S, gt), "recall_at_1": metrics.recall_at_k(S, gt, 1)}
-
-
-def run_condition(cond, data: Path, seeds, methods, log):
-    name, folder, ref_name, qry_name, first, count, tol = cond
-    bench = load_benchmark(
-        "nordland",
-        root=data / folder,
-        reference=ref_name,
-        query=qry_name,
-        first=first,
-        count=count,
-        tolerance=tol,
-    )
-    ref, qry = bench.load_images(cache=True, progress=False)
-    gt = bench.ground_truth
-    rows = []  # (condition, method, speed, seed, auc, r1, seconds)
-
-    def add(method, speed, seed, S, seconds, gt_used=gt):
-        res = _score(S, gt_used)
-        rows.append(
-            {
-                "condition": name,
-                "method": method,
-                "speed": speed,
-                "seed": seed,
-                "seconds": seconds,
-                **res,
-            }
-        )
-        log(
-            f"  {name:26s} {method:16s} {speed:7s} seed {seed}: AUC {res['auc']:.3f} "
-            f"R@1 {res['recall_at_1']:.3f} ({seconds:.2f} s)"
-        )
-
-    speed_rows = name.startswith("nordland64")
-    kidnap = []
-    pixels = FRONTENDS["pixels"]().fit(ref)
-    t0 = time.perf_counter()
-    S_pix = pixels.score(qry)
-    t_pix = time.perf_counter() - t0
-    for seed in seeds:
-        if "pixels" in methods:
-            add("pixels", "1x", seed, S_pix, t_pix)
-        if "seqslam" in methods:
-            t0 = time.perf_counter()
-            S = _filter("seqslam", seed, None, S_pix)
-            add("seqslam", "1x", seed, S, t_pix + time.perf_counter() - t0)
-        flynet_methods = [m for m in methods if m.startswith("flynet")]
-        if not flynet_methods:
+def build_tasks(args, views, entries) -> list[Task]:
+    """One task per (data set, seed) that some selected view needs."""
+    seeds = list(args.seeds)
+    tasks = []
+    for dataset in DATASETS:
+        dviews = tuple(v for v in views if v.dataset == dataset.key)
+        if not dviews:
             continue
-        t0 = time.perf_counter()
-        fn = FRONTENDS["flynet"](random_state=seed).fit(ref)
-        t_fit = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        S_fn = fn.score(qry)
-        t_fn = time.perf_counter() - t0
-        S_ref = None
-        for m in flynet_methods:
-            if m == "flynet":
-                add(m, "1x", seed, S_fn, t_fit + t_fn)
-                continue
-            filt = m.split("+", 1)[1]
-            if FILTERS[filt].__dict__.get("needs_reference_scores") and S_ref is None:
-                S_ref = fn.score(ref)
-            t0 = time.perf_counter()
-            S = _filter(filt, seed, S_ref, S_fn)
-            add(m, "1x", seed, S, t_fit + t_fn + time.perf_counter() - t0)
-            if m == "flynet+cann":
-                t0 = time.perf_counter()
-                S = _filter("cann", seed, None, S_fn, **FAST_RECOVERY)
-                add("flynet+cann[fast]", "1x", seed, S, t_fit + t_fn + time.perf_counter() - t0)
-        if speed_rows and "flynet+cann" in methods:
-            kidnap.append(
-                {"method": "flynet", "seed": seed, "evidence_rank": flynet_evidence_rank(S_fn)}
+        for seed in seeds:
+            wanted = tuple(
+                e for e in entries if e.runs_with(seed, seeds[0]) and any(map(e.runs_on, dviews))
             )
-            for label, params in CANN_VARIANTS.items():
-                k = kidnap_recovery(S_fn, tol, seed, **params)
-                kidnap.append(
-                    {
-                        "method": label,
-                        "seed": seed,
-                        "jump_at": _jump_positions(len(S_fn)),
-                        "frames": k,
-                    }
+            if wanted:
+                tasks.append(
+                    Task(dataset, seed, seeds[0], dviews, wanted, args.data, not args.no_kidnap)
                 )
-                log(f"  {name}: {label} kidnap +{KIDNAP_JUMP} seed {seed}: frames to recover {k}")
-        if not speed_rows:
+    return tasks
+
+
+def _available(entries):
+    ok, skipped = [], []
+    for e in entries:
+        missing = [m for m in e.requires() if importlib.util.find_spec(m) is None]
+        if missing:
+            extras = ", ".join(e.spec.extras)
+            skipped.append({"method": e.label, "reason": f"needs {', '.join(missing)} ({extras})"})
+        else:
+            ok.append(e)
+    return ok, skipped
+
+
+def _versions() -> dict:
+    out = {"python": platform.python_version()}
+    for name in ("flyvpr", "numpy", "scipy", "numba", "torch", "joblib"):
+        try:
+            module = __import__(name)
+        except ImportError:
             continue
-        for label, speed in SPEEDS:
-            keep = speed_profile(len(qry), speed, random_state=seed)
-            gt_k = gt[keep]
-            for m in SPEED_METHODS:
-                if m.split("[")[0] not in methods:
-                    continue
-                t0 = time.perf_counter()
-                if m == "seqslam":
-                    S = _filter("seqslam", seed, None, S_pix[keep])
-                else:
-                    S = _filter("cann", seed, S_ref, S_fn[keep], **CANN_VARIANTS[m])
-                add(m, label, seed, S, time.perf_counter() - t0, gt_k)
-    return rows, kidnap or None, bench.protocol()
-
-
-def _jump_positions(n: int) -> list:
-    """The jump positions of KIDNAP_AT that leave at least 60 frames after the landing."""
-    return [p for p in KIDNAP_AT if p + KIDNAP_JUMP + 60 <= n]
-
-
-def kidnap_recovery(S_fn, tol, seed, **params):
-    """Frames until flynet+cann is back within ``tol`` after the queries jump KIDNAP_JUMP places.
-
-    For every jump position ``p`` in KIDNAP_AT (stream frames), the query stream is frames
-    ``0..p-1`` then ``p+KIDNAP_JUMP..n-1`` of the window; the count is the number of frames
-    after the jump until the best place is within ``tol`` of the true one.
-    """
-    n = S_fn.shape[0]
-    out = []
-    for p in _jump_positions(n):
-        order = np.r_[np.arange(p), np.arange(p + KIDNAP_JUMP, n)]
-        S = _filter("cann", seed, None, S_fn[order], **params)
-        ok = np.abs(S[p:].argmax(axis=1) - order[p:]) <= tol
-        out.append(int(np.argmax(ok)) if ok.any() else None)
+        out[name] = getattr(module, "__version__", "?")
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=HERE,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=HERE,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
+        if commit:
+            out["git"] = commit + ("+dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        pass
     return out
 
 
-def flynet_evidence_rank(S_fn):
-    """Median rank of the true place in FlyNet's scores over the frames after each landing.
-
-    For every jump position ``p`` in KIDNAP_AT, the stream lands on query frame
-    ``p + KIDNAP_JUMP``; over that frame and the next ``EVIDENCE_FRAMES - 1`` the true place's
-    rank among the references (1 = scored highest) is taken per frame and the median reported.
-    """
-    n = S_fn.shape[0]
-    rows = np.arange(n)
-    rank = 1 + (S_fn > S_fn[rows, rows][:, None]).sum(axis=1)  # frame-aligned: true place = row
-    return [
-        int(np.median(rank[p + KIDNAP_JUMP : p + KIDNAP_JUMP + EVIDENCE_FRAMES]))
-        for p in _jump_positions(n)
-    ]
+def _machine() -> dict:
+    return {
+        "platform": platform.platform(),
+        "machine": platform.machine(),
+        "processor": platform.processor(),
+        "cpu_count": os.cpu_count(),
+    }
 
 
-def summarise(rows):
-    groups = {}
-    for r in rows:
-        groups.setdefault((r["condition"], r["method"], r["speed"]), []).append(r)
-    table = []
-    for (cond, method, speed), rs in groups.items():
-        auc = np.array([r["auc"] for r in rs])
-        r1 = np.array([r["recall_at_1"] for r in rs])
-        table.append(
-            {
-                "condition": cond,
-                "method": method,
-                "speed": speed,
-                "n_seeds": len(rs),
-                "auc_mean": float(auc.mean()),
-                "auc_min": float(auc.min()),
-                "r1_mean": float(r1.mean()),
-                "r1_min": float(r1.min()),
-                "seconds_mean": float(np.mean([r["seconds"] for r in rs])),
-            }
-        )
-    return table
-
-
-def to_markdown(table, kidnaps, seeds) -> str:
-    lines = [
-        "| condition | method | speed | AUC mean | AUC min | R@1 mean | R@1 min |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for t in table:
-        lines.append(
-            f"| {t['condition']} | {t['method']} | {t['speed']} | {t['auc_mean']:.3f} | "
-            f"{t['auc_min']:.3f} | {t['r1_mean']:.3f} | {t['r1_min']:.3f} |"
-        )
-    for name, entries in kidnaps.items():
-        ranks = [e for e in entries if e["method"] == "flynet"]
-        if ranks:
-            n_ref = {c[0]: c[5] for c in CONDITIONS}.get(name, "?")
-            lines.append("")
-            lines.append(
-                f"FlyNet's evidence after each landing ({name}): median rank of the true place "
-                f"among the {n_ref} references over the {EVIDENCE_FRAMES} frames after the jump "
-                "(1 = best; chance = half), per jump as below:"
+def _conditions(views, protocols) -> list[dict]:
+    datasets = {d.key: d for d in DATASETS}
+    out = []
+    for v in views:
+        for tol in v.tolerances:
+            out.append(
+                {
+                    "key": f"{v.key}@{tol}",
+                    "view_key": v.key,
+                    "label": f"{v.label} (±{tol})",
+                    "group": v.group if tol == v.tolerances[0] else "tolerance",
+                    "tolerance": tol,
+                    "tolerances": list(v.tolerances),
+                    "dataset": v.dataset,
+                    "tuning": datasets[v.dataset].tuning,
+                    "view": v.protocol(),
+                    "protocol": protocols.get(v.dataset, {}),
+                }
             )
-            for e in ranks:
-                lines.append(f"  seed {e['seed']}: {e['evidence_rank']}")
-        for label in CANN_VARIANTS:
-            k = [e for e in entries if e["method"] == label]
-            frames = [f if f is not None else np.inf for e in k for f in e["frames"]]
-            if not frames:
-                continue
-            lines.append("")
-            lines.append(
-                f"Kidnap ({name}, {label}, query stream jumps +{KIDNAP_JUMP} places at stream "
-                f"frame {', '.join(map(str, KIDNAP_AT))}; {len(frames)} jumps over the seeds): "
-                f"frames until the best place is within tolerance again: median "
-                f"{np.median(frames):.0f}, max {np.max(frames):.0f}, "
-                f"{np.mean(np.array(frames) <= 30):.0%} within 30 frames."
-            )
-            for e in k:
-                lines.append(f"  seed {e['seed']}: {e['frames']}")
-    lines.append("")
-    lines.append(
-        f"Seeds {list(seeds)}; pixels and seqslam are deterministic (same value per seed)."
-    )
-    return "\n".join(lines)
+    return out
+
+
+def _bytes_per_place(results) -> dict:
+    values: dict[str, set] = {}
+    for res in results:
+        for f in res["fitted"]:
+            if res["dataset"].startswith("n64"):  # the 64x32 Nordland images
+                values.setdefault(f["method"], set()).add(f["bytes_per_place"])
+    return {label: max(v) for label, v in values.items()}
+
+
+def _parse(argv):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
+    p.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
+    p.add_argument("--views", nargs="+", help="view keys to run (default: all; see --list)")
+    p.add_argument("--methods", nargs="+", help="method labels to run (default: all)")
+    p.add_argument("--quick", action="store_true", help="smoke run: seeds 0-1, few views")
+    p.add_argument("--jobs", type=int, default=1, help="parallel tasks (joblib processes)")
+    p.add_argument("--no-kidnap", action="store_true", help="skip the kidnap test")
+    p.add_argument("--json", type=Path, help="write everything as JSON")
+    p.add_argument("--markdown", type=Path, help="write the Markdown tables")
+    p.add_argument("--list", action="store_true", help="list the views and methods, then exit")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    args = p.parse_args(argv)
+    if args.jobs < 1:
+        p.error(f"--jobs must be >= 1; got {args.jobs}")
+    if any(s < 0 for s in args.seeds):
+        p.error(f"--seeds must be >= 0; got {args.seeds}")
+    if args.quick:
+        args.seeds = args.seeds if "--seeds" in (argv or sys.argv) else [0, 1]
+        args.views = args.views or list(QUICK_VIEWS)
+        args.methods = args.methods or list(QUICK_METHODS)
+    views = {v.key: v for v in VIEWS}
+    methods = {m.label: m for m in METHODS}
+    for name, chosen, known in (
+        ("--views", args.views, views),
+        ("--methods", args.methods, methods),
+    ):
+        unknown = [x for x in chosen or () if x not in known]
+        if unknown:
+            p.error(f"{name}: unknown {unknown}; known: {', '.join(known)}")
+    return args, views, methods
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    p.add_argument("--methods", nargs="+", default=METHODS, choices=METHODS)
-    p.add_argument(
-        "--conditions",
-        nargs="+",
-        type=int,
-        default=list(range(len(CONDITIONS))),
-        help="indices into the condition list (default: all)",
-    )
-    p.add_argument("--json", type=Path, help="write all rows and the summary as JSON")
-    p.add_argument("--markdown", type=Path, help="write the summary table as Markdown")
-    p.add_argument("--quiet", action="store_true", help="only the final table")
-    args = p.parse_args(argv)
+    args, views_by_key, methods_by_label = _parse(argv)
+    check_tables()
+    if args.list:
+        for v in VIEWS:
+            print(f"view   {v.key:22s} {v.group:10s} {v.label} tolerances {list(v.tolerances)}")
+        for m in METHODS:
+            print(f"method {m.label:22s} {m.describe()}")
+        return 0
     if not args.data.is_dir():
-        print(f"data folder not found: {args.data}", file=sys.stderr)
+        print(f"data folder not found: {args.data} (give --data)", file=sys.stderr)
         return 1
+    views = [views_by_key[k] for k in (args.views or views_by_key)]
+    entries, skipped = _available([methods_by_label[k] for k in (args.methods or methods_by_label)])
+    tasks = build_tasks(args, views, entries)
     log = (lambda *_: None) if args.quiet else (lambda s: print(s, flush=True))
-    all_rows, kidnaps, protocols = [], {}, []
+    log(f"{len(tasks)} tasks (data set x seed), {len(entries)} methods, {len(views)} views")
     t_start = time.perf_counter()
-    for i in args.conditions:
-        rows, kidnap, proto = run_condition(CONDITIONS[i], args.data, args.seeds, args.methods, log)
-        all_rows += rows
-        protocols.append(proto)
-        if kidnap is not None:
-            kidnaps[CONDITIONS[i][0]] = kidnap
-    table = summarise(all_rows)
-    md = to_markdown(table, kidnaps, args.seeds)
-    print()
-    print("Protocol: reference = summer; frame-aligned ground truth (|q - r| <= tolerance frames);")
-    print("images gray 32x64 area-averaged; AUC = trapezoid area under the precision-recall curve")
-    print("of each query's best match (see README, Metrics).")
-    print(md)
-    print(
-        f"\n(total {time.perf_counter() - t_start:.0f} s on "
-        f"{platform.processor() or platform.machine()})"
-    )
-    if args.json:
-        write_json_atomic(
-            args.json,
-            {
-                "rows": all_rows,
-                "summary": table,
-                "kidnap": kidnaps,
-                "protocols": json.loads(json.dumps(protocols, default=str)),
-                "seeds": args.seeds,
-            },
+    results = []
+    if args.jobs == 1:
+        stream = map(run_task, tasks)
+    else:
+        from joblib import Parallel, delayed
+
+        stream = Parallel(n_jobs=args.jobs, return_as="generator_unordered")(
+            delayed(run_task)(t) for t in tasks
         )
+    for i, res in enumerate(stream, 1):
+        results.append(res)
+        done = time.perf_counter() - t_start
+        log(
+            f"[{i}/{len(tasks)}] {res['dataset']} seed {res['seed']}: {len(res['rows'])} rows, "
+            f"{res['seconds']:.1f} s, {res['cpu_seconds']:.1f} CPU s (elapsed {done:.0f} s, about "
+            f"{done / i * (len(tasks) - i):.0f} s left)"
+            + "".join(f"\n    ERROR {e['method']}: {e['error']}" for e in res["errors"])
+        )
+    results.sort(key=lambda r: ([d.key for d in DATASETS].index(r["dataset"]), r["seed"]))
+    rows = [row for r in results for row in r["rows"]]
+    protocols = {r["dataset"]: r["protocol"] for r in results}
+    data = {
+        "benchmark": "flyvpr accuracy",
+        "command": [Path(sys.argv[0]).name, *(sys.argv[1:] if argv is None else argv)],
+        "quick": bool(args.quick),
+        "machine": _machine(),
+        "versions": _versions(),
+        "seeds": list(args.seeds),
+        "methods": [m.describe() for m in entries],
+        "skipped": skipped,
+        "conditions": _conditions(views, protocols),
+        "rows": rows,
+        "summary": summarise(rows),
+        "bytes_per_place": _bytes_per_place(results),
+        "bytes_note": {
+            m.label: BYTES_NOTE.get(m.spec.frontend, "")
+            + (" + the RNN's input and readout weights, float32" if m.spec.filter == "rnn" else "")
+            for m in entries
+        },
+        "kidnap": [k for r in results for k in r["kidnap"]],
+        "evidence": [e for r in results for e in r["evidence"]],
+        "kidnap_protocol": {
+            "jump": KIDNAP_JUMP,
+            "at": list(KIDNAP_AT),
+            "evidence_frames": EVIDENCE_FRAMES,
+        },
+        "errors": [{**e, "dataset": r["dataset"]} for r in results for e in r["errors"]],
+        "task_seconds": {f"{r['dataset']}/{r['seed']}": r["seconds"] for r in results},
+        "task_cpu_seconds": {f"{r['dataset']}/{r['seed']}": r["cpu_seconds"] for r in results},
+        "elapsed_s": time.perf_counter() - t_start,
+    }
+    print()
+    print(render_text(data))
+    if args.json:
+        from flyvpr._io import write_json_atomic
+
+        write_json_atomic(args.json, data)
     if args.markdown:
-        write_text_atomic(args.markdown, md + "\n")
-    return 0
+        from flyvpr._io import write_text_atomic
+
+        write_text_atomic(args.markdown, render_markdown(data))
+    return 1 if data["errors"] else 0
 
 
 if __name__ == "__main__":

@@ -49,6 +49,7 @@ REQUIRED = {
     "recall_at_5",
     "recall_at_10",
     "recall_at_100_precision",
+    "extended_precision",
     "precision",
     "recall",
     "train_accuracy",
@@ -76,8 +77,13 @@ def test_evaluate_writes_json(route_dir, tmp_path, capsys, method):
     assert set(data["footprint"]) == {"layers", "params", "neurons"}
     assert (data["train_accuracy"] is None) == (method != "flynet")
     assert 0 <= data["auc"] <= 1 and len(data["precision"]) == len(data["recall"])
+    assert data["extended_precision"] == pytest.approx(
+        (data["precision"][0] + data["recall_at_100_precision"]) / 2
+    )
     printed = capsys.readouterr().out
     assert method in printed and "AUC" in printed
+    header = next(line for line in printed.splitlines() if "AUC" in line)
+    assert "R@100%P" in header and "EP" in header.split()
 
 
 def test_evaluate_window(route_dir, tmp_path):

@@ -32,6 +32,7 @@ def test_evaluate_method_fields(random_images):
     assert set(RESULT_FIELDS) <= set(res)  # the documented fields are all there
     assert res["auc"] == pytest.approx(1.0)
     assert res["recall_at_1"] == 1.0
+    assert res["extended_precision"] == 1.0
     assert res["timing"]["per_query_ms"] >= 0
     assert res["frontend_params"]["random_state"] == "from seed 0"
 
@@ -46,3 +47,13 @@ def test_evaluate_method_measures_model_bytes(random_images):
     ref = random_images(20)
     res = evaluate_method("flyhash", ref, ref, np.eye(20, dtype=bool), measure_model_bytes=True)
     assert 1000 < res["model_bytes"] < 64 * 2048 // 8 + 20_000
+
+
+def test_evaluate_method_extended_precision_matches_metrics(random_images):
+    from flyvpr import metrics
+
+    ref, qry = random_images(25), random_images(25)
+    gt = np.abs(np.arange(25)[:, None] - np.arange(25)[None, :]) <= 1
+    res, S = evaluate_method("pixels", ref, qry, gt, return_scores=True)
+    assert res["extended_precision"] == metrics.extended_precision(S, gt)
+    assert res["recall_at_100_precision"] == metrics.recall_at_100_precision(S, gt)

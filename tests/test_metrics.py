@@ -11,6 +11,7 @@ import pytest
 from flyvpr.metrics import (
     best_match,
     evaluate,
+    extended_precision,
     pr_auc,
     precision_recall_curve,
     recall_at_100_precision,
@@ -86,6 +87,14 @@ def loop_recall_at_100_precision(S, gt):
     return best
 
 
+def loop_extended_precision(S, gt):
+    """(precision at the lowest recall + largest recall at precision 1) / 2, by plain loops."""
+    precision, recall, _ = loop_curve(S, gt)
+    lowest = min(recall)
+    p_r0 = max(p for p, r in zip(precision, recall, strict=True) if r == lowest)
+    return (p_r0 + loop_recall_at_100_precision(S, gt)) / 2
+
+
 def random_case(shape, seed, ties):
     """Random S (with many ties when ``ties``) and gt with a few rows without any match."""
     rng = np.random.default_rng(seed)
@@ -129,6 +138,8 @@ def test_hand_worked_mixed_with_unmatched_query():
     # AUC: anchor (0, 1) -> (1/2, 1): area 1/2; the remaining segments have zero width.
     assert pr_auc(S, gt) == pytest.approx(0.5)
     assert recall_at_100_precision(S, gt) == pytest.approx(0.5)
+    # EP: P_R0 = 1 (the 0.9 prediction is right), R@100P = 1/2 -> (1 + 1/2) / 2.
+    assert extended_precision(S, gt) == pytest.approx(3 / 4)
     # recall@k: q0 hit at k=1; q1's true ref 1 (0.2) ranks third behind 0.6 and 0.3.
     assert recall_at_k(S, gt, 1) == pytest.approx(1 / 2)
     assert recall_at_k(S, gt, 2) == pytest.approx(1 / 2)
@@ -152,6 +163,8 @@ def test_hand_worked_ties():
     assert pr_auc(S, gt) == pytest.approx(1 / 6)
     # No threshold reaches precision 1.
     assert recall_at_100_precision(S, gt) == 0.0
+    # EP: the top threshold (0.7) keeps two tied predictions, one right: P_R0 = 1/2 -> 1/4.
+    assert extended_precision(S, gt) == pytest.approx(1 / 4)
     # k=2: the tie partner (ref 1 for q0, ref 2 for q1) is second in the tie order -> all hit.
     assert recall_at_k(S, gt, 1) == pytest.approx(1 / 3)
     assert recall_at_k(S, gt, 2) == pytest.approx(1.0)
@@ -168,6 +181,8 @@ def test_hand_worked_trapezoid():
     np.testing.assert_allclose(r, [1 / 3, 1 / 3, 2 / 3])
     assert pr_auc(S, gt) == pytest.approx(19 / 36)
     assert recall_at_100_precision(S, gt) == pytest.approx(1 / 3)
+    # EP = (1 + 1/3) / 2: the later recovery to P = 2/3 does not count.
+    assert extended_precision(S, gt) == pytest.approx(2 / 3)
     # q1's true ref 1 (0.1) ranks second behind 0.8.
     assert recall_at_k(S, gt, 2) == pytest.approx(1.0)
 
@@ -204,6 +219,7 @@ def test_curve_matches_loop_reference(shape, ties, seed):
     assert recall_at_100_precision(S, gt) == pytest.approx(
         loop_recall_at_100_precision(S, gt), abs=1e-12
     )
+    assert extended_precision(S, gt) == pytest.approx(loop_extended_precision(S, gt), abs=1e-12)
     idx, conf = best_match(S)
     preds_ref, confs_ref = loop_best_match(S)
     assert idx.dtype == np.int64 and idx.shape == (shape[0],)
@@ -247,6 +263,7 @@ def test_perfect_scores(shape):
     assert pr_auc(S, gt) == pytest.approx(1.0)
     assert recall_at_k(S, gt, 1) == 1.0
     assert recall_at_100_precision(S, gt) == 1.0
+    assert extended_precision(S, gt) == 1.0
 
 
 @pytest.mark.parametrize("shape", [(9, 4), (4, 9), (40, 40)])
@@ -261,6 +278,11 @@ def test_curve_properties(shape, ties):
     assert len(t) == len(np.unique(best_match(S)[1]))
     assert r[-1] == pytest.approx(recall_at_k(S, gt, 1))
     assert 0.0 <= pr_auc(S, gt) <= 1.0
+    ep = extended_precision(S, gt)
+    assert 0.0 <= ep <= 1.0
+    assert (ep >= 0.5) == (p[0] == 1.0)  # EP >= 1/2 exactly when the top threshold is all right
+    # A strictly increasing map of the scores keeps every prediction and the order: same EP.
+    assert extended_precision(np.tanh(S / 4) * 3 + 1, gt) == ep
     # recall@k is non-decreasing in k and reaches 1 at k = n_reference.
     values = [recall_at_k(S, gt, k) for k in range(1, shape[1] + 1)]
     assert values == sorted(values) and values[-1] == 1.0
@@ -277,6 +299,27 @@ def test_inputs_not_modified_and_dtypes():
     assert evaluate(S.astype(np.float32), gt.astype(np.int64)) == base
     assert evaluate(S.astype(np.int32), gt.astype(np.uint8)) == base
     assert evaluate(S.tolist(), gt.tolist()) == base
+
+
+def test_hand_worked_extended_precision_first_prediction_wrong():
+    S = np.array([[0.1, 0.9, 0.0], [0.0, 0.8, 0.1], [0.0, 0.1, 0.7]])
+    gt = np.eye(3, dtype=bool)
+    # q0 -> 1 (0.9, wrong), q1 -> 1 (0.8, correct), q2 -> 2 (0.7, correct); denominator 3.
+    # Points (R, P): (0, 0), (1/3, 1/2), (2/3, 2/3). The lowest recall is 0, with P = 0, and
+    # no threshold has P = 1: EP = 0, although two of three predictions are right.
+    p, r, _ = precision_recall_curve(S, gt)
+    np.testing.assert_allclose(p, [0, 1 / 2, 2 / 3])
+    np.testing.assert_allclose(r, [0, 1 / 3, 2 / 3])
+    assert extended_precision(S, gt) == 0.0
+    # Make the right prediction the most confident one: P_R0 = 1, R@100P = 1/3 -> 2/3.
+    S[1, 1] = 0.95
+    assert extended_precision(S, gt) == pytest.approx(2 / 3)
+
+
+def test_hand_worked_extended_precision_perfect_and_all_wrong():
+    S = np.array([[0.9, 0.1, 0.0], [0.0, 0.8, 0.1], [0.0, 0.1, 0.7]])
+    assert extended_precision(S, np.eye(3, dtype=bool)) == 1.0
+    assert extended_precision(S, np.roll(np.eye(3, dtype=bool), 1, axis=1)) == 0.0
 
 
 def test_huge_finite_scores_are_accepted():
@@ -300,6 +343,7 @@ def test_evaluate_contents_and_json():
         "recall_at_5",
         "recall_at_10",
         "recall_at_100_precision",
+        "extended_precision",
         "precision",
         "recall",
         "thresholds",
@@ -311,12 +355,13 @@ def test_evaluate_contents_and_json():
     assert out["recall_at_5"] == pytest.approx(recall_at_k(S, gt, 5))
     assert out["recall_at_10"] == pytest.approx(recall_at_k(S, gt, 10))  # clamped to 7
     assert out["recall_at_100_precision"] == pytest.approx(recall_at_100_precision(S, gt))
+    assert out["extended_precision"] == pytest.approx(extended_precision(S, gt))
     p, r, t = precision_recall_curve(S, gt)
     assert out["precision"] == p.tolist() and out["recall"] == r.tolist()
     assert out["thresholds"] == t.tolist()
     assert (out["n_query"], out["n_reference"]) == (12, 7)
     assert out["n_query_with_match"] == int(gt.any(axis=1).sum())
-    for key in ("auc", "recall_at_1", "recall_at_100_precision"):
+    for key in ("auc", "recall_at_1", "recall_at_100_precision", "extended_precision"):
         assert type(out[key]) is float
     assert all(type(v) is float for v in out["thresholds"] + out["precision"])
     assert type(out["n_query"]) is int
@@ -340,6 +385,7 @@ ALL_WITH_GT = [
     precision_recall_curve,
     pr_auc,
     recall_at_100_precision,
+    extended_precision,
     evaluate,
     lambda S, gt: recall_at_k(S, gt, 1),
 ]

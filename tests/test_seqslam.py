@@ -44,13 +44,13 @@ def _slow_seqslam(S, length, velocities, window, mode):
         for r in range(n_reference):
             best = math.inf
             for v in velocities:
-                total, n = 0.0, 0
+                total = 0.0
                 for j in offsets:
-                    if 0 <= t + j < n_query:
-                        place = min(max(r + _round_half_away(v * j), 0), n_reference - 1)
+                    place = r + _round_half_away(v * j)
+                    # A frame before/after the query traverse or a place off the map adds 0.
+                    if 0 <= t + j < n_query and 0 <= place < n_reference:
                         total += E[t + j, place]
-                        n += 1
-                best = min(best, total / math.sqrt(n))
+                best = min(best, total / math.sqrt(length))
             out[t, r] = -best
     return out
 
@@ -111,6 +111,34 @@ def test_velocity_grid():
     )
 
 
+def test_cann_speed_range():
+    # The CANN's default velocity bank, 0.75-2 places per frame in steps of 1/8.
+    from flyvpr.temporal.cann import CANN
+
+    grid = SeqSLAM(v_min=0.75, v_max=2.0, v_step=0.125).velocities()
+    np.testing.assert_allclose(grid, CANN().velocities, atol=1e-12)
+
+
+@pytest.mark.parametrize("velocity", [1.5, 2.0])
+def test_cann_speed_range_follows_a_fast_query(velocity):
+    # A query driven 1.5x or 2x faster than the reference: OpenSeqSLAM's grid (0.8-1.2) misses
+    # the line, the CANN's range finds it.
+    rng = np.random.default_rng(2)
+    n_query, n_reference = 100, 260
+    position = 10 + velocity * np.arange(n_query)
+    distance = np.arange(n_reference)[None, :] - position[:, None]
+    S = rng.normal(size=(n_query, n_reference)) + 1.5 * np.exp(-0.5 * distance**2)
+
+    def hits(**params):
+        pred = SeqSLAM(**params).filter(S).argmax(axis=1)
+        return np.mean(np.abs(pred - position)[20:] <= 1.5)
+
+    # Measured: 0.84 (1.5x) and 0.90 (2x) with the CANN's range; 0.0 and 0.05 with 0.8-1.2;
+    # single frames 0.17 and 0.16.
+    assert hits(v_min=0.75, v_max=2.0, v_step=0.125) > 0.75
+    assert hits() < 0.15
+
+
 def test_sequence_length_one_is_contrast_enhancement_only(rng):
     S = rng.normal(size=(6, 20))
     np.testing.assert_allclose(
@@ -155,13 +183,88 @@ def test_filter_shape_dtype_and_input_untouched(rng):
     assert SeqSLAM().filter(np.arange(12).reshape(3, 4)).dtype == np.float64
 
 
-def test_short_rows_are_scaled_by_sqrt_of_frames():
-    # One query row repeated: every causal line reads the same enhanced values, so row t is the
-    # first row times sqrt(number of frames).
+def test_short_rows_hold_only_the_evidence_they_have():
+    # One query row repeated: every causal line of velocity 0 reads the same enhanced values, so
+    # row t is the first row times the number of frames it has (missing frames add 0).
     S = np.tile(np.random.default_rng(3).normal(size=(1, 25)), (8, 1))
     out = SeqSLAM(sequence_length=5, v_min=0.0, v_max=0.0).filter(S)
     n_frames = np.minimum(np.arange(8) + 1, 5)
-    np.testing.assert_allclose(out, out[:1] * np.sqrt(n_frames)[:, None], atol=1e-12)
+    np.testing.assert_allclose(out, out[:1] * n_frames[:, None], atol=1e-12)
+    np.testing.assert_allclose(out[0], -enhance_contrast(-S[:1], 10)[0] / np.sqrt(5))
+
+
+def test_lines_off_the_map_add_nothing():
+    # A line of velocity 1 through place 1 at query frame 4 reads places 1, 0, -1, -2, -3: only
+    # two terms exist, the rest must add nothing (not the first place again).
+    S = np.zeros((5, 12))
+    S[:, 0] = 5.0  # place 0 scores best for every query: a "hub"
+    E = enhance_contrast(-S, 10)
+    out = SeqSLAM(sequence_length=5, v_min=1.0, v_max=1.0).filter(S)
+    np.testing.assert_allclose(out[4, 1], -(E[4, 1] + E[3, 0]) / np.sqrt(5))
+    np.testing.assert_allclose(out[4, 0], -E[4, 0] / np.sqrt(5))
+
+
+# -- every window start, both ends of the route ----------------------------------------------
+def _route_scores(start, n_query, n_reference, rng, hub_strength=2.5):
+    """Scores of a query traverse that shows places ``start, start + 1, ...`` of the reference.
+
+    Frames whose place lies off the map (before place 0 or past the last) match nothing.  The
+    first and the last reference places are hubs: they score high against every query, the
+    trap that once made lines clamped at the ends of the map win.
+    """
+    position = start + np.arange(n_query)
+    distance = np.arange(n_reference)[None, :] - position[:, None]
+    S = rng.normal(size=(n_query, n_reference)) + 2.0 * np.exp(-0.5 * distance**2)
+    S[:, [0, -1]] += hub_strength
+    return S, position
+
+
+@pytest.mark.parametrize("mode", ["causal", "centered"])
+@pytest.mark.parametrize("length", [20, 40, 60])
+def test_every_window_start_at_both_ends_of_the_route(mode, length):
+    """Slide the query window over every start position, from half a traverse before the first
+    reference place to half a traverse past the last one, with hubs at both ends of the map.
+
+    A line clipped at an end of the map must never win by having fewer terms: every frame whose
+    line holds at least 3/4 of its frames on the map is matched (within 1 place), and no place
+    takes more than 10% of the frames beyond those that show places off the map (nothing
+    matches those, so some place must win them).  The version that clamped lines to the end
+    places sent up to 98% of the frames to a hub.
+    """
+    rng = np.random.default_rng(11)
+    n_query, n_reference = 60, 120
+    back = length - 1 if mode == "causal" else length // 2
+    forward = length - 1 - back
+    t = np.arange(n_query)
+    f = SeqSLAM(sequence_length=length, mode=mode)
+    for start in range(-n_query // 2, n_reference - n_query // 2 + 1):
+        S, position = _route_scores(start, n_query, n_reference, rng)
+        pred = f.filter(S).argmax(axis=1)
+        on_map = (position >= 0) & (position < n_reference)
+        # Frames of each true line that exist in the query traverse and lie on the map.
+        frames = (
+            np.minimum.reduce([t, position, np.full(n_query, back)])
+            + np.minimum.reduce(
+                [n_query - 1 - t, n_reference - 1 - position, np.full(n_query, forward)]
+            )
+            + 1
+        )
+        settled = on_map & (frames >= 0.75 * length)
+        if settled.any():
+            hits = np.abs(pred - position) <= 1
+            assert hits[settled].mean() >= 0.9, (start, hits[settled].mean())
+        most = np.bincount(pred, minlength=n_reference).max() / n_query
+        assert most <= (1.0 - on_map.mean()) + 0.1, (start, most)
+
+
+def test_flat_row_without_evidence_has_low_confidence():
+    # A query traverse that starts before the map: its first frames match nothing, and the
+    # predictions made there must be less confident than those made on the map.
+    rng = np.random.default_rng(5)
+    S, position = _route_scores(-30, 90, 120, rng)
+    out = SeqSLAM().filter(S)
+    conf = out.max(axis=1)
+    assert np.median(conf[position < 0]) < np.median(conf[position >= 20])
 
 
 # -- online ----------------------------------------------------------------------------------
@@ -271,3 +374,21 @@ def test_nordland_summer_winter_beats_single_frames(nordland_64x32):
     assert causal > 0.75
     assert centred > 0.75
     assert causal > single + 0.5
+
+
+def test_nordland_flynet_seqslam_does_not_collapse_on_the_window_start(nordland_64x32):
+    """FlyNet + SeqSLAM, Nordland 64x32 summer -> winter, frames 300-499, tolerance 20, seed 1.
+
+    Lines clamped to the window's first place once sent 84% of the frames there (AUC 0.007).
+    Measured now: AUC 0.81, at most 4% of the frames on one place.
+    """
+    from flyvpr.frontends.flynet import FlyNet
+
+    files = slice(300, 500)
+    reference = load_images(list_images(nordland_64x32 / "summer")[files], cache=False)
+    query = load_images(list_images(nordland_64x32 / "winter")[files], cache=False)
+    S = SeqSLAM().filter(FlyNet(random_state=1).fit(reference).score(query))
+    idx = np.arange(200)
+    gt = np.abs(idx[:, None] - idx[None, :]) <= 20
+    assert np.bincount(S.argmax(axis=1)).max() <= 0.1 * 200
+    assert pr_auc(S, gt) >= 0.5

@@ -1,4 +1,4 @@
-"""Place-recognition metrics: precision-recall curve, its area, recall@k.
+"""Place-recognition metrics: precision-recall curve, its area, recall@k, extended precision.
 
 Pure functions of a score matrix ``S`` and a ground-truth matrix ``gt``; no state, no I/O, and no
 import of any other flyvpr module (metrics sit at the bottom of the import graph).
@@ -40,6 +40,7 @@ __all__ = [
     "pr_auc",
     "recall_at_k",
     "recall_at_100_precision",
+    "extended_precision",
     "evaluate",
 ]
 
@@ -155,6 +156,12 @@ def _recall_at_100_precision(precision: np.ndarray, recall: np.ndarray) -> float
     # tp / n == 1.0 exactly iff tp == n for integer counts far below 2**53.
     perfect = precision == 1.0
     return float(recall[perfect].max()) if perfect.any() else 0.0
+
+
+def _extended_precision(precision: np.ndarray, recall: np.ndarray) -> float:
+    # Point 0 (the highest threshold) has the lowest recall; among points that share that
+    # recall it has the highest precision, since later ones only add wrong predictions.
+    return 0.5 * (float(precision[0]) + _recall_at_100_precision(precision, recall))
 
 
 def _best_true_rank(S: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -399,6 +406,52 @@ def recall_at_100_precision(S, gt) -> float:
     return _recall_at_100_precision(*_curve(S, gt, _match_rows(gt)[1])[:2])
 
 
+def extended_precision(S, gt) -> float:
+    """VPR-Bench's Extended Precision: ``EP = (P_R0 + R_P100) / 2``.
+
+    Zaffar et al., "VPR-Bench", IJCV 129, 2021, Sec. 3.2: ``P_R0`` is the precision at the
+    lowest recall of the precision-recall curve and ``R_P100`` the largest recall at 100%
+    precision (:func:`recall_at_100_precision`).  Here ``P_R0`` is the precision of the
+    curve's first point (:func:`precision_recall_curve`): the share of correct predictions
+    among those with the highest confidence (one prediction unless several tie), which is the
+    highest precision among the points that share the lowest recall.  EP rewards a system
+    whose most confident predictions are right and that keeps precision 1 for long; unlike the
+    AUC it ignores the low-precision tail.
+
+    Parameters
+    ----------
+    S : array_like, shape (n_query, n_reference)
+        Finite scores, higher = more similar.
+    gt : array_like of bool, shape (n_query, n_reference)
+        True where the reference is an acceptable match.
+
+    Returns
+    -------
+    float
+        In [0, 1]: at most 0.5 when the most confident prediction is wrong (then ``R_P100`` is
+        0), at least 0.5 when the most confident prediction is right (``P_R0`` is 1 then,
+        unless several predictions tie at the top), and 1 exactly when every query has a true
+        match and every prediction is correct.
+
+    Raises
+    ------
+    TypeError, ValueError
+        As :func:`precision_recall_curve`.
+
+    Examples
+    --------
+    >>> S = [[0.9, 0.1], [0.2, 0.8], [0.7, 0.3]]
+    >>> gt = [[True, False], [False, True], [False, True]]
+    >>> extended_precision(S, gt)  # P_R0 = 1 (q0 right), R_P100 = 2/3 (q0, q1 right; q2 wrong)
+    0.8333333333333333
+    >>> gt = [[False, True], [False, True], [True, False]]
+    >>> extended_precision(S, gt)  # the most confident prediction (q0) is wrong: P_R0 = 0
+    0.0
+    """
+    S, gt = _check_inputs(S, gt)
+    return _extended_precision(*_curve(S, gt, _match_rows(gt)[1])[:2])
+
+
 def evaluate(S, gt, ks=(1, 5, 10)) -> dict:
     """All metrics at once, as plain Python types (JSON-serialisable).
 
@@ -415,7 +468,8 @@ def evaluate(S, gt, ks=(1, 5, 10)) -> dict:
     -------
     dict
         ``auc`` (:func:`pr_auc`), ``recall_at_{k}`` for each ``k`` in ``ks``
-        (:func:`recall_at_k`), ``recall_at_100_precision``, ``precision``, ``recall`` and
+        (:func:`recall_at_k`), ``recall_at_100_precision``, ``extended_precision``
+        (:func:`extended_precision`), ``precision``, ``recall`` and
         ``thresholds`` (lists of float, the curve of :func:`precision_recall_curve`),
         ``n_query``, ``n_reference`` and ``n_query_with_match`` (int).
 
@@ -440,6 +494,7 @@ def evaluate(S, gt, ks=(1, 5, 10)) -> dict:
         result[f"recall_at_{k}"] = value
     result.update(
         recall_at_100_precision=_recall_at_100_precision(precision, recall),
+        extended_precision=_extended_precision(precision, recall),
         precision=precision.tolist(),
         recall=recall.tolist(),
         thresholds=[float(t) for t in thresholds.tolist()],

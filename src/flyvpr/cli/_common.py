@@ -61,6 +61,7 @@ RESULT_COLUMNS = [
     ("recall_at_5", "R@5", ".3f"),
     ("recall_at_10", "R@10", ".3f"),
     ("recall_at_100_precision", "R@100%P", ".3f"),
+    ("extended_precision", "EP", ".3f"),
     ("train_accuracy", "train acc", ".3f"),
     ("per_query_ms", "ms/query", ".3f"),
 ]

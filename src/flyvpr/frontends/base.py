@@ -86,6 +86,36 @@ class Encoder(ParamsMixin):
         self._check_fitted()
         return self._footprint()
 
+    def bytes_per_place(self) -> float:
+        """Bytes per reference place the fitted encoder stores for matching (the map).
+
+        Only storage that grows with the number of reference places counts: what the encoder
+        keeps for each place to score queries against (a code, a descriptor, a column of a
+        per-place classifier), divided by the number of places.  Weights shared by all places
+        (a fixed projection, feature layers, a pretrained backbone) are excluded: they do not
+        grow with the route.  Each encoder documents what it counts.
+
+        Returns
+        -------
+        float
+            Bytes per reference place, in the representation the encoder stores.
+
+        Raises
+        ------
+        NotFittedError
+            Before :meth:`fit`.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from flyvpr.frontends import PixelsEncoder
+        >>> ref = np.random.default_rng(0).random((5, 32, 64), dtype=np.float32)
+        >>> PixelsEncoder().fit(ref).bytes_per_place()  # 2048 float32 values per place
+        8192.0
+        """
+        self._check_fitted()
+        return float(self._map_nbytes()) / self.n_reference_
+
     # -- saved state (see flyvpr.modelio) --------------------------------------
     #: fitted attributes written to model files, besides the ones every encoder has
     _state_names: tuple[str, ...] = ()
@@ -142,3 +172,9 @@ class Encoder(ParamsMixin):
 
     def _footprint(self) -> dict:
         raise NotImplementedError
+
+    def _map_nbytes(self) -> int:
+        """Total bytes of the per-place storage of :meth:`bytes_per_place` (all places)."""
+        raise NotImplementedError(
+            f"{type(self).__name__} does not report the bytes it stores per place"
+        )

@@ -258,6 +258,13 @@ class FlyHash(Encoder):
         dense[np.arange(dense.shape[0])[:, None], self.connections_] = True
         return np.packbits(dense, axis=1)
 
+    def _map_nbytes(self) -> int:
+        # One binary code per place, bit-packed as in a model file: ceil(n_hidden / 8) bytes
+        # (8 for 64 units).  The codes are kept unpacked (one byte per bit) in memory for the
+        # overlap product; the connections are shared by all places and not counted.
+        n_reference, n_hidden = self.reference_codes_.shape
+        return n_reference * ((n_hidden + 7) // 8)
+
     def _footprint(self) -> dict:
         return {
             "layers": 1,

@@ -143,6 +143,13 @@ class FlyNet(Encoder):
     def _score(self, codes: np.ndarray) -> np.ndarray:
         return softmax(self.logits(codes))
 
+    def _map_nbytes(self) -> int:
+        # Matching reads one column of the classifier per place: n_hidden float32 weights (256
+        # bytes for 64 units).  The FNA layer is shared by all places; its reference codes
+        # (hash_.reference_codes_, 8 bytes per place packed) are kept in the model file but not
+        # used to score queries, so they are not counted.
+        return int(self.weights_.nbytes)
+
     def _footprint(self) -> dict:
         n_hidden, n_ref = self.weights_.shape
         return {

@@ -299,3 +299,7 @@ class PixelsEncoder(Encoder):
 
     def _footprint(self) -> dict:
         return {"layers": 0, "params": 0, "neurons": 0}
+
+    def _map_nbytes(self) -> int:
+        # The patch-normalised image of every place, float32: H * W * 4 bytes (8192 at 32x64).
+        return int(self.reference_codes_.nbytes)

@@ -239,6 +239,11 @@ class TorchClassifier(Encoder):
     def _score(self, codes: np.ndarray) -> np.ndarray:
         return softmax(self.logits(codes))
 
+    def _map_nbytes(self) -> int:
+        # One classifier column per place: n_features float32 weights.  The feature layers
+        # (and a pretrained backbone) are shared by all places and not counted.
+        return int(self.weights_.nbytes)
+
     def _footprint(self) -> dict:
         trainable = sum(int(v.size) for v in self.layers_.values()) + int(self.weights_.size)
         frozen = self._frozen_params()

@@ -1,0 +1,349 @@
+"""What the accuracy benchmark measures: data sets, the views of them, and the methods.
+
+Three tables, each a plain list; adding a method, a view or a data set is one line.
+
+* :data:`DATASETS`: a reference traverse and a query traverse (Nordland folders under
+  ``--data``, the built-in synthetic route, or blank frames), with what each one tuned.
+* :data:`VIEWS`: a selection of a data set's query frames (all, a speed profile, a shuffled
+  order, a start part-way along the route) and the tolerances at which it is scored.  A
+  single-frame front end scores every query frame on its own, so a view's front-end scores are
+  rows of the data set's score matrix: every view of a data set shares one fit per seed.
+* :data:`METHODS`: a label, a flyvpr method name (``flyvpr.methods.METHODS``) and parameters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from flyvpr.evaluation import speed_profile
+from flyvpr.methods import METHODS as FLYVPR_METHODS
+from flyvpr.methods import make_method
+
+#: What tuned the CANN's defaults (see the CANN's docstring): printed next to those numbers.
+TUNED = "tuned the CANN defaults (flynet+cann, seeds 0-4)"
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A reference and a query traverse.
+
+    ``source`` is ``"nordland"`` (a folder of ``--data`` read with the Nordland loader),
+    ``"synthetic"`` (:func:`flyvpr.synthetic.make_route` with ``route``'s arguments; the first
+    condition is the reference) or ``"blank"`` (``route["n_places"]`` constant frames of value
+    ``route["value"]`` in both traverses).
+    """
+
+    key: str
+    label: str
+    source: str
+    folder: str = ""
+    reference: str = "summer"
+    query: str = "winter"
+    first: int = 0
+    count: int | None = None
+    route: dict = field(default_factory=dict)
+    tuning: str = "not used for tuning"
+
+
+@dataclass(frozen=True)
+class View:
+    """Query frames of a data set, scored at one or more tolerances (frames).
+
+    ``kind``: ``"all"`` (every frame in order), ``"speed"`` (the frames kept by
+    :func:`flyvpr.evaluation.speed_profile` at ``speed``, seeded with ``view_seed``),
+    ``"shuffle"`` (every frame in a random order drawn from ``view_seed``) or ``"from"`` (the
+    frames from position ``start`` on: a query that starts part-way along the reference).
+    The ground truth follows the kept frames' positions.  ``tolerances[0]`` is the primary one;
+    the others give the rows of the "tolerance" group.
+    """
+
+    key: str
+    dataset: str
+    label: str
+    group: str
+    tolerances: tuple[int, ...]
+    kind: str = "all"
+    speed: float | tuple[float, float] | None = None
+    start: int = 0
+    view_seed: int = 0
+    kidnap: bool = False
+    note: str = ""
+
+    def indices(self, n_query: int) -> np.ndarray:
+        """Positions of the kept query frames, in the order they are fed to the methods."""
+        if self.kind == "all":
+            return np.arange(n_query)
+        if self.kind == "speed":
+            return speed_profile(n_query, self.speed, random_state=self.view_seed)
+        if self.kind == "shuffle":
+            return np.random.default_rng(self.view_seed).permutation(n_query)
+        if self.kind == "from":
+            return np.arange(self.start, n_query)
+        raise ValueError(f"view {self.key!r}: unknown kind {self.kind!r}")
+
+    def protocol(self) -> dict:
+        out = {"kind": self.kind, "tolerances": list(self.tolerances), "group": self.group}
+        if self.kind == "speed":
+            out["speed"] = list(self.speed) if isinstance(self.speed, tuple) else self.speed
+        if self.kind in ("speed", "shuffle"):
+            out["view_seed"] = self.view_seed
+        if self.kind == "from":
+            out["start"] = self.start
+        if self.note:
+            out["note"] = self.note
+        return out
+
+
+@dataclass(frozen=True)
+class Entry:
+    """A method as the benchmark runs it.
+
+    ``groups``: the view groups it runs on (``None``: all).  ``first_seed_only``: slow methods
+    run with the first seed only (said so in the output).  Deterministic methods (no part takes
+    a ``random_state``) run once, with the first seed, whatever this says.
+    """
+
+    label: str
+    method: str = ""
+    frontend_params: dict = field(default_factory=dict)
+    filter_params: dict = field(default_factory=dict)
+    groups: tuple[str, ...] | None = None
+    first_seed_only: bool = False
+
+    @property
+    def name(self) -> str:
+        return self.method or self.label
+
+    @property
+    def spec(self):
+        return FLYVPR_METHODS[self.name]
+
+    @property
+    def deterministic(self) -> bool:
+        model = make_method(self.name, 0, self.frontend_params, self.filter_params)
+        parts = [model.frontend] + ([model.filter] if model.filter is not None else [])
+        return not any("random_state" in part.get_params() for part in parts)
+
+    def runs_on(self, view: View) -> bool:
+        return self.groups is None or view.group in self.groups
+
+    def runs_with(self, seed: int, first_seed: int) -> bool:
+        return seed == first_seed or not (self.first_seed_only or self.deterministic)
+
+    def requires(self) -> tuple[str, ...]:
+        return self.spec.requires
+
+    def describe(self) -> dict:
+        return {
+            "label": self.label,
+            "method": self.name,
+            "frontend_params": dict(self.frontend_params),
+            "filter_params": dict(self.filter_params),
+            "groups": None if self.groups is None else list(self.groups),
+            "seeds": "first" if (self.first_seed_only or self.deterministic) else "all",
+            "deterministic": self.deterministic,
+        }
+
+
+def _nordland(key, label, first, count=1000, folder="nordland_64x32", **kw) -> Dataset:
+    return Dataset(key, label, "nordland", folder=folder, first=first, count=count, **kw)
+
+
+DATASETS: list[Dataset] = [
+    _nordland("n64-0", "Nordland 64x32 summer->winter 0-999", 0, tuning=TUNED),
+    _nordland("n64-1000", "Nordland 64x32 summer->winter 1000-1999", 1000, tuning=TUNED),
+    _nordland(
+        "n64-1400",
+        "Nordland 64x32 summer->winter 1400-2399",
+        1400,
+        tuning="overlaps the tuning window 1000-1999 in 1400-1999",
+    ),
+    _nordland(
+        "n64-2000",
+        "Nordland 64x32 summer->winter 2000-2399 (held out)",
+        2000,
+        400,
+        tuning="held out: tuned nothing",
+    ),
+    _nordland(
+        "n64-ws-0",
+        "Nordland 64x32 winter->summer 0-999",
+        0,
+        reference="winter",
+        query="summer",
+    ),
+    Dataset(
+        "sub-sf",
+        "subset100 summer->fall",
+        "nordland",
+        folder="nordland_flynet_subset100",
+        query="fall",
+    ),
+    Dataset(
+        "sub-sw",
+        "subset100 summer->winter",
+        "nordland",
+        folder="nordland_flynet_subset100",
+        tuning="checked while tuning the CANN defaults",
+    ),
+    Dataset(
+        "syn-night",
+        "synthetic route summer->night (1000 places)",
+        "synthetic",
+        reference="summer",
+        query="night",
+        route={"n_places": 1000, "conditions": ["summer", "night"], "random_state": 0},
+    ),
+    Dataset(
+        "syn-jitter",
+        "synthetic route summer->winter, viewpoint jitter 3 (1000 places)",
+        "synthetic",
+        route={
+            "n_places": 1000,
+            "conditions": ["summer", "winter"],
+            "viewpoint_jitter": 3.0,
+            "random_state": 0,
+        },
+    ),
+    _nordland(
+        "vp-0",
+        "Nordland viewpoint summer->winter 0-999",
+        0,
+        folder="nordland_64x32_viewpoint",
+    ),
+    _nordland(
+        "vp-1000",
+        "Nordland viewpoint summer->winter 1000-1999",
+        1000,
+        folder="nordland_64x32_viewpoint",
+    ),
+    Dataset(
+        "blank",
+        "blank frames (500 constant frames, value 0.5)",
+        "blank",
+        reference="blank",
+        query="blank",
+        route={"n_places": 500, "value": 0.5},
+    ),
+]
+
+_WINDOWS = (("n64-0", "0-999"), ("n64-1000", "1000-1999"), ("n64-1400", "1400-2399"))
+_SPEEDS = (("1.5x", 1.5), ("2x", 2.0), ("1-1.5x", (1.0, 1.5)))
+
+VIEWS: list[View] = [
+    *(
+        View(k, k, f"N64 s->w {w}", "nordland", (20, 10, 2), kidnap=k != "n64-1400")
+        for k, w in _WINDOWS
+    ),
+    View("n64-2000", "n64-2000", "N64 s->w 2000-2399 held out", "held-out", (20, 10, 2)),
+    View("n64-ws-0", "n64-ws-0", "N64 w->s 0-999", "reverse", (20, 10, 2)),
+    View("sub-sf", "sub-sf", "subset100 s->f", "subset", (2,)),
+    View("sub-sw", "sub-sw", "subset100 s->w", "subset", (2,)),
+    *(
+        View(f"{k}-{s}", k, f"N64 s->w {w} at {s}", "speed", (20,), "speed", v)
+        for s, v in _SPEEDS
+        for k, w in _WINDOWS
+    ),
+    View("syn-night", "syn-night", "synthetic s->night", "synthetic", (2, 10)),
+    View("syn-jitter", "syn-jitter", "synthetic s->w jitter 3", "synthetic", (2, 10)),
+    View("vp-0", "vp-0", "viewpoint s->w 0-999", "viewpoint", (20,)),
+    View("vp-1000", "vp-1000", "viewpoint s->w 1000-1999", "viewpoint", (20,)),
+    View(
+        "blank",
+        "blank",
+        "blank frames",
+        "control",
+        (20,),
+        note="every method should give AUC <= 0.1 and R@100%P = 0: there is nothing to match",
+    ),
+    View(
+        "shuffled",
+        "n64-0",
+        "N64 s->w 0-999, queries shuffled",
+        "control",
+        (20,),
+        "shuffle",
+        note="no sequence left: a filter should fall back to its front end's evidence, no lower",
+    ),
+    View(
+        "offset-300",
+        "n64-0",
+        "N64 winter 300-999 vs summer 0-999",
+        "control",
+        (20,),
+        "from",
+        start=300,
+        note="the query starts part-way along the reference (matched by positions)",
+    ),
+]
+
+#: SeqSLAM searching the CANN's speed range (0.75-2 places per frame, steps of 1/8)
+CANN_SPEEDS = {"v_min": 0.75, "v_max": 2.0, "v_step": 0.125}
+_FAST_ROWS = ("nordland", "speed")
+
+METHODS: list[Entry] = [
+    Entry("pixels"),
+    Entry("flyhash"),
+    Entry("flynet"),
+    Entry("seqslam-20", "seqslam"),
+    Entry("seqslam-40", "seqslam", filter_params={"sequence_length": 40}),
+    Entry("seqslam-60", "seqslam", filter_params={"sequence_length": 60}),
+    Entry("seqslam-20 v0.75-2", "seqslam", filter_params=CANN_SPEEDS, groups=_FAST_ROWS),
+    Entry(
+        "seqslam-40 v0.75-2",
+        "seqslam",
+        filter_params={"sequence_length": 40, **CANN_SPEEDS},
+        groups=_FAST_ROWS,
+    ),
+    Entry(
+        "seqslam-60 v0.75-2",
+        "seqslam",
+        filter_params={"sequence_length": 60, **CANN_SPEEDS},
+        groups=_FAST_ROWS,
+    ),
+    Entry("flynet+seqslam"),
+    Entry("flynet+seqslam v0.75-2", "flynet+seqslam", filter_params=CANN_SPEEDS, groups=_FAST_ROWS),
+    Entry("flynet+rnn"),
+    Entry("flynet+cann"),
+    Entry("pixels+cann"),
+    Entry("flyhash+cann"),
+    Entry("netvlad+cann", first_seed_only=True),
+]
+
+#: ``--quick``: these views and methods, seeds 0-1
+QUICK_VIEWS = ("n64-0", "sub-sw", "n64-0-1.5x", "blank", "shuffled", "offset-300")
+QUICK_METHODS = (
+    "pixels",
+    "flynet",
+    "seqslam-20",
+    "seqslam-60",
+    "seqslam-20 v0.75-2",
+    "flynet+seqslam",
+    "flynet+cann",
+    "pixels+cann",
+)
+
+
+def check_tables(datasets=DATASETS, views=VIEWS, methods=METHODS) -> None:
+    """Unique keys and labels; every view names a data set and every entry a method."""
+    for what, items, attr in (
+        ("data set", datasets, "key"),
+        ("view", views, "key"),
+        ("method", methods, "label"),
+    ):
+        keys = [getattr(item, attr) for item in items]
+        if len(set(keys)) != len(keys):
+            raise ValueError(
+                f"duplicate {what} {attr}s: {sorted(k for k in keys if keys.count(k) > 1)}"
+            )
+    known = {d.key for d in datasets}
+    for view in views:
+        if view.dataset not in known:
+            raise ValueError(f"view {view.key!r} names unknown data set {view.dataset!r}")
+    for entry in methods:
+        if entry.name not in FLYVPR_METHODS:
+            raise ValueError(
+                f"benchmark method {entry.label!r}: unknown flyvpr method {entry.name!r}"
+            )

@@ -1,0 +1,259 @@
+"""The accuracy benchmark's machinery: tables, one task against flyvpr's own evaluation, reports."""
+
+from __future__ import annotations
+
+import copy
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks import accuracy_report, accuracy_run, accuracy_setup  # noqa: E402
+from benchmarks.accuracy_setup import Dataset, Entry, View  # noqa: E402
+
+
+def test_tables_are_consistent():
+    accuracy_setup.check_tables()
+    views = {v.key for v in accuracy_setup.VIEWS}
+    labels = {m.label for m in accuracy_setup.METHODS}
+    assert set(accuracy_setup.QUICK_VIEWS) <= views
+    assert set(accuracy_setup.QUICK_METHODS) <= labels
+    # The brief's conditions are all there.
+    for key in ("n64-0", "n64-1000", "n64-1400", "n64-2000", "sub-sf", "sub-sw", "blank"):
+        assert key in views
+    assert {"seqslam-20", "seqslam-40", "seqslam-60", "flynet+cann", "pixels+cann"} <= labels
+
+
+def test_check_tables_catches_mistakes():
+    dup = [*accuracy_setup.METHODS, Entry("flynet")]
+    with pytest.raises(ValueError, match="duplicate method labels"):
+        accuracy_setup.check_tables(methods=dup)
+    with pytest.raises(ValueError, match="unknown flyvpr method"):
+        accuracy_setup.check_tables(methods=[Entry("nonsense+cann")])
+    stray = [View("x", "no-such-data", "x", "nordland", (20,))]
+    with pytest.raises(ValueError, match="unknown data set"):
+        accuracy_setup.check_tables(views=stray)
+
+
+@pytest.mark.parametrize(
+    ("kind", "params", "n"),
+    [
+        ("all", {}, 50),
+        ("speed", {"speed": 1.5}, 34),
+        ("speed", {"speed": (1.0, 1.5), "view_seed": 3}, None),
+        ("shuffle", {"view_seed": 1}, 50),
+        ("from", {"start": 20}, 30),
+    ],
+)
+def test_view_indices(kind, params, n):
+    view = View("v", "d", "v", "g", (2,), kind, **params)
+    idx = view.indices(50)
+    assert idx.min() >= 0 and idx.max() < 50 and len(np.unique(idx)) == len(idx)
+    if n is not None:
+        assert len(idx) == n
+    np.testing.assert_array_equal(idx, view.indices(50))  # seeded: the same every time
+    if kind == "shuffle":
+        assert sorted(idx.tolist()) == list(range(50)) and idx.tolist() != list(range(50))
+
+
+def test_deterministic_entries_run_once():
+    assert Entry("pixels").deterministic and Entry("seqslam-40", "seqslam").deterministic
+    assert not Entry("flynet+cann").deterministic
+    assert Entry("pixels+cann").runs_with(0, 0) and not Entry("pixels+cann").runs_with(1, 0)
+    slow = Entry("flynet+cann", first_seed_only=True)
+    assert not slow.runs_with(3, 0)
+
+
+# -- one task against flyvpr's own evaluation path ---------------------------------------------
+TINY = Dataset(
+    "tiny",
+    "synthetic 120 places",
+    "synthetic",
+    route={"n_places": 120, "conditions": ["summer", "winter"], "random_state": 2},
+)
+TINY_VIEWS = (
+    View("tiny", "tiny", "tiny", "nordland", (2, 10)),
+    View("tiny-2x", "tiny", "tiny 2x", "speed", (2,), "speed", 2.0),
+)
+
+
+def _task(entries, seed=1):
+    return accuracy_run.Task(TINY, seed, seed, TINY_VIEWS, tuple(entries), Path("."), kidnap=False)
+
+
+@pytest.mark.parametrize(
+    "entry",
+    [
+        Entry("flynet", frontend_params={"epochs": 20}),
+        Entry("flynet+cann", frontend_params={"epochs": 20}),
+        Entry("seqslam-40", "seqslam", filter_params={"sequence_length": 40}),
+        Entry("flyhash+seqslam", filter_params={"v_max": 2.0, "v_min": 0.75, "v_step": 0.125}),
+    ],
+)
+def test_task_rows_equal_flyvpr_evaluate(entry):
+    from flyvpr.evaluation import evaluate_method
+    from flyvpr.synthetic import make_route
+
+    res = accuracy_run.run_task(_task([entry]))
+    assert res["errors"] == []
+    route = make_route(**TINY.route)
+    ref, qry = route.reference_images, route.query_images
+    for view in TINY_VIEWS:
+        idx = view.indices(len(qry))
+        for tol in view.tolerances:
+            gt = route.ground_truth(tol)[idx]
+            expected = evaluate_method(
+                entry.name,
+                ref,
+                qry[idx],
+                gt,
+                seed=1,
+                frontend_params=entry.frontend_params,
+                filter_params=entry.filter_params,
+            )
+            (row,) = [r for r in res["rows"] if r["condition"] == f"{view.key}@{tol}"]
+            for key in ("auc", "recall_at_1", "recall_at_100_precision", "extended_precision"):
+                assert row[key] == pytest.approx(expected[key], abs=1e-9), (view.key, tol, key)
+
+
+def test_random_filter_sees_the_generator_the_front_end_left():
+    pytest.importorskip("torch")
+    from flyvpr.evaluation import evaluate_method
+    from flyvpr.synthetic import make_route
+
+    entries = [
+        Entry("flynet", frontend_params={"epochs": 10}),  # fits the shared front end first
+        Entry(
+            "flynet+rnn",
+            frontend_params={"epochs": 10},
+            filter_params={"epochs": 1, "hidden_size": 16},
+        ),
+    ]
+    res = accuracy_run.run_task(_task(entries))
+    assert res["errors"] == []
+    route = make_route(**TINY.route)
+    expected = evaluate_method(
+        "flynet+rnn",
+        route.reference_images,
+        route.query_images,
+        route.ground_truth(2),
+        seed=1,
+        frontend_params=entries[1].frontend_params,
+        filter_params=entries[1].filter_params,
+    )
+    (row,) = [r for r in res["rows"] if r["condition"] == "tiny@2" and r["method"] == "flynet+rnn"]
+    assert row["auc"] == pytest.approx(expected["auc"], abs=1e-6)
+
+
+def test_bytes_per_place_of_a_task():
+    res = accuracy_run.run_task(_task([Entry("pixels"), Entry("flyhash+cann")]))
+    got = {f["method"]: f["bytes_per_place"] for f in res["fitted"]}
+    assert got == {"pixels": 8192.0, "flyhash+cann": 8.0}
+
+
+def test_kidnap_recovery_counts_frames_to_the_new_place():
+    # Perfect evidence: a CANN back on the true place within a few frames of each jump.
+    from flyvpr.temporal import CANN
+
+    n = 600
+    S = -np.abs(np.arange(n)[:, None] - np.arange(n)[None, :]).astype(float)
+    frames = accuracy_run.kidnap_recovery(S, 20, CANN())
+    assert len(frames) == len(accuracy_run.jump_positions(n)) > 0
+    assert all(f is not None and f < 30 for f in frames)
+    assert accuracy_run.evidence_rank(S) == [1] * len(frames)
+
+
+# -- summaries and reports ----------------------------------------------------------------------
+def _rows():
+    rows = []
+    for seed, auc in enumerate([0.5, 0.7, 0.6]):
+        rows.append(
+            {
+                "condition": "c@20",
+                "method": "m",
+                "seed": seed,
+                "auc": auc,
+                "recall_at_1": 0.8,
+                "recall_at_100_precision": 0.1 * seed,
+                "extended_precision": 0.5,
+                "top_share": 0.01 * (seed + 1),
+                "filter_s": 0.0,
+            }
+        )
+    return rows
+
+
+def test_summarise_hand_worked():
+    (s,) = accuracy_report.summarise(_rows())
+    assert s["seeds"] == [0, 1, 2]
+    assert s["auc_mean"] == pytest.approx(0.6)
+    assert s["auc_worst"] == 0.5
+    assert s["auc_spread"] == pytest.approx(0.2)
+    assert s["recall_at_100_precision_mean"] == pytest.approx(0.1)
+    assert s["top_share_max"] == pytest.approx(0.03)
+
+
+def _document():
+    rows = _rows() + [
+        {**_rows()[0], "condition": "blank@20", "method": "m", "auc": 0.4, "seed": 0},
+    ]
+    return {
+        "seeds": [0, 1, 2],
+        "methods": [{"label": "m", "method": "flynet+cann", "seeds": "all"}],
+        "conditions": [
+            {
+                "key": "c@20",
+                "label": "cond",
+                "group": "nordland",
+                "tolerance": 20,
+                "tolerances": [20],
+            },
+            {
+                "key": "blank@20",
+                "label": "blank",
+                "group": "control",
+                "tolerance": 20,
+                "tolerances": [20],
+            },
+        ],
+        "rows": rows,
+        "summary": accuracy_report.summarise(rows),
+        "bytes_per_place": {"m": 256.0},
+        "errors": [],
+    }
+
+
+def test_render_markdown_is_pure_and_complete():
+    data = _document()
+    before = copy.deepcopy(data)
+    md = accuracy_report.render_markdown(data)
+    assert data == before  # the input is not touched
+    assert md == accuracy_report.render_markdown(json.loads(json.dumps(data)))
+    assert "| cond (" not in md  # labels are printed as given
+    assert "| cond | m | 0.600 | 0.500 | 0.200 | 0.800 | 0.100 | 0.500 | 0.03 | 0-2 |" in md
+    assert "| m | 256 |" in md
+    assert "fail: m" in md  # blank AUC 0.4 > 0.1: reported, not hidden
+    text = accuracy_report.render_text(data)
+    assert "cond" in text and "0.600" in text
+
+
+def test_render_markdown_importable_from_the_benchmark_script():
+    from benchmarks.accuracy import render_markdown
+
+    assert render_markdown is accuracy_report.render_markdown
+
+
+def test_render_markdown_refuses_other_documents():
+    with pytest.raises(ValueError, match="not an accuracy benchmark document"):
+        accuracy_report.render_markdown({"rows": []})
+    old = _document()
+    for row in old["rows"]:
+        del row["extended_precision"]
+    with pytest.raises(ValueError, match="older benchmarks/accuracy.py"):
+        accuracy_report.render_markdown(old)
