@@ -1,12 +1,12 @@
-"""FlyNet+RNN: a recurrent network trained to filter a front end's scores over time.
+"""FlyNet+RNN: a recurrent network that filters a front end's scores over time.
 
 Paper, Sec. "FlyNet+RNN" and Fig. "FlyNet baselines" (c): a vanilla RNN with 512 recurrent
 units sits on top of FlyNet's per-frame outputs and a fully connected layer reads one unit per
 reference place out of its hidden state; GRU and LSTM cells "showed no significant performance
 improvements despite having far more parameters".  The paper gives neither the training data
-nor the schedule of the RNN, so both are this module's choices, documented below.  Torch is an
-optional dependency (``pip install 'flyvpr[torch]'``) imported only when a filter is fitted or
-run.
+nor the initialisation of the RNN, so both are this module's choices, documented below and in
+``docs/guide/rnn.md`` with the experiments behind them.  Torch is an optional dependency
+(``pip install 'flyvpr[torch]'``) imported only when a filter is fitted or run.
 
 Architecture
 ------------
@@ -19,73 +19,77 @@ FlyNet's.  With FlyNet in front, 1000 places and 512 units the whole model has 4
 Input normalisation
 -------------------
 Every score row (reference rows at training time, query rows at run time) is mapped the same
-way before it enters the network: if the row is a probability vector (all entries > 0, as
-FlyNet's softmax outputs) it is first replaced by its logarithm, i.e. by the logits up to a
-constant, because FlyNet's rows are far from one-hot (the best place often holds only 2% of the
-mass) and their information is in the logits' relative sizes; then the row is standardised to
-zero mean and unit standard deviation (a constant row becomes zeros).  Standardisation makes
-the filter indifferent to the front end's score scale (SAD similarities, Hamming similarities,
-probabilities).  Whether the log is taken is decided once, from the reference scores, and
-stored in ``log_input_``.
+way: a probability row (all entries > 0 and summing to one, as FlyNet's softmax) is replaced by
+its logarithm, i.e. by the logits up to a constant, because FlyNet's rows are far from one-hot
+(the best place holds about 2% of the mass among 1000) and their information is in the logits'
+relative sizes; then the row is standardised to zero mean and unit standard deviation.  Whether
+the log is taken is decided once, from the reference scores, and stored in ``log_input_``.
+
+Initial weights: the route prior (``init="route"``, default)
+------------------------------------------------------------
+To filter a traverse the network has to carry its belief about where it is from frame to frame
+and move it along the route as the vehicle moves.  Learnt from scratch by a 1000-way classifier
+on synthetic reference sequences this did not emerge within any affordable training budget (see
+the guide), so by default the network *starts* as that structure, which its architecture can
+represent exactly.  Let ``B`` (m x n) hold the ``m <= hidden_size`` lowest-frequency rows of the
+real Fourier basis over the ``n`` places (cos/sin pairs; the constant row is left out because
+normalised rows have zero mean): a profile over the places moved ``v`` places along the route
+(circularly) has its coefficients rotated pair by pair, a map ``T_v``.  The first ``m`` units get
+
+* input weights ``input_gain * B``,
+* recurrent weights ``decay * T_v`` with ``v`` the midpoint of ``speed_range``,
+* readout weights ``(1 - decay) / input_gain * B^T``, readout bias 0,
+
+and every other weight is drawn as in ``init="random"`` and scaled by 0.01 (quiet but
+trainable).  GRU and LSTM cells get the same weights in their candidate (``tanh``) block and
+gate biases of +-6 that hold the cell at the plain recurrence.  While ``tanh`` stays in its
+linear range (``input_gain`` keeps it there), the readout of frame ``t`` is
+``sum_j (1 - decay) decay^j P x_{t-j}`` moved ``j v`` places on: an exponentially weighted
+average of past rows along the trajectory of speed ``v``, low-passed to the ``m / 2`` lowest
+frequencies (``P = B^T B``; exact when ``hidden_size >= n - 1``).  With 512 units and 1000
+places the hidden state resolves the route to about 2 places; for much longer routes the
+resolution is ``n / hidden_size`` places.  ``decay`` 0.98 (a memory of about 50 frames) and
+``input_gain`` 0.03 were chosen on Nordland frames 2000-2399 (summer reference, winter
+queries), a window no reported figure uses.
 
 Training sequences: reference traverse only
 -------------------------------------------
-The filter is trained on ``reference_scores`` alone: the front end's scores of the reference
-images against the reference places, ``Z = normalise(reference_scores)`` with row ``i`` being
-what the front end says when it sees place ``i``.  No query frame is ever used.  Each training
-batch holds ``batch_size`` sequences of ``sequence_length`` frames built as follows, every
-random draw coming from ``random_state``:
+``fit`` trains the network on ``reference_scores`` alone: the front end's scores of the
+reference images against the reference places, ``Z = normalise(reference_scores)``.  No query
+frame is ever used.  Each batch holds ``batch_size`` sequences of ``sequence_length`` frames,
+every random draw coming from ``random_state``:
 
 1. *Trajectory.*  A speed ``v ~ U(speed_range)`` (reference places per frame) and a start
-   ``s ~ U(0, n_reference - 1 - v (sequence_length - 1))`` are drawn per sequence; frame ``t``
-   shows place ``p_t = round(s + v t)`` (clipped to the traverse when the traverse is shorter
-   than the sequence: the vehicle waits at its end).  Speeds below one repeat places, speeds
-   above one skip places, so the network learns to integrate along trajectories of any speed
-   in the range rather than memorising one.  The target of frame ``t`` is ``p_t``.
-2. *Corruption.*  Reference rows are nearly what the front end was trained on and thus far
-   cleaner than query rows under changed appearance; trained on them alone the network would
-   trust every frame.  So each frame's input is
-   ``x_t = standardise((1 - eta_t) Z[p_t] + eta_t (Z[d_t] + e_t) / sqrt(2))``
-   with a noise share ``eta_t ~ U(noise)`` drawn per frame, a Gaussian row
-   ``e_t ~ N(0, I)`` and a *distractor* place ``d_t``: uniform over the traverse at the first
-   frame and, at each later frame, the previous distractor again with probability 0.5 or a
-   fresh uniform place otherwise.  The distractor rows mimic perceptual aliasing (a query
-   that looks like another place, often for a few frames in a row); the Gaussian part mimics
-   unstructured noise; drawing ``eta_t`` per frame mixes informative frames with useless ones
-   (``eta_t = 1``: a tunnel), so the network learns to weigh each frame by how peaked it is
-   and to carry its estimate along the route through the useless ones.  At ``eta_t = 0.8``
-   the true place's standardised input is about 1 while the largest wrong entry is about 3,
-   roughly what FlyNet gives for Nordland winter queries against a summer reference.
-3. *Loss.*  Cross-entropy of the output at every frame against ``p_t`` (one class per
-   reference place), Adam with ``learning_rate``, gradients clipped to norm 1.  Every sequence
-   starts from a zero hidden state, as the filter does after :meth:`reset`.
+   ``s ~ U(0, n_reference - 1 - v (sequence_length - 1))`` per sequence; frame ``t`` shows
+   place ``p_t = round(s + v t)`` (clipped to the traverse).  The target of frame ``t`` is
+   ``p_t``.
+2. *Corruption.*  ``x_t = standardise((1 - eta_t) Z[p_t] + eta_t (Z[d_t] + e_t) / sqrt(2))``
+   with a noise share ``eta_t ~ U(noise)`` per frame, a Gaussian row ``e_t ~ N(0, I)`` and a
+   *distractor* place ``d_t``: uniform at the first frame and, at each later frame, the previous
+   one again with probability 0.5 or a fresh uniform place.  Reference rows are far cleaner than
+   query rows under changed appearance (FlyNet classifies its own training images), so the
+   corruption stands in for the appearance change without looking at any query.
+3. *Loss.*  Cross-entropy of the output at every frame against ``p_t``, Adam with
+   ``learning_rate``, gradients clipped to norm 1, every sequence from a zero hidden state.
+   One epoch is ``n_reference`` sequences rounded up to whole batches.
 
-One epoch is ``n_reference`` sequences rounded up to whole batches, so each place starts
-about one sequence per epoch.
-
-Defaults and what they give
----------------------------
-The defaults (64-frame sequences, 4 epochs, Adam at 0.003, speeds 0.9-1.1, per-frame noise
-share 0.5-1) were chosen on Nordland frames 1000-1999 (summer reference, winter queries,
-64x32), kept apart from the frames 0-999 the paper's protocol evaluates.  On them FlyNet+RNN
-raised FlyNet's PR AUC from 0.023 / 0.013 to 0.095 / 0.084 (seeds 0 / 1); GRU cells, wider
-speed ranges, per-sequence noise, more epochs or smaller batches did not do better.  On
-frames 0-999 the gain was smaller (0.033 -> 0.042, 0.022 -> 0.040).  The network learns to
-integrate along the route on synthetic sequences but integrates real query rows far less
-than a sequence search over the same rows does, in line with the paper ranking FlyNet+RNN
-below FlyNet+CANN.
+Measured on the development window, this training does not improve the route prior: at the
+default step size (1e-5, one epoch) it changes the AUC by less than 0.01, and at the step
+sizes that train from scratch (1e-4 and above) it pulls the network towards the synthetic
+sequences' statistics and away from real queries (the guide has the numbers).  ``epochs=0``
+keeps the prior exactly.  :data:`FROM_SCRATCH` restores the earlier baseline: random initial
+weights, 64-frame sequences, 4 epochs at 0.003.
 
 Running
 -------
-:meth:`filter` feeds a whole traverse through the network in one call from a zero hidden
-state; :meth:`step` feeds one row and keeps the hidden state between calls (:meth:`reset`
-zeroes it).  Both give the same rows.  Running never changes the network: the parameters
-after any number of ``filter``/``step`` calls are those ``fit`` left.
+:meth:`filter` feeds a whole traverse through the network in one call from a zero hidden state;
+:meth:`step` feeds one row and keeps the hidden state between calls (:meth:`reset` zeroes it).
+Both give the same rows, and a frame's output depends on that frame and earlier ones only.
+Running never changes the network.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import numbers
 import os
@@ -98,39 +102,24 @@ from .._validation import (
     check_random_state,
     check_scores,
 )
+from . import _rnn_net as net
 from .base import OnlineFilter
 
-__all__ = ["RNNFilter"]
+__all__ = ["RNNFilter", "FROM_SCRATCH"]
 
 logger = logging.getLogger(__name__)
 
 _CELLS = ("rnn", "gru", "lstm")
-#: weight blocks per cell type: a GRU has 3 gates, an LSTM 4 (torch's layout)
-_GATES = {"rnn": 1, "gru": 3, "lstm": 4}
-#: chance that a frame's distractor place is the previous frame's (aliasing lasts a while)
-_DISTRACTOR_PERSISTENCE = 0.5
-_GRAD_CLIP = 1.0
+_INITS = ("route", "random")
 
-
-def _import_torch():
-    try:
-        import torch
-    except ImportError as exc:
-        raise ImportError(
-            "RNNFilter (method 'flynet+rnn') needs torch: pip install 'flyvpr[torch]'"
-        ) from exc
-    return torch
-
-
-@contextlib.contextmanager
-def _torch_threads(torch, n_threads):
-    """Run torch on ``n_threads`` threads inside the block, then restore the setting."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(n_threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
+#: parameters of the earlier baseline: random initial weights trained from scratch
+FROM_SCRATCH = {
+    "init": "random",
+    "sequence_length": 64,
+    "epochs": 4,
+    "learning_rate": 0.003,
+    "batch_size": 64,
+}
 
 
 def _check_range(value, name: str, low: float, high: float | None) -> tuple[float, float]:
@@ -156,21 +145,20 @@ def _check_range(value, name: str, low: float, high: float | None) -> tuple[floa
     return lo, hi
 
 
+def _check_number(value, name: str, low: float, high: float, low_open: bool = True) -> float:
+    """A real number in (low, high] (or [low, high] with ``low_open=False``)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a number; got {type(value).__name__}")
+    value = float(value)
+    above = value > low if low_open else value >= low
+    if not (np.isfinite(value) and above and value <= high):
+        interval = f"{'(' if low_open else '['}{low}, {high}]"
+        raise ValueError(f"{name} must be in {interval}; got {value}")
+    return value
+
+
 def _is_probability_matrix(S: np.ndarray) -> bool:
     return bool(np.all(S > 0) and np.allclose(S.sum(axis=1), 1.0, rtol=0, atol=1e-3))
-
-
-def _normalise(S: np.ndarray, log_input: bool) -> np.ndarray:
-    """Rows -> (log ->) zero mean, unit standard deviation; float32 (n, n_reference)."""
-    X = S.astype(np.float64)
-    if log_input:
-        # Query rows of a probability front end are positive too; the floor only guards
-        # against a zero that a caller's rounding produced.
-        X = np.log(np.maximum(X, np.finfo(np.float64).tiny))
-    X -= X.mean(axis=1, keepdims=True)
-    std = X.std(axis=1, keepdims=True)
-    X /= np.where(std > 0, std, 1.0)
-    return X.astype(np.float32)
 
 
 class RNNFilter(OnlineFilter):
@@ -182,21 +170,27 @@ class RNNFilter(OnlineFilter):
         Recurrent units (512 in the paper).
     cell : {'rnn', 'gru', 'lstm'}, default 'rnn'
         The paper's vanilla ``tanh`` RNN, or the gated cells it also tried.
-    sequence_length : int, default 64
+    init : {'route', 'random'}, default 'route'
+        Initial weights: the route prior (module docstring), or torch's default
+        distribution U(-1/sqrt(hidden_size), 1/sqrt(hidden_size)) for every weight.
+    decay : float in (0, 1], default 0.98
+        Route prior: the share of its belief the network keeps from one frame to the next.
+    input_gain : float > 0, default 0.03
+        Route prior: scale of the input weights; small keeps ``tanh`` in its linear range.
+    sequence_length : int, default 32
         Frames per training sequence (gradients flow through this many steps).
-    epochs : int, default 4
-        Training epochs; one epoch is ``n_reference`` sequences.
-    learning_rate : float, default 0.003
-        Adam's step size (0.001 converged too slowly for the few epochs a fit can afford).
-    batch_size : int, default 64
+    epochs : int >= 0, default 1
+        Training epochs; one epoch is ``n_reference`` sequences.  0 (only with
+        ``init='route'``) keeps the route prior untouched.
+    learning_rate : float, default 1e-5
+        Adam's step size.
+    batch_size : int, default 32
         Sequences per gradient step.
     speed_range : float or (float, float), default (0.9, 1.1)
-        Range of the constant speed (reference places per frame) of training sequences.
-        Wider ranges generalise to other speeds but cost accuracy at speed 1 (the aligned
-        Nordland traverses: (0.8, 1.25) lost about a third of the AUC gain on a held-out
-        segment).
+        Speeds (reference places per query frame) of the training sequences; the route prior
+        moves its belief by the midpoint per frame.
     noise : float or (float, float), default (0.5, 1.0)
-        Range of the per-frame noise share ``eta_t`` in [0, 1] of the corrupted inputs
+        Range of the per-frame noise share ``eta_t`` in [0, 1] of the training inputs
         (module docstring); 0 trains on clean reference rows.
     random_state : None, int or numpy.random.Generator
         Seeds the initial weights (through a ``torch.Generator`` seeded from it) and every
@@ -205,8 +199,7 @@ class RNNFilter(OnlineFilter):
         Torch threads while fitting and filtering, capped at the machine's cores; the previous
         setting is restored afterwards.  ``None`` uses one: the recurrent steps are small
         matrix products whose thread synchronisation costs more than it saves when other
-        processes share the cores (on a loaded 2-core machine a training step with 1000
-        places took 1.1 s with one thread and 6 s with two).
+        processes share the cores.
 
     Attributes
     ----------
@@ -219,11 +212,28 @@ class RNNFilter(OnlineFilter):
     loss_history_ : ndarray, shape (epochs,)
         Mean training cross-entropy of each epoch.
 
+    See Also
+    --------
+    FROM_SCRATCH : the parameters of the earlier, randomly initialised baseline.
+
     Notes
     -----
     ``fit`` needs the front end's scores of the reference images against the reference
     places; :class:`flyvpr.methods.Method` passes them because ``needs_reference_scores`` is
     True.  Query scores are only ever filtered, never learned from.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from flyvpr.temporal import RNNFilter
+    >>> rng = np.random.default_rng(0)
+    >>> R = np.eye(40) + 0.1 * rng.random((40, 40))  # reference scores: a clear diagonal
+    >>> filt = RNNFilter(hidden_size=64, epochs=0).fit(R)
+    >>> Q = rng.random((30, 40))
+    >>> Q[np.arange(30), 5 + np.arange(30)] += 1.0  # weak evidence for places 5, 6, ...
+    >>> S = filt.filter(Q)
+    >>> S.shape, int(S[-1].argmax())
+    ((30, 40), 34)
     """
 
     name = "rnn"
@@ -234,10 +244,13 @@ class RNNFilter(OnlineFilter):
         self,
         hidden_size=512,
         cell="rnn",
-        sequence_length=64,
-        epochs=4,
-        learning_rate=0.003,
-        batch_size=64,
+        init="route",
+        decay=0.98,
+        input_gain=0.03,
+        sequence_length=32,
+        epochs=1,
+        learning_rate=1e-5,
+        batch_size=32,
         speed_range=(0.9, 1.1),
         noise=(0.5, 1.0),
         random_state=None,
@@ -245,6 +258,9 @@ class RNNFilter(OnlineFilter):
     ):
         self.hidden_size = hidden_size
         self.cell = cell
+        self.init = init
+        self.decay = decay
+        self.input_gain = input_gain
         self.sequence_length = sequence_length
         self.epochs = epochs
         self.learning_rate = learning_rate
@@ -263,6 +279,28 @@ class RNNFilter(OnlineFilter):
             raise ValueError(f"cell must be one of {_CELLS}; got {self.cell!r}")
         return self.cell
 
+    def _check_init(self) -> str:
+        if self.init not in _INITS:
+            raise ValueError(f"init must be one of {_INITS}; got {self.init!r}")
+        return self.init
+
+    def _prior(self) -> dict | None:
+        """The route prior's parameters, or None for ``init='random'``."""
+        if self._check_init() != "route":
+            return None
+        speeds = self._check_speeds()
+        return {
+            "decay": _check_number(self.decay, "decay", 0.0, 1.0),
+            "input_gain": _check_number(self.input_gain, "input_gain", 0.0, np.inf),
+            "speed": 0.5 * (speeds[0] + speeds[1]),
+        }
+
+    def _check_speeds(self) -> tuple[float, float]:
+        speeds = _check_range(self.speed_range, "speed_range", 0.0, None)
+        if speeds[0] <= 0:
+            raise ValueError(f"speed_range must be positive; got {self.speed_range!r}")
+        return speeds
+
     def _threads(self) -> int:
         if self.n_threads is None:
             return 1
@@ -272,7 +310,7 @@ class RNNFilter(OnlineFilter):
     # training
     # ----------------------------------------------------------------------------------------
     def fit(self, reference_scores=None) -> RNNFilter:
-        """Train the network on sequences drawn from the reference traverse.
+        """Build the network (route prior) and train it on sequences of the reference traverse.
 
         Parameters
         ----------
@@ -288,7 +326,8 @@ class RNNFilter(OnlineFilter):
         ------
         ValueError
             If ``reference_scores`` is missing, not square, has fewer than 2 places, or a
-            parameter has a bad value (``cell`` not one of 'rnn', 'gru', 'lstm', ...).
+            parameter has a bad value (``cell`` not one of 'rnn', 'gru', 'lstm', ``epochs=0``
+            with ``init='random'``, ...).
         TypeError
             For parameters of the wrong type.
         ImportError
@@ -310,28 +349,32 @@ class RNNFilter(OnlineFilter):
             raise ValueError(f"reference_scores must cover at least 2 places; got {n}")
         cell = self._check_cell()
         hidden = check_positive_int(self.hidden_size, "hidden_size")
+        prior = self._prior()
         length = check_positive_int(self.sequence_length, "sequence_length")
-        epochs = check_positive_int(self.epochs, "epochs")
+        epochs = check_positive_int(self.epochs, "epochs", minimum=0)
+        if epochs == 0 and prior is None:
+            raise ValueError(
+                "epochs=0 would leave a randomly initialised network untrained; use "
+                "init='route' or epochs >= 1"
+            )
         batch = check_positive_int(self.batch_size, "batch_size")
         lr = self.learning_rate
         if isinstance(lr, bool) or not isinstance(lr, numbers.Real):
             raise TypeError(f"learning_rate must be a number; got {type(lr).__name__}")
         if not (np.isfinite(lr) and lr > 0):
             raise ValueError(f"learning_rate must be a positive number; got {lr}")
-        speeds = _check_range(self.speed_range, "speed_range", 0.0, None)
-        if speeds[0] <= 0:
-            raise ValueError(f"speed_range must be positive; got {self.speed_range!r}")
+        speeds = self._check_speeds()
         noise = _check_range(self.noise, "noise", 0.0, 1.0)
         rng = check_random_state(self.random_state)
-        torch = _import_torch()
+        torch = net.import_torch()
         n_threads = self._threads()
 
         log_input = _is_probability_matrix(R)
-        Z = _normalise(R, log_input)
+        Z = net.normalise(R, log_input)
         generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
-        with _torch_threads(torch, n_threads):
-            module = _build_module(torch, cell, n, hidden, generator)
-            losses = _train(
+        with net.torch_threads(torch, n_threads):
+            module = net.build_module(torch, cell, n, hidden, generator, prior)
+            losses = net.train(
                 torch,
                 module,
                 Z,
@@ -351,12 +394,13 @@ class RNNFilter(OnlineFilter):
         self.loss_history_ = losses
         self._hidden = None
         logger.info(
-            "RNNFilter (%s, %d units) trained on %d places: loss %.3f -> %.3f",
+            "RNNFilter (%s, %d units, init %s) trained %d epochs on %d places; losses %s",
             cell,
             hidden,
+            self.init,
+            epochs,
             n,
-            losses[0],
-            losses[-1],
+            np.round(losses, 3),
         )
         return self
 
@@ -382,9 +426,9 @@ class RNNFilter(OnlineFilter):
 
     def _run(self, S: np.ndarray) -> np.ndarray:
         """Rows of S through the network from the current hidden state; keeps the new state."""
-        torch = _import_torch()
-        x = torch.from_numpy(_normalise(S, self.log_input_))[None]
-        with _torch_threads(torch, self._threads()), torch.no_grad():
+        torch = net.import_torch()
+        x = torch.from_numpy(net.normalise(S, self.log_input_))[None]
+        with net.torch_threads(torch, self._threads()), torch.no_grad():
             h, self._hidden = self.module_["recurrent"](x, self._hidden)
             out = torch.softmax(self.module_["readout"](h[0]), dim=-1)
         return out.numpy().astype(S.dtype, copy=False)
@@ -413,7 +457,7 @@ class RNNFilter(OnlineFilter):
         return state
 
     def _set_state(self, state: dict) -> None:
-        torch = _import_torch()
+        torch = net.import_torch()
         weights = {
             key.split(":", 1)[1]: torch.from_numpy(np.array(value))
             for key, value in state.items()
@@ -421,7 +465,8 @@ class RNNFilter(OnlineFilter):
         }
         n = int(state["n_reference_"])
         hidden = check_positive_int(self.hidden_size, "hidden_size")
-        module = _build_module(torch, self._check_cell(), n, hidden, torch.Generator())
+        # The saved weights replace every parameter, so the prior is not rebuilt.
+        module = net.build_module(torch, self._check_cell(), n, hidden, torch.Generator())
         try:
             module.load_state_dict(weights, strict=True)
         except RuntimeError as exc:
@@ -439,86 +484,16 @@ class RNNFilter(OnlineFilter):
 
         ``params = g (h n + h^2 + 2 h) + (h n + n)`` with ``h = hidden_size``,
         ``n = n_reference`` and ``g`` = 1, 3, 4 weight blocks for RNN, GRU, LSTM (torch's
-        two bias vectors per block included); ``neurons = h + n``.  With FlyNet in front
+        two bias vectors per block included); ``neurons = h + n``.  The route prior sets
+        values, not the count: every parameter stays trainable.  With FlyNet in front
         (2 layers, 64 + n neurons) and the defaults this is the paper's 4 layers, 1.3m
         parameters and 2576 neurons for n = 1000.
         """
         n = check_positive_int(n_reference, "n_reference")
         h = check_positive_int(self.hidden_size, "hidden_size")
-        g = _GATES[self._check_cell()]
+        g = net.GATES[self._check_cell()]
         return {
             "layers": 2,
             "params": g * (h * n + h * h + 2 * h) + h * n + n,
             "neurons": h + n,
         }
-
-
-def _build_module(torch, cell: str, n: int, hidden: int, generator):
-    """Recurrent layer + readout, initialised from ``generator`` only.
-
-    The layers are created on the "meta" device, which skips torch's own initialisation (it
-    would draw from the global generator), then given uninitialised CPU memory; every parameter
-    is then drawn from U(-1/sqrt(hidden), 1/sqrt(hidden)), the distribution torch's defaults
-    use for these layers.
-    """
-    recurrent_cls = {"rnn": torch.nn.RNN, "gru": torch.nn.GRU, "lstm": torch.nn.LSTM}[cell]
-    recurrent = recurrent_cls(n, hidden, batch_first=True, device="meta")
-    readout = torch.nn.Linear(hidden, n, device="meta")
-    module = torch.nn.ModuleDict({"recurrent": recurrent, "readout": readout})
-    module = module.to_empty(device="cpu")
-    bound = 1.0 / np.sqrt(hidden)
-    with torch.no_grad():
-        for param in module.parameters():
-            param.uniform_(-bound, bound, generator=generator)
-    return module
-
-
-def _sample_batch(Z, rng, batch, length, speeds, noise):
-    """One batch of corrupted reference sequences (module docstring): inputs, targets."""
-    n = Z.shape[0]
-    steps = np.arange(length)
-    speed = rng.uniform(speeds[0], speeds[1], size=batch)
-    start = rng.uniform(0.0, np.maximum(n - 1 - speed * (length - 1), 0.0))
-    places = np.clip(np.rint(start[:, None] + speed[:, None] * steps), 0, n - 1).astype(np.int64)
-    # Distractors: a fresh place where `fresh`, else the previous frame's.  The index of the
-    # last fresh frame, carried forward by a running maximum, picks it without a loop.
-    candidates = rng.integers(0, n, size=(batch, length))
-    fresh = rng.random((batch, length)) >= _DISTRACTOR_PERSISTENCE
-    fresh[:, 0] = True
-    last_fresh = np.maximum.accumulate(np.where(fresh, steps, 0), axis=1)
-    distractors = np.take_along_axis(candidates, last_fresh, axis=1)
-    eta = rng.uniform(noise[0], noise[1], size=(batch, length, 1)).astype(np.float32)
-    x = rng.standard_normal((batch, length, n), dtype=np.float32)
-    x += Z[distractors]
-    x *= eta / np.float32(np.sqrt(2.0))
-    x += (1 - eta) * Z[places]
-    x -= x.mean(axis=-1, keepdims=True)
-    std = x.std(axis=-1, keepdims=True)
-    x /= np.where(std > 0, std, 1.0)
-    return x, places
-
-
-def _train(torch, module, Z, rng, *, length, epochs, batch, lr, speeds, noise):
-    n = Z.shape[0]
-    params = list(module.parameters())
-    optimiser = torch.optim.Adam(params, lr=lr)
-    recurrent, readout = module["recurrent"], module["readout"]
-    batches_per_epoch = max(1, int(np.ceil(n / batch)))
-    losses = np.empty(epochs)
-    module.train()
-    for epoch in range(epochs):
-        total = 0.0
-        for _ in range(batches_per_epoch):
-            x, places = _sample_batch(Z, rng, batch, length, speeds, noise)
-            h, _ = recurrent(torch.from_numpy(x))
-            logits = readout(h)
-            loss = torch.nn.functional.cross_entropy(
-                logits.reshape(-1, n), torch.from_numpy(places).reshape(-1)
-            )
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(params, _GRAD_CLIP)
-            optimiser.step()
-            total += loss.item()
-        losses[epoch] = total / batches_per_epoch
-    return losses
