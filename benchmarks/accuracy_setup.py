@@ -20,6 +20,7 @@ import numpy as np
 from flyvpr.evaluation import speed_profile
 from flyvpr.methods import METHODS as FLYVPR_METHODS
 from flyvpr.methods import make_method
+from flyvpr.temporal.rnn import FROM_SCRATCH
 
 #: What tuned the CANN's defaults (see the CANN's docstring): printed next to those numbers.
 TUNED = "tuned the CANN defaults (flynet+cann, seeds 0-4)"
@@ -165,7 +166,8 @@ DATASETS: list[Dataset] = [
         "Nordland 64x32 summer->winter 2000-2399 (held out)",
         2000,
         400,
-        tuning="held out: tuned nothing",
+        tuning="held out: tuned nothing of the CANN or the fly front ends (the RNN baseline's "
+        "decay and input gain were chosen here)",
     ),
     _nordland(
         "n64-ws-0",
@@ -306,6 +308,13 @@ METHODS: list[Entry] = [
     Entry("flynet+seqslam"),
     Entry("flynet+seqslam v0.75-2", "flynet+seqslam", filter_params=CANN_SPEEDS, groups=_FAST_ROWS),
     Entry("flynet+rnn"),
+    Entry(
+        "flynet+rnn[scratch]",
+        "flynet+rnn",
+        filter_params=FROM_SCRATCH,
+        groups=("nordland", "subset"),
+        first_seed_only=True,
+    ),
     Entry("flynet+cann"),
     Entry("pixels+cann"),
     Entry("flyhash+cann"),
