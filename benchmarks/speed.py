@@ -329,5 +329,94 @@ def main(argv=None) -> int:
     return 0
 
 
+#: what each figure of the JSON measures, in the order the results page lists them
+FIGURE_NOTES = {
+    "decode_s": ("s", "read + pre-process 2000 PNGs (summer + winter 0-999), cache off"),
+    "flynet_fit_s": ("s", "train FlyNet on 1000 places, 200 full-batch epochs"),
+    "flynet_cann_query_s": ("s", "encode 1000 queries (in memory) + CANN -> place, confidence"),
+    "flynet_cann_per_query_ms": ("ms", "the same per query"),
+    "seqslam_s": ("s", "SeqSLAM 1000 x 1000 (patch norm., SAD, enhancement, search, length 20)"),
+    "seqslam_2400_s": ("s", "the same on all 2400 x 2400 frames"),
+    "flyhash_images_per_s": ("images/s", "FlyHash, batch of 100,000 32x64 images in memory"),
+    "stream_queries_per_s": ("frames/s", "flynet+cann Localizer, one frame at a time"),
+    "stream_per_query_ms": ("ms", "the same per frame"),
+    "stream_peak_rss_mb": ("MiB", "peak resident memory of that streaming process"),
+    "stream_map_build_s": ("s", "building that map: FlyNet mini-batch training"),
+    "stream_same_place_within_20_share": ("", "share of streamed frames within 20 places"),
+}
+
+
+def _figure(value) -> str:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return str(value)
+    if abs(value) >= 1000:
+        return f"{value:,.0f}"
+    return f"{value:.4g}"
+
+
+def render_markdown(data: dict) -> str:
+    """The speed results page (Markdown, headings from level 2) from this script's JSON.
+
+    Pure function of ``data`` (what ``--json`` wrote): the machine, the protocol, every
+    figure (those without a note in :data:`FIGURE_NOTES` too, so new rows appear by
+    themselves), the targets and the paper's timing table next to ours.
+    """
+    machine = data.get("machine", {})
+    repeat = data.get("repeat")
+    lines = [
+        "## Protocol",
+        "",
+        "`../shared/data/nordland_64x32`, summer = reference, winter = query, frames 0-999 "
+        "(1000 x 1000) unless a row says otherwise; gray 32x64. Each figure is the median of "
+        + (f"{repeat} repetitions" if repeat else "`--repeat` repetitions (default 5)")
+        + " in one run. Streaming: a "
+        + f"{data.get('stream_n_places', N_LINE):,}-place map (the 2400 summer frames repeated, "
+        "each copy perturbed: gain, offset, a one-pixel shift, noise), FlyNet trained on it in "
+        f"mini-batches of 512; {data.get('stream_n_queries', '?'):,} winter frames streamed in "
+        "route order, in a process of its own so that its peak memory is its own.",
+        "",
+        "## Machine",
+        "",
+        ", ".join(f"{k} {v}" for k, v in machine.items()) or "not recorded",
+        "",
+        "## Figures",
+        "",
+        "| figure | value | unit | what is timed |",
+        "|---|---|---|---|",
+    ]
+    skip = {"machine", "timing_table", "targets", "repeat", "stream_n_places", "stream_n_queries"}
+    keys = [k for k in FIGURE_NOTES if k in data]
+    keys += [k for k in data if k not in FIGURE_NOTES and k not in skip]
+    for key in keys:
+        unit, note = FIGURE_NOTES.get(key, ("", ""))
+        lines.append(f"| `{key}` | {_figure(data[key])} | {unit} | {note} |")
+    targets = data.get("targets", {})
+    if targets:
+        lines += ["", "## Targets", "", "| target | met |", "|---|---|"]
+        lines += [f"| `{t}` | {'yes' if ok else '**no**'} |" for t, ok in targets.items()]
+    table = data.get("timing_table", {})
+    if table:
+        lines += [
+            "",
+            "## In the paper's form",
+            "",
+            "1000 queries x 1000 references. Feature extraction = decoding the 1000 query PNGs "
+            "(half of `decode_s`) + encoding them; place matching = scoring + temporal filter. "
+            "The paper's figures were measured on other hardware.",
+            "",
+            "| system | feature extraction (s) | place matching (s) | per query (ms) | fps |",
+            "|---|---|---|---|---|",
+        ]
+        for name, row in table.items():
+            for label, r in ((f"{name} (flyvpr)", row), (f"{name} (paper)", PAPER.get(name))):
+                if r is None:
+                    continue
+                lines.append(
+                    f"| {label} | {r['feature_s']:.3g} | {r['matching_s']:.3g} | "
+                    f"{1000 * r['per_query_s']:.3g} | {_figure(r['fps'])} |"
+                )
+    return "\n".join(lines) + "\n"
+
+
 if __name__ == "__main__":
     sys.exit(main())
