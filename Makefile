@@ -1,12 +1,15 @@
 # Two entry points do all the set-up on a fresh machine:
 #   make demo   - create .venv, install flyvpr, run the main job on the built-in route
-#   make test   - create .venv, install flyvpr with its test and torch extras, lint, run the tests
+#   make test   - create .venv, install flyvpr with its test and torch extras, lint, build the docs,
+#                 check the results pages, run the tests
+# Also: make docs (the documentation site, warnings are errors), make results (re-render the
+# results pages and the README's table from the benchmarks' JSON).
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 PIP := $(BIN)/python -m pip install --quiet --disable-pip-version-check
 
-.PHONY: demo test lint bench-accuracy bench-speed clean
+.PHONY: demo test lint docs results bench-accuracy bench-speed clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -17,17 +20,29 @@ $(VENV)/.core: pyproject.toml | $(BIN)/python
 	touch $@
 
 $(VENV)/.test: pyproject.toml | $(BIN)/python
-	$(PIP) -e ".[test,torch,netvlad,plot]"
+	$(PIP) -e ".[test,torch,netvlad,plot,docs]"
+	touch $@ $(VENV)/.core $(VENV)/.docs
+
+$(VENV)/.docs: pyproject.toml | $(BIN)/python
+	$(PIP) -e ".[docs]"
 	touch $@ $(VENV)/.core
 
 demo: $(VENV)/.core
 	$(BIN)/flyvpr demo
 
 lint: $(VENV)/.test
-	$(BIN)/ruff check src tests benchmarks
+	$(BIN)/ruff check src tests benchmarks docs
 
-test: lint
+test: lint docs
 	$(BIN)/python -m pytest -q
+
+# -E: read every page afresh, so a warning in an unchanged page still fails the build.
+docs: $(VENV)/.docs
+	$(BIN)/sphinx-build -b html -E -W --keep-going -n -q docs docs/_build/html
+	@echo "docs: docs/_build/html/index.html"
+
+results: $(VENV)/.core
+	$(BIN)/python docs/generate_results.py
 
 bench-accuracy: $(VENV)/.test
 	$(BIN)/python benchmarks/accuracy.py
@@ -36,4 +51,4 @@ bench-speed: $(VENV)/.core
 	$(BIN)/python benchmarks/speed.py --json benchmarks/speed.json
 
 clean:
-	rm -rf $(VENV) build src/*.egg-info .pytest_cache .ruff_cache
+	rm -rf $(VENV) build src/*.egg-info .pytest_cache .ruff_cache docs/_build docs/api

@@ -18,8 +18,9 @@ DOCS = Path(__file__).resolve().parent
 sys.path.insert(0, str(DOCS.parent / "src"))
 sys.path.insert(0, str(DOCS))
 
-import flyvpr  # noqa: E402
 from api_pages import write_api_pages  # noqa: E402
+
+import flyvpr  # noqa: E402
 
 project = "flyvpr"
 author = "the flyvpr authors"

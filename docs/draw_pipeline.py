@@ -110,7 +110,7 @@ def _packet(x) -> list[str]:
     """A Gaussian bump of activity over a line of place units."""
     x0, w = x + 15, BOX_W - 30
     pts = [
-        f"{x0 + i / 40 * w:.1f},{PIC_Y + 24 - 22 * math.exp(-((i / 40 - 0.62) / 0.08) ** 2):.1f}"
+        f"{x0 + i / 40 * w:.1f},{PIC_Y + 24 - 22 * math.exp(-(((i / 40 - 0.62) / 0.08) ** 2)):.1f}"
         for i in range(41)
     ]
     return [
@@ -139,9 +139,7 @@ def draw() -> str:
     out_x = ends[-1] + GAP + 4
     for i, s in enumerate(OUTPUT):
         size, weight = (14, "bold") if i < 2 else (12, "normal")
-        parts.append(
-            _text(out_x, mid - 14 + 18 * i, s, size=size, weight=weight, anchor="start")
-        )
+        parts.append(_text(out_x, mid - 14 + 18 * i, s, size=size, weight=weight, anchor="start"))
     parts.append("</svg>")
     return "\n".join(parts) + "\n"
 

@@ -87,6 +87,7 @@ def _benchmark_module(name: str):
         return None
     spec = importlib.util.spec_from_file_location(f"_flyvpr_benchmark_{name}", path)
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
     spec.loader.exec_module(module)
     return module
 

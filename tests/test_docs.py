@@ -1,0 +1,139 @@
+"""The documentation: generated pages agree with their data, and the README stays short.
+
+``make docs`` (part of ``make test``) builds the site with warnings as errors; these tests
+check what the build cannot: that every generated page is what its JSON renders to now.
+"""
+
+import copy
+import importlib.util
+import json
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+
+
+def _load(path: Path, name: str):
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def gen():
+    return _load(DOCS / "generate_results.py", "_docs_generate_results")
+
+
+def test_results_pages_and_readme_table_match_their_json(gen):
+    stale = [str(p.relative_to(ROOT)) for p in gen.stale()]
+    assert not stale, f"stale generated files {stale}: run python docs/generate_results.py"
+
+
+def test_every_results_page_is_in_the_generator(gen):
+    pages = {p.stem for p in (DOCS / "results").glob("*.md")} - {"index"}
+    assert pages == {page.name for page in gen.PAGES}
+
+
+def test_pipeline_figure_is_current():
+    draw = _load(DOCS / "draw_pipeline.py", "_docs_draw_pipeline")
+    assert draw.OUT.read_text() == draw.draw(), "run python docs/draw_pipeline.py"
+
+
+def test_readme_is_short_and_speaks_to_users():
+    text = (ROOT / "README.md").read_text()
+    assert len(text.encode()) < 10_000
+    for command in ("make demo", "make test"):
+        assert command in text.split("\n## ")[0], f"{command} must come first in the README"
+
+
+def test_no_issue_numbers_in_readme_or_docs():
+    files = [ROOT / "README.md", ROOT / "CONTRIBUTING.md"]
+    files += [p for p in DOCS.rglob("*") if p.suffix in {".md", ".rst", ".py"}]
+    hits = [
+        f"{p.relative_to(ROOT)}: {m.group(0)}"
+        for p in files
+        if p.is_file() and "_build" not in p.parts
+        for m in re.finditer(r"issue [0-9]", p.read_text(), flags=re.IGNORECASE)
+    ]
+    assert not hits
+
+
+def test_accuracy_numbers_come_from_the_json(gen):
+    data = json.loads((ROOT / "benchmarks" / "accuracy.json").read_text())
+    changed = copy.deepcopy(data)
+    row = next(
+        r
+        for r in gen.accuracy_summary(changed)
+        if r["method"] == "flynet+cann" and r["speed"] == "1x"
+    )
+    row["auc_mean"] = 0.123456
+    line = f"| {row['condition']} | flynet+cann | 1x | "
+
+    def row_of(page):
+        return next(x for x in page.splitlines() if x.startswith(line))
+
+    render = gen.renderer(gen.PAGES[0])
+    assert row_of(render(changed)).startswith(line + "0.123 |")
+    assert not row_of(render(data)).startswith(line + "0.123 |")
+    table = gen.which_method_table(changed, ROOT / "README.md")
+    assert "| `flynet+cann` | 0.12 |" in table
+
+
+def test_which_method_table_links_relative_to_its_file(gen):
+    data = json.loads((ROOT / "benchmarks" / "accuracy.json").read_text())
+    assert "(docs/results/accuracy.md)" in gen.which_method_table(data, ROOT / "README.md")
+    guide = DOCS / "guide" / "methods.md"
+    assert "(../results/accuracy.md)" in gen.which_method_table(data, guide)
+
+
+def test_block_markers_are_required(gen, tmp_path):
+    path = tmp_path / "page.md"
+    path.write_text("# no markers\n")
+    with pytest.raises(ValueError, match="must contain the lines"):
+        gen.render_block(path, {"summary": []})
+
+
+def test_missing_json_gives_a_page_that_says_how_to_make_it(gen):
+    page = gen.Page("x", "X", "benchmarks/does-not-exist.json", "python make_it.py", None)
+    text = gen.render_page(page)
+    assert text.startswith("# X\n") and "Not measured yet" in text and "python make_it.py" in text
+
+
+def test_speed_page_lists_every_figure_of_the_json():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        speed = _load(ROOT / "benchmarks" / "speed.py", "_docs_speed")
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    data = json.loads((ROOT / "benchmarks" / "speed.json").read_text())
+    data = {**data, "new_figure_s": 1.2345, "decode_s": 9.876}
+    page = speed.render_markdown(data)
+    assert "| `new_figure_s` | 1.234 |" in page or "| `new_figure_s` | 1.235 |" in page
+    assert "| `decode_s` | 9.876 |" in page
+    assert data["machine"]["cpu"] in page
+    assert not re.search(r"^# ", page, flags=re.MULTILINE), "headings start at level 2"
+
+
+def test_api_pages_document_every_public_name_once(tmp_path):
+    sys.path.insert(0, str(DOCS))
+    try:
+        api = _load(DOCS / "api_pages.py", "_docs_api_pages")
+        names = api.write_api_pages(tmp_path)
+    finally:
+        sys.path.remove(str(DOCS))
+    assert "flyvpr" in names and "flyvpr.frontends" in names
+    text = "".join((tmp_path / f"{n}.rst").read_text() for n in names)
+    documented = re.findall(r"^\.\. auto(?:class|function|data|exception):: (\S+)", text, re.M)
+    assert len(documented) == len(set(documented))
+    import flyvpr.frontends
+    import flyvpr.temporal
+
+    for package in (flyvpr.frontends, flyvpr.temporal):
+        for name in package.__all__:
+            assert f"{package.__name__}.{name}" in documented
