@@ -68,9 +68,9 @@ def resolve_short_reference(app, env, node, contnode):
     The candidates are the documented objects with the target's last name.  If the target
     imports (as written, or relative to the current module or class), only the candidates
     that are that same object stay.  Then the candidates in the current class, else those
-    defined in the current module, then the class that defines a method rather than inherits it,
-    are preferred.  Anything else stays unresolved, and
-    ``-n -W`` fails the build.
+    defined in the current module, else those documented inside the current package, then the
+    class that defines a method rather than inherits it, are preferred.  Anything else stays
+    unresolved, and ``-n -W`` fails the build.
     """
     if node.get("refdomain") != "py":
         return None
@@ -88,6 +88,7 @@ def resolve_short_reference(app, env, node, contnode):
         lambda n: n.endswith(f".{target}"),
         lambda n: bool(cls) and n.endswith(f".{cls}.{last}"),
         lambda n: _defined_in(n, module),
+        lambda n: bool(module) and n.startswith(f"{module}."),
         _defines,
     ):
         if len(found) > 1:

@@ -18,6 +18,8 @@ differs from what this script renders.
 from __future__ import annotations
 
 import argparse
+import functools
+import importlib
 import importlib.util
 import json
 import os
@@ -80,11 +82,16 @@ PAGES = [
 ]
 
 
+@functools.lru_cache(maxsize=None)
 def _benchmark_module(name: str):
     """``benchmarks/<name>.py`` as a module, or None where it does not exist."""
     path = ROOT / "benchmarks" / f"{name}.py"
     if not path.is_file():
         return None
+    if (ROOT / "benchmarks" / "__init__.py").is_file():  # a package: import it as one
+        if str(ROOT) not in sys.path:
+            sys.path.insert(0, str(ROOT))
+        return importlib.import_module(f"benchmarks.{name}")
     spec = importlib.util.spec_from_file_location(f"_flyvpr_benchmark_{name}", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses look their module up there
