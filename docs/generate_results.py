@@ -82,7 +82,7 @@ PAGES = [
 ]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _benchmark_module(name: str):
     """``benchmarks/<name>.py`` as a module, or None where it does not exist."""
     path = ROOT / "benchmarks" / f"{name}.py"

@@ -119,7 +119,7 @@ def register(sub) -> None:
         help="fit a method on a reference traverse and score a query traverse",
         description=(
             "Fit METHOD on the reference traverse, score every query frame against every "
-            "reference place, and report PR-AUC, Recall@1/5/10 and recall at 100%% precision. "
+            "reference place, and report PR-AUC, Recall@1/5/10 and recall at 100% precision. "
             "Each query's best reference is its prediction, with that score as confidence."
         ),
     )
