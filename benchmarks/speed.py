@@ -342,7 +342,7 @@ FIGURE_NOTES = {
     "stream_per_query_ms": ("ms", "the same per frame"),
     "stream_peak_rss_mb": ("MiB", "peak resident memory of that streaming process"),
     "stream_map_build_s": ("s", "building that map: FlyNet mini-batch training"),
-    "stream_same_place_within_20_share": ("", "share of streamed frames within 20 places"),
+    "stream_same_place_within_20_share": ("share", "streamed frames within 20 places"),
 }
 
 
@@ -377,7 +377,7 @@ def render_markdown(data: dict) -> str:
         "",
         "## Machine",
         "",
-        ", ".join(f"{k} {v}" for k, v in machine.items()) or "not recorded",
+        "; ".join(f"{k}: {v}" for k, v in machine.items()) or "Not recorded in this JSON.",
         "",
         "## Figures",
         "",

@@ -179,7 +179,7 @@ def _accuracy_adapter(data: dict) -> str:
         "",
         "## Machine",
         "",
-        ", ".join(f"{k} {v}" for k, v in data["machine"].items())
+        "; ".join(f"{k}: {v}" for k, v in data["machine"].items())
         if "machine" in data
         else "Not recorded in this JSON.",
         "",
