@@ -69,7 +69,7 @@ PAGES = [
         "paper",
         "The paper's experiments",
         "benchmarks/paper-experiment.json",
-        "flyvpr experiment experiments/paper.toml --out results/paper --jobs 2, then "
+        "flyvpr experiment experiments/paper.toml --out results/paper --jobs 2 && "
         "python docs/generate_results.py --paper-from results/paper",
     ),
     Page(
@@ -216,7 +216,58 @@ def _accuracy_adapter(data: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-ADAPTERS: dict[str, Callable[[dict], str]] = {"accuracy": _accuracy_adapter}
+# -- the paper's experiments --------------------------------------------------------------------
+
+PAPER_CONFIG = "experiments/paper.toml"
+
+
+def paper_summary(results_dir) -> dict:
+    """The paper page's JSON from a results folder of ``flyvpr experiment``.
+
+    The blocks of the report ``flyvpr report`` writes (headings, paragraphs, lists, tables),
+    built without figures: the figures stay in the run's own HTML report.  Left out: the
+    report's title (the page has its own), its table of contents (the site shows one) and
+    the config's text (it is in the repository).
+    """
+    from flyvpr.experiments import report
+
+    config, experiment, records = report.load_results(results_dir)
+    # The report's own assembly of blocks; the experiments package has no public name for it.
+    document = report._build(config, experiment, records, figures=False)
+    config_path = Path(experiment.get("config_path") or PAPER_CONFIG)
+    shown = (
+        config_path.relative_to(ROOT).as_posix()
+        if config_path.is_relative_to(ROOT)
+        else "/".join(config_path.parts[-2:])
+    )
+    blocks, skip = [], False
+    for block in document.blocks[1:]:
+        if block["type"] == "heading":
+            skip = block["text"] == "Contents" or block["text"] == "Configuration"
+        if skip or block["type"] in ("code", "figure"):
+            continue
+        if block["type"] == "para":
+            block = {**block, "text": block["text"].replace(str(config_path), shown)}
+        blocks.append(block)
+    return {"title": document.title, "config": shown, "blocks": blocks}
+
+
+def _paper_adapter(data: dict) -> str:
+    """The paper page: the report's blocks through the report's own Markdown template."""
+    from flyvpr.experiments.document import Document
+
+    note = (
+        f"The tables of `flyvpr report` for `{data['config']}`. The figures (training curves, "
+        "sensitivity, precision-recall curves, AUC against model size, example queries) are "
+        "in the HTML report of the run: `flyvpr report DIR` writes `DIR/report.html`.\n\n"
+    )
+    return note + Document(data["title"], data["blocks"]).markdown("figures")
+
+
+ADAPTERS: dict[str, Callable[[dict], str]] = {
+    "accuracy": _accuracy_adapter,
+    "paper": _paper_adapter,
+}
 
 
 # -- the README's table -------------------------------------------------------------------------
@@ -294,7 +345,18 @@ def stale() -> list[Path]:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--check", action="store_true", help="only report stale files")
+    parser.add_argument(
+        "--paper-from",
+        type=Path,
+        metavar="DIR",
+        help=f"first write {PAGES[2].json} from this results folder of flyvpr experiment",
+    )
     args = parser.parse_args(argv)
+    if args.paper_from is not None:
+        from flyvpr._io import write_json_atomic
+
+        write_json_atomic(ROOT / PAGES[2].json, paper_summary(args.paper_from))
+        print(f"wrote {PAGES[2].json}")
     if args.check:
         old = stale()
         for path in old:
