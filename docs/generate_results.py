@@ -132,7 +132,7 @@ def render_page(page: Page) -> str:
         )
     else:
         head += [
-            f"Every number on this page comes from `{page.json}`, written by "
+            f"The tables on this page come from `{page.json}`, written by "
             f"`{page.command}`; `python docs/generate_results.py` renders the page from it.",
             "",
         ]
