@@ -45,7 +45,7 @@ the package's data contract: images are float32 ``(N, H, W)`` gray in [0, 1]; a 
 matrix of ``S``'s shape.
 
 .. toctree::
-   :maxdepth: 1
+   :hidden:
 
 """
 
@@ -145,7 +145,10 @@ def write_api_pages(out: Path) -> list[str]:
     pages["flyvpr"] = _reexports_page(importlib.import_module("flyvpr"), documented)
     for name in names:
         _write_if_changed(out / f"{name}.rst", pages[name])
-    index = INTRO + "".join(f"   {n}\n" for n in names)
+    index = INTRO + "".join(f"   {n}\n" for n in names) + "\n"
+    for name in names:
+        doc = (importlib.import_module(name).__doc__ or "").strip()
+        index += f"* :mod:`{name}`: {doc.splitlines()[0] if doc else ''}\n"
     _write_if_changed(out / "index.rst", index)
     return names
 
