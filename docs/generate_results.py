@@ -99,8 +99,14 @@ def _benchmark_module(name: str):
     return module
 
 
-def renderer(page: Page) -> Callable[[dict], str]:
-    """The benchmark's ``render_markdown``, else the adapter of this script for that page."""
+def renderer(page: Page, data: dict | None = None) -> Callable[[dict], str]:
+    """The benchmark's ``render_markdown``, else the adapter of this script for that page.
+
+    An accuracy JSON of the earlier benchmark (no ``conditions``) goes to the adapter: the
+    committed file stays readable until the benchmark is run again.
+    """
+    if page.name == "accuracy" and data is not None and "conditions" not in data:
+        return ADAPTERS["accuracy"]
     module = _benchmark_module(page.module) if page.module else None
     if module is not None and hasattr(module, "render_markdown"):
         return module.render_markdown
@@ -136,21 +142,27 @@ def render_page(page: Page) -> str:
             f"`{page.command}`; `python docs/generate_results.py` renders the page from it.",
             "",
         ]
-        body = renderer(page)(data)
+        body = renderer(page, data)(data)
     return "\n".join(head) + "\n" + body.rstrip("\n") + "\n"
 
 
-# -- adapters for benchmarks that do not have render_markdown yet ------------------------------
+# -- the earlier accuracy benchmark's JSON -------------------------------------------------------
+# Until benchmarks/accuracy.json is written again by today's benchmark, the committed file has
+# the earlier format (summary rows with a ``speed``, no ``conditions``).  Delete this section
+# (and the legacy branches of ``renderer`` and ``accuracy_cells``) once it has been re-run.
 
-
-def accuracy_summary(data: dict) -> list[dict]:
-    """Rows ``condition, method, speed, n_seeds, auc_mean, auc_min, r1_mean, r1_min``."""
-    return data["summary"]
+#: the earlier benchmark's conditions, in the order of its ``protocols``
+_LEGACY_CONDITIONS = [
+    "nordland64 s->w 0-999",
+    "nordland64 s->w 1000-1999",
+    "subset100 s->f",
+    "subset100 s->w",
+]
 
 
 def _accuracy_adapter(data: dict) -> str:
-    """The accuracy page from the JSON of ``benchmarks/accuracy.py`` (before render_markdown)."""
-    names = [c[0] for c in _benchmark_module("accuracy").CONDITIONS]
+    """The accuracy page from a JSON of the earlier ``benchmarks/accuracy.py``."""
+    names = _LEGACY_CONDITIONS
     lines = [
         "## Protocol",
         "",
@@ -188,7 +200,7 @@ def _accuracy_adapter(data: dict) -> str:
         "| condition | method | speed | AUC mean | AUC min | R@1 mean | R@1 min |",
         "|---|---|---|---|---|---|---|",
     ]
-    for t in accuracy_summary(data):
+    for t in data["summary"]:
         lines.append(
             f"| {t['condition']} | {t['method']} | {t['speed']} | {t['auc_mean']:.3f} | "
             f"{t['auc_min']:.3f} | {t['r1_mean']:.3f} | {t['r1_min']:.3f} |"
@@ -229,11 +241,11 @@ def paper_summary(results_dir) -> dict:
     report's title (the page has its own), its table of contents (the site shows one) and
     the config's text (it is in the repository).
     """
-    from flyvpr.experiments import report
+    from flyvpr.experiments.records import read_experiment
+    from flyvpr.experiments.report import build_report
 
-    config, experiment, records = report.load_results(results_dir)
-    # The report's own assembly of blocks; the experiments package has no public name for it.
-    document = report._build(config, experiment, records, figures=False)
+    document = build_report(results_dir, figures=False)
+    experiment = read_experiment(Path(results_dir) / "experiment.json")
     config_path = Path(experiment.get("config_path") or PAPER_CONFIG)
     shown = (
         config_path.relative_to(ROOT).as_posix()
@@ -270,15 +282,44 @@ ADAPTERS: dict[str, Callable[[dict], str]] = {
 }
 
 
-# -- the README's table -------------------------------------------------------------------------
+# -- the "which method" table of the README and the methods guide -------------------------------
 
-#: (column title, condition, speed) of the README's table
+#: columns: (title, condition key in the accuracy JSON)
 WHICH_METHOD_COLUMNS = [
-    ("AUC, frames 0-999", "nordland64 s->w 0-999", "1x"),
-    ("AUC, frames 1000-1999", "nordland64 s->w 1000-1999", "1x"),
-    ("AUC at 1-1.5x speed, 0-999", "nordland64 s->w 0-999", "1-1.5x"),
-    ("AUC at 2x speed, 0-999", "nordland64 s->w 0-999", "2x"),
+    ("AUC, frames 0-999", "n64-0@20"),
+    ("AUC, frames 1000-1999", "n64-1000@20"),
+    ("AUC at 1-1.5x speed, 0-999", "n64-0-1-1.5x@20"),
+    ("AUC at 2x speed, 0-999", "n64-0-2x@20"),
 ]
+#: rows: (method label in the accuracy JSON, as the table shows it), those the JSON has
+WHICH_METHOD_ROWS = [
+    ("pixels", "`pixels`"),
+    ("flynet", "`flynet`"),
+    ("seqslam-20", "`seqslam`"),
+    ("seqslam-20 v0.75-2", "`seqslam`, speeds 0.75-2"),
+    ("flynet+seqslam", "`flynet+seqslam`"),
+    ("flynet+rnn", "`flynet+rnn`"),
+    ("flynet+cann", "`flynet+cann`"),
+    ("pixels+cann", "`pixels+cann`"),
+    ("netvlad+cann", "`netvlad+cann`"),
+]
+
+
+def accuracy_cells(data: dict) -> dict[tuple[str, str], tuple[float, int]]:
+    """(condition key, method label) -> (mean AUC over the seeds, number of seeds)."""
+    if "conditions" in data:
+        return {
+            (s["condition"], s["method"]): (s["auc_mean"], len(s["seeds"])) for s in data["summary"]
+        }
+    # The earlier benchmark's JSON, its names in today's terms.
+    windows = {"nordland64 s->w 0-999": "n64-0", "nordland64 s->w 1000-1999": "n64-1000"}
+    cells = {}
+    for s in data["summary"]:
+        if s["condition"] in windows:
+            view = windows[s["condition"]] + ("" if s["speed"] == "1x" else f"-{s['speed']}")
+            label = "seqslam-20" if s["method"] == "seqslam" else s["method"]
+            cells[(f"{view}@20", label)] = (s["auc_mean"], s["n_seeds"])
+    return cells
 
 
 def which_method_table(data: dict, where: Path) -> str:
@@ -290,27 +331,34 @@ def which_method_table(data: dict, where: Path) -> str:
     def link(path: str) -> str:
         return os.path.relpath(ROOT / path, where.parent)
 
-    summary = accuracy_summary(data)
-    cell = {(t["condition"], t["speed"], t["method"]): t for t in summary}
-    conditions = {c for _, c, _ in WHICH_METHOD_COLUMNS}
-    methods = list(dict.fromkeys(t["method"] for t in summary if t["condition"] in conditions))
-    seeds = sorted({t["n_seeds"] for t in summary if t["condition"] in conditions})
+    cells = accuracy_cells(data)
+    columns = [key for _, key in WHICH_METHOD_COLUMNS]
+    rows = [(m, shown) for m, shown in WHICH_METHOD_ROWS if any((c, m) in cells for c in columns)]
     lines = [
-        "| method | " + " | ".join(title for title, _, _ in WHICH_METHOD_COLUMNS) + " |",
-        "|---|" + "---|" * len(WHICH_METHOD_COLUMNS),
+        "| method | " + " | ".join(title for title, _ in WHICH_METHOD_COLUMNS) + " |",
+        "|---|" + "---|" * len(columns),
     ]
-    for m in methods:
-        values = [cell.get((c, s, m)) for _, c, s in WHICH_METHOD_COLUMNS]
-        row = " | ".join("-" if v is None else f"{v['auc_mean']:.2f}" for v in values)
-        lines.append(f"| `{m}` | {row} |")
+    seeds: dict[str, set] = {}
+    for m, shown in rows:
+        values = [cells.get((c, m)) for c in columns]
+        seeds[shown] = {v[1] for v in values if v is not None}
+        row = " | ".join("-" if v is None else f"{v[0]:.2f}" for v in values)
+        lines.append(f"| {shown} | {row} |")
+    counts = [n for found in seeds.values() for n in found]
+    usual = max(set(counts), key=counts.count)
+    others = [
+        f"{shown}: {'/'.join(map(str, sorted(found)))}"
+        for shown, found in seeds.items()
+        if found != {usual}
+    ]
     lines += [
         "",
         f"Nordland 64x32 ([`nordland_64x32`]({link('docs/guide/datasets.md')})), "
-        "summer = reference, "
-        "winter = query, tolerance 20 frames; AUC of the precision-recall curve, mean over "
-        f"{'/'.join(map(str, seeds))} seeds (`-`: not run at that speed). Generated from "
-        "`benchmarks/accuracy.json`; protocol and every row: "
-        f"[the accuracy results]({link('docs/results/accuracy.md')}).",
+        "summer = reference, winter = query, tolerance 20 frames; AUC of the precision-recall "
+        f"curve, mean over {usual} seeds"
+        + (f" ({', '.join(others)})" if others else "")
+        + "; `-`: not run there. Generated from `benchmarks/accuracy.json`; protocol and every "
+        f"row: [the accuracy results]({link('docs/results/accuracy.md')}).",
     ]
     return "\n".join(lines)
 

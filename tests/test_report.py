@@ -374,3 +374,12 @@ def test_every_result_file_follows_the_umask(report, results):
     assert names == expected
     assert {p: p.stat().st_mode & 0o777 for p in written} == {p: 0o666 & ~umask for p in written}
     assert not [p for p in written if p.name.endswith(".tmp")]
+
+
+def test_build_report_writes_nothing(results):
+    from flyvpr.experiments.report import build_report
+
+    before = sorted(p.name for p in results.iterdir())
+    doc = build_report(results, figures=False)
+    assert sorted(p.name for p in results.iterdir()) == before
+    assert doc.figures == {} and any(b["type"] == "table" for b in doc.blocks)

@@ -27,7 +27,7 @@ from .document import Document
 from .records import read_experiment, read_run
 from .sections import SECTIONS, GridRuns
 
-__all__ = ["write_report", "load_results"]
+__all__ = ["write_report", "build_report", "load_results"]
 
 logger = logging.getLogger(__name__)
 
@@ -299,6 +299,38 @@ def _machines_section(doc: Document, records: dict, sessions: list[dict]) -> Non
     )
 
 
+def build_report(results_dir, figures: bool = True) -> Document:
+    """The report of a results folder as blocks, without writing anything.
+
+    Parameters
+    ----------
+    results_dir : str or Path
+        The ``--out`` folder of ``flyvpr experiment``.
+    figures : bool
+        Draw the figures (needs matplotlib, the ``plot`` extra).
+
+    Returns
+    -------
+    Document
+        Its ``blocks`` hold the report's headings, paragraphs, lists and tables
+        (``docs/generate_results.py`` keeps them as the paper page's data);
+        ``html()`` and ``markdown()`` render it.
+
+    Raises
+    ------
+    FileNotFoundError, ValueError
+        As :func:`load_results`.
+    ImportError
+        If ``figures`` is true and matplotlib is not installed.
+    """
+    if figures:
+        from .plots import require_matplotlib
+
+        require_matplotlib()
+    config, experiment, records = load_results(results_dir)
+    return _build(config, experiment, records, figures)
+
+
 def write_report(results_dir, figures: bool = True) -> tuple[Path, Path]:
     """Write ``report.html`` (self-contained) and ``report.md`` into a results folder.
 
@@ -323,13 +355,8 @@ def write_report(results_dir, figures: bool = True) -> tuple[Path, Path]:
         If ``figures`` is true and matplotlib is not installed (the message
         names ``pip install 'flyvpr[plot]'``).
     """
-    if figures:
-        from .plots import require_matplotlib
-
-        require_matplotlib()
     results_dir = Path(results_dir)
-    config, experiment, records = load_results(results_dir)
-    doc = _build(config, experiment, records, figures)
+    doc = build_report(results_dir, figures)
     fig_dir = results_dir / "figures"
     if doc.figures:
         fig_dir.mkdir(exist_ok=True)
