@@ -34,6 +34,9 @@ API_MODULES = [
     "flyvpr.synthetic",
 ]
 
+#: special methods documented where a class defines them with a docstring (a source is iterable)
+SPECIAL_MEMBERS = "__call__, __iter__, __len__, __getitem__"
+
 INTRO = """\
 API reference
 =============
@@ -94,7 +97,12 @@ def _automodule(module, members: list[str], heading: str) -> str:
         obj = getattr(module, member)
         if inspect.isclass(obj) and not issubclass(obj, BaseException):
             # Encoders and filters show the calls they inherit (fit, score, filter, step, ...).
-            lines += [f".. autoclass:: {name}.{member}", "   :members:", "   :inherited-members:"]
+            lines += [
+                f".. autoclass:: {name}.{member}",
+                "   :members:",
+                "   :inherited-members:",
+                f"   :special-members: {SPECIAL_MEMBERS}",
+            ]
         elif inspect.isclass(obj):
             lines += [f".. autoexception:: {name}.{member}"]
         elif callable(obj):

@@ -47,8 +47,8 @@ nitpicky = True
 # No intersphinx: the build must not need the network, so names from other projects stay text.
 nitpick_ignore_regex = [
     (r"py:.*", r"(dataclasses|numpy|np|scipy|torch|joblib|matplotlib|pathlib|argparse)\..*"),
-    # Private helpers (``flyvpr._validation...``) are not part of the documented API.
-    (r"py:.*", r"flyvpr(\.\w+)*\._\w+.*"),
+    # Private modules and helpers (``flyvpr._validation...``, ``_jit``) are not documented.
+    (r"py:.*", r"(flyvpr(\.\w+)*\.)?_[a-z]\w*(\.\w+)*"),
 ]
 
 # -- MyST ----------------------------------------------------------------------------------------

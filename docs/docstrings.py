@@ -78,7 +78,11 @@ def resolve_short_reference(app, env, node, contnode):
     module, cls = node.get("py:module"), node.get("py:class")
     domain = env.get_domain("py")
     last = target.rpartition(".")[2]
-    same_name = [n for n in domain.objects if n.rpartition(".")[2] == last]
+    # Canonical aliases (the defining module's path of an object documented elsewhere) are
+    # the same object under a second name: the documented name is the one to link.
+    same_name = [
+        n for n, e in domain.objects.items() if n.rpartition(".")[2] == last and not e.aliased
+    ]
     found = same_name
     scopes = [target] + [f"{s}.{target}" for s in (f"{module}.{cls}", module) if s]
     wanted = next((obj for obj in map(_resolve, scopes) if obj is not None), None)
