@@ -233,13 +233,14 @@ def _accuracy_adapter(data: dict) -> str:
 PAPER_CONFIG = "experiments/paper.toml"
 
 
-def paper_summary(results_dir) -> dict:
+def paper_summary(results_dir, note: str = "") -> dict:
     """The paper page's JSON from a results folder of ``flyvpr experiment``.
 
     The blocks of the report ``flyvpr report`` writes (headings, paragraphs, lists, tables),
     built without figures: the figures stay in the run's own HTML report.  Left out: the
     report's title (the page has its own), its table of contents (the site shows one) and
-    the config's text (it is in the repository).
+    the config's text (it is in the repository).  ``note`` says what the report cannot know
+    (the load on the machine, the code's provenance); the page prints it first.
     """
     from flyvpr.experiments.records import read_experiment
     from flyvpr.experiments.report import build_report
@@ -261,7 +262,7 @@ def paper_summary(results_dir) -> dict:
         if block["type"] == "para":
             block = {**block, "text": block["text"].replace(str(config_path), shown)}
         blocks.append(block)
-    return {"title": document.title, "config": shown, "blocks": blocks}
+    return {"title": document.title, "config": shown, "note": note, "blocks": blocks}
 
 
 def _paper_adapter(data: dict) -> str:
@@ -273,6 +274,8 @@ def _paper_adapter(data: dict) -> str:
         "sensitivity, precision-recall curves, AUC against model size, example queries) are "
         "in the HTML report of the run: `flyvpr report DIR` writes `DIR/report.html`.\n\n"
     )
+    if data.get("note"):
+        note += f"**How this run was made.** {data['note']}\n\n"
     return note + Document(data["title"], data["blocks"]).markdown("figures")
 
 
@@ -399,11 +402,17 @@ def main(argv=None) -> int:
         metavar="DIR",
         help=f"first write {PAGES[2].json} from this results folder of flyvpr experiment",
     )
+    parser.add_argument(
+        "--paper-note",
+        default="",
+        metavar="TEXT",
+        help="with --paper-from: how the run was made (machine load, code), shown on the page",
+    )
     args = parser.parse_args(argv)
     if args.paper_from is not None:
         from flyvpr._io import write_json_atomic
 
-        write_json_atomic(ROOT / PAGES[2].json, paper_summary(args.paper_from))
+        write_json_atomic(ROOT / PAGES[2].json, paper_summary(args.paper_from, args.paper_note))
         print(f"wrote {PAGES[2].json}")
     if args.check:
         old = stale()
