@@ -51,6 +51,9 @@ nitpick_ignore_regex = [
     (r"py:.*", r"(flyvpr(\.\w+)*\.)?_[a-z]\w*(\.\w+)*"),
 ]
 
+# Text keeps "--" and quotes as typed: prose names options such as --jobs.
+smartquotes = False
+
 # -- MyST ----------------------------------------------------------------------------------------
 myst_enable_extensions = ["colon_fence", "dollarmath"]
 myst_heading_anchors = 3
