@@ -5,6 +5,7 @@ Usage::
     python benchmarks/accuracy.py [--data ../shared/data] [--seeds 0 1 ... 9] [--jobs N]
                                   [--json FILE] [--markdown FILE] [--quick]
                                   [--views KEY ...] [--methods LABEL ...] [--list]
+                                  [--merge EARLIER.json]
 
 What it measures (the tables live in ``benchmarks/accuracy_setup.py``; adding a method is one
 line in ``METHODS`` there):
@@ -46,6 +47,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the ``benchmarks`` package importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.accuracy_merge import load_previous, merge_runs  # noqa: E402
 from benchmarks.accuracy_report import render_markdown, render_text, summarise  # noqa: E402
 from benchmarks.accuracy_run import (  # noqa: E402
     EVIDENCE_FRAMES,
@@ -189,6 +191,12 @@ def _parse(argv):
     p.add_argument("--no-kidnap", action="store_true", help="skip the kidnap test")
     p.add_argument("--json", type=Path, help="write everything as JSON")
     p.add_argument("--markdown", type=Path, help="write the Markdown tables")
+    p.add_argument(
+        "--merge",
+        type=Path,
+        metavar="FILE",
+        help="keep the methods this run does not run from an earlier JSON (same seeds)",
+    )
     p.add_argument("--list", action="store_true", help="list the views and methods, then exit")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     args = p.parse_args(argv)
@@ -226,6 +234,13 @@ def main(argv=None) -> int:
         return 1
     views = [views_by_key[k] for k in (args.views or views_by_key)]
     entries, skipped = _available([methods_by_label[k] for k in (args.methods or methods_by_label)])
+    previous = None
+    if args.merge is not None:
+        try:
+            previous = load_previous(args.merge, list(args.seeds))
+        except ValueError as exc:
+            print(exc, file=sys.stderr)
+            return 1
     tasks = build_tasks(args, views, entries)
     log = (lambda *_: None) if args.quiet else (lambda s: print(s, flush=True))
     log(f"{len(tasks)} tasks (data set x seed), {len(entries)} methods, {len(views)} views")
@@ -281,6 +296,10 @@ def main(argv=None) -> int:
         "task_cpu_seconds": {f"{r['dataset']}/{r['seed']}": r["cpu_seconds"] for r in results},
         "elapsed_s": time.perf_counter() - t_start,
     }
+    if previous is not None:
+        conditions = [c["key"] for c in _conditions(VIEWS, {})]
+        data = merge_runs(previous, data, [m.label for m in METHODS], conditions)
+        data["summary"] = summarise(data["rows"])
     print()
     print(render_text(data))
     if args.json:

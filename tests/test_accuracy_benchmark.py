@@ -257,3 +257,51 @@ def test_render_markdown_refuses_other_documents():
         del row["extended_precision"]
     with pytest.raises(ValueError, match="older benchmarks/accuracy.py"):
         accuracy_report.render_markdown(old)
+
+
+def _doc(methods, seeds=(0, 1), conditions=("a@20", "b@20"), auc=0.5, cmd="x"):
+    rows = [
+        {"condition": c, "method": m, "seed": s, "auc": auc}
+        for c in conditions
+        for m in methods
+        for s in seeds
+    ]
+    return {
+        "benchmark": "flyvpr accuracy",
+        "command": [cmd],
+        "seeds": list(seeds),
+        "methods": [{"label": m} for m in methods],
+        "conditions": [{"key": c} for c in conditions],
+        "rows": rows,
+        "kidnap": [{"method": m, "frames": [1]} for m in methods],
+        "evidence": [{"view": "a", "frontend": m.split("+")[0]} for m in methods],
+        "bytes_per_place": {m: 8 for m in methods},
+        "errors": [],
+        "elapsed_s": 10.0,
+    }
+
+
+def test_merge_replaces_rerun_methods_and_keeps_the_rest(tmp_path):
+    from benchmarks.accuracy_merge import load_previous, merge_runs
+
+    old = _doc(["p", "q+cann"], auc=0.1, cmd="old")
+    new = _doc(["q+cann"], auc=0.9, cmd="new")
+    new["bytes_per_place"] = {"q+cann": 4}
+    merged = merge_runs(old, new, ["q+cann", "p"], ["b@20", "a@20"])
+    assert [m["label"] for m in merged["methods"]] == ["q+cann", "p"]
+    by = {(r["condition"], r["method"], r["seed"]): r["auc"] for r in merged["rows"]}
+    assert len(by) == len(merged["rows"]) == 8  # no duplicates
+    assert by[("a@20", "q+cann", 1)] == 0.9 and by[("a@20", "p", 0)] == 0.1
+    assert [r["condition"] for r in merged["rows"]][:4] == ["b@20"] * 4  # condition order
+    assert merged["bytes_per_place"] == {"p": 8, "q+cann": 4}
+    assert sorted(k["method"] for k in merged["kidnap"]) == ["p", "q+cann"]
+    assert [p["command"] for p in merged["parts"]] == [["old"], ["new"]]
+    assert merged["elapsed_s"] == 20.0
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(old))
+    assert load_previous(path, [0, 1])["rows"] == old["rows"]
+    with pytest.raises(ValueError, match="seeds"):
+        load_previous(path, [0, 1, 2])
+    path.write_text("{}")
+    with pytest.raises(ValueError, match="not a flyvpr accuracy"):
+        load_previous(path, [0, 1])
