@@ -176,6 +176,13 @@ DATASETS: list[Dataset] = [
         reference="winter",
         query="summer",
     ),
+    _nordland(
+        "n64-300",
+        "Nordland 64x32 summer->winter 300-499 (a short route)",
+        300,
+        200,
+        tuning="inside the tuning window 0-999",
+    ),
     Dataset(
         "sub-sf",
         "subset100 summer->fall",
@@ -268,6 +275,15 @@ VIEWS: list[View] = [
         (20,),
         "shuffle",
         note="no sequence left: a filter should fall back to its front end's evidence, no lower",
+    ),
+    View(
+        "short-300",
+        "n64-300",
+        "N64 s->w 300-499, a short route",
+        "control",
+        (20,),
+        note="200 frames: sequences clipped at the route's start must not win by having fewer "
+        "terms; no sequence filter should put more than 10% of the frames on one place",
     ),
     View(
         "offset-300",

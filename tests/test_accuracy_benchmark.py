@@ -271,9 +271,9 @@ def _doc(methods, seeds=(0, 1), conditions=("a@20", "b@20"), auc=0.5, cmd="x"):
         "command": [cmd],
         "seeds": list(seeds),
         "methods": [{"label": m} for m in methods],
-        "conditions": [{"key": c} for c in conditions],
+        "conditions": [{"key": c, "view_key": c.split("@")[0]} for c in conditions],
         "rows": rows,
-        "kidnap": [{"method": m, "frames": [1]} for m in methods],
+        "kidnap": [{"method": m, "view": "a", "frames": [1]} for m in methods],
         "evidence": [{"view": "a", "frontend": m.split("+")[0]} for m in methods],
         "bytes_per_place": {m: 8 for m in methods},
         "errors": [],
@@ -297,6 +297,13 @@ def test_merge_replaces_rerun_methods_and_keeps_the_rest(tmp_path):
     assert sorted(k["method"] for k in merged["kidnap"]) == ["p", "q+cann"]
     assert [p["command"] for p in merged["parts"]] == [["old"], ["new"]]
     assert merged["elapsed_s"] == 20.0
+    # A run of one view replaces that view's rows only.
+    part = _doc(["p"], conditions=("a@20",), auc=0.7, cmd="part")
+    again = merge_runs(merged, part, ["q+cann", "p"], ["b@20", "a@20"])
+    by = {(r["condition"], r["method"], r["seed"]): r["auc"] for r in again["rows"]}
+    assert len(by) == len(again["rows"]) == 8
+    assert by[("a@20", "p", 0)] == 0.7 and by[("b@20", "p", 0)] == 0.1
+    assert by[("a@20", "q+cann", 0)] == 0.9
     path = tmp_path / "old.json"
     path.write_text(json.dumps(old))
     assert load_previous(path, [0, 1])["rows"] == old["rows"]
