@@ -100,13 +100,7 @@ def _benchmark_module(name: str):
 
 
 def renderer(page: Page, data: dict | None = None) -> Callable[[dict], str]:
-    """The benchmark's ``render_markdown``, else the adapter of this script for that page.
-
-    An accuracy JSON of the earlier benchmark (no ``conditions``) goes to the adapter: the
-    committed file stays readable until the benchmark is run again.
-    """
-    if page.name == "accuracy" and data is not None and "conditions" not in data:
-        return ADAPTERS["accuracy"]
+    """The benchmark's ``render_markdown``, else the adapter of this script for that page."""
     module = _benchmark_module(page.module) if page.module else None
     if module is not None and hasattr(module, "render_markdown"):
         return module.render_markdown
@@ -144,88 +138,6 @@ def render_page(page: Page) -> str:
         ]
         body = renderer(page, data)(data)
     return "\n".join(head) + "\n" + body.rstrip("\n") + "\n"
-
-
-# -- the earlier accuracy benchmark's JSON -------------------------------------------------------
-# Until benchmarks/accuracy.json is written again by today's benchmark, the committed file has
-# the earlier format (summary rows with a ``speed``, no ``conditions``).  Delete this section
-# (and the legacy branches of ``renderer`` and ``accuracy_cells``) once it has been re-run.
-
-#: the earlier benchmark's conditions, in the order of its ``protocols``
-_LEGACY_CONDITIONS = [
-    "nordland64 s->w 0-999",
-    "nordland64 s->w 1000-1999",
-    "subset100 s->f",
-    "subset100 s->w",
-]
-
-
-def _accuracy_adapter(data: dict) -> str:
-    """The accuracy page from a JSON of the earlier ``benchmarks/accuracy.py``."""
-    names = _LEGACY_CONDITIONS
-    lines = [
-        "## Protocol",
-        "",
-        "Nordland; summer is the reference traverse (the only one anything is trained on), "
-        "winter or fall the query; ground truth is frame-aligned within a tolerance. Images gray "
-        "32x64, area-averaged. AUC is the area under the precision-recall curve of each query's "
-        "best match; R@1 is Recall@1 (see the metrics guide). "
-        f"Seeds {data['seeds']} (the seed of FlyNet's connections and weights, the RNN and "
-        "the speed profile); `pixels` and `seqslam` are deterministic.",
-        "",
-        "| condition | data | reference -> query | frames | tolerance |",
-        "|---|---|---|---|---|",
-    ]
-    for name, proto in zip(names, data["protocols"], strict=False):
-        first, count = proto["first"], proto["count"]
-        lines.append(
-            f"| {name} | `{Path(proto['root']).name}` | {proto['reference']} -> {proto['query']} "
-            f"| positions {first}-{first + count - 1} | {proto['tolerance']['frames']} frames |"
-        )
-    lines += [
-        "",
-        "Speed rows: `2x` keeps every 2nd query frame, `1.5x` keeps frames 1.5 places apart "
-        "(rounded), `1-1.5x` draws each frame's step from U(1, 1.5) with the run's seed; the "
-        "ground truth follows the kept frames, and the CANN estimates the speed online (no "
-        "odometry). `flynet+cann[fast]` is the CANN with `flyvpr.temporal.cann.FAST_RECOVERY`.",
-        "",
-        "## Machine",
-        "",
-        "; ".join(f"{k}: {v}" for k, v in data["machine"].items())
-        if "machine" in data
-        else "Not recorded in this JSON.",
-        "",
-        "## AUC and Recall@1 over the seeds",
-        "",
-        "| condition | method | speed | AUC mean | AUC min | R@1 mean | R@1 min |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for t in data["summary"]:
-        lines.append(
-            f"| {t['condition']} | {t['method']} | {t['speed']} | {t['auc_mean']:.3f} | "
-            f"{t['auc_min']:.3f} | {t['r1_mean']:.3f} | {t['r1_min']:.3f} |"
-        )
-    for condition, entries in data.get("kidnap", {}).items():
-        lines += [
-            "",
-            f"## Kidnap recovery: {condition}",
-            "",
-            "The query stream jumps 200 places ahead at the stream frames below; each cell is "
-            "the number of frames until the best place is within tolerance again (`-`: never). "
-            "The `flynet` rows give the evidence FlyNet's single frames hold after each landing: "
-            "the median rank of the true place among the references over the 30 frames after "
-            "the jump (1 = best; chance = half the references).",
-            "",
-        ]
-        jumps = next((e["jump_at"] for e in entries if "jump_at" in e), [])
-        lines.append("| method | seed | " + " | ".join(f"jump at {j}" for j in jumps) + " |")
-        lines.append("|---|---|" + "---|" * len(jumps))
-        for e in sorted(entries, key=lambda e: (e["method"], e["seed"])):
-            values = e.get("frames", e.get("evidence_rank", []))
-            label = e["method"] + (" (rank)" if "evidence_rank" in e else "")
-            cells = " | ".join("-" if v is None else str(v) for v in values)
-            lines.append(f"| {label} | {e['seed']} | {cells} |")
-    return "\n".join(lines) + "\n"
 
 
 # -- the paper's experiments --------------------------------------------------------------------
@@ -280,49 +192,52 @@ def _paper_adapter(data: dict) -> str:
 
 
 ADAPTERS: dict[str, Callable[[dict], str]] = {
-    "accuracy": _accuracy_adapter,
     "paper": _paper_adapter,
 }
 
 
 # -- the "which method" table of the README and the methods guide -------------------------------
 
-#: columns: (title, condition key in the accuracy JSON)
+#: columns: (title, condition key in the accuracy JSON); tolerance 20 frames
 WHICH_METHOD_COLUMNS = [
-    ("AUC, frames 0-999", "n64-0@20"),
-    ("AUC, frames 1000-1999", "n64-1000@20"),
-    ("AUC at 1-1.5x speed, 0-999", "n64-0-1-1.5x@20"),
-    ("AUC at 2x speed, 0-999", "n64-0-2x@20"),
+    ("0-999", "n64-0@20"),
+    ("1000-1999", "n64-1000@20"),
+    ("2000-2399, held out", "n64-2000@20"),
+    ("drifting viewpoint, 0-999", "vp-0@20"),
+    ("1.5x speed, 0-999", "n64-0-1.5x@20"),
 ]
 #: rows: (method label in the accuracy JSON, as the table shows it), those the JSON has
 WHICH_METHOD_ROWS = [
-    ("pixels", "`pixels`"),
-    ("flynet", "`flynet`"),
-    ("seqslam-20", "`seqslam`"),
+    ("kenyon+cann", "`kenyon+cann`"),
+    ("pixels+cann", "`pixels+cann`"),
+    ("flynet+cann", "`flynet+cann` (the paper's)"),
+    ("netvlad+cann", "`netvlad+cann`"),
+    ("seqslam-20", "`seqslam` (length 20, the paper's)"),
+    ("seqslam-60", "`seqslam`, length 60"),
     ("seqslam-20 v0.75-2", "`seqslam`, speeds 0.75-2"),
     ("flynet+seqslam", "`flynet+seqslam`"),
     ("flynet+rnn", "`flynet+rnn`"),
-    ("flynet+cann", "`flynet+cann`"),
-    ("pixels+cann", "`pixels+cann`"),
-    ("netvlad+cann", "`netvlad+cann`"),
+    ("pixels", "`pixels` (single frames)"),
 ]
 
 
-def accuracy_cells(data: dict) -> dict[tuple[str, str], tuple[float, int]]:
-    """(condition key, method label) -> (mean AUC over the seeds, number of seeds)."""
-    if "conditions" in data:
-        return {
-            (s["condition"], s["method"]): (s["auc_mean"], len(s["seeds"])) for s in data["summary"]
-        }
-    # The earlier benchmark's JSON, its names in today's terms.
-    windows = {"nordland64 s->w 0-999": "n64-0", "nordland64 s->w 1000-1999": "n64-1000"}
-    cells = {}
-    for s in data["summary"]:
-        if s["condition"] in windows:
-            view = windows[s["condition"]] + ("" if s["speed"] == "1x" else f"-{s['speed']}")
-            label = "seqslam-20" if s["method"] == "seqslam" else s["method"]
-            cells[(f"{view}@20", label)] = (s["auc_mean"], s["n_seeds"])
-    return cells
+def accuracy_cells(data: dict) -> dict[tuple[str, str], tuple[float, float, int]]:
+    """(condition key, method label) -> (mean AUC, worst seed's AUC, number of seeds)."""
+    return {
+        (s["condition"], s["method"]): (
+            s["auc_mean"],
+            s.get("auc_worst", s["auc_mean"]),
+            len(s["seeds"]),
+        )
+        for s in data["summary"]
+    }
+
+
+def _cell(value) -> str:
+    if value is None:
+        return "-"
+    mean, worst, n = value
+    return f"{mean:.2f}" + (f" ({worst:.2f})" if n > 1 else "")
 
 
 def which_method_table(data: dict, where: Path) -> str:
@@ -337,31 +252,39 @@ def which_method_table(data: dict, where: Path) -> str:
     cells = accuracy_cells(data)
     columns = [key for _, key in WHICH_METHOD_COLUMNS]
     rows = [(m, shown) for m, shown in WHICH_METHOD_ROWS if any((c, m) in cells for c in columns)]
+    nbytes = data.get("bytes_per_place", {})
     lines = [
-        "| method | " + " | ".join(title for title, _ in WHICH_METHOD_COLUMNS) + " |",
-        "|---|" + "---|" * len(columns),
+        "| method | "
+        + " | ".join(title for title, _ in WHICH_METHOD_COLUMNS)
+        + " | bytes per place |",
+        "|---|" + "---|" * (len(columns) + 1),
     ]
     seeds: dict[str, set] = {}
     for m, shown in rows:
         values = [cells.get((c, m)) for c in columns]
-        seeds[shown] = {v[1] for v in values if v is not None}
-        row = " | ".join("-" if v is None else f"{v[0]:.2f}" for v in values)
-        lines.append(f"| {shown} | {row} |")
-    counts = [n for found in seeds.values() for n in found]
-    usual = max(set(counts), key=counts.count)
+        seeds[shown] = {v[2] for v in values if v is not None}
+        row = " | ".join(_cell(v) for v in values)
+        size = f"{nbytes[m]:,.0f}" if m in nbytes else "-"
+        lines.append(f"| {shown} | {row} | {size} |")
+    counts = [n for found in seeds.values() for n in found if n > 1]
+    usual = max(counts, default=1)
     others = [
         f"{shown}: {'/'.join(map(str, sorted(found)))}"
         for shown, found in seeds.items()
-        if found != {usual}
+        if found - {1, usual}
     ]
     lines += [
         "",
-        f"Nordland 64x32 ([`nordland_64x32`]({link('docs/guide/datasets.md')})), "
-        "summer = reference, winter = query, tolerance 20 frames; AUC of the precision-recall "
-        f"curve, mean over {usual} seeds"
+        f"AUC of the precision-recall curve on Nordland 64x32 "
+        f"([`nordland_64x32`]({link('docs/guide/datasets.md')}) and its drifting-viewpoint "
+        "copy), summer = reference, winter = query, tolerance 20 frames. Methods with a seed: "
+        f"mean over {usual} seeds"
         + (f" ({', '.join(others)})" if others else "")
-        + "; `-`: not run there. Generated from `benchmarks/accuracy.json`; protocol and every "
-        f"row: [the accuracy results]({link('docs/results/accuracy.md')}).",
+        + ", the worst seed in brackets; one value: a single run (deterministic, or run with "
+        "the first seed only); `-`: not run there. Bytes per place: what the method "
+        "stores per reference place for matching. Generated from `benchmarks/accuracy.json`; "
+        f"protocol, tolerances 10 and 2, and every row: "
+        f"[the accuracy results]({link('docs/results/accuracy.md')}).",
     ]
     return "\n".join(lines)
 

@@ -68,33 +68,45 @@ def test_accuracy_numbers_come_from_the_json(gen):
     data = json.loads((ROOT / "benchmarks" / "accuracy.json").read_text())
     changed = copy.deepcopy(data)
     row = next(
-        r
-        for r in changed["summary"]
-        if r["method"] == "flynet+cann" and r["condition"] in ("n64-0@20", "nordland64 s->w 0-999")
+        r for r in changed["summary"] if r["method"] == "pixels" and r["condition"] == "n64-0@20"
     )
     row["auc_mean"] = 0.123456
     page = gen.renderer(gen.PAGES[0], changed)(changed)
     assert "0.123" in page and page != gen.renderer(gen.PAGES[0], data)(data)
     table = gen.which_method_table(changed, ROOT / "README.md")
-    assert "| `flynet+cann` | 0.12 |" in table
+    assert "| `pixels` (single frames) | 0.12 |" in table
 
 
 def test_which_method_table_from_a_benchmark_document(gen):
+    def row(condition, method, seeds, mean, worst=None):
+        return {
+            "condition": condition,
+            "method": method,
+            "seeds": seeds,
+            "auc_mean": mean,
+            "auc_worst": mean if worst is None else worst,
+        }
+
     summary = [
-        {"condition": "n64-0@20", "method": "flynet+cann", "seeds": [0, 1], "auc_mean": 0.5},
-        {"condition": "n64-0-2x@20", "method": "flynet+cann", "seeds": [0, 1], "auc_mean": 0.4},
-        {"condition": "n64-0@20", "method": "seqslam-20", "seeds": [0, 1], "auc_mean": 0.25},
-        {"condition": "n64-0@20", "method": "netvlad+cann", "seeds": [0], "auc_mean": 0.75},
-        {"condition": "other@20", "method": "flynet", "seeds": [0, 1], "auc_mean": 0.1},
+        row("n64-0@20", "flynet+cann", [0, 1], 0.5, 0.3),
+        row("n64-0-1.5x@20", "flynet+cann", [0, 1], 0.4, 0.35),
+        row("n64-0@20", "seqslam-20", [0], 0.25),
+        row("n64-0@20", "netvlad+cann", [0], 0.75),
+        row("vp-0@20", "kenyon+cann", [0, 1], 0.9, 0.875),
+        row("n64-2000@20", "pixels+cann", [0, 1], 0.6, 0.5),
+        row("other@20", "flynet", [0, 1], 0.1),
     ]
-    table = gen.which_method_table({"conditions": [], "summary": summary}, ROOT / "README.md")
+    data = {"conditions": [], "summary": summary, "bytes_per_place": {"kenyon+cann": 512}}
+    table = gen.which_method_table(data, ROOT / "README.md")
     rows = [line for line in table.splitlines() if line.startswith("| `")]
     assert rows == [
-        "| `seqslam` | 0.25 | - | - | - |",
-        "| `flynet+cann` | 0.50 | - | - | 0.40 |",
-        "| `netvlad+cann` | 0.75 | - | - | - |",
+        "| `kenyon+cann` | - | - | - | 0.90 (0.88) | - | 512 |",
+        "| `pixels+cann` | - | - | 0.60 (0.50) | - | - | - |",
+        "| `flynet+cann` (the paper's) | 0.50 (0.30) | - | - | - | 0.40 (0.35) | - |",
+        "| `netvlad+cann` | 0.75 | - | - | - | - | - |",
+        "| `seqslam` (length 20, the paper's) | 0.25 | - | - | - | - | - |",
     ]
-    assert "mean over 2 seeds (`netvlad+cann`: 1)" in table
+    assert "mean over 2 seeds, the worst seed in brackets; one value: a single run" in table
 
 
 def test_which_method_table_links_relative_to_its_file(gen):
