@@ -56,6 +56,16 @@ class Localizer:
             )
         self.n_frames_ = 0
 
+    @classmethod
+    def from_map(cls, path, *, size=None) -> Localizer:
+        """A localizer over the places of a map file (see :class:`flyvpr.maps.Map`).
+
+        The map is kept as ``map_`` (timestamps, positions and thumbnails of the places).
+        """
+        from .maps import Map
+
+        return Map.load(path, size=size).localizer()
+
     def fit(self, reference_images) -> Localizer:
         """Build the reference map (fits the method on the reference traverse)."""
         self.method.fit(reference_images)
