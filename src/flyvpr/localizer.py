@@ -111,6 +111,41 @@ class Localizer:
         self.n_frames_ += 1
         return row
 
+    def update_batch(self, images):
+        """Process consecutive frames: the front end scores them in one vectorised call, then
+        the filter steps through the rows in order (as :meth:`update` frame by frame).
+
+        Parameters
+        ----------
+        images : array-like, shape (n, H, W)
+
+        Returns
+        -------
+        places : ndarray of int64, shape (n,)
+        confidences : ndarray, shape (n,)
+        scores : ndarray, shape (n, n_places)
+            The filtered score rows.
+        relocated : ndarray of bool, shape (n,)
+            Whether the filter relocated its packet at that frame (filters that count
+            relocations, such as the CANN; False otherwise).
+        """
+        self._check_fitted("update_batch")
+        frontend = self.method.frontend
+        frames = check_images(images, "images", frontend.image_shape_)
+        S = frontend.score_codes(frontend._encode(frames))
+        relocated = np.zeros(len(S), dtype=bool)
+        filt = self.method.filter
+        if filt is not None:
+            out = np.empty(S.shape, dtype=np.float32)
+            for i in range(len(S)):
+                before = getattr(filt, "n_relocations_", 0)
+                out[i] = filt.step(S[i])
+                relocated[i] = getattr(filt, "n_relocations_", 0) != before
+            S = out
+        self.n_frames_ += len(S)
+        places = np.argmax(S, axis=1)
+        return places, S[np.arange(len(S)), places], S, relocated
+
     def update(self, image, velocity=None) -> tuple[int, float]:
         """Process one frame.
 

@@ -234,7 +234,9 @@ def _read_section(r, section: dict) -> dict:
     if n < 1:
         raise r.error("map.n_places", f"must be >= 1; got {n}")
     out = dict(section)
-    out["timestamps"] = r.array("map/timestamps", "map.timestamps", ArraySpec("float64", (n,), False))
+    out["timestamps"] = r.array(
+        "map/timestamps", "map.timestamps", ArraySpec("float64", (n,), False)
+    )
     out["source_index"] = r.array("map/source_index", "map.source_index", ArraySpec("int64", (n,)))
     names = set(r.zf.namelist())
     if "map/positions.npy" in names:

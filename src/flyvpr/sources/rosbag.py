@@ -74,9 +74,7 @@ class _Bag:
             raise RecordingError(f"bag {path}: not a readable ROS bag ({_reason(exc)})") from None
 
     def topics(self, types) -> dict[str, str]:
-        return {
-            c.topic: c.msgtype for c in self.reader.connections if c.msgtype in types
-        }
+        return {c.topic: c.msgtype for c in self.reader.connections if c.msgtype in types}
 
     def pick(self, topic: str | None, types, what: str, option: str):
         found = self.topics(types)
@@ -110,7 +108,9 @@ class _Bag:
                     ) from None
                 yield conn, logtime, msg
         except self._errors as exc:
-            raise RecordingError(f"bag {self.path}: damaged or truncated ({_reason(exc)})") from None
+            raise RecordingError(
+                f"bag {self.path}: damaged or truncated ({_reason(exc)})"
+            ) from None
 
     def close(self):
         self.reader.close()
@@ -199,8 +199,10 @@ def _raw_gray(msg, where: str) -> np.ndarray:
         )
     rows = data[: h * step].reshape(h, step)[:, : w * channels * itemsize]
     dtype = np.dtype(kind).newbyteorder(">" if msg.is_bigendian else "<")
-    pixels = rows.copy().view(dtype).reshape(h, w, channels) if itemsize > 1 else rows.reshape(
-        h, w, channels
+    pixels = (
+        rows.copy().view(dtype).reshape(h, w, channels)
+        if itemsize > 1
+        else rows.reshape(h, w, channels)
     )
     if order == "bgr":
         pixels = pixels[:, :, 2::-1]

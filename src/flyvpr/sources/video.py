@@ -67,8 +67,7 @@ class VideoSource(Source):
                     index += 1
             except av.FFmpegError as exc:
                 raise RecordingError(
-                    f"video {self.path}: damaged or truncated after frame {index} "
-                    f"({_reason(exc)})"
+                    f"video {self.path}: damaged or truncated after frame {index} ({_reason(exc)})"
                 ) from None
 
 
