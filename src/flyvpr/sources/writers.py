@@ -70,7 +70,9 @@ def write_video(path, frames, *, fps: float = 10.0, codec: str = "libx264", crf:
             from fractions import Fraction
 
             stream = c.add_stream(codec, rate=Fraction(fps).limit_denominator(1000))
-            stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
+            # full-range 4:2:0 with x264, so 8-bit gray survives without a range squeeze
+            pix_fmt = "yuvj420p" if codec == "libx264" else "yuv420p"
+            stream.width, stream.height, stream.pix_fmt = w, h, pix_fmt
             if codec == "libx264":
                 stream.options = {"crf": str(crf), "preset": "veryfast"}
             for i in range(n):
