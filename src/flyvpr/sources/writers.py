@@ -50,34 +50,38 @@ def write_video(path, frames, *, fps: float = 10.0, codec: str = "libx264", crf:
     ----------
     path : str or Path
         ``.mp4``, ``.mkv``, ``.avi`` ...; the container follows the suffix.
-    frames : array-like, shape (n, H, W) or (n, H, W, 3)
-        H and W must be even (4:2:0 chroma).
+    frames : array-like of shape (n, H, W) or (n, H, W, 3), or an iterable of frames
+        H and W must be even (4:2:0 chroma).  An iterable (e.g. a generator) is encoded as it
+        comes, so a long video never needs all its frames in memory.
     codec : str
-        ``libx264`` (H.264) or ``mpeg4``.
+        ``libx264`` (H.264, full-range 4:2:0) or ``mpeg4``.
     crf : int
         x264's constant rate factor (0 = lossless, 18 = visually lossless).
     """
+    from fractions import Fraction
+
     av = require_extra("av")
-    a = _uint8(frames)
-    n, h, w = a.shape[:3]
-    if h % 2 or w % 2:
-        raise ValueError(f"video frames need an even height and width; got {h}x{w}")
     path = Path(path)
     tmp = _temporary(path)
-    fmt = "gray" if a.ndim == 3 else "rgb24"
+    stream = None
     try:
         with av.open(str(tmp), "w", format=_CONTAINERS.get(path.suffix.lower())) as c:
-            from fractions import Fraction
-
-            stream = c.add_stream(codec, rate=Fraction(fps).limit_denominator(1000))
-            # full-range 4:2:0 with x264, so 8-bit gray survives without a range squeeze
-            pix_fmt = "yuvj420p" if codec == "libx264" else "yuv420p"
-            stream.width, stream.height, stream.pix_fmt = w, h, pix_fmt
-            if codec == "libx264":
-                stream.options = {"crf": str(crf), "preset": "veryfast"}
-            for i in range(n):
-                frame = av.VideoFrame.from_ndarray(a[i], format=fmt)
-                c.mux(stream.encode(frame))
+            for frame in frames:
+                a = _uint8(np.asarray(frame)[None])[0]
+                if stream is None:
+                    h, w = a.shape[:2]
+                    if h % 2 or w % 2:
+                        raise ValueError(f"video frames need an even height and width; got {h}x{w}")
+                    stream = c.add_stream(codec, rate=Fraction(fps).limit_denominator(1000))
+                    # full-range 4:2:0 with x264, so 8-bit gray survives without a range squeeze
+                    pix_fmt = "yuvj420p" if codec == "libx264" else "yuv420p"
+                    stream.width, stream.height, stream.pix_fmt = w, h, pix_fmt
+                    if codec == "libx264":
+                        stream.options = {"crf": str(crf), "preset": "veryfast"}
+                fmt = "gray" if a.ndim == 2 else "rgb24"
+                c.mux(stream.encode(av.VideoFrame.from_ndarray(a, format=fmt)))
+            if stream is None:
+                raise ValueError(f"{path}: no frames to write")
             c.mux(stream.encode(None))
         os.replace(tmp, path)
     except BaseException:
