@@ -185,3 +185,34 @@ def test_localize_benchmark_mode_still_works(recordings, tmp_path, capsys):
     )  # fmt: skip
     assert code == 0, err
     assert f"{N} frames streamed" in out
+
+
+def test_ground_truth_by_positions_scores_like_frames(recordings, tmp_path, capsys):
+    rec = recordings["ros1"]
+    m = tmp_path / "p.map"
+    assert main(["map", str(rec["summer"]), "--position-topic", "/odom", "--out", str(m)]) == 0
+    gt = tmp_path / "night_xy.csv"
+    gt.write_text("frame,x,y\n" + "".join(f"{i},{3.0 * i},0\n" for i in range(N)))
+    code, by_pos, err = _run(
+        capsys, "localize", "--map", m, rec[QUERY], "--ground-truth", gt, "--radius", 3.0 * TOL
+    )
+    assert code == 0, err
+    code, by_frames, err = _run(
+        capsys, "localize", "--map", m, rec[QUERY], "--ground-truth", "frames", "--tolerance", TOL
+    )
+    assert code == 0, err
+    assert _auc(by_pos) == _auc(by_frames)
+    assert f"{gt} within {3.0 * TOL:g} m" in by_pos
+
+
+def test_realtime_paces_to_the_timestamps(tmp_path, capsys):
+    import time
+
+    frames = np.zeros((6, 16, 32), np.uint8) + np.arange(6, dtype=np.uint8)[:, None, None] * 40
+    bag = write_bag(tmp_path / "r.bag", frames, version=1, fps=10)
+    assert main(["map", str(bag), "--out", str(tmp_path / "r.map"), "--size", "8x16"]) == 0
+    t0 = time.perf_counter()
+    code, _, err = _run(capsys, "localize", "--map", tmp_path / "r.map", bag, "--realtime")
+    assert code == 0, err
+    assert time.perf_counter() - t0 >= 0.5  # 6 frames at 10 fps: the last is due after 0.5 s
+

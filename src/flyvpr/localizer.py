@@ -58,13 +58,23 @@ class Localizer:
 
     @classmethod
     def from_map(cls, path, *, size=None) -> Localizer:
-        """A localizer over the places of a map file (see :class:`flyvpr.maps.Map`).
+        """A localizer over the places of a map (see :class:`flyvpr.maps.Map`).
+
+        Parameters
+        ----------
+        path : str, Path or Map
+            A map file written by ``flyvpr map`` / :meth:`Map.save`, or a loaded map.
+        size : (int, int), optional
+            The image size the caller will feed; a map built for another size is refused.
 
         The map is kept as ``map_`` (timestamps, positions and thumbnails of the places).
         """
         from .maps import Map
 
-        return Map.load(path, size=size).localizer()
+        m = path if isinstance(path, Map) else Map.load(path, size=size)
+        loc = cls(m.method)
+        loc.map_ = m
+        return loc
 
     def fit(self, reference_images) -> Localizer:
         """Build the reference map (fits the method on the reference traverse)."""

@@ -11,7 +11,8 @@ Examples
 >>> from flyvpr.maps import Map
 >>> m = Map.build("runs/summer.mp4", every="0.5s")            # doctest: +SKIP
 >>> m.save("route.map")                                        # doctest: +SKIP
->>> loc = Map.load("route.map").localizer()                    # doctest: +SKIP
+>>> from flyvpr.localizer import Localizer
+>>> loc = Localizer.from_map("route.map")                      # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from .images import DEFAULT_SIZE
 from .methods import DEFAULT_METHOD, Method, make_method
 from .modelio import _load, save_method
 from .sources import Positions, RecordingError, Source, open_source, parse_every, read_positions
+from .temporal.base import OnlineFilter
 
 __all__ = ["Map", "MAP_VERSION", "MapFileError"]
 
@@ -134,6 +136,15 @@ class Map:
         RecordingError
             If the recording cannot be read or ``every`` keeps fewer than 2 frames.
         """
+        if isinstance(method, Method):
+            m = method
+        else:
+            m = make_method(method, random_state, frontend_params, filter_params)
+        if m.filter is not None and not isinstance(m.filter, OnlineFilter):
+            raise ValueError(
+                f"method {m.name!r}: its filter {type(m.filter).__name__} cannot run one frame "
+                "at a time; a map needs an online filter (e.g. cann) or none"
+            )
         src = source if isinstance(source, Source) else open_source(source, topic=topic)
         every = parse_every(every)
         pos = positions if isinstance(positions, Positions) else None
@@ -145,10 +156,6 @@ class Map:
         if n < 2:
             raise RecordingError(f"{src.describe()}: a map needs at least 2 places; got {n}")
         check_memory(n * n * 8 * 2, f"a map of {n} places from {src.path}")
-        if isinstance(method, Method):
-            m = method
-        else:
-            m = make_method(method, random_state, frontend_params, filter_params)
         m.fit(frames.images)
         xy = None if pos is None else pos.at(frames.indices, frames.timestamps)
         thumbs = np.rint(frames.images * 255.0).astype(np.uint8)
@@ -203,15 +210,6 @@ class Map:
             section.get("thumbnails"),
             {k: section[k] for k in ("source", "source_kind", "topic", "every", "positions_from")},
         )
-
-    def localizer(self):
-        """A :class:`~flyvpr.localizer.Localizer` over this map's places (fresh state)."""
-        from .localizer import Localizer
-
-        loc = Localizer(self.method)
-        loc.reset()
-        loc.map_ = self
-        return loc
 
 
 def _read_section(r, section: dict) -> dict:
