@@ -215,4 +215,3 @@ def test_realtime_paces_to_the_timestamps(tmp_path, capsys):
     code, _, err = _run(capsys, "localize", "--map", tmp_path / "r.map", bag, "--realtime")
     assert code == 0, err
     assert time.perf_counter() - t0 >= 0.5  # 6 frames at 10 fps: the last is due after 0.5 s
-

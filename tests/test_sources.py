@@ -241,3 +241,16 @@ def test_update_batch_equals_update(route):
     one = [b.update(f) for f in qry]
     assert places.tolist() == [p for p, _ in one]
     np.testing.assert_allclose(conf, [c for _, c in one], rtol=1e-5)
+
+
+@pytest.mark.parametrize("suffix", [".mkv", ".avi"])
+def test_cut_video_without_an_index_is_refused(suffix, tmp_path):
+    """Matroska and AVI decode up to the cut without an error: the header's frame count or
+    duration catches it."""
+    frames = (np.random.default_rng(0).random((30, 32, 64)) * 255).astype(np.uint8)
+    whole = write_video(tmp_path / f"v{suffix}", frames)
+    assert len(open_source(whole).read_all(SIZE)) == 30
+    cut = tmp_path / f"cut{suffix}"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size * 2 // 3])
+    with pytest.raises(RecordingError, match=rf"cut\{suffix}: truncated: .* announces"):
+        open_source(cut).read_all(SIZE)

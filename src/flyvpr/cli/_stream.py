@@ -14,7 +14,7 @@ from contextlib import ExitStack
 
 import numpy as np
 
-from .._io import atomic_open
+from .._io import OutputPathError, atomic_open, check_output_path
 from .._validation import check_memory
 from ._common import UsageError, check_outputs
 from .map import recording_inputs
@@ -79,9 +79,15 @@ def cmd_localize_recording(args) -> int:
     if args.ground_truth not in (None, "frames"):
         inputs.append(args.ground_truth)
     check_outputs(args, inputs, ("out",))
+    taken = [args.out] if args.out is not None else []
     for path in renders:
-        args._render = path
-        check_outputs(args, inputs + [args.out] if args.out else inputs, ("_render",))
+        if any(path.resolve() == t.resolve() for t in taken):
+            raise UsageError(f"--render {path}: already an output of this run")
+        try:
+            check_output_path(path, inputs + taken, what="--render")
+        except OutputPathError as exc:
+            raise UsageError(str(exc)) from None
+        taken.append(path)
     loc = Localizer.from_map(args.map, size=args.size)
     m = loc.map_
     source = open_source(args.source, topic=args.topic)

@@ -63,6 +63,7 @@ class VideoSource(Source):
             stream = container.streams.video[0]
             if self.threads:
                 stream.thread_type = "AUTO"
+            expected = _expected_frames(container, stream)
             index = 0
             try:
                 for frame in container.decode(stream):
@@ -74,6 +75,23 @@ class VideoSource(Source):
                 raise RecordingError(
                     f"video {self.path}: damaged or truncated after frame {index} ({_reason(exc)})"
                 ) from None
+            if expected is not None and index < expected:
+                raise RecordingError(
+                    f"video {self.path}: truncated: its header announces {expected} frames, "
+                    f"{index} could be decoded"
+                )
+
+
+def _expected_frames(container, stream) -> int | None:
+    """The frame count the header announces (or its duration implies), less one frame of slack
+    for rounding; None when the header says neither."""
+    if stream.frames:
+        return int(stream.frames)
+    rate = stream.average_rate or stream.guessed_rate
+    if container.duration and rate:
+        # container.duration is in microseconds (AV_TIME_BASE)
+        return int(container.duration * float(rate) / 1_000_000) - 1
+    return None
 
 
 #: 8-bit YUV formats whose first plane is the luma, one byte per pixel
