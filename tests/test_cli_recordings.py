@@ -172,6 +172,17 @@ def test_usage_errors(recordings, tmp_path, capsys):
         ["localize", "--map", tmp_path / "x.map"],
         ["localize", "--dataset", "generic", "--render", tmp_path / "t.mp4"],
         ["map", rec, "--out", tmp_path / "m.map", "--every", "2km"],
+        ["localize", "--map", tmp_path / "x.map", rec, "--render", tmp_path / "t.gif"],
+        [
+            "localize",
+            "--map",
+            tmp_path / "x.map",
+            rec,
+            "--out",
+            tmp_path / "a.html",
+            "--render",
+            tmp_path / "a.html",
+        ],
     ):
         code, _, err = _run(capsys, *argv)
         assert code == 2, (argv, err)

@@ -254,3 +254,34 @@ def test_cut_video_without_an_index_is_refused(suffix, tmp_path):
     cut.write_bytes(whole.read_bytes()[: whole.stat().st_size * 2 // 3])
     with pytest.raises(RecordingError, match=rf"cut\{suffix}: truncated: .* announces"):
         open_source(cut).read_all(SIZE)
+
+
+def test_recording_libraries_are_imported_lazily():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, flyvpr, flyvpr.cli, flyvpr.maps, flyvpr.sources, flyvpr.tracking, "
+        "flyvpr.trace; bad = [m for m in ('av', 'rosbags') if m in sys.modules]; "
+        "print(','.join(bad)); sys.exit(1 if bad else 0)"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert res.returncode == 0, f"imported: {res.stdout} {res.stderr}"
+
+
+def test_missing_extra_names_it(route, tmp_path, monkeypatch):
+    import importlib
+
+    path = write_video(tmp_path / "v.mp4", route.images["summer"][:4])
+    real = importlib.import_module
+
+    def without_av(name, *args, **kwargs):
+        if name.split(".")[0] == "av":
+            raise ImportError("No module named 'av'")
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(importlib, "import_module", without_av)
+    with pytest.raises(
+        ImportError, match=r"needs the 'av' package: pip install 'flyvpr\[recordings\]'"
+    ):
+        open_source(path)
