@@ -423,6 +423,7 @@ def render_markdown(data: dict) -> str:
         "|---|---|---|---|",
     ]
     skip = {"machine", "timing_table", "targets", "repeat", "stream_n_places", "stream_n_queries"}
+    skip |= {"video_decode_runs_s", "video_localize_runs_s"}
     keys = [k for k in FIGURE_NOTES if k in data]
     keys += [k for k in data if k not in FIGURE_NOTES and k not in skip]
     for key in keys:

@@ -115,6 +115,8 @@ def run(n_places: int = 400, lengths=(1000, 3000), repeat: int = 3, log=print) -
                 localize(map_path, short, folder / "records.csv")
             loc.append(time.perf_counter() - t0)
         res["video_frames"] = n
+        res["video_decode_runs_s"] = dec
+        res["video_localize_runs_s"] = loc
         res["video_decode_fps"] = n / statistics.median(dec)
         res["video_localize_fps"] = n / statistics.median(loc)
         res["video_decode_ms"] = 1000 * statistics.median(dec) / n

@@ -28,6 +28,11 @@ class RecordingError(ValueError):
     """A recording that cannot be read as asked (the message names the file)."""
 
 
+def _reason(exc) -> str:
+    """An exception's message on one line (its type name when it has none)."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def require_extra(module: str):
     """Import an optional module of the ``recordings`` extra, or say how to install it."""
     import importlib

@@ -17,7 +17,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from ..images import resize_area, to_gray
-from .base import RecordingError, Source, require_extra
+from .base import RecordingError, Source, _reason, require_extra
 
 __all__ = ["BagSource", "IMAGE_ENCODINGS", "BAG_EXTENSIONS", "read_bag_positions"]
 
@@ -122,10 +122,6 @@ def _rosbags_errors() -> tuple:
     from rosbags.rosbag2 import ReaderError as Reader2Error
 
     return (AnyReaderError, Reader1Error, Reader2Error, OSError, EOFError, KeyError, ValueError)
-
-
-def _reason(exc) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 def _stamp(msg, logtime: int) -> float:

@@ -13,13 +13,12 @@ first, then averaged the same way.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
 from functools import lru_cache
 
 import numpy as np
 
-from .base import RecordingError, Source, require_extra
+from .base import RecordingError, Source, _reason, require_extra
 
 __all__ = ["VideoSource", "VIDEO_EXTENSIONS"]
 
@@ -136,15 +135,3 @@ def _decoder(frame):
         return np.clip(small, 0.0, 1.0, out=small)
 
     return decode
-
-
-def _reason(exc) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
-
-
-def video_frame_count(path) -> int | None:
-    """The frame count the container declares (None if it does not say)."""
-    av = require_extra("av")
-    with av.open(str(path)) as container:
-        n = container.streams.video[0].frames
-    return int(n) if n and not math.isnan(n) else None

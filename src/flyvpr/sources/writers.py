@@ -78,6 +78,8 @@ def write_video(path, frames, *, fps: float = 10.0, codec: str = "libx264", crf:
                     stream.width, stream.height, stream.pix_fmt = w, h, pix_fmt
                     if codec == "libx264":
                         stream.options = {"crf": str(crf), "preset": "veryfast"}
+                    else:  # no crf: a generous bit rate (4 bits per pixel per second)
+                        stream.bit_rate = int(4 * w * h * fps)
                 fmt = "gray" if a.ndim == 2 else "rgb24"
                 c.mux(stream.encode(av.VideoFrame.from_ndarray(a, format=fmt)))
             if stream is None:
