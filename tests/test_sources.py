@@ -96,10 +96,13 @@ def test_bag_encodings_match_the_image_folder(
     assert np.abs(got.images - pillow_frames[0]).mean() < tol
 
 
-def test_ros2_bag_by_its_storage_file(route, tmp_path):
-    write_bag(tmp_path / "b", route.images["summer"], version=2)
-    (db3,) = (tmp_path / "b").glob("*.db3")
-    assert len(open_source(db3).read_all(SIZE)) == N
+@pytest.mark.parametrize("storage, suffix", [("sqlite3", ".db3"), ("mcap", ".mcap")])
+def test_ros2_bag_by_folder_or_storage_file(route, pillow_frames, tmp_path, storage, suffix):
+    write_bag(tmp_path / "b", route.rgb["summer"], version=2, encoding="rgb8", storage=storage)
+    (file,) = (tmp_path / "b").glob("*" + suffix)
+    for path in (tmp_path / "b", file):
+        got = open_source(path).read_all(SIZE)
+        assert np.abs(got.images - pillow_frames[0]).mean() < 1e-6
 
 
 def test_folder_source_is_the_loaders(pillow_frames):

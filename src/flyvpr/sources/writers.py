@@ -150,6 +150,7 @@ def write_bag(
     frames,
     *,
     version: int = 2,
+    storage: str = "sqlite3",
     topic: str = "/camera/image",
     encoding: str = "mono8",
     compressed: str | None = None,
@@ -166,6 +167,8 @@ def write_bag(
         ROS 1: the ``.bag`` file; ROS 2: the bag folder (``metadata.yaml`` + ``.db3``).
     frames : array-like, shape (n, H, W) or (n, H, W, 3)
     version : {1, 2}
+    storage : {'sqlite3', 'mcap'}
+        ROS 2 storage: a ``.db3`` or an ``.mcap`` file in the bag folder.
     encoding : str
         Raw encoding (``mono8``, ``mono16``, ``rgb8``, ``bgr8``, ``rgba8``, ``bgra8``; ``16UC1``
         writes a depth-like image) unless ``compressed`` is ``'jpeg'`` or ``'png'``.
@@ -190,7 +193,9 @@ def write_bag(
     else:
         from rosbags.rosbag2 import Writer
 
-        writer = Writer(tmp, version=9)
+        from rosbags.rosbag2 import StoragePlugin
+
+        writer = Writer(tmp, version=9, storage_plugin=StoragePlugin[storage.upper()])
     try:
         with writer:
             conns = {}
