@@ -147,6 +147,8 @@ def test_bad_inputs_one_line_exit_1_nothing_written(recordings, tmp_path, capsys
     assert main(["map", str(recordings["ros2"]["summer"]), "--out", str(tmp_path / "r.map")]) == 0
     empty = tmp_path / "empty"
     empty.mkdir()
+    elsewhere = tmp_path / "elsewhere.csv"  # positions of no frame of the recording
+    elsewhere.write_text("frame,x,y\n1000,0,0\n")
     cases = [
         (["map", cut, "--out", tmp_path / "o.map"], "cut.mp4"),
         (["map", recordings["ros1"]["summer"], "--topic", "/nope", "--out", tmp_path / "o.map"],
@@ -156,6 +158,8 @@ def test_bad_inputs_one_line_exit_1_nothing_written(recordings, tmp_path, capsys
         (["localize", "--map", tmp_path / "r.map", "--size", "16x32", recordings["ros2"][QUERY],
           "--out", tmp_path / "o.csv"], "fitted on 32x64 images"),
         (["localize", "--map", tmp_path / "r.map", cut, "--out", tmp_path / "o.csv"], "cut.mp4"),
+        (["localize", "--map", tmp_path / "r.map", recordings["ros2"][QUERY], "--every", "5m",
+          "--positions", elsewhere, "--out", tmp_path / "o.csv"], "--every 5m keeps no frame"),
     ]  # fmt: skip
     for argv, needle in cases:
         code, out, err = _run(capsys, *argv)

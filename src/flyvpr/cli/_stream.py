@@ -64,7 +64,7 @@ def cmd_localize_recording(args) -> int:
     from tqdm.auto import tqdm
 
     from ..localizer import Localizer
-    from ..sources import open_source, read_positions
+    from ..sources import RecordingError, open_source, read_positions
     from ..tracking import track
 
     if args.ground_truth is not None and args.ground_truth != "frames" and args.radius is None:
@@ -118,7 +118,8 @@ def cmd_localize_recording(args) -> int:
             gt = None
             if args.ground_truth is not None:
                 gt = _ground_truth(args, m, step, gt_positions)
-                check_memory((n_frames + len(b)) * m.n_places * 5, "scoring against --ground-truth")
+                # the score rows and ground truth kept for the metrics: 5 bytes per place and frame
+                check_memory(len(b) * m.n_places * 5, "scoring against --ground-truth")
                 scores.append(step.scores.astype(np.float32))
                 truth.append(gt)
             for tr in tracers:
@@ -141,6 +142,8 @@ def cmd_localize_recording(args) -> int:
             n_frames += len(b)
             n_reloc += int(step.relocated.sum())
             bar.update(len(b))
+        if n_frames == 0:  # inside the with: no output file is left behind
+            raise RecordingError(f"{source.describe()}: --every {args.every} keeps no frame")
     elapsed = time.perf_counter() - t0
     conf = np.concatenate(confidences)
     print(
