@@ -230,3 +230,22 @@ def test_realtime_paces_to_the_timestamps(tmp_path, capsys):
     code, _, err = _run(capsys, "localize", "--map", tmp_path / "r.map", bag, "--realtime")
     assert code == 0, err
     assert time.perf_counter() - t0 >= 0.5  # 6 frames at 10 fps: the last is due after 0.5 s
+
+
+def test_video_speed_benchmark_runs_small():
+    """The speed benchmark's video row, at a toy size: every figure is there and sane."""
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    from benchmarks import video_speed
+
+    res = video_speed.run(n_places=8, lengths=(12, 24), repeat=1, log=lambda _: None)
+    assert res["video_frames"] == 12
+    assert res["video_decode_fps"] > 0 and res["video_localize_fps"] > 0
+    assert res["video_localize_over_decode"] == pytest.approx(
+        res["video_localize_fps"] / res["video_decode_fps"]
+    )
+    assert res["video_peak_rss_mb_12"] > 10 and res["video_peak_rss_mb_24"] > 10
