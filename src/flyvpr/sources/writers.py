@@ -191,9 +191,7 @@ def write_bag(
 
         writer = Writer(tmp)
     else:
-        from rosbags.rosbag2 import Writer
-
-        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import StoragePlugin, Writer
 
         writer = Writer(tmp, version=9, storage_plugin=StoragePlugin[storage.upper()])
     try:
