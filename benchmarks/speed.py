@@ -26,6 +26,11 @@ Measures in one run, each figure the median of ``--repeat`` repetitions (seconds
   frames in route order, wrapping around the 2400 available; the share of frames whose best
   place (in any copy) lies within 20 places of the true one is reported for information.
 
+* ``video_*``: end to end from a 640x480 H.264 video (see ``benchmarks/video_speed.py`` for
+  the protocol): ``flyvpr localize --map`` against PyAV decoding the same video alone (same
+  run, threads on both sides), their ratio and ms per frame, and the peak memory of the
+  localize command at two video lengths (``--skip-video`` leaves the row out).
+
 Also prints the machine, library versions, and the paper's timing table next to ours.
 """
 
@@ -59,6 +64,16 @@ PAPER = {
     "FlyNet+CANN": {"feature_s": 35.0, "matching_s": 25.0, "per_query_s": 0.06, "fps": 16.66},
     "SeqSLAM": {"feature_s": 50.0, "matching_s": 40.0, "per_query_s": 0.09, "fps": 11.11},
 }
+
+
+def _video_module():
+    """``benchmarks/video_speed.py``, loaded by path (this file also runs as a script)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("video_speed", HERE / "video_speed.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def timed(fn, repeat):
@@ -155,6 +170,7 @@ def main(argv=None) -> int:
     p.add_argument("--stream-queries", type=int, default=6000)
     p.add_argument("--stream-epochs", type=int, default=10)
     p.add_argument("--skip-stream", action="store_true", help="skip the 35,768-place stream")
+    p.add_argument("--skip-video", action="store_true", help="skip the 640x480 video row")
     p.add_argument("--stream-only", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.stream_only:
@@ -250,6 +266,17 @@ def main(argv=None) -> int:
             f"{res['stream_map_build_s']:.1f} s; peak RSS {res['stream_peak_rss_mb']:.0f} MB)"
         )
 
+    # -- end to end from a video ---------------------------------------------------------------
+    if not args.skip_video:
+        res.update(_video_module().run(repeat=rep, log=log))
+        lengths = sorted(int(k.rsplit("_", 1)[1]) for k in res if k.startswith("video_peak_rss"))
+        short, long = (res[f"video_peak_rss_mb_{n}"] for n in (lengths[0], lengths[-1]))
+        res["targets"] = {
+            "video_localize_over_decode >= 0.8": res["video_localize_over_decode"] >= 0.8,
+            f"video peak RSS at {lengths[-1]} frames <= 1.05 x at {lengths[0]}": long
+            <= 1.05 * short,
+        }
+
     # -- context --------------------------------------------------------------
     import numba
     import scipy
@@ -273,6 +300,7 @@ def main(argv=None) -> int:
         for k, (f, m) in ours.items()
     }
     res["targets"] = {
+        **res.get("targets", {}),
         "flynet_cann_query_s <= 0.25 decode_s": res["flynet_cann_query_s"]
         <= 0.25 * res["decode_s"],
         "seqslam_s <= 0.5": res["seqslam_s"] <= 0.5,
@@ -301,6 +329,11 @@ def main(argv=None) -> int:
         "stream_queries_per_s",
         "stream_per_query_ms",
         "stream_peak_rss_mb",
+        "video_decode_fps",
+        "video_localize_fps",
+        "video_decode_ms",
+        "video_localize_ms",
+        "video_localize_over_decode",
     ):
         if key in res:
             print(f"{key:30s} {res[key]:14.4f}")
@@ -343,6 +376,12 @@ FIGURE_NOTES = {
     "stream_peak_rss_mb": ("MiB", "peak resident memory of that streaming process"),
     "stream_map_build_s": ("s", "building that map: FlyNet mini-batch training"),
     "stream_same_place_within_20_share": ("share", "streamed frames within 20 places"),
+    "video_decode_fps": ("frames/s", "PyAV alone decodes the 640x480 H.264 query video"),
+    "video_localize_fps": ("frames/s", "flyvpr localize --map on that video, end to end"),
+    "video_decode_ms": ("ms", "PyAV decoding, per frame"),
+    "video_localize_ms": ("ms", "flyvpr localize --map, per frame"),
+    "video_localize_over_decode": ("ratio", "localize rate / decode rate (target >= 0.8)"),
+    "video_localize_over_decode_best": ("ratio", "the same from the fastest run of each"),
 }
 
 
@@ -385,6 +424,7 @@ def render_markdown(data: dict) -> str:
         "|---|---|---|---|",
     ]
     skip = {"machine", "timing_table", "targets", "repeat", "stream_n_places", "stream_n_queries"}
+    skip |= {"video_decode_runs_s", "video_localize_runs_s"}
     keys = [k for k in FIGURE_NOTES if k in data]
     keys += [k for k in data if k not in FIGURE_NOTES and k not in skip]
     for key in keys:

@@ -28,6 +28,8 @@ API_MODULES = [
     "flyvpr.localizer",
     "flyvpr.sources",
     "flyvpr.maps",
+    "flyvpr.tracking",
+    "flyvpr.trace",
     "flyvpr.modelio",
     "flyvpr.evaluation",
     "flyvpr.experiments",

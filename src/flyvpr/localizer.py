@@ -56,6 +56,26 @@ class Localizer:
             )
         self.n_frames_ = 0
 
+    @classmethod
+    def from_map(cls, path, *, size=None) -> Localizer:
+        """A localizer over the places of a map (see :class:`flyvpr.maps.Map`).
+
+        Parameters
+        ----------
+        path : str, Path or Map
+            A map file written by ``flyvpr map`` / :meth:`Map.save`, or a loaded map.
+        size : (int, int), optional
+            The image size the caller will feed; a map built for another size is refused.
+
+        The map is kept as ``map_`` (timestamps, positions and thumbnails of the places).
+        """
+        from .maps import Map
+
+        m = path if isinstance(path, Map) else Map.load(path, size=size)
+        loc = cls(m.method)
+        loc.map_ = m
+        return loc
+
     def fit(self, reference_images) -> Localizer:
         """Build the reference map (fits the method on the reference traverse)."""
         self.method.fit(reference_images)
@@ -100,6 +120,41 @@ class Localizer:
             row = filt.step(row) if velocity is None else filt.step(row, velocity=velocity)
         self.n_frames_ += 1
         return row
+
+    def update_batch(self, images):
+        """Process consecutive frames: the front end scores them in one vectorised call, then
+        the filter steps through the rows in order (as :meth:`update` frame by frame).
+
+        Parameters
+        ----------
+        images : array-like, shape (n, H, W)
+
+        Returns
+        -------
+        places : ndarray of int64, shape (n,)
+        confidences : ndarray, shape (n,)
+        scores : ndarray, shape (n, n_places)
+            The filtered score rows.
+        relocated : ndarray of bool, shape (n,)
+            Whether the filter relocated its packet at that frame (filters that count
+            relocations, such as the CANN; False otherwise).
+        """
+        self._check_fitted("update_batch")
+        frontend = self.method.frontend
+        frames = check_images(images, "images", frontend.image_shape_)
+        S = frontend.score_codes(frontend._encode(frames))
+        relocated = np.zeros(len(S), dtype=bool)
+        filt = self.method.filter
+        if filt is not None:
+            out = np.empty(S.shape, dtype=np.float32)
+            for i in range(len(S)):
+                before = getattr(filt, "n_relocations_", 0)
+                out[i] = filt.step(S[i])
+                relocated[i] = getattr(filt, "n_relocations_", 0) != before
+            S = out
+        self.n_frames_ += len(S)
+        places = np.argmax(S, axis=1)
+        return places, S[np.arange(len(S)), places], S, relocated
 
     def update(self, image, velocity=None) -> tuple[int, float]:
         """Process one frame.

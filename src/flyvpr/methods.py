@@ -19,8 +19,18 @@ from ._validation import check_random_state
 from .frontends import FRONTENDS, Encoder
 from .temporal import FILTERS, TemporalFilter
 
-__all__ = ["Method", "MethodSpec", "METHODS", "ALIASES", "make_method", "method_names"]
+__all__ = [
+    "Method",
+    "MethodSpec",
+    "METHODS",
+    "ALIASES",
+    "DEFAULT_METHOD",
+    "make_method",
+    "method_names",
+]
 
+#: the method ``flyvpr map``, ``flyvpr localize`` and ``flyvpr demo`` use unless told otherwise
+DEFAULT_METHOD = "pixels+cann"
 #: short names for combinations the literature calls by one name
 ALIASES = {"seqslam": "pixels+seqslam"}
 

@@ -70,6 +70,8 @@ _META_FIELDS = {
     "filter": (dict, type(None)),
     "checksum": str,
 }
+#: optional sections that extend a model file (a map adds ``map``, read by flyvpr.maps)
+_SECTIONS = ("map",)
 
 
 class ModelFileError(ValueError):
@@ -155,7 +157,7 @@ def _file_digest(fh, n_bytes: int) -> str:
     return h.hexdigest()
 
 
-def save_method(method: Method, path, *, size=DEFAULT_SIZE) -> Path:
+def save_method(method: Method, path, *, size=DEFAULT_SIZE, sections=None) -> Path:
     """Write a fitted method to ``path`` (``.npz``, atomically).
 
     Parameters
@@ -167,6 +169,9 @@ def save_method(method: Method, path, *, size=DEFAULT_SIZE) -> Path:
         device is refused (see :func:`flyvpr._io.atomic_open`).
     size : (int, int)
         The (H, W) the images were pre-processed to.
+    sections : dict, optional
+        Extra sections, name -> (JSON-able dict, arrays named ``<name>/...``); a map file's
+        ``map`` section (see :mod:`flyvpr.maps`).
 
     Returns
     -------
@@ -193,6 +198,11 @@ def save_method(method: Method, path, *, size=DEFAULT_SIZE) -> Path:
             "params": _json_params(method.filter.get_params()),
             "state": _flatten(method.filter, "filter/", arrays),
         }
+    for name, (section, section_arrays) in (sections or {}).items():
+        if name not in _SECTIONS or not all(k.startswith(name + "/") for k in section_arrays):
+            raise ValueError(f"unknown model file section {name!r} or misnamed arrays")
+        meta[name] = section
+        arrays.update(section_arrays)
     return _write_archive(Path(path), meta, arrays)
 
 
@@ -382,7 +392,7 @@ def _check_fields(r: _Reader, meta: dict, size) -> tuple[int, int]:
             raise r.error(key, "missing")
         if not isinstance(meta[key], kind) or isinstance(meta[key], bool):
             raise r.error(key, f"has the wrong type: {type(meta[key]).__name__}")
-    extra = sorted(set(meta) - set(_META_FIELDS))
+    extra = sorted(set(meta) - set(_META_FIELDS) - set(_SECTIONS))
     if extra:
         raise r.error(extra[0], "not a field of a flyvpr model")
     from .images import _PREPROCESS_VERSION
@@ -473,6 +483,16 @@ def load_method(path, *, size=None) -> Method:
     flyvpr._validation.InsufficientMemoryError
         If the arrays it declares would not fit in the available memory.
     """
+    return _load(path, size, {})[0]
+
+
+def _load(path, size, readers: dict):
+    """Load a model file and its sections: ``readers`` maps a section name to a function
+    ``(reader, section_dict) -> object`` that reads (and checks) that section's arrays.
+
+    A section present in the file without a reader is refused, so ``load_method`` never
+    accepts a file with more in it than it understands.
+    """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"model file not found: {path}")
@@ -510,6 +530,16 @@ def load_method(path, *, size=None) -> Method:
             filt = r.part(
                 fm["name"], fm["params"], fm["state"], "filter", FILTERS, "filter", "filter/"
             )
+        found = {}
+        for name in _SECTIONS:
+            if name in meta and name not in readers:
+                raise r.error(
+                    name, f"the file is a flyvpr {name}, not a bare model: load it as a {name}"
+                )
+            if name in readers:
+                if not isinstance(meta.get(name), dict):
+                    raise r.error(name, f"missing: not a flyvpr {name} file")
+                found[name] = readers[name](r, meta[name])
         expected = {"__meta__.npy"} | {key + ".npy" for key in r.arrays}
         extra = sorted(set(zf.namelist()) - expected)
         if extra:
@@ -519,4 +549,4 @@ def load_method(path, *, size=None) -> Method:
             raise r.error("checksum", "content checksum mismatch: modified or damaged")
     method = Method(meta["method"], frontend, filt)
     _probe(r, method, image_shape)
-    return method
+    return method, found

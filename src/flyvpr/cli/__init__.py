@@ -18,7 +18,7 @@ import threading
 from contextlib import contextmanager
 
 from .. import __version__
-from . import demo, evaluate, experiment, info, localize
+from . import demo, evaluate, experiment, info, localize, map
 from ._common import UsageError
 
 __all__ = ["main", "build_parser"]
@@ -26,7 +26,7 @@ __all__ = ["main", "build_parser"]
 logger = logging.getLogger("flyvpr")
 
 #: subcommand modules in the order ``flyvpr --help`` lists them
-COMMAND_MODULES = (evaluate, localize, info, demo, experiment)
+COMMAND_MODULES = (evaluate, map, localize, info, demo, experiment)
 
 
 class _Parser(argparse.ArgumentParser):

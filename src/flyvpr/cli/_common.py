@@ -167,13 +167,15 @@ def split_params(method: str, params: list[tuple[str, object]]):
     return front, filt
 
 
-def add_image_args(p: argparse.ArgumentParser) -> None:
+def add_image_args(p: argparse.ArgumentParser, size_default=DEFAULT_SIZE) -> None:
     p.add_argument(
         "--size",
         type=parse_size,
-        default=DEFAULT_SIZE,
+        default=size_default,
         metavar="HxW",
-        help="image size after area-averaging resize (default: %(default)s as HxW = 32x64)",
+        help="image size after area-averaging resize (default: 32x64"
+        + ("" if size_default else "; with --map: the map's")
+        + ")",
     )
     p.add_argument("--no-cache", action="store_true", help="neither read nor write the image cache")
     p.add_argument(
@@ -208,9 +210,9 @@ DATASET_OPTIONS = {
 }
 
 
-def add_dataset_args(p: argparse.ArgumentParser) -> None:
+def add_dataset_args(p: argparse.ArgumentParser, required: bool = True) -> None:
     g = p.add_argument_group("dataset (see `flyvpr datasets` for layouts and options)")
-    g.add_argument("--dataset", required=True, choices=sorted(DATASETS), help="dataset layout")
+    g.add_argument("--dataset", required=required, choices=sorted(DATASETS), help="dataset layout")
     used = {opt for spec in DATASETS.values() for opt in spec.options}
     for opt in DATASET_OPTIONS:
         if opt not in used:

@@ -10,7 +10,7 @@ from .._io import write_json_atomic
 from .._validation import check_memory
 from ..evaluation import evaluate_method
 from ..images import DEFAULT_SIZE
-from ..methods import METHODS, method_names
+from ..methods import DEFAULT_METHOD, METHODS, method_names
 from ._common import (
     RESULT_COLUMNS,
     UsageError,
@@ -23,8 +23,13 @@ from ._common import (
 
 logger = logging.getLogger("flyvpr")
 
-#: methods the demo runs by default, in table order
-DEMO_METHODS = ("pixels", "flyhash", "flynet", "seqslam", "flynet+seqslam", "flynet+cann")
+#: methods the demo runs by default, in table order; the default method of `flyvpr map` and
+#: `flyvpr localize` (``DEFAULT_METHOD``) is always among them
+DEMO_METHODS = tuple(
+    dict.fromkeys(
+        ("pixels", "flyhash", "flynet", "seqslam", "flynet+seqslam", "flynet+cann", DEFAULT_METHOD)
+    )
+)
 
 
 def cmd_demo(args) -> int:
@@ -60,7 +65,10 @@ def cmd_demo(args) -> int:
         "\nReal data is one flag away, e.g.:\n"
         "  flyvpr evaluate --dataset nordland --root ../shared/data/nordland_64x32 "
         "--reference summer --query winter --first 0 --count 1000 --tolerance 20 "
-        "--method flynet+cann --seed 0 --out result.json"
+        "--method flynet+cann --seed 0 --out result.json\n"
+        "and so is your robot's own recording (a video, a ROS bag or an image folder):\n"
+        "  flyvpr map drive1.mp4 --out route.map && "
+        "flyvpr localize --map route.map drive2.mp4 --out where.csv --render trace.mp4"
     )
     if args.out is not None:
         write_json_atomic(

@@ -12,7 +12,8 @@ import numpy as np
 
 from .._io import write_text_atomic
 from ..datasets import load_benchmark
-from ..methods import METHODS
+from ..images import DEFAULT_SIZE
+from ..methods import DEFAULT_METHOD, METHODS
 from ._common import (
     UsageError,
     add_dataset_args,
@@ -21,14 +22,44 @@ from ._common import (
     check_outputs,
     check_run_memory,
     dataset_kwargs,
+    flag,
     image_options,
     parse_speed,
     print_protocol,
     split_params,
 )
+from .map import add_recording_args
 
 
 def cmd_localize(args) -> int:
+    if args.map is not None or args.source is not None:
+        return _cmd_recording(args)
+    if args.dataset is None:
+        raise UsageError("give --map MAP SOURCE (a recording) or --dataset (a benchmark layout)")
+    for option in ("render", "ground_truth", "topic", "every", "positions", "position_topic"):
+        if getattr(args, option):
+            raise UsageError(f"{flag(option)} needs --map MAP SOURCE")
+    if args.realtime:
+        raise UsageError("--realtime needs --map MAP SOURCE")
+    args.size = args.size or DEFAULT_SIZE
+    args.method = args.method or DEFAULT_METHOD
+    return _cmd_benchmark(args)
+
+
+def _cmd_recording(args) -> int:
+    from ._stream import cmd_localize_recording
+
+    if args.map is None or args.source is None:
+        raise UsageError("a recording needs both --map MAP and SOURCE")
+    if args.dataset is not None:
+        raise UsageError("--dataset: give a benchmark layout or --map MAP SOURCE, not both")
+    for option in ("speed", "odometry", "method", "param"):
+        if getattr(args, option):
+            raise UsageError(f"{flag(option)}: the map fixes the method; not with --map")
+    return cmd_localize_recording(args)
+
+
+def _cmd_benchmark(args) -> int:
     from tqdm.auto import tqdm
 
     from ..evaluation import speed_profile
@@ -81,13 +112,38 @@ def register(sub) -> None:
         "localize",
         help="stream a query traverse frame by frame and write one CSV line per frame",
         description=(
-            "Fit METHOD on the reference traverse, then feed the query frames one at a time to "
-            "the streaming localizer (constant time and memory per frame) and write frame, "
-            "place, confidence and correctness to CSV."
+            "With --map MAP SOURCE: stream a recording (image folder, video or ROS bag) through "
+            "the map's localizer and write one record per frame (frame, timestamp, place, "
+            "confidence, relocated, and x, y when the map has positions) as CSV or JSON Lines "
+            "(.jsonl); with --ground-truth it also scores itself. With --dataset: fit METHOD on "
+            "the benchmark's reference traverse, then feed its query frames one at a time to "
+            "the streaming localizer and write frame, place, confidence and correctness to CSV."
         ),
     )
-    add_dataset_args(p)
-    add_method_args(p, default="flynet+cann", note=" (an online filter; default flynet+cann)")
+    p.add_argument(
+        "source", nargs="?", type=Path, metavar="SOURCE", help="recording to localize (with --map)"
+    )
+    p.add_argument("--map", type=Path, help="map file written by `flyvpr map`")
+    add_recording_args(p)
+    p.add_argument(
+        "--realtime", action="store_true", help="pace frames to the recording's timestamps"
+    )
+    p.add_argument(
+        "--render",
+        type=Path,
+        action="append",
+        metavar="PATH",
+        help="also write a trace to watch: .mp4/.mkv video or .html page (repeatable)",
+    )
+    p.add_argument(
+        "--ground-truth",
+        metavar="GT",
+        help="score the run: 'frames' (query frame i shows the place of map frame i, within "
+        "--tolerance frames) or a CSV of the query's positions (timestamp,x,y or frame,x,y; "
+        "within --radius metres of a place's map position)",
+    )
+    add_dataset_args(p, required=False)
+    add_method_args(p, note=f" (an online filter; default {DEFAULT_METHOD})")
     p.add_argument(
         "--speed",
         type=parse_speed,
@@ -100,6 +156,8 @@ def register(sub) -> None:
         action="store_true",
         help="pass the true places moved per frame to the filter as velocity input",
     )
-    p.add_argument("--out", type=Path, help="CSV file to write (atomically)")
-    add_image_args(p)
+    p.add_argument(
+        "--out", type=Path, help="CSV (or with --map, .jsonl) file to write (atomically)"
+    )
+    add_image_args(p, size_default=None)
     p.set_defaults(func=cmd_localize)

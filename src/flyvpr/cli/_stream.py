@@ -1,0 +1,183 @@
+"""``flyvpr localize --map MAP SOURCE``: localize a recording against a map, one record per frame.
+
+Nothing outside :mod:`flyvpr.cli` imports this module.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+import time
+from contextlib import ExitStack
+
+import numpy as np
+
+from .._io import OutputPathError, atomic_open, check_output_path
+from .._validation import check_memory
+from ._common import UsageError, check_outputs
+from .map import recording_inputs
+
+
+def _fmt(value) -> str:
+    return (
+        "" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.6g}"
+    )
+
+
+class _Records:
+    """One record per frame to CSV or JSON Lines (``.jsonl``), written atomically."""
+
+    def __init__(self, fh, columns, jsonl: bool):
+        self.fh, self.columns, self.jsonl = fh, columns, jsonl
+        if not jsonl:
+            self.writer = csv.writer(fh, lineterminator="\n")
+            self.writer.writerow(columns)
+
+    def write(self, row: dict) -> None:
+        if self.jsonl:
+            clean = {
+                k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                for k, v in row.items()
+            }
+            self.fh.write(json.dumps(clean) + "\n")
+        else:
+            self.writer.writerow(
+                [_fmt(row[c]) if isinstance(row[c], float) else row[c] for c in self.columns]
+            )
+
+
+def _ground_truth(args, m, step, gt_positions):
+    from ..tracking import ground_truth_frames, ground_truth_positions
+
+    b = step.batch
+    if args.ground_truth == "frames":
+        return ground_truth_frames(b.indices, m.source_index, args.tolerance)
+    if m.positions is None:
+        raise UsageError("--ground-truth CSV needs a map built with positions")
+    xy = gt_positions.at(b.indices, b.timestamps)
+    return ground_truth_positions(xy, m.positions, args.radius)
+
+
+def cmd_localize_recording(args) -> int:
+    from tqdm.auto import tqdm
+
+    from ..localizer import Localizer
+    from ..sources import RecordingError, open_source, read_positions
+    from ..tracking import track
+
+    if args.ground_truth is not None and args.ground_truth != "frames" and args.radius is None:
+        raise UsageError("--ground-truth CSV needs --radius (metres)")
+    if args.ground_truth == "frames" and args.tolerance is None:
+        raise UsageError("--ground-truth frames needs --tolerance (frames)")
+    renders = args.render or []
+    for path in renders:
+        if path.suffix.lower() not in (".mp4", ".mkv", ".html", ".htm"):
+            raise UsageError(f"--render {path}: expected a .mp4, .mkv or .html file")
+    inputs = recording_inputs(args) + [args.map]
+    if args.ground_truth not in (None, "frames"):
+        inputs.append(args.ground_truth)
+    check_outputs(args, inputs, ("out",))
+    taken = [args.out] if args.out is not None else []
+    for path in renders:
+        if any(path.resolve() == t.resolve() for t in taken):
+            raise UsageError(f"--render {path}: already an output of this run")
+        try:
+            check_output_path(path, inputs + taken, what="--render")
+        except OutputPathError as exc:
+            raise UsageError(str(exc)) from None
+        taken.append(path)
+    loc = Localizer.from_map(args.map, size=args.size)
+    m = loc.map_
+    source = open_source(args.source, topic=args.topic)
+    bag = source.path if source.kind == "bag" else None
+    positions = read_positions(args.positions, bag=bag, topic=args.position_topic)
+    gt_positions = None
+    if args.ground_truth not in (None, "frames"):
+        gt_positions = read_positions(args.ground_truth)
+    columns = ["frame", "timestamp", "place", "confidence", "relocated"]
+    if m.has_positions:
+        columns += ["x", "y"]
+    if args.ground_truth is not None:
+        columns.append("correct")
+    show = not args.quiet and sys.stderr.isatty()
+    confidences, scores, truth = [], [], []
+    n_frames = n_reloc = 0
+    t0 = time.perf_counter()
+    with ExitStack() as stack:
+        out = None
+        if args.out is not None:
+            fh = stack.enter_context(atomic_open(args.out, "w", newline="", encoding="utf-8"))
+            out = _Records(fh, columns, args.out.suffix.lower() == ".jsonl")
+        tracers = [stack.enter_context(_tracer(path, m)) for path in renders]
+        bar = stack.enter_context(tqdm(desc="localizing", unit="frame", disable=not show))
+        for step in track(loc, source, every=args.every, positions=positions,
+                          realtime=args.realtime):  # fmt: skip
+            b = step.batch
+            gt = None
+            if args.ground_truth is not None:
+                gt = _ground_truth(args, m, step, gt_positions)
+                # the score rows and ground truth kept for the metrics: 5 bytes per place and frame
+                check_memory(len(b) * m.n_places * 5, "scoring against --ground-truth")
+                scores.append(step.scores.astype(np.float32))
+                truth.append(gt)
+            for tr in tracers:
+                tr.add(step)
+            for i in range(len(b)):
+                row = {
+                    "frame": int(b.indices[i]),
+                    "timestamp": float(b.timestamps[i]),
+                    "place": int(step.places[i]),
+                    "confidence": float(step.confidences[i]),
+                    "relocated": int(step.relocated[i]),
+                }
+                if m.has_positions:
+                    row["x"], row["y"] = (float(v) for v in step.positions[i])
+                if gt is not None:
+                    row["correct"] = int(gt[i, step.places[i]])
+                if out is not None:
+                    out.write(row)
+            confidences.append(step.confidences.astype(np.float32))
+            n_frames += len(b)
+            n_reloc += int(step.relocated.sum())
+            bar.update(len(b))
+        if n_frames == 0:  # inside the with: no output file is left behind
+            raise RecordingError(f"{source.describe()}: --every {args.every} keeps no frame")
+    elapsed = time.perf_counter() - t0
+    conf = np.concatenate(confidences)
+    print(
+        f"{m.method.name}: {n_frames} frames of {source.describe()} (every "
+        f"{args.every or 1}) against {m.n_places} places: {n_frames / elapsed:.1f} frames/s, "
+        f"median confidence {float(np.median(conf)):.4g}, {n_reloc} relocations"
+    )
+    if args.ground_truth is not None:
+        _print_scores(args, np.concatenate(scores), np.concatenate(truth))
+    for path in [args.out, *renders]:
+        if path is not None:
+            print(f"wrote {path}")
+    return 0
+
+
+def _tracer(path, m):
+    from ..trace import open_trace
+
+    return open_trace(path, m)
+
+
+def _print_scores(args, S, gt) -> None:
+    from ..metrics import evaluate
+
+    if not gt.any():
+        raise ValueError(f"--ground-truth {args.ground_truth}: no frame has a true place")
+    r = evaluate(S, gt)
+    rule = (
+        f"frames within {args.tolerance}"
+        if args.ground_truth == "frames"
+        else f"{args.ground_truth} within {args.radius:g} m"
+    )
+    print(
+        f"ground truth ({rule}): AUC {r['auc']:.4f}, R@1 {r['recall_at_1']:.4f}, "
+        f"R@5 {r['recall_at_5']:.4f}, R@100%P {r['recall_at_100_precision']:.4f} "
+        f"over {r['n_query']} frames"
+    )

@@ -1,0 +1,111 @@
+"""``flyvpr map``: build a reference map from a recording (image folder, video or ROS bag)."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from ..images import DEFAULT_SIZE
+from ..methods import DEFAULT_METHOD, METHODS
+from ._common import UsageError, add_method_args, check_outputs, parse_size, split_params
+
+__all__ = ["register", "add_recording_args", "recording_inputs"]
+
+
+def parse_every_arg(text: str):
+    from ..sources.base import parse_every
+
+    try:
+        return parse_every(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--every: ")) from None
+
+
+def add_recording_args(p, positions: bool = True) -> None:
+    """SOURCE's options: --topic, --every and (for maps) where positions come from."""
+    g = p.add_argument_group("recording")
+    g.add_argument("--topic", help="image topic of a ROS bag (default: its only image topic)")
+    g.add_argument(
+        "--every",
+        type=parse_every_arg,
+        metavar="E",
+        help="keep every E-th frame (3), one frame per E seconds (0.5s) or per E metres (2m, "
+        "needs positions); default every frame",
+    )
+    if positions:
+        g.add_argument(
+            "--positions",
+            type=Path,
+            metavar="CSV",
+            help="frame positions: CSV with header timestamp,x,y or frame,x,y (metres)",
+        )
+        g.add_argument(
+            "--position-topic",
+            metavar="T",
+            help="frame positions from a sensor_msgs/NavSatFix or nav_msgs/Odometry topic of "
+            "the same bag (nearest timestamp)",
+        )
+
+
+def recording_inputs(args) -> list:
+    """Input paths of a recording command (outputs must differ from them)."""
+    return [p for p in (args.source, getattr(args, "positions", None)) if p is not None]
+
+
+def cmd_map(args) -> int:
+    from ..maps import Map
+
+    if args.method not in METHODS:
+        raise UsageError(f"--method: unknown method {args.method!r}")
+    if args.positions is not None and args.position_topic is not None:
+        raise UsageError("--positions and --position-topic: give one of them")
+    front_params, filt_params = split_params(args.method, args.param)
+    check_outputs(args, recording_inputs(args), ("out",))
+    t0 = time.perf_counter()
+    m = Map.build(
+        args.source,
+        args.method,
+        size=args.size,
+        topic=args.topic,
+        every=args.every,
+        positions=args.positions,
+        position_topic=args.position_topic,
+        random_state=args.seed,
+        frontend_params=front_params,
+        filter_params=filt_params,
+    )
+    m.save(args.out)
+    where = "with positions" if m.has_positions else "without positions"
+    print(
+        f"{args.method}: map of {m.n_places} places from {m.info['source_kind']} {args.source} "
+        f"(every {m.info['every']}, {where}, size {args.size[0]}x{args.size[1]}, "
+        f"seed {args.seed}) in {time.perf_counter() - t0:.2f} s"
+    )
+    print(f"wrote {args.out}")
+    return 0
+
+
+def register(sub) -> None:
+    """Add ``map`` to the subcommand parsers ``sub``."""
+    p = sub.add_parser(
+        "map",
+        help="build a reference map from a recording (image folder, video file or ROS bag)",
+        description=(
+            "Fit METHOD on the frames of SOURCE (the reference traverse) and save it with each "
+            "place's timestamp, frame index, position (when given) and a thumbnail, for "
+            "`flyvpr localize --map`."
+        ),
+    )
+    p.add_argument("source", type=Path, metavar="SOURCE", help="image folder, video or ROS bag")
+    p.add_argument("--out", type=Path, required=True, help="map file to write (atomically)")
+    add_method_args(p, default=DEFAULT_METHOD, note=f" (default {DEFAULT_METHOD})")
+    add_recording_args(p)
+    p.add_argument(
+        "--size",
+        type=parse_size,
+        default=DEFAULT_SIZE,
+        metavar="HxW",
+        help="image size after the gray conversion and area-averaging resize (default 32x64)",
+    )
+    p.set_defaults(func=cmd_map)

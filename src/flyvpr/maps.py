@@ -1,0 +1,246 @@
+"""Reference maps built from a robot's own recording: a fitted method plus where each place is.
+
+A :class:`Map` is the method fitted on the kept frames of one recording (the reference
+traverse) together with, per place, the frame's timestamp, its index in the recording, its
+position (x, y in metres) when known, and a small gray thumbnail (the pre-processed frame as
+8-bit) for traces.  It is saved as a model file (see :mod:`flyvpr.modelio`) with one more
+section, ``map``: the same safe, versioned and checksummed format, no pickle.
+
+Examples
+--------
+>>> from flyvpr.maps import Map
+>>> m = Map.build("runs/summer.mp4", every="0.5s")            # doctest: +SKIP
+>>> m.save("route.map")                                        # doctest: +SKIP
+>>> from flyvpr.localizer import Localizer
+>>> loc = Localizer.from_map("route.map")                      # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ._validation import ArraySpec, check_memory
+from .images import DEFAULT_SIZE
+from .methods import DEFAULT_METHOD, Method, make_method
+from .modelio import _load, save_method
+from .sources import Positions, RecordingError, Source, open_source, parse_every, read_positions
+from .temporal.base import OnlineFilter
+
+__all__ = ["Map", "MAP_VERSION", "MapFileError"]
+
+logger = logging.getLogger(__name__)
+
+#: bumped whenever the ``map`` section changes incompatibly
+MAP_VERSION = 1
+_MAP_FIELDS = {
+    "map_version": int,
+    "n_places": int,
+    "source": str,
+    "source_kind": str,
+    "topic": (str, type(None)),
+    "every": str,
+    "positions_from": (str, type(None)),
+}
+
+
+class MapFileError(ValueError):
+    """A file that is not a valid flyvpr map (the message names the file and the field)."""
+
+
+class Map:
+    """A fitted method and its places.
+
+    Parameters
+    ----------
+    method : Method
+        Fitted on the places' images.
+    size : (int, int)
+        (H, W) the images were pre-processed to.
+    timestamps : ndarray, shape (n_places,)
+        Seconds; NaN where the recording has no clock.
+    source_index : ndarray, shape (n_places,)
+        Index of each place's frame in the recording.
+    positions : ndarray, shape (n_places, 2), optional
+        x, y in metres (NaN where unknown).
+    thumbnails : ndarray, shape (n_places, H, W), uint8, optional
+    info : dict, optional
+        ``source``, ``source_kind``, ``topic``, ``every``, ``positions_from`` (where they came
+        from).
+    """
+
+    def __init__(
+        self, method, size, timestamps, source_index, positions=None, thumbnails=None, info=None
+    ):
+        self.method = method
+        self.size = (int(size[0]), int(size[1]))
+        self.timestamps = np.asarray(timestamps, np.float64)
+        self.source_index = np.asarray(source_index, np.int64)
+        self.positions = None if positions is None else np.asarray(positions, np.float64)
+        self.thumbnails = thumbnails
+        self.info = {
+            "source": "",
+            "source_kind": "",
+            "topic": None,
+            "every": "1",
+            "positions_from": None,
+            **(info or {}),
+        }
+
+    @property
+    def n_places(self) -> int:
+        return int(self.source_index.shape[0])
+
+    @property
+    def has_positions(self) -> bool:
+        return self.positions is not None
+
+    # -- building ---------------------------------------------------------------------------
+    @classmethod
+    def build(
+        cls,
+        source,
+        method=DEFAULT_METHOD,
+        *,
+        size=DEFAULT_SIZE,
+        topic: str | None = None,
+        every=None,
+        positions=None,
+        position_topic: str | None = None,
+        random_state=0,
+        frontend_params=None,
+        filter_params=None,
+    ) -> Map:
+        """Fit ``method`` on the kept frames of a recording.
+
+        Parameters
+        ----------
+        source : str, Path or Source
+            Image folder, video file or ROS bag (see :func:`flyvpr.sources.open_source`).
+        method : str or Method
+            Default :data:`flyvpr.methods.DEFAULT_METHOD`.
+        size : (int, int)
+        topic : str, optional
+            Image topic of a bag.
+        every : str or Every, optional
+            ``3``, ``0.5s`` or ``2m`` (see :func:`flyvpr.sources.parse_every`).
+        positions : str, Path or Positions, optional
+            A ``timestamp,x,y`` or ``frame,x,y`` CSV.
+        position_topic : str, optional
+            A NavSatFix or Odometry topic of the same bag.
+
+        Raises
+        ------
+        RecordingError
+            If the recording cannot be read or ``every`` keeps fewer than 2 frames.
+        """
+        if isinstance(method, Method):
+            m = method
+        else:
+            m = make_method(method, random_state, frontend_params, filter_params)
+        if m.filter is not None and not isinstance(m.filter, OnlineFilter):
+            raise ValueError(
+                f"method {m.name!r}: its filter {type(m.filter).__name__} cannot run one frame "
+                "at a time; a map needs an online filter (e.g. cann) or none"
+            )
+        src = source if isinstance(source, Source) else open_source(source, topic=topic)
+        every = parse_every(every)
+        pos = positions if isinstance(positions, Positions) else None
+        if pos is None:
+            bag = src.path if src.kind == "bag" else None
+            pos = read_positions(positions, bag=bag, topic=position_topic)
+        frames = src.read_all(size, every=every, positions=pos)
+        n = len(frames)
+        if n < 2:
+            raise RecordingError(f"{src.describe()}: a map needs at least 2 places; got {n}")
+        check_memory(n * n * 8 * 2, f"a map of {n} places from {src.path}")
+        m.fit(frames.images)
+        xy = None if pos is None else pos.at(frames.indices, frames.timestamps)
+        thumbs = np.rint(frames.images * 255.0).astype(np.uint8)
+        info = {
+            "source": str(src.path),
+            "source_kind": src.kind,
+            "topic": getattr(src, "topic", None),
+            "every": str(every),
+            "positions_from": None if pos is None else pos.origin,
+        }
+        logger.info("map: %d places from %s", n, src.describe())
+        return cls(m, size, frames.timestamps, frames.indices, xy, thumbs, info)
+
+    # -- files ------------------------------------------------------------------------------
+    def save(self, path) -> Path:
+        """Write the map (atomically) as a model file with a ``map`` section."""
+        meta = {"map_version": MAP_VERSION, "n_places": self.n_places, **self.info}
+        arrays = {"map/timestamps": self.timestamps, "map/source_index": self.source_index}
+        if self.positions is not None:
+            arrays["map/positions"] = self.positions
+        if self.thumbnails is not None:
+            arrays["map/thumbnails"] = np.asarray(self.thumbnails, np.uint8)
+        return save_method(self.method, path, size=self.size, sections={"map": (meta, arrays)})
+
+    @classmethod
+    def load(cls, path, *, size=None) -> Map:
+        """Read a map written by :meth:`save`.
+
+        Raises
+        ------
+        FileNotFoundError
+            If the file does not exist.
+        flyvpr.modelio.ModelFileError
+            For anything wrong with the model part (another format version, image size, a
+            failed checksum ...), and for a bare model file without a map.
+        """
+        method, found = _load(path, size, {"map": _read_section})
+        section = found["map"]
+        n = method.frontend.n_reference_
+        if section["n_places"] != n:
+            raise MapFileError(
+                f"map file {path}: map.n_places is {section['n_places']} but the model has "
+                f"{n} places"
+            )
+        image_size = tuple(method.frontend.image_shape_)
+        return cls(
+            method,
+            image_size,
+            section["timestamps"],
+            section["source_index"],
+            section.get("positions"),
+            section.get("thumbnails"),
+            {k: section[k] for k in ("source", "source_kind", "topic", "every", "positions_from")},
+        )
+
+
+def _read_section(r, section: dict) -> dict:
+    """Check the ``map`` section of a model file and read its arrays (``r`` is modelio's reader)."""
+    for key, kind in _MAP_FIELDS.items():
+        if key not in section:
+            raise r.error(f"map.{key}", "missing")
+        if not isinstance(section[key], kind) or isinstance(section[key], bool):
+            raise r.error(f"map.{key}", f"has the wrong type: {type(section[key]).__name__}")
+    extra = sorted(set(section) - set(_MAP_FIELDS))
+    if extra:
+        raise r.error(f"map.{extra[0]}", "not a field of a flyvpr map")
+    if section["map_version"] != MAP_VERSION:
+        raise r.error(
+            "map.map_version",
+            f"the file has map version {section['map_version']}; this flyvpr reads version "
+            f"{MAP_VERSION}: rebuild the map with `flyvpr map`",
+        )
+    n = section["n_places"]
+    if n < 1:
+        raise r.error("map.n_places", f"must be >= 1; got {n}")
+    out = dict(section)
+    out["timestamps"] = r.array(
+        "map/timestamps", "map.timestamps", ArraySpec("float64", (n,), False)
+    )
+    out["source_index"] = r.array("map/source_index", "map.source_index", ArraySpec("int64", (n,)))
+    names = set(r.zf.namelist())
+    if "map/positions.npy" in names:
+        spec = ArraySpec("float64", (n, 2), False)
+        out["positions"] = r.array("map/positions", "map.positions", spec)
+    if "map/thumbnails.npy" in names:
+        spec = ArraySpec("uint8", (n, None, None))
+        out["thumbnails"] = r.array("map/thumbnails", "map.thumbnails", spec)
+    return out

@@ -1,0 +1,219 @@
+"""What every recording source shares: batches of frames, ``--every`` thinning, errors.
+
+A source yields :class:`Batch` objects: a few dozen frames already converted to gray, in
+[0, 1] and resized, with their timestamps (seconds, NaN when the recording has none) and their
+index in the recording.  Memory therefore depends on the batch size, never on the length of
+the recording.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..images import DEFAULT_SIZE, _check_size
+
+__all__ = ["Batch", "Every", "RecordingError", "Source", "parse_every", "require_extra"]
+
+#: frames per batch unless a caller asks for another number
+DEFAULT_BATCH = 32
+
+
+class RecordingError(ValueError):
+    """A recording that cannot be read as asked (the message names the file)."""
+
+
+def _reason(exc) -> str:
+    """An exception's message on one line (its type name when it has none)."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def require_extra(module: str):
+    """Import an optional module of the ``recordings`` extra, or say how to install it."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise ImportError(
+            f"reading recordings needs the {module.split('.')[0]!r} package: "
+            "pip install 'flyvpr[recordings]'"
+        ) from None
+
+
+@dataclass(frozen=True)
+class Every:
+    """Which frames to keep: every ``value``-th frame, one per ``value`` s or per ``value`` m."""
+
+    value: float = 1.0
+    unit: str = "frames"  # 'frames', 'seconds' or 'metres'
+
+    def __str__(self) -> str:
+        suffix = {"frames": "", "seconds": "s", "metres": "m"}[self.unit]
+        return f"{self.value:g}{suffix}"
+
+
+_EVERY_RE = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:e[-+]?\d+)?)\s*(s|m)?\s*$", re.IGNORECASE)
+
+
+def parse_every(text) -> Every:
+    """``--every``: ``3`` (every 3rd frame), ``0.5s`` (one per half second), ``2m`` (per 2 m).
+
+    Raises
+    ------
+    ValueError
+        For anything else, a count that is not an integer >= 1 or a step that is not > 0.
+    """
+    if text is None:
+        return Every()
+    if isinstance(text, Every):
+        return text
+    m = _EVERY_RE.match(str(text))
+    if m is None:
+        raise ValueError(
+            f"--every: expected N (every N-th frame), Ts (seconds) or Dm (metres), such as 3, "
+            f"0.5s or 2m; got {text!r}"
+        )
+    value = float(m.group(1))
+    unit = {None: "frames", "s": "seconds", "m": "metres"}[(m.group(2) or "").lower() or None]
+    if unit == "frames" and (value != int(value) or value < 1):
+        raise ValueError(f"--every: a frame count must be an integer >= 1; got {text!r}")
+    if not math.isfinite(value) or value <= 0:
+        raise ValueError(f"--every: the step must be > 0; got {text!r}")
+    return Every(value, unit)
+
+
+@dataclass
+class Batch:
+    """Consecutive kept frames of a recording.
+
+    Attributes
+    ----------
+    images : ndarray, shape (n, H, W), float32 in [0, 1]
+    timestamps : ndarray, shape (n,), float64
+        Seconds (the recording's clock); NaN where unknown.
+    indices : ndarray, shape (n,), int64
+        Index of each frame among all frames of the recording (before thinning).
+    """
+
+    images: np.ndarray
+    timestamps: np.ndarray
+    indices: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.images.shape[0])
+
+
+class _Thinner:
+    """Decides frame by frame whether ``every`` keeps it (positions for the metres rule)."""
+
+    def __init__(self, every: Every, where: str, positions=None):
+        self.every = every
+        self.where = where
+        self.positions = positions
+        self.last_t = None
+        self.last_xy = None
+        if every.unit == "metres" and positions is None:
+            raise ValueError(
+                f"--every {every}: keeping frames by distance needs positions "
+                "(--positions CSV or --position-topic)"
+            )
+
+    def keep(self, index: int, timestamp: float) -> bool:
+        e = self.every
+        if e.unit == "frames":
+            return index % int(e.value) == 0
+        if e.unit == "seconds":
+            if not math.isfinite(timestamp):
+                raise RecordingError(
+                    f"{self.where}: --every {e} needs timestamps, and this recording has none"
+                )
+            if self.last_t is not None and timestamp - self.last_t < e.value - 1e-9:
+                return False
+            self.last_t = timestamp
+            return True
+        xy = self.positions.at(np.array([index]), np.array([timestamp]))[0]
+        if not np.isfinite(xy).all():
+            return False
+        if self.last_xy is not None and np.hypot(*(xy - self.last_xy)) < e.value:
+            return False
+        self.last_xy = xy
+        return True
+
+
+class Source:
+    """A recording: an image folder, a video file or a ROS bag (see :func:`open_source`).
+
+    Subclasses implement :meth:`_frames`, a generator of ``(index, timestamp, decode)`` with
+    ``decode(size)`` returning the frame as float32 gray in [0, 1] at ``size``; frames that
+    ``every`` drops are never decoded further than the container needs.
+    """
+
+    kind = "source"
+
+    def __init__(self, path):
+        self.path = Path(path)
+
+    def describe(self) -> str:
+        return f"{self.kind} {self.path}"
+
+    def _frames(self) -> Iterator[tuple[int, float, object]]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def batches(
+        self, size=DEFAULT_SIZE, *, every=None, positions=None, batch: int = DEFAULT_BATCH
+    ) -> Iterator[Batch]:
+        """Stream the kept frames in batches of at most ``batch`` frames.
+
+        Parameters
+        ----------
+        size : (int, int)
+            (H, W) after the gray conversion and area-averaging resize.
+        every : str or Every, optional
+            Thinning rule (:func:`parse_every`); default every frame.
+        positions : Positions, optional
+            Needed by a metres rule.
+
+        Raises
+        ------
+        RecordingError
+            If the recording cannot be read, or holds no frame at all (names the file).
+        """
+        h, w = _check_size(size)
+        thin = _Thinner(parse_every(every), str(self.path), positions)
+        images = np.empty((batch, h, w), np.float32)
+        stamps = np.empty(batch, np.float64)
+        idx = np.empty(batch, np.int64)
+        n = 0
+        seen = 0
+        for index, timestamp, decode in self._frames():
+            seen += 1
+            if not thin.keep(index, timestamp):
+                continue
+            images[n] = decode((h, w))
+            stamps[n] = timestamp
+            idx[n] = index
+            n += 1
+            if n == batch:
+                yield Batch(images.copy(), stamps.copy(), idx.copy())
+                n = 0
+        if seen == 0:
+            raise RecordingError(f"{self.describe()}: the recording holds no frame")
+        if n:
+            yield Batch(images[:n].copy(), stamps[:n].copy(), idx[:n].copy())
+
+    def read_all(self, size=DEFAULT_SIZE, *, every=None, positions=None) -> Batch:
+        """Every kept frame in one :class:`Batch` (for a reference map, which needs them all)."""
+        parts = list(self.batches(size, every=every, positions=positions))
+        if not parts:
+            raise RecordingError(f"{self.describe()}: --every {every} keeps no frame")
+        return Batch(
+            np.concatenate([b.images for b in parts]),
+            np.concatenate([b.timestamps for b in parts]),
+            np.concatenate([b.indices for b in parts]),
+        )

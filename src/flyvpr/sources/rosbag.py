@@ -1,0 +1,260 @@
+"""ROS 1 ``.bag`` and ROS 2 bags (``.db3`` / ``.mcap``) read with the pure-Python ``rosbags``.
+
+Images come from one topic of type ``sensor_msgs/Image`` (encodings :data:`IMAGE_ENCODINGS`)
+or ``sensor_msgs/CompressedImage`` (JPEG or PNG, decoded with Pillow).  A frame's timestamp is
+its header stamp, or the time the bag recorded it when the stamp is zero.  Positions come from a
+``sensor_msgs/NavSatFix`` topic (latitude/longitude to local metres, equirectangular about the
+first fix) or a ``nav_msgs/Odometry`` topic (pose position x, y).
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from ..images import resize_area, to_gray
+from .base import RecordingError, Source, _reason, require_extra
+
+__all__ = ["BagSource", "IMAGE_ENCODINGS", "BAG_EXTENSIONS", "read_bag_positions"]
+
+#: file suffixes read as bags (a ROS 2 bag may also be given as its folder)
+BAG_EXTENSIONS = (".bag", ".db3", ".mcap")
+_IMAGE = ("sensor_msgs/msg/Image", "sensor_msgs/Image")
+_COMPRESSED = ("sensor_msgs/msg/CompressedImage", "sensor_msgs/CompressedImage")
+_NAVSAT = ("sensor_msgs/msg/NavSatFix", "sensor_msgs/NavSatFix")
+_ODOMETRY = ("nav_msgs/msg/Odometry", "nav_msgs/Odometry")
+#: raw encodings read: name -> (numpy dtype, channels, channel order)
+IMAGE_ENCODINGS = {
+    "mono8": ("u1", 1, None),
+    "8uc1": ("u1", 1, None),
+    "mono16": ("u2", 1, None),
+    "rgb8": ("u1", 3, "rgb"),
+    "bgr8": ("u1", 3, "bgr"),
+    "rgba8": ("u1", 4, "rgb"),
+    "bgra8": ("u1", 4, "bgr"),
+    "rgb16": ("u2", 3, "rgb"),
+    "bgr16": ("u2", 3, "bgr"),
+}
+#: mean Earth radius (m) for the equirectangular projection of NavSatFix positions
+EARTH_RADIUS_M = 6_371_000.0
+
+
+def _bag_paths(path: Path) -> list[Path]:
+    """What ``AnyReader`` opens: a ROS 1 file, or a ROS 2 bag's folder (with metadata.yaml)."""
+    if path.is_dir():
+        if not (path / "metadata.yaml").is_file():
+            raise RecordingError(f"bag {path}: a ROS 2 bag folder needs its metadata.yaml")
+        return [path]
+    if not path.is_file():
+        raise FileNotFoundError(f"bag not found: {path}")
+    if path.suffix.lower() in (".db3", ".mcap"):
+        if not (path.parent / "metadata.yaml").is_file():
+            raise RecordingError(
+                f"bag {path}: a ROS 2 bag file needs the metadata.yaml of its folder"
+            )
+        return [path.parent]
+    return [path]
+
+
+class _Bag:
+    """An open bag with flyvpr's error messages."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        hl = require_extra("rosbags.highlevel")
+        self._errors = _rosbags_errors()
+        try:
+            self.reader = hl.AnyReader(_bag_paths(path))
+            self.reader.open()
+        except self._errors as exc:
+            raise RecordingError(f"bag {path}: not a readable ROS bag ({_reason(exc)})") from None
+
+    def topics(self, types) -> dict[str, str]:
+        return {c.topic: c.msgtype for c in self.reader.connections if c.msgtype in types}
+
+    def pick(self, topic: str | None, types, what: str, option: str):
+        found = self.topics(types)
+        if topic is None:
+            if len(found) != 1:
+                listing = ", ".join(f"{t} ({m})" for t, m in sorted(found.items())) or "none"
+                raise RecordingError(
+                    f"bag {self.path}: name the {what} topic with {option}; {what} topics in "
+                    f"the bag: {listing}"
+                )
+            topic = next(iter(found))
+        if topic not in found:
+            all_topics = {c.topic: c.msgtype for c in self.reader.connections}
+            extra = f" (it has type {all_topics[topic]})" if topic in all_topics else ""
+            listing = ", ".join(sorted(found)) or "none"
+            raise RecordingError(
+                f"bag {self.path}: no {what} topic {topic!r}{extra}; {what} topics in the bag: "
+                f"{listing}"
+            )
+        return [c for c in self.reader.connections if c.topic == topic]
+
+    def messages(self, connections):
+        try:
+            for conn, logtime, raw in self.reader.messages(connections=connections):
+                try:
+                    msg = self.reader.deserialize(raw, conn.msgtype)
+                except Exception as exc:  # rosbags raises several kinds on damaged payloads
+                    raise RecordingError(
+                        f"bag {self.path}: damaged {conn.msgtype} message on {conn.topic} "
+                        f"({_reason(exc)})"
+                    ) from None
+                yield conn, logtime, msg
+        except self._errors as exc:
+            raise RecordingError(
+                f"bag {self.path}: damaged or truncated ({_reason(exc)})"
+            ) from None
+
+    def close(self):
+        self.reader.close()
+
+
+def _rosbags_errors() -> tuple:
+    from rosbags.highlevel import AnyReaderError
+    from rosbags.rosbag1 import ReaderError as Reader1Error
+    from rosbags.rosbag2 import ReaderError as Reader2Error
+
+    return (AnyReaderError, Reader1Error, Reader2Error, OSError, EOFError, KeyError, ValueError)
+
+
+def _stamp(msg, logtime: int) -> float:
+    stamp = getattr(getattr(msg, "header", None), "stamp", None)
+    if stamp is not None:
+        sec = getattr(stamp, "sec", getattr(stamp, "secs", 0))
+        nsec = getattr(stamp, "nanosec", getattr(stamp, "nsecs", 0))
+        if sec or nsec:
+            return float(sec) + 1e-9 * float(nsec)
+    return 1e-9 * float(logtime)
+
+
+class BagSource(Source):
+    """Image messages of one topic of a ROS 1 or ROS 2 bag.
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``.bag`` file, a ROS 2 bag folder, or its ``.db3`` / ``.mcap`` file.
+    topic : str, optional
+        Image topic; when omitted the bag must have exactly one.
+    """
+
+    kind = "bag"
+
+    def __init__(self, path, topic: str | None = None):
+        super().__init__(path)
+        bag = _Bag(self.path)
+        try:
+            conns = bag.pick(topic, _IMAGE + _COMPRESSED, "image", "--topic")
+        finally:
+            bag.close()
+        self.topic = conns[0].topic
+
+    def describe(self) -> str:
+        return f"bag {self.path} topic {self.topic}"
+
+    def _frames(self) -> Iterator[tuple[int, float, object]]:
+        bag = _Bag(self.path)
+        try:
+            conns = bag.pick(self.topic, _IMAGE + _COMPRESSED, "image", "--topic")
+            for index, (conn, logtime, msg) in enumerate(bag.messages(conns)):
+                yield index, _stamp(msg, logtime), self._decoder(conn.msgtype, msg, index)
+        finally:
+            bag.close()
+
+    def _decoder(self, msgtype: str, msg, index: int):
+        where = f"bag {self.path} topic {self.topic} message {index}"
+
+        def decode(size):
+            gray = _compressed_gray(msg, where) if msgtype in _COMPRESSED else _raw_gray(msg, where)
+            return resize_area(gray, size)
+
+        return decode
+
+
+def _raw_gray(msg, where: str) -> np.ndarray:
+    enc = str(msg.encoding).lower()
+    if enc not in IMAGE_ENCODINGS:
+        raise RecordingError(
+            f"{where}: unsupported image encoding {msg.encoding!r} (flyvpr reads "
+            f"{', '.join(IMAGE_ENCODINGS)}; depth and float images are not camera frames)"
+        )
+    kind, channels, order = IMAGE_ENCODINGS[enc]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    itemsize = int(kind[1])
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if h < 1 or w < 1 or step < w * channels * itemsize or data.size < h * step:
+        raise RecordingError(
+            f"{where}: {h}x{w} {enc} image with step {step} does not fit its {data.size} bytes"
+        )
+    rows = data[: h * step].reshape(h, step)[:, : w * channels * itemsize]
+    dtype = np.dtype(kind).newbyteorder(">" if msg.is_bigendian else "<")
+    pixels = (
+        rows.copy().view(dtype).reshape(h, w, channels)
+        if itemsize > 1
+        else rows.reshape(h, w, channels)
+    )
+    if order == "bgr":
+        pixels = pixels[:, :, 2::-1]
+    elif channels == 4:
+        pixels = pixels[:, :, :3]
+    pixels = pixels.astype(pixels.dtype.newbyteorder("="), copy=False)
+    return to_gray(pixels[:, :, 0] if channels == 1 else pixels)
+
+
+def _compressed_gray(msg, where: str) -> np.ndarray:
+    try:
+        with Image.open(io.BytesIO(np.asarray(msg.data, dtype=np.uint8).tobytes())) as img:
+            img.load()
+            if img.mode not in ("L", "I;16", "RGB", "RGBA"):
+                img = img.convert("RGB")
+            arr = np.array(img)
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise RecordingError(
+            f"{where}: compressed image (format {msg.format!r}) is not a readable JPEG or PNG "
+            f"({_reason(exc)})"
+        ) from None
+    return to_gray(arr)
+
+
+def read_bag_positions(path, topic: str) -> tuple[np.ndarray, np.ndarray]:
+    """Timestamps (n,) and local positions (n, 2) in metres from a NavSatFix or Odometry topic.
+
+    Raises
+    ------
+    RecordingError
+        If the bag has no such topic (the message lists the position topics it has) or no
+        usable position on it.
+    """
+    bag = _Bag(Path(path))
+    try:
+        conns = bag.pick(topic, _NAVSAT + _ODOMETRY, "position", "--position-topic")
+        stamps, values = [], []
+        for conn, logtime, msg in bag.messages(conns):
+            stamps.append(_stamp(msg, logtime))
+            if conn.msgtype in _NAVSAT:
+                values.append((msg.latitude, msg.longitude))
+            else:
+                p = msg.pose.pose.position
+                values.append((p.x, p.y))
+        navsat = conns[0].msgtype in _NAVSAT
+    finally:
+        bag.close()
+    xy = np.asarray(values, dtype=np.float64).reshape(-1, 2)
+    keep = np.isfinite(xy).all(axis=1)
+    t, xy = np.asarray(stamps, np.float64)[keep], xy[keep]
+    if len(t) == 0:
+        raise RecordingError(f"bag {path} topic {topic}: no finite position")
+    if navsat:
+        lat0, lon0 = np.radians(xy[0])
+        lat, lon = np.radians(xy[:, 0]), np.radians(xy[:, 1])
+        xy = np.stack(
+            [EARTH_RADIUS_M * (lon - lon0) * np.cos(lat0), EARTH_RADIUS_M * (lat - lat0)], axis=1
+        )
+    return t, xy

@@ -1,0 +1,221 @@
+"""Writing frames as recordings: a video file (PyAV) or a ROS 1 / ROS 2 bag (rosbags).
+
+Used to turn the built-in synthetic route into the kinds of recording a robot makes (the
+tests and the speed benchmark do), and to convert image folders for other tools.  Both
+writers go through :func:`flyvpr._io.atomic_open`-style temporary names, so a failed write
+leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from .base import require_extra
+
+__all__ = ["write_video", "write_bag"]
+
+_CONTAINERS = {".mp4": "mp4", ".m4v": "mp4", ".mkv": "matroska", ".avi": "avi", ".mov": "mov"}
+
+
+def _uint8(frames) -> np.ndarray:
+    a = np.asarray(frames)
+    if a.dtype != np.uint8:
+        a = np.clip(np.rint(np.asarray(a, np.float64) * 255.0), 0, 255).astype(np.uint8)
+    if a.ndim not in (3, 4) or (a.ndim == 4 and a.shape[3] != 3):
+        raise ValueError(f"frames must have shape (n, H, W) or (n, H, W, 3); got {a.shape}")
+    return a
+
+
+def _temporary(path: Path) -> Path:
+    return path.with_name(f".tmp{os.getpid()}-{path.name}")
+
+
+def _discard(tmp: Path) -> None:
+    if tmp.is_dir():
+        shutil.rmtree(tmp, ignore_errors=True)
+    elif tmp.exists():
+        tmp.unlink()
+
+
+def write_video(path, frames, *, fps: float = 10.0, codec: str = "libx264", crf: int = 18):
+    """Encode frames (gray or RGB, uint8 or float in [0, 1]) as a video file.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.mp4``, ``.mkv``, ``.avi`` ...; the container follows the suffix.
+    frames : array-like of shape (n, H, W) or (n, H, W, 3), or an iterable of frames
+        H and W must be even (4:2:0 chroma).  An iterable (e.g. a generator) is encoded as it
+        comes, so a long video never needs all its frames in memory.
+    codec : str
+        ``libx264`` (H.264, full-range 4:2:0) or ``mpeg4``.
+    crf : int
+        x264's constant rate factor (0 = lossless, 18 = visually lossless).
+    """
+    from fractions import Fraction
+
+    av = require_extra("av")
+    path = Path(path)
+    tmp = _temporary(path)
+    stream = None
+    try:
+        with av.open(str(tmp), "w", format=_CONTAINERS.get(path.suffix.lower())) as c:
+            for frame in frames:
+                a = _uint8(np.asarray(frame)[None])[0]
+                if stream is None:
+                    h, w = a.shape[:2]
+                    if h % 2 or w % 2:
+                        raise ValueError(f"video frames need an even height and width; got {h}x{w}")
+                    stream = c.add_stream(codec, rate=Fraction(fps).limit_denominator(1000))
+                    # full-range 4:2:0 with x264, so 8-bit gray survives without a range squeeze
+                    pix_fmt = "yuvj420p" if codec == "libx264" else "yuv420p"
+                    stream.width, stream.height, stream.pix_fmt = w, h, pix_fmt
+                    if codec == "libx264":
+                        stream.options = {"crf": str(crf), "preset": "veryfast"}
+                    else:  # no crf: a generous bit rate (4 bits per pixel per second)
+                        stream.bit_rate = int(4 * w * h * fps)
+                fmt = "gray" if a.ndim == 2 else "rgb24"
+                c.mux(stream.encode(av.VideoFrame.from_ndarray(a, format=fmt)))
+            if stream is None:
+                raise ValueError(f"{path}: no frames to write")
+            c.mux(stream.encode(None))
+        os.replace(tmp, path)
+    except BaseException:
+        _discard(tmp)
+        raise
+    return path
+
+
+def _header(ts, ros1: bool, t: float, frame_id: str = "camera"):
+    Header = ts.types["std_msgs/msg/Header"]
+    Time = ts.types["builtin_interfaces/msg/Time"]
+    sec = int(np.floor(t))
+    stamp = Time(sec=sec, nanosec=int(round((t - sec) * 1e9)) % 1_000_000_000)
+    if ros1:
+        return Header(seq=0, stamp=stamp, frame_id=frame_id)
+    return Header(stamp=stamp, frame_id=frame_id)
+
+
+def _image_message(ts, header, frame: np.ndarray, encoding: str, compressed: str | None):
+    if compressed is not None:
+        buf = io.BytesIO()
+        Image.fromarray(frame).save(buf, format={"jpeg": "JPEG", "png": "PNG"}[compressed])
+        data = np.frombuffer(buf.getvalue(), np.uint8)
+        return "sensor_msgs/msg/CompressedImage", ts.types["sensor_msgs/msg/CompressedImage"](
+            header=header, format=compressed, data=data
+        )
+    if encoding in ("mono16", "16UC1"):
+        pix = frame.astype("<u2") * np.uint16(257)
+    elif encoding == "bgr8":
+        pix = frame[:, :, ::-1]
+    elif encoding in ("rgba8", "bgra8"):
+        rgb = frame if encoding == "rgba8" else frame[:, :, ::-1]
+        pix = np.concatenate([rgb, np.full(frame.shape[:2] + (1,), 255, np.uint8)], axis=2)
+    else:
+        pix = frame
+    pix = np.ascontiguousarray(pix)
+    h, w = frame.shape[:2]
+    data = pix.view(np.uint8).reshape(-1)
+    return "sensor_msgs/msg/Image", ts.types["sensor_msgs/msg/Image"](
+        header=header, height=h, width=w, encoding=encoding, is_bigendian=0,
+        step=data.size // h, data=data,
+    )  # fmt: skip
+
+
+def _odometry(ts, header, xy):
+    T = ts.types
+    P, Q = T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"]
+    pose = T["geometry_msgs/msg/PoseWithCovariance"](
+        pose=T["geometry_msgs/msg/Pose"](
+            position=P(x=float(xy[0]), y=float(xy[1]), z=0.0), orientation=Q(x=0, y=0, z=0, w=1)
+        ),
+        covariance=np.zeros(36),
+    )
+    V = T["geometry_msgs/msg/Vector3"]
+    twist = T["geometry_msgs/msg/TwistWithCovariance"](
+        twist=T["geometry_msgs/msg/Twist"](linear=V(x=0, y=0, z=0), angular=V(x=0, y=0, z=0)),
+        covariance=np.zeros(36),
+    )
+    return T["nav_msgs/msg/Odometry"](header=header, child_frame_id="base", pose=pose, twist=twist)
+
+
+def write_bag(
+    path,
+    frames,
+    *,
+    version: int = 2,
+    storage: str = "sqlite3",
+    topic: str = "/camera/image",
+    encoding: str = "mono8",
+    compressed: str | None = None,
+    fps: float = 10.0,
+    start: float = 1000.0,
+    positions=None,
+    position_topic: str = "/odom",
+):
+    """Write frames as image messages of a ROS 1 ``.bag`` or a ROS 2 bag folder.
+
+    Parameters
+    ----------
+    path : str or Path
+        ROS 1: the ``.bag`` file; ROS 2: the bag folder (``metadata.yaml`` + ``.db3``).
+    frames : array-like, shape (n, H, W) or (n, H, W, 3)
+    version : {1, 2}
+    storage : {'sqlite3', 'mcap'}
+        ROS 2 storage: a ``.db3`` or an ``.mcap`` file in the bag folder.
+    encoding : str
+        Raw encoding (``mono8``, ``mono16``, ``rgb8``, ``bgr8``, ``rgba8``, ``bgra8``; ``16UC1``
+        writes a depth-like image) unless ``compressed`` is ``'jpeg'`` or ``'png'``.
+    fps, start : float
+        Frame ``i`` is stamped ``start + i / fps`` seconds.
+    positions : array-like, shape (n, 2), optional
+        Also write ``nav_msgs/Odometry`` on ``position_topic`` with these x, y (metres).
+    """
+    typesys = require_extra("rosbags.typesys")
+    a = _uint8(frames)
+    path = Path(path)
+    ros1 = version == 1
+    # ROS 2 names its storage file after the folder, so that one is written in place (the
+    # writer refuses an existing path) and removed on failure.
+    tmp = _temporary(path) if ros1 else path
+    ts = typesys.get_typestore(typesys.Stores.ROS1_NOETIC if ros1 else typesys.Stores.ROS2_HUMBLE)
+    serialize = ts.serialize_ros1 if ros1 else ts.serialize_cdr
+    if ros1:
+        from rosbags.rosbag1 import Writer
+
+        writer = Writer(tmp)
+    else:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        writer = Writer(tmp, version=9, storage_plugin=StoragePlugin[storage.upper()])
+    try:
+        with writer:
+            conns = {}
+            for i in range(a.shape[0]):
+                t = start + i / fps
+                stamp_ns = int(round(t * 1e9))
+                msgtype, msg = _image_message(ts, _header(ts, ros1, t), a[i], encoding, compressed)
+                if topic not in conns:
+                    conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
+                writer.write(conns[topic], stamp_ns, serialize(msg, msgtype))
+                if positions is not None:
+                    if position_topic not in conns:
+                        conns[position_topic] = writer.add_connection(
+                            position_topic, "nav_msgs/msg/Odometry", typestore=ts
+                        )
+                    odo = _odometry(ts, _header(ts, ros1, t, "odom"), positions[i])
+                    writer.write(
+                        conns[position_topic], stamp_ns, serialize(odo, "nav_msgs/msg/Odometry")
+                    )
+        if ros1:
+            os.replace(tmp, path)
+    except BaseException:
+        _discard(tmp)
+        raise
+    return path

@@ -1,0 +1,314 @@
+"""Recordings as frame sources: video, ROS 1/2 bags, image folders; thinning; positions; maps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("av")
+pytest.importorskip("rosbags")
+
+from flyvpr.images import load_image, resize_area  # noqa: E402
+from flyvpr.localizer import Localizer  # noqa: E402
+from flyvpr.maps import Map  # noqa: E402
+from flyvpr.modelio import ModelFileError, load_method  # noqa: E402
+from flyvpr.sources import (  # noqa: E402
+    Every,
+    RecordingError,
+    open_source,
+    parse_every,
+    read_positions,
+)
+from flyvpr.sources.writers import write_bag, write_video  # noqa: E402
+from flyvpr.synthetic import make_route, save_route  # noqa: E402
+
+N = 24
+SIZE = (32, 64)
+
+
+@pytest.fixture(scope="module")
+def route():
+    return make_route(N, size=(64, 128), conditions=("summer", "winter"), return_rgb=True)
+
+
+@pytest.fixture(scope="module")
+def pillow_frames(route, tmp_path_factory):
+    """The summer frames as the image-folder loaders read them (PNG, Pillow, area resize)."""
+    folder = tmp_path_factory.mktemp("png")
+    paths = save_route(route, folder)["summer"]
+    return np.stack([load_image(p, SIZE) for p in paths]), folder / "summer"
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [("3", Every(3, "frames")), ("0.5s", Every(0.5, "seconds")), ("2m", Every(2, "metres"))],
+)
+def test_parse_every(text, expected):
+    assert parse_every(text) == expected
+
+
+@pytest.mark.parametrize("text", ["0", "1.5", "-1s", "2km", "x", "0s"])
+def test_parse_every_refuses(text):
+    with pytest.raises(ValueError, match="--every"):
+        parse_every(text)
+
+
+@pytest.mark.parametrize("codec", ["libx264", "mpeg4"])  # full-range and limited-range luma
+def test_video_streams_small_gray_frames(route, pillow_frames, tmp_path, codec):
+    path = write_video(tmp_path / "s.mp4", route.rgb["summer"], fps=10, codec=codec)
+    src = open_source(path)
+    batches = list(src.batches(SIZE, batch=5))
+    assert [len(b) for b in batches] == [5, 5, 5, 5, 4]
+    allf = np.concatenate([b.images for b in batches])
+    assert allf.shape == (N, *SIZE) and allf.dtype == np.float32
+    np.testing.assert_allclose(np.concatenate([b.timestamps for b in batches]), np.arange(N) / 10)
+    # lossy codecs and 4:2:0 colour against Pillow's RGB: close, not identical, and unbiased
+    # (a limited-range video read as full range would be off by about 0.06 on average)
+    diff = allf - pillow_frames[0]
+    assert np.abs(diff).mean() < 0.02 and abs(diff.mean()) < 0.005
+
+
+@pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize(
+    "encoding, compressed, tol",
+    [
+        ("rgb8", None, 1e-6),
+        ("bgr8", None, 1e-6),
+        ("rgba8", None, 1e-6),
+        ("bgra8", None, 1e-6),
+        ("mono8", None, 0.003),
+        ("mono16", None, 0.003),
+        ("rgb8", "png", 1e-6),
+        ("rgb8", "jpeg", 0.03),
+    ],
+)
+def test_bag_encodings_match_the_image_folder(
+    route, pillow_frames, tmp_path, version, encoding, compressed, tol
+):
+    frames = route.rgb["summer"]
+    if encoding.startswith("mono"):
+        frames = np.rint(route.images["summer"] * 255).astype(np.uint8)
+    path = tmp_path / ("s.bag" if version == 1 else "s2")
+    write_bag(path, frames, version=version, encoding=encoding, compressed=compressed, fps=5)
+    got = open_source(path).read_all(SIZE)
+    assert got.images.shape == (N, *SIZE)
+    np.testing.assert_allclose(got.timestamps, 1000.0 + np.arange(N) / 5)
+    assert np.abs(got.images - pillow_frames[0]).mean() < tol
+
+
+@pytest.mark.parametrize("storage, suffix", [("sqlite3", ".db3"), ("mcap", ".mcap")])
+def test_ros2_bag_by_folder_or_storage_file(route, pillow_frames, tmp_path, storage, suffix):
+    write_bag(tmp_path / "b", route.rgb["summer"], version=2, encoding="rgb8", storage=storage)
+    (file,) = (tmp_path / "b").glob("*" + suffix)
+    for path in (tmp_path / "b", file):
+        got = open_source(path).read_all(SIZE)
+        assert np.abs(got.images - pillow_frames[0]).mean() < 1e-6
+
+
+def test_folder_source_is_the_loaders(pillow_frames):
+    got = open_source(pillow_frames[1]).read_all(SIZE)
+    np.testing.assert_array_equal(got.images, pillow_frames[0])
+    assert np.isnan(got.timestamps).all()
+
+
+def test_every_thins_by_count_time_and_distance(route, tmp_path):
+    xy = np.c_[np.arange(N) * 1.5, np.zeros(N)]
+    bag = write_bag(tmp_path / "p.bag", route.images["summer"], version=1, fps=10, positions=xy)
+    src = open_source(bag)
+    assert src.read_all(SIZE, every="3").indices.tolist() == list(range(0, N, 3))
+    assert src.read_all(SIZE, every="0.25s").indices.tolist() == list(range(0, N, 3))
+    pos = read_positions(bag=bag, topic="/odom")
+    assert src.read_all(SIZE, every="4m", positions=pos).indices.tolist() == list(range(0, N, 3))
+    with pytest.raises(ValueError, match="needs positions"):
+        src.read_all(SIZE, every="4m")
+
+
+def test_positions_csv_by_frame_and_timestamp(tmp_path):
+    by_frame = tmp_path / "f.csv"
+    by_frame.write_text("frame,x,y\n0,0,0\n2,4,1\n")
+    p = read_positions(by_frame)
+    out = p.at(np.array([0, 1, 2]), np.full(3, np.nan))
+    assert out[0].tolist() == [0, 0] and np.isnan(out[1]).all() and out[2].tolist() == [4, 1]
+    by_time = tmp_path / "t.csv"
+    by_time.write_text("timestamp,x,y\n10,0,0\n11,5,5\n")
+    q = read_positions(by_time)
+    assert q.at(np.zeros(3), np.array([9.0, 10.6, 20.0])).tolist() == [[0, 0], [5, 5], [5, 5]]
+    bad = tmp_path / "b.csv"
+    bad.write_text("name,x,y\na,1,2\n")
+    with pytest.raises(ValueError, match="timestamp,x,y or frame,x,y"):
+        read_positions(bad)
+
+
+def test_navsatfix_positions_in_local_metres(tmp_path):
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    T = ts.types
+    path = tmp_path / "gps.bag"
+    with Writer(path) as w:
+        conn = w.add_connection("/fix", "sensor_msgs/msg/NavSatFix", typestore=ts)
+        for i, (lat, lon) in enumerate([(60.0, 10.0), (60.001, 10.0), (60.0, 10.002)]):
+            hdr = T["std_msgs/msg/Header"](
+                seq=i, stamp=T["builtin_interfaces/msg/Time"](sec=i, nanosec=0), frame_id="gps"
+            )
+            msg = T["sensor_msgs/msg/NavSatFix"](
+                header=hdr, status=T["sensor_msgs/msg/NavSatStatus"](status=0, service=1),
+                latitude=lat, longitude=lon, altitude=0.0,
+                position_covariance=np.zeros(9), position_covariance_type=0,
+            )  # fmt: skip
+            w.write(conn, i * 10**9, ts.serialize_ros1(msg, "sensor_msgs/msg/NavSatFix"))
+    pos = read_positions(bag=path, topic="/fix")
+    xy = pos.at(np.zeros(3), np.array([0.0, 1.0, 2.0]))
+    r = 6_371_000.0
+    np.testing.assert_allclose(xy[1], [0, r * np.radians(0.001)], rtol=1e-9)
+    np.testing.assert_allclose(xy[2], [r * np.radians(0.002) * np.cos(np.radians(60)), 0], 1e-9)
+
+
+def test_bag_topic_errors_list_the_image_topics(route, tmp_path):
+    bag = write_bag(tmp_path / "a.bag", route.images["summer"][:3], version=1, topic="/cam/a")
+    with pytest.raises(RecordingError, match=r"no image topic '/cam/b'.*: /cam/a"):
+        open_source(bag, topic="/cam/b")
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    two = tmp_path / "two.bag"
+    with Writer(two) as w:
+        for topic in ("/left", "/right"):
+            w.add_connection(topic, "sensor_msgs/msg/Image", typestore=ts)
+    with pytest.raises(RecordingError, match=r"--topic.*/left \(sensor_msgs/msg/Image\), /right"):
+        open_source(two)
+    with pytest.raises(RecordingError, match="holds no frame"):
+        open_source(two, topic="/left").read_all(SIZE)
+
+
+def test_unsupported_encoding_is_named(route, tmp_path):
+    bag = write_bag(tmp_path / "d.bag", route.images["summer"][:2], version=1, encoding="16UC1")
+    with pytest.raises(RecordingError, match=r"d.bag.*unsupported image encoding '16UC1'"):
+        open_source(bag).read_all(SIZE)
+
+
+def test_truncated_recordings_name_the_file(route, tmp_path):
+    video = write_video(tmp_path / "v.mp4", route.images["summer"])
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(video.read_bytes()[: video.stat().st_size // 2])
+    with pytest.raises(RecordingError, match="cut.mp4"):
+        open_source(cut).read_all(SIZE)
+    bag = write_bag(tmp_path / "b.bag", route.images["summer"], version=1)
+    cutbag = tmp_path / "cut.bag"
+    cutbag.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
+    with pytest.raises(RecordingError, match="cut.bag"):
+        open_source(cutbag).read_all(SIZE)
+    garbage = tmp_path / "g.mkv"
+    garbage.write_bytes(b"not a video at all" * 10)
+    with pytest.raises(RecordingError, match="g.mkv: not a readable video"):
+        open_source(garbage)
+
+
+def test_map_round_trip_and_from_map(route, tmp_path):
+    xy = np.c_[np.arange(N) * 2.0, np.ones(N)]
+    bag = write_bag(tmp_path / "m.bag", route.images["summer"], version=1, positions=xy)
+    m = Map.build(bag, "pixels+cann", every="2", position_topic="/odom")
+    assert m.n_places == N // 2 and m.source_index.tolist() == list(range(0, N, 2))
+    path = m.save(tmp_path / "route.map")
+    loaded = Map.load(path)
+    np.testing.assert_array_equal(loaded.positions, xy[::2])
+    np.testing.assert_array_equal(loaded.thumbnails, m.thumbnails)
+    assert loaded.info == m.info
+    loc = Localizer.from_map(path)
+    q = np.stack([resize_area(f, SIZE) for f in route.images["summer"][::2]])
+    places, _, scores, _ = loc.update_batch(q)
+    assert scores.shape == (N // 2, N // 2)
+    assert np.mean(places == np.arange(N // 2)) > 0.8
+    with pytest.raises(ModelFileError, match="fitted on 32x64 images"):
+        Map.load(path, size=(16, 32))
+    with pytest.raises(ModelFileError, match="not a bare model"):
+        load_method(path)
+
+
+def test_map_of_another_version_is_refused(route, tmp_path, monkeypatch):
+    import flyvpr.maps as maps
+
+    bag = write_bag(tmp_path / "m.bag", route.images["summer"], version=1)
+    monkeypatch.setattr(maps, "MAP_VERSION", 99)
+    path = Map.build(bag).save(tmp_path / "v99.map")
+    monkeypatch.undo()
+    with pytest.raises(ModelFileError, match="map version 99"):
+        Map.load(path)
+
+
+def test_update_batch_equals_update(route):
+    ref = np.stack([resize_area(f, SIZE) for f in route.images["summer"]])
+    qry = np.stack([resize_area(f, SIZE) for f in route.images["winter"]])
+    a = Localizer("pixels+cann").fit(ref)
+    b = Localizer("pixels+cann").fit(ref)
+    places, conf, _, _ = a.update_batch(qry)
+    one = [b.update(f) for f in qry]
+    assert places.tolist() == [p for p, _ in one]
+    np.testing.assert_allclose(conf, [c for _, c in one], rtol=1e-5)
+
+
+@pytest.mark.parametrize("suffix", [".mkv", ".avi"])
+def test_cut_video_without_an_index_is_refused(suffix, tmp_path):
+    """Matroska and AVI decode up to the cut without an error: the header's frame count or
+    duration catches it."""
+    frames = (np.random.default_rng(0).random((30, 32, 64)) * 255).astype(np.uint8)
+    whole = write_video(tmp_path / f"v{suffix}", frames)
+    assert len(open_source(whole).read_all(SIZE)) == 30
+    cut = tmp_path / f"cut{suffix}"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size * 2 // 3])
+    with pytest.raises(RecordingError, match=rf"cut\{suffix}: truncated: .* announces"):
+        open_source(cut).read_all(SIZE)
+
+
+def test_recording_libraries_are_imported_lazily():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, flyvpr, flyvpr.cli, flyvpr.maps, flyvpr.sources, flyvpr.tracking, "
+        "flyvpr.trace; bad = [m for m in ('av', 'rosbags') if m in sys.modules]; "
+        "print(','.join(bad)); sys.exit(1 if bad else 0)"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert res.returncode == 0, f"imported: {res.stdout} {res.stderr}"
+
+
+def test_missing_extra_names_it(route, tmp_path, monkeypatch):
+    import importlib
+
+    path = write_video(tmp_path / "v.mp4", route.images["summer"][:4])
+    real = importlib.import_module
+
+    def without_av(name, *args, **kwargs):
+        if name.split(".")[0] == "av":
+            raise ImportError("No module named 'av'")
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(importlib, "import_module", without_av)
+    with pytest.raises(
+        ImportError, match=r"needs the 'av' package: pip install 'flyvpr\[recordings\]'"
+    ):
+        open_source(path)
+
+
+def test_other_pixel_formats_go_through_swscale(route):
+    import av
+
+    from flyvpr.images import to_gray
+    from flyvpr.sources.video import _decoder
+
+    rgb = route.rgb["summer"][0]
+    frame = av.VideoFrame.from_ndarray(np.rint(rgb * 255).astype(np.uint8), format="rgb24")
+    got = _decoder(frame)(SIZE)
+    assert got.shape == SIZE and got.dtype == np.float32
+    assert np.abs(got - resize_area(to_gray(rgb), SIZE)).max() < 0.01
+
+
+def test_area_matrix_averages_exactly():
+    from flyvpr.sources.video import area_matrix
+
+    a = area_matrix(2, 5)  # output pixel 0 covers [0, 2.5): pixels 0, 1 and half of 2
+    np.testing.assert_allclose(a, [[0.4, 0.4, 0.2, 0, 0], [0, 0, 0.2, 0.4, 0.4]], atol=1e-7)
+    np.testing.assert_allclose(area_matrix(3, 6).sum(axis=1), 1.0, rtol=1e-6)
