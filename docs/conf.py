@@ -87,7 +87,6 @@ PENDING_GUIDE_PAGES = (
     "metrics",
     "experiments",
     "reliability",
-    "robot",
 )
 
 
