@@ -49,14 +49,15 @@ from .._validation import (
 )
 from .base import Encoder
 from .flyhash import winner_take_all
-from .optic_lobe import optic_lobe
+from .optic_lobe import OpticLobe
 
 __all__ = ["KenyonEncoder", "balanced_connections", "code_overlap"]
 
-#: reference places per block of the inverted index: a block's counters (int32) stay in L1/L2
-_PLACE_BLOCK = 4096
+#: batches with fewer queries run the serial kernel: for one streamed frame, waking threads
+#: costs more than it saves (and much more on a loaded machine)
+_PARALLEL_MIN_QUERIES = 8
 
-_overlap_kernel = None  # compiled on first use so that ``import flyvpr`` does not import numba
+_kernels: dict = {}  # compiled on first use so that ``import flyvpr`` does not import numba
 
 
 def balanced_connections(n_kenyon: int, n_features: int, n_inputs: int, random_state=None):
@@ -77,8 +78,7 @@ def balanced_connections(n_kenyon: int, n_features: int, n_inputs: int, random_s
     n_inputs = check_positive_int(n_inputs, "n_inputs")
     if n_inputs > n_features:
         raise ValueError(
-            f"n_inputs must be <= the number of optic-lobe features ({n_features}); "
-            f"got {n_inputs}"
+            f"n_inputs must be <= the number of optic-lobe features ({n_features}); got {n_inputs}"
         )
     n_perm = -(-n_kenyon * n_inputs // n_features)
     flat = np.concatenate([rng.permutation(n_features) for _ in range(n_perm)])
@@ -89,46 +89,33 @@ def balanced_connections(n_kenyon: int, n_features: int, n_inputs: int, random_s
     return rows.astype(np.int32)
 
 
-def _get_kernel():
-    global _overlap_kernel
-    if _overlap_kernel is None:
+def _get_kernel(parallel: bool):
+    if parallel not in _kernels:
         import numba
 
-        def overlap(q_ptr, q_bits, block_ptr, places, n_kenyon, out):
-            n_query = q_ptr.shape[0] - 1
-            n_blocks = block_ptr.shape[0] // (n_kenyon + 1)
-            # One work item = one query x one block of places: no two items write the same cell.
-            for item in numba.prange(n_query * n_blocks):
-                i = item // n_blocks
-                base = (item % n_blocks) * (n_kenyon + 1)
+        def overlap(q_ptr, q_bits, indptr, places, out):
+            # Queries are independent work items: no two write the same row.
+            for i in numba.prange(q_ptr.shape[0] - 1):
                 row = out[i]
                 for t in range(q_ptr[i], q_ptr[i + 1]):
                     b = q_bits[t]
-                    for p in range(block_ptr[base + b], block_ptr[base + b + 1]):
+                    for p in range(indptr[b], indptr[b + 1]):
                         row[places[p]] += 1
 
+        # numba's on-disk cache tells functions apart by qualified name, not by the
+        # ``parallel`` flag: give each variant its own name, or one would load the other.
+        overlap.__qualname__ = f"kenyon_overlap_{'parallel' if parallel else 'serial'}"
         try:
-            _overlap_kernel = numba.njit(parallel=True, cache=True)(overlap)
+            _kernels[parallel] = numba.njit(parallel=parallel, cache=True)(overlap)
         except RuntimeError:  # no writable cache folder: compile in memory
-            _overlap_kernel = numba.njit(parallel=True)(overlap)
-    return _overlap_kernel
+            _kernels[parallel] = numba.njit(parallel=parallel)(overlap)
+    return _kernels[parallel]
 
 
 def _inverted_index(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each block of places and each KC, the places (in the block) where it fires.
-
-    Returns ``(block_ptr, places)``: ``block_ptr`` has ``n_blocks * (n_kenyon + 1)`` entries,
-    the CSR pointers of each block one after the other, into the shared ``places`` (int32).
-    """
-    n_places, n_kenyon = codes.shape
-    ptrs, lists, offset = [], [], 0
-    for start in range(0, n_places, _PLACE_BLOCK):
-        # CSC of the block: column b lists the places where KC b fires, in place order.
-        csc = sparse.csc_matrix(codes[start : start + _PLACE_BLOCK])
-        ptrs.append(csc.indptr.astype(np.int64) + offset)
-        lists.append(csc.indices.astype(np.int32) + start)
-        offset += csc.indices.size
-    return np.concatenate(ptrs), np.concatenate(lists)
+    """For each KC, the places where it fires: CSR pointers (int64) and place numbers (int32)."""
+    csc = sparse.csc_matrix(codes)
+    return csc.indptr.astype(np.int64), csc.indices.astype(np.int32)
 
 
 def code_overlap(query_codes, reference_codes) -> np.ndarray:
@@ -155,16 +142,17 @@ def code_overlap(query_codes, reference_codes) -> np.ndarray:
             "query_codes and reference_codes must be 2-d with the same number of bits; "
             f"got shapes {q.shape} and {r.shape}"
         )
-    block_ptr, places = _inverted_index(r)
-    return _overlap_from_index(q, block_ptr, places, len(r))
+    indptr, places = _inverted_index(r)
+    return _overlap_from_index(q, indptr, places, len(r))
 
 
-def _overlap_from_index(q: np.ndarray, block_ptr, places, n_reference: int) -> np.ndarray:
+def _overlap_from_index(q: np.ndarray, indptr, places, n_reference: int) -> np.ndarray:
     rows, bits = np.nonzero(q)
     q_ptr = np.zeros(len(q) + 1, dtype=np.int64)
     np.cumsum(np.bincount(rows, minlength=len(q)), out=q_ptr[1:])
     out = np.zeros((len(q), n_reference), dtype=np.int32)
-    _get_kernel()(q_ptr, bits.astype(np.int64), block_ptr, places, q.shape[1], out)
+    kernel = _get_kernel(len(q) >= _PARALLEL_MIN_QUERIES)
+    kernel(q_ptr, bits.astype(np.int64), indptr, places, out)
     return out
 
 
@@ -243,25 +231,29 @@ class KenyonEncoder(Encoder):
         n_proj = check_positive_int(self.n_projections, "n_projections")
         if n_kenyon % 8 or n_kenyon % n_proj:
             raise ValueError(
-                f"n_kenyon must be a multiple of 8 and of n_projections ({n_proj}); "
-                f"got {n_kenyon}"
+                f"n_kenyon must be a multiple of 8 and of n_projections ({n_proj}); got {n_kenyon}"
             )
         return n_kenyon, n_proj
 
-    def _lobe(self, images: np.ndarray) -> np.ndarray:
-        return optic_lobe(
-            images,
-            lcn_sigma=self.lcn_sigma,
-            lcn_eps=self.lcn_eps,
-            n_orientations=self.n_orientations,
-            wavelength=self.wavelength,
-            kernel_size=self.kernel_size,
-            pool_size=self.pool_size,
+    def _make_lobe(self) -> OpticLobe:
+        return OpticLobe(
+            self.lcn_sigma,
+            self.lcn_eps,
+            self.n_orientations,
+            self.wavelength,
+            self.kernel_size,
+            self.pool_size,
         )
+
+    def _lobe(self, images: np.ndarray) -> np.ndarray:
+        if getattr(self, "_optic_lobe", None) is None:
+            self._optic_lobe = self._make_lobe()
+        return self._optic_lobe(images)
 
     def _fit(self, images: np.ndarray) -> None:
         n_kenyon, n_proj = self._check_layout()
         ratio = check_fraction(self.active_ratio, "active_ratio")
+        self._optic_lobe = self._make_lobe()
         features = self._lobe(images)
         self.n_features_ = int(features.shape[1])
         self.n_active_ = max(n_proj, int(round(ratio * n_kenyon / n_proj)) * n_proj)
@@ -286,7 +278,7 @@ class KenyonEncoder(Encoder):
         )
 
     def _index(self) -> None:
-        self._block_ptr, self._places = _inverted_index(self._unpack(self.reference_codes_))
+        self._indptr, self._places = _inverted_index(self._unpack(self.reference_codes_))
 
     # -- encoding and matching -------------------------------------------------
     def kenyon_activity(self, images) -> np.ndarray:
@@ -323,7 +315,7 @@ class KenyonEncoder(Encoder):
                 f"encode; got {codes.dtype} of shape {codes.shape}"
             )
         overlap = _overlap_from_index(
-            self._unpack(codes), self._block_ptr, self._places, self.n_reference_
+            self._unpack(codes), self._indptr, self._places, self.n_reference_
         )
         return overlap.astype(np.float32) * np.float32(1.0 / self.n_active_)
 
@@ -359,13 +351,10 @@ class KenyonEncoder(Encoder):
             raise ValueError(f"connections_ must index the {self.n_features_} features")
         if (np.diff(np.sort(c, axis=1), axis=1) == 0).any():
             raise ValueError("connections_ repeats a feature within a Kenyon cell")
-        h, w = self.image_shape_
-        pool = check_positive_int(self.pool_size, "pool_size")
-        expected = check_positive_int(self.n_orientations, "n_orientations") * (
-            (h // pool) * (w // pool)
-        )
+        self._optic_lobe = self._make_lobe()
+        expected = self._optic_lobe.n_features(*self.image_shape_)
         if self.n_features_ != expected:
-            raise ValueError(f"n_features_ must be {expected} for {h}x{w} images")
+            raise ValueError(f"n_features_ must be {expected} for images of {self.image_shape_}")
         active = self._unpack(self.reference_codes_).sum(axis=1)
         if not np.all(active == self.n_active_):
             raise ValueError("every reference code must have n_active_ active bits")

@@ -71,8 +71,10 @@ def local_contrast_normalize(images, sigma: float = 4.0, eps: float = 0.05) -> n
     0.0
     """
     x = check_images(images, "images")
-    sigma = _check_positive_real(sigma, "sigma")
-    eps = _check_positive_real(eps, "eps")
+    return _lcn(x, _check_positive_real(sigma, "sigma"), _check_positive_real(eps, "eps"))
+
+
+def _lcn(x: np.ndarray, sigma: float, eps: float) -> np.ndarray:
     mean = ndimage.gaussian_filter(x, (0, sigma, sigma), mode="reflect")
     centred = x - mean
     var = ndimage.gaussian_filter(centred * centred, (0, sigma, sigma), mode="reflect")
@@ -108,10 +110,17 @@ def gabor_bank(n_orientations: int = 4, wavelength: float = 6.0, size: int = 11)
     return kernel / np.abs(kernel).sum(axis=(1, 2), keepdims=True)
 
 
-def gabor_energy(images, bank) -> np.ndarray:
+def _spectra(bank: np.ndarray, h: int, w: int) -> tuple[np.ndarray, tuple[int, int]]:
+    """FFT of the kernels at a padded size (fast FFT lengths >= the linear convolution's)."""
+    s = bank.shape[1]
+    shape = (sfft.next_fast_len(h + s - 1), sfft.next_fast_len(w + s - 1))
+    return sfft.fft2(bank, s=shape, axes=(1, 2)).astype(np.complex64), shape
+
+
+def gabor_energy(images, bank, *, _spectra_cache=None) -> np.ndarray:
     """Energy ``|image * kernel|`` of every image under every complex kernel ("same" size).
 
-    Linear convolution (zero padding) computed by FFT, in blocks of images.
+    Linear convolution (zero padding) computed by FFT in single precision, in blocks of images.
 
     Parameters
     ----------
@@ -125,14 +134,12 @@ def gabor_energy(images, bank) -> np.ndarray:
     """
     x = np.asarray(images, dtype=np.float32)
     n, h, w = x.shape
-    n_kernels, s = bank.shape[0], bank.shape[1]
-    shape = (h + s - 1, w + s - 1)
-    spectra = sfft.fft2(bank, s=shape, axes=(1, 2))
-    out = np.empty((n, n_kernels, h, w), dtype=np.float32)
-    r = s // 2
+    spectra, shape = _spectra_cache or _spectra(bank, h, w)
+    r = bank.shape[1] // 2
+    out = np.empty((n, bank.shape[0], h, w), dtype=np.float32)
     for start in range(0, n, _BLOCK):
         block = sfft.fft2(x[start : start + _BLOCK], s=shape, axes=(1, 2))
-        full = sfft.ifft2(block[:, None] * spectra[None], axes=(2, 3))
+        full = sfft.ifft2(block[:, None] * spectra[None], axes=(2, 3), overwrite_x=True)
         out[start : start + _BLOCK] = np.abs(full[:, :, r : r + h, r : r + w])
     return out
 
@@ -177,28 +184,57 @@ def optic_lobe(
     ((3, 512), 1.0)
     """
     x = check_images(images, "images")
-    pool = check_positive_int(pool_size, "pool_size")
-    n, h, w = x.shape
-    if h % pool or w % pool:
-        raise ValueError(f"pool_size must divide the image size (H, W) = ({h}, {w}); got {pool}")
-    bank = gabor_bank(n_orientations, wavelength, kernel_size)
-    n_kernels, s = bank.shape[0], bank.shape[1]
-    # per image in a block: complex128 spectra and products of every kernel
-    check_memory(
-        min(n, _BLOCK) * n_kernels * (h + s - 1) * (w + s - 1) * 16 * 3
-        + n * n_kernels * h * w * 4,
-        f"optic_lobe on {n} images of {h}x{w}",
-    )
-    features = np.empty((n, n_kernels * (h // pool) * (w // pool)), dtype=np.float32)
-    for start in range(0, n, _BLOCK):
-        block = local_contrast_normalize(x[start : start + _BLOCK], lcn_sigma, lcn_eps)
-        energy = gabor_energy(block, bank)
-        m = len(block)
-        pooled = energy.reshape(m, n_kernels, h // pool, pool, w // pool, pool).max(axis=(3, 5))
-        features[start : start + m] = np.sqrt(pooled).reshape(m, -1)
-    mean = features.mean(axis=1, keepdims=True)
-    std = features.std(axis=1, keepdims=True)
-    features -= mean
-    # A blank image has no edges: every feature is equal and the row stays all zeros.
-    np.divide(features, std, out=features, where=std > 1e-12)
-    return features
+    lobe = OpticLobe(lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size)
+    return lobe(x)
+
+
+class OpticLobe:
+    """:func:`optic_lobe` with its settings checked once and the kernels' spectra cached.
+
+    Calling it on a validated float32 stack (N, H, W) returns the features; used by the
+    ``kenyon`` encoder, which encodes one frame at a time when streaming.
+    """
+
+    def __init__(self, lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size):
+        self.lcn_sigma = _check_positive_real(lcn_sigma, "lcn_sigma")
+        self.lcn_eps = _check_positive_real(lcn_eps, "lcn_eps")
+        self.bank = gabor_bank(n_orientations, wavelength, kernel_size)
+        self.pool = check_positive_int(pool_size, "pool_size")
+        self._cache: dict = {}
+
+    def n_features(self, h: int, w: int) -> int:
+        """Features per image of size (h, w); ValueError if ``pool_size`` does not divide it."""
+        pool = self.pool
+        if h % pool or w % pool:
+            raise ValueError(
+                f"pool_size must divide the image size (H, W) = ({h}, {w}); got {pool}"
+            )
+        return self.bank.shape[0] * (h // pool) * (w // pool)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        n, h, w = x.shape
+        n_features = self.n_features(h, w)
+        if (h, w) not in self._cache:
+            self._cache[(h, w)] = _spectra(self.bank, h, w)
+        spectra = self._cache[(h, w)]
+        n_kernels, pool = self.bank.shape[0], self.pool
+        if n > 64:  # small batches (a streamed frame) need no check of /proc/meminfo
+            fh, fw = spectra[1]
+            # per image in a block: complex64 spectra and products of every kernel
+            check_memory(
+                min(n, _BLOCK) * n_kernels * fh * fw * 8 * 3 + n * n_features * 4,
+                f"optic_lobe on {n} images of {h}x{w}",
+            )
+        features = np.empty((n, n_features), dtype=np.float32)
+        for start in range(0, n, _BLOCK):
+            block = _lcn(x[start : start + _BLOCK], self.lcn_sigma, self.lcn_eps)
+            energy = gabor_energy(block, self.bank, _spectra_cache=spectra)
+            m = len(block)
+            pooled = energy.reshape(m, n_kernels, h // pool, pool, w // pool, pool)
+            features[start : start + m] = np.sqrt(pooled.max(axis=(3, 5))).reshape(m, -1)
+        mean = features.mean(axis=1, keepdims=True)
+        std = features.std(axis=1, keepdims=True)
+        features -= mean
+        # A blank image has no edges: every feature is equal and the row stays all zeros.
+        np.divide(features, std, out=features, where=std > 1e-12)
+        return features
