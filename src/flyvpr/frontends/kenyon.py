@@ -93,14 +93,22 @@ def _get_kernel(parallel: bool):
     if parallel not in _kernels:
         import numba
 
-        def overlap(q_ptr, q_bits, indptr, places, out):
-            # Queries are independent work items: no two write the same row.
-            for i in numba.prange(q_ptr.shape[0] - 1):
+        def overlap(packed, indptr, places, scale, out):
+            # Queries are independent work items: no two write the same row.  The counts are
+            # small integers, exact in float32.
+            for i in numba.prange(packed.shape[0]):
                 row = out[i]
-                for t in range(q_ptr[i], q_ptr[i + 1]):
-                    b = q_bits[t]
-                    for p in range(indptr[b], indptr[b + 1]):
-                        row[places[p]] += 1
+                for j in range(packed.shape[1]):
+                    byte = packed[i, j]
+                    if byte == 0:
+                        continue
+                    for t in range(8):  # np.packbits order: the first bit is the highest
+                        if byte & (128 >> t):
+                            b = 8 * j + t
+                            for p in range(indptr[b], indptr[b + 1]):
+                                row[places[p]] += 1.0
+                for p in range(row.shape[0]):
+                    row[p] *= scale
 
         # numba's on-disk cache tells functions apart by qualified name, not by the
         # ``parallel`` flag: give each variant its own name, or one would load the other.
@@ -143,16 +151,15 @@ def code_overlap(query_codes, reference_codes) -> np.ndarray:
             f"got shapes {q.shape} and {r.shape}"
         )
     indptr, places = _inverted_index(r)
-    return _overlap_from_index(q, indptr, places, len(r))
+    overlap = _overlap_packed(np.packbits(q, axis=1), indptr, places, len(r), 1.0)
+    return overlap.astype(np.int32)
 
 
-def _overlap_from_index(q: np.ndarray, indptr, places, n_reference: int) -> np.ndarray:
-    rows, bits = np.nonzero(q)
-    q_ptr = np.zeros(len(q) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(rows, minlength=len(q)), out=q_ptr[1:])
-    out = np.zeros((len(q), n_reference), dtype=np.int32)
-    kernel = _get_kernel(len(q) >= _PARALLEL_MIN_QUERIES)
-    kernel(q_ptr, bits.astype(np.int64), indptr, places, out)
+def _overlap_packed(packed: np.ndarray, indptr, places, n_reference: int, scale: float):
+    """``scale`` x the overlap of bit-packed queries with the indexed codes, float32."""
+    out = np.zeros((len(packed), n_reference), dtype=np.float32)
+    kernel = _get_kernel(len(packed) >= _PARALLEL_MIN_QUERIES)
+    kernel(np.ascontiguousarray(packed), indptr, places, np.float32(scale), out)
     return out
 
 
@@ -314,10 +321,9 @@ class KenyonEncoder(Encoder):
                 f"codes must be bit-packed uint8 of shape (N, {n_bytes}) as returned by "
                 f"encode; got {codes.dtype} of shape {codes.shape}"
             )
-        overlap = _overlap_from_index(
-            self._unpack(codes), self._indptr, self._places, self.n_reference_
+        return _overlap_packed(
+            codes, self._indptr, self._places, self.n_reference_, 1.0 / self.n_active_
         )
-        return overlap.astype(np.float32) * np.float32(1.0 / self.n_active_)
 
     # -- saved state -------------------------------------------------------------
     _state_names = (
