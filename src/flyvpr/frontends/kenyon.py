@@ -57,6 +57,9 @@ __all__ = ["KenyonEncoder", "balanced_connections", "code_overlap"]
 #: costs more than it saves (and much more on a loaded machine)
 _PARALLEL_MIN_QUERIES = 8
 
+#: images (or places) per block when encoding or indexing: 4096 x 4096 float32 is 64 MiB
+_BLOCK = 4096
+
 _kernels: dict = {}  # compiled on first use so that ``import flyvpr`` does not import numba
 
 
@@ -120,9 +123,16 @@ def _get_kernel(parallel: bool):
     return _kernels[parallel]
 
 
-def _inverted_index(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each KC, the places where it fires: CSR pointers (int64) and place numbers (int32)."""
-    csc = sparse.csc_matrix(codes)
+def _inverted_index(packed: np.ndarray, n_bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each KC, the places where it fires: CSR pointers (int64) and place numbers (int32).
+
+    ``packed``: bit-packed codes (n_places, ceil(n_bits / 8)), unpacked a block at a time.
+    """
+    parts = [
+        sparse.csr_matrix(np.unpackbits(packed[i : i + _BLOCK], axis=1, count=n_bits))
+        for i in range(0, len(packed), _BLOCK)
+    ]
+    csc = sparse.vstack(parts, format="csc")
     return csc.indptr.astype(np.int64), csc.indices.astype(np.int32)
 
 
@@ -150,7 +160,7 @@ def code_overlap(query_codes, reference_codes) -> np.ndarray:
             "query_codes and reference_codes must be 2-d with the same number of bits; "
             f"got shapes {q.shape} and {r.shape}"
         )
-    indptr, places = _inverted_index(r)
+    indptr, places = _inverted_index(np.packbits(r, axis=1), r.shape[1])
     overlap = _overlap_packed(np.packbits(q, axis=1), indptr, places, len(r), 1.0)
     return overlap.astype(np.int32)
 
@@ -285,7 +295,8 @@ class KenyonEncoder(Encoder):
         )
 
     def _index(self) -> None:
-        self._indptr, self._places = _inverted_index(self._unpack(self.reference_codes_))
+        n_bits = self.connections_.shape[0]
+        self._indptr, self._places = _inverted_index(self.reference_codes_, n_bits)
 
     # -- encoding and matching -------------------------------------------------
     def kenyon_activity(self, images) -> np.ndarray:
@@ -299,14 +310,17 @@ class KenyonEncoder(Encoder):
         return np.asarray((self._weights @ centred.T).T, dtype=np.float32)
 
     def _codes(self, features: np.ndarray) -> np.ndarray:
-        y = self._activity(features)
+        n_kenyon = self.connections_.shape[0]
         n_proj = self.n_projections
-        per = y.shape[1] // n_proj
         k = self.n_active_ // n_proj
-        # Each population competes on its own: WTA over its columns.
-        blocks = y.reshape(len(y) * n_proj, per)
-        bits = winner_take_all(blocks, k).reshape(len(y), -1)
-        return np.packbits(bits, axis=1)
+        out = np.empty((len(features), n_kenyon // 8), dtype=np.uint8)
+        # Blocks of images bound the float32 activity (and its partitioned copy) in memory.
+        for i in range(0, len(features), _BLOCK):
+            y = self._activity(features[i : i + _BLOCK])
+            # Each population competes on its own: WTA over its columns.
+            bits = winner_take_all(y.reshape(len(y) * n_proj, -1), k).reshape(len(y), -1)
+            out[i : i + _BLOCK] = np.packbits(bits, axis=1)
+        return out
 
     def _encode(self, images: np.ndarray) -> np.ndarray:
         return self._codes(self._lobe(images))

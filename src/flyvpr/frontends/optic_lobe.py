@@ -230,8 +230,11 @@ class OpticLobe:
             block = _lcn(x[start : start + _BLOCK], self.lcn_sigma, self.lcn_eps)
             energy = gabor_energy(block, self.bank, _spectra_cache=spectra)
             m = len(block)
-            pooled = energy.reshape(m, n_kernels, h // pool, pool, w // pool, pool)
-            features[start : start + m] = np.sqrt(pooled.max(axis=(3, 5))).reshape(m, -1)
+            # max over the pool's columns (contiguous), then over its rows: two one-axis
+            # reductions are much faster than one over two axes on small batches
+            pooled = energy.reshape(-1, pool).max(axis=1)
+            pooled = pooled.reshape(m * n_kernels * (h // pool), pool, w // pool).max(axis=1)
+            features[start : start + m] = np.sqrt(pooled).reshape(m, -1)
         mean = features.mean(axis=1, keepdims=True)
         std = features.std(axis=1, keepdims=True)
         features -= mean
