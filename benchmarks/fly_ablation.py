@@ -8,7 +8,7 @@ Stages (each scored +cann with the CANN's defaults):
 
 * ``pixels``: SeqSLAM's patch-normalised pixels, mean absolute difference (the bar to beat);
 * ``lobe-cosine``: the fixed optic lobe's 512 features, cosine similarity (no Kenyon cells);
-* ``kenyon-uncentred``: + the Kenyon-cell expansion (4096 KCs, 6 inputs each, 5% active),
+* ``kenyon-uncentred``: + the Kenyon-cell expansion (4096 KCs, 10 inputs each, 5% active),
   without subtracting the reference traverse's mean features first;
 * ``kenyon``: the front end as shipped (centred features, one population of 4096 KCs);
 * ``kenyon-4proj``: the same 4096 KCs as 4 independent populations of 1024, each with its own

@@ -29,9 +29,10 @@ Defaults and the data that chose them (``nordland_64x32`` summer -> winter, fram
 frames 2000-2399): the Gaussian contrast normalisation (``lcn_sigma=4``) beat SeqSLAM's
 8x8 patch normalisation on the viewpoint set (AUC 0.977 vs 0.934 with cosine matching of the
 features); the wavelength 6 beat 4 and 8; max beat mean pooling on the viewpoint set; 4096 KCs
-with 6 inputs and 5% active kept the cosine's accuracy, where 1-3% active lost 0.02-0.06 AUC on
-the viewpoint set; balanced connections narrowed the spread over seeds.  See
-``docs/guide/fly-frontend.md`` and ``benchmarks/fly_ablation.py``.
+at 5% active kept the Nordland windows' accuracy, where 1-3% active lost 0.01-0.03 AUC on the
+viewpoint set; 10 inputs per KC beat 3, 6 and 16 on the mean of the three sets (seeds 0-2);
+balanced connections narrowed the spread over seeds.  See ``docs/guide/fly-frontend.md`` and
+``benchmarks/fly_ablation.py``.
 """
 
 from __future__ import annotations
@@ -180,7 +181,7 @@ class KenyonEncoder(Encoder):
     ----------
     n_kenyon : int, default 4096
         Number of Kenyon cells (bits per code); a multiple of 8 and of ``n_projections``.
-    n_inputs : int, default 6
+    n_inputs : int, default 10
         Optic-lobe features summed by each Kenyon cell.
     active_ratio : float, default 0.05
         Share of Kenyon cells that fire per image (the fly's 5%).
@@ -218,7 +219,7 @@ class KenyonEncoder(Encoder):
     def __init__(
         self,
         n_kenyon=4096,
-        n_inputs=6,
+        n_inputs=10,
         active_ratio=0.05,
         n_projections=1,
         lcn_sigma=4.0,
