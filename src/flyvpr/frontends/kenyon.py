@@ -28,7 +28,7 @@ Defaults and the data that chose them (``nordland_64x32`` summer -> winter, fram
 1000-1999, and ``nordland_64x32_viewpoint`` frames 0-999, all +cann, tolerance 20; never
 frames 2000-2399): the Gaussian contrast normalisation (``lcn_sigma=4``) beat SeqSLAM's
 8x8 patch normalisation on the viewpoint set (AUC 0.977 vs 0.934 with cosine matching of the
-features); the wavelength 6 beat 4 and 8; max beat mean pooling on the viewpoint set; 4096 KCs
+features); the wavelength 6 beat 4 and 8; max beat mean pooling on frames 0-999; 4096 KCs
 at 5% active kept the Nordland windows' accuracy, where 1-3% active lost 0.01-0.03 AUC on the
 viewpoint set; 10 inputs per KC beat 3, 6 and 16 on the mean of the three sets (seeds 0-2);
 balanced connections narrowed the spread over seeds.  See ``docs/guide/fly-frontend.md`` and
