@@ -180,6 +180,7 @@ def test_model_file_with_inconsistent_codes_refused(route, tmp_path):
         ({"active_ratio": 0.0}, ValueError, "active_ratio"),
         ({"active_ratio": "5%"}, TypeError, "active_ratio"),
         ({"n_inputs": 10_000}, ValueError, "n_inputs"),
+        ({"n_kenyon": 8 * 10**12}, ValueError, "n_kenyon=8000000000000 .* would need"),
         ({"pool_size": 5}, ValueError, "pool_size must divide"),
         ({"lcn_sigma": -1.0}, ValueError, "lcn_sigma"),
         ({"kernel_size": 10}, ValueError, "size must be odd"),

@@ -3,7 +3,7 @@
 A fly-inspired front end that carries more of the place signal than the paper's FlyNet, built
 from fixed parts only (nothing is trained):
 
-1. **Optic lobe** (:func:`~flyvpr.frontends.optic_lobe.optic_lobe`): local contrast
+1. **Optic lobe** (``flyvpr.frontends.optic_lobe.optic_lobe``): local contrast
    normalisation, Gabor energy at 4 orientations, 4x4 max pooling, per-image z-score: 512
    features at 32x64.
 2. **Centring**: the mean feature vector of the reference traverse is subtracted (the one
@@ -45,6 +45,7 @@ from .._validation import (
     ScalarSpec,
     check_fraction,
     check_images,
+    check_memory,
     check_positive_int,
     check_random_state,
 )
@@ -188,7 +189,7 @@ class KenyonEncoder(Encoder):
     n_projections : int, default 1
         Independent Kenyon-cell populations, each with its own winner-take-all.
     lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size
-        The optic lobe's settings, see :func:`~flyvpr.frontends.optic_lobe.optic_lobe`.
+        The optic lobe's settings, see ``flyvpr.frontends.optic_lobe.optic_lobe``.
     random_state : None, int or numpy.random.Generator
         Seed of the connections.
 
@@ -271,6 +272,13 @@ class KenyonEncoder(Encoder):
     def _fit(self, images: np.ndarray) -> None:
         n_kenyon, n_proj = self._check_layout()
         ratio = check_fraction(self.active_ratio, "active_ratio")
+        n_in = check_positive_int(self.n_inputs, "n_inputs")
+        # connections (int32, drawn as int64 permutations) and one block's float32 activity,
+        # its partitioned copy and its bits
+        check_memory(
+            n_kenyon * n_in * 16 + min(len(images), _BLOCK) * n_kenyon * 9,
+            f"n_kenyon={n_kenyon} with n_inputs={n_in}",
+        )
         self._optic_lobe = self._make_lobe()
         features = self._lobe(images)
         self.n_features_ = int(features.shape[1])
