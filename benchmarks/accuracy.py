@@ -75,6 +75,7 @@ BYTES_NOTE = {
     "pixels": "patch-normalised image, 2048 float32",
     "flyhash": "64-bit code, bit-packed",
     "flynet": "one classifier column, 64 float32",
+    "kenyon": "4096-bit Kenyon-cell code, bit-packed",
     "netvlad": "one classifier column, 64 float32",
 }
 

@@ -305,6 +305,7 @@ METHODS: list[Entry] = [
     Entry("pixels"),
     Entry("flyhash"),
     Entry("flynet"),
+    Entry("kenyon"),
     Entry("seqslam-20", "seqslam"),
     Entry("seqslam-40", "seqslam", filter_params={"sequence_length": 40}),
     Entry("seqslam-60", "seqslam", filter_params={"sequence_length": 60}),
@@ -334,6 +335,7 @@ METHODS: list[Entry] = [
     Entry("flynet+cann"),
     Entry("pixels+cann"),
     Entry("flyhash+cann"),
+    Entry("kenyon+cann"),
     Entry("netvlad+cann", first_seed_only=True),
 ]
 

@@ -49,7 +49,7 @@ import numpy as np
 
 import flyvpr
 from flyvpr._io import write_json_atomic
-from flyvpr.frontends import FlyHash, FlyNet, PixelsEncoder
+from flyvpr.frontends import FlyHash, FlyNet, KenyonEncoder, PixelsEncoder
 from flyvpr.images import list_images, load_images
 from flyvpr.localizer import Localizer
 from flyvpr.methods import Method
@@ -129,16 +129,23 @@ def make_line_map(summer: np.ndarray, n_places: int, rng) -> np.ndarray:
     return out
 
 
-def stream(data: Path, n_queries: int, epochs: int) -> dict:
-    """The 35,768-place streaming figures; run in a fresh process by ``main``."""
+def stream(data: Path, n_queries: int, epochs: int, method: str = "flynet+cann") -> dict:
+    """The 35,768-place streaming figures of ``method``; run in a fresh process by ``main``.
+
+    ``method`` is ``flynet+cann`` (keys ``stream_*``) or ``kenyon+cann`` (keys
+    ``stream_kenyon_*``; nothing is trained, the map is the codes of the line's frames).
+    """
     root = data / "nordland_64x32"
     summer = load_images(list_images(root / "summer"), progress=False)
     winter = load_images(list_images(root / "winter"), progress=False)
     line = make_line_map(summer, N_LINE, np.random.default_rng(0))
     del summer
     t0 = time.perf_counter()
-    front = FlyNet(random_state=0, epochs=epochs, batch_size=512)
-    loc = Localizer(Method("flynet+cann", front, FILTERS["cann"]())).fit(line)
+    if method == "kenyon+cann":
+        front = KenyonEncoder(random_state=0)
+    else:
+        front = FlyNet(random_state=0, epochs=epochs, batch_size=512)
+    loc = Localizer(Method(method, front, FILTERS["cann"]())).fit(line)
     map_s = time.perf_counter() - t0
     del line
     src = np.arange(n_queries) % len(winter)
@@ -151,15 +158,45 @@ def stream(data: Path, n_queries: int, epochs: int) -> dict:
         # The map repeats the 2400 real places, so any copy of the right place is right.
         hits += abs(place % len(winter) - src[i]) <= 20
     stream_s = time.perf_counter() - t0
-    return {
-        "stream_queries_per_s": n_queries / stream_s,
-        "stream_per_query_ms": 1000 * stream_s / n_queries,
-        "stream_n_places": N_LINE,
-        "stream_n_queries": n_queries,
-        "stream_map_build_s": map_s,
-        "stream_same_place_within_20_share": hits / n_queries,
-        "stream_peak_rss_mb": peak_rss_mb(),
+    prefix = "stream_kenyon_" if method == "kenyon+cann" else "stream_"
+    out = {
+        "queries_per_s": n_queries / stream_s,
+        "per_query_ms": 1000 * stream_s / n_queries,
+        "map_build_s": map_s,
+        "same_place_within_20_share": hits / n_queries,
+        "peak_rss_mb": peak_rss_mb(),
     }
+    out = {prefix + k: v for k, v in out.items()}
+    out.update(stream_n_places=N_LINE, stream_n_queries=n_queries)
+    return out
+
+
+def kenyon_vs_pixels(ref, qry, line, rep) -> dict:
+    """Per-query matching time of kenyon+cann and pixels+cann at 1000 and 35,768 places.
+
+    Matching = scoring the already-encoded queries against every place + the CANN over the
+    score matrix (what ``Method.timing_["match_s"]`` times), for the 1000 winter queries; the
+    encoding of the queries is timed on its own (``*_encode_ms``).  Both methods run in the
+    same process, one after the other, so their ratio is measured under the same load.
+    """
+    res = {}
+    cann = FILTERS["cann"]()
+    for label, places in (("1000", ref), ("35768", line)):
+        for name, front in (("kenyon", KenyonEncoder(random_state=0)), ("pixels", PixelsEncoder())):
+            front.fit(places)
+            codes = front.encode(qry)
+            cann.filter(front.score_codes(codes[:20]))  # warm-up: compiled kernels
+            t, _ = timed(lambda f=front, c=codes: cann.filter(f.score_codes(c)), rep)
+            res[f"{name}_cann_match_{label}_per_query_ms"] = 1000 * t / len(qry)
+            if label == "1000":
+                t, _ = timed(lambda f=front: f.encode(qry), rep)
+                res[f"{name}_encode_per_query_ms"] = 1000 * t / len(qry)
+            front = None  # free the map (pixels: 293 MB at 35,768 places) before the next
+        res[f"kenyon_over_pixels_match_{label}"] = (
+            res[f"kenyon_cann_match_{label}_per_query_ms"]
+            / res[f"pixels_cann_match_{label}_per_query_ms"]
+        )
+    return res
 
 
 def main(argv=None) -> int:
@@ -171,12 +208,15 @@ def main(argv=None) -> int:
     p.add_argument("--stream-epochs", type=int, default=10)
     p.add_argument("--skip-stream", action="store_true", help="skip the 35,768-place stream")
     p.add_argument("--skip-video", action="store_true", help="skip the 640x480 video row")
+    p.add_argument("--skip-kenyon", action="store_true", help="skip the kenyon+cann rows")
     p.add_argument("--stream-only", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--stream-method", default="flynet+cann", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.stream_only:
         import json
 
-        print(json.dumps(stream(args.data, args.stream_queries, args.stream_epochs)))
+        figures = stream(args.data, args.stream_queries, args.stream_epochs, args.stream_method)
+        print(json.dumps(figures))
         return 0
     root = args.data / "nordland_64x32"
     if not root.is_dir():
@@ -242,8 +282,24 @@ def main(argv=None) -> int:
     log(f"FlyHash: {res['flyhash_images_per_s']:,.0f} images/s (batch of {len(big):,})")
     big = None  # free the 800 MB batch before the streaming process starts
 
+    # -- kenyon+cann vs pixels+cann: matching per query at 1000 and 35,768 places ----
+    if not args.skip_kenyon:
+        line = make_line_map(all_s, N_LINE, np.random.default_rng(0))
+        res.update(kenyon_vs_pixels(ref, qry, line, rep))
+        line = None
+        for label in ("1000", "35768"):
+            log(
+                f"match per query at {label} places: kenyon+cann "
+                f"{res[f'kenyon_cann_match_{label}_per_query_ms']:.4f} ms, pixels+cann "
+                f"{res[f'pixels_cann_match_{label}_per_query_ms']:.4f} ms "
+                f"(ratio {res[f'kenyon_over_pixels_match_{label}']:.3f})"
+            )
+
     # -- streaming over a whole line (own process, so its peak memory is its own) ----
-    if not args.skip_stream:
+    streams = [] if args.skip_stream else ["flynet+cann"]
+    if not (args.skip_stream or args.skip_kenyon):
+        streams.append("kenyon+cann")
+    for method in streams:
         import json
         import subprocess
 
@@ -257,13 +313,16 @@ def main(argv=None) -> int:
             str(args.stream_queries),
             "--stream-epochs",
             str(args.stream_epochs),
+            "--stream-method",
+            method,
         ]
         out = subprocess.run(cmd, capture_output=True, text=True, check=True)
         res.update(json.loads(out.stdout.strip().splitlines()[-1]))
+        p = "stream_kenyon_" if method == "kenyon+cann" else "stream_"
         log(
-            f"stream: {res['stream_queries_per_s']:,.0f} queries/s over {N_LINE:,} places "
-            f"({res['stream_per_query_ms']:.3f} ms/query; map built in "
-            f"{res['stream_map_build_s']:.1f} s; peak RSS {res['stream_peak_rss_mb']:.0f} MB)"
+            f"stream {method}: {res[p + 'queries_per_s']:,.0f} queries/s over {N_LINE:,} places "
+            f"({res[p + 'per_query_ms']:.3f} ms/query; map built in "
+            f"{res[p + 'map_build_s']:.1f} s; peak RSS {res[p + 'peak_rss_mb']:.0f} MB)"
         )
 
     # -- end to end from a video ---------------------------------------------------------------
@@ -311,6 +370,14 @@ def main(argv=None) -> int:
     if "stream_queries_per_s" in res:
         res["targets"]["stream_queries_per_s >= 2000"] = res["stream_queries_per_s"] >= 2000
         res["targets"]["stream_peak_rss_mb <= 1000"] = res["stream_peak_rss_mb"] <= 1000
+    for label in ("1000", "35768"):
+        key = f"kenyon_over_pixels_match_{label}"
+        if key in res:
+            res["targets"][f"{key} <= 1"] = res[key] <= 1.0
+    if "stream_kenyon_queries_per_s" in res:
+        res["targets"]["stream_kenyon_queries_per_s >= 2000"] = (
+            res["stream_kenyon_queries_per_s"] >= 2000
+        )
 
     print()
     print(
@@ -334,6 +401,17 @@ def main(argv=None) -> int:
         "video_decode_ms",
         "video_localize_ms",
         "video_localize_over_decode",
+        "kenyon_encode_per_query_ms",
+        "pixels_encode_per_query_ms",
+        "kenyon_cann_match_1000_per_query_ms",
+        "pixels_cann_match_1000_per_query_ms",
+        "kenyon_over_pixels_match_1000",
+        "kenyon_cann_match_35768_per_query_ms",
+        "pixels_cann_match_35768_per_query_ms",
+        "kenyon_over_pixels_match_35768",
+        "stream_kenyon_queries_per_s",
+        "stream_kenyon_per_query_ms",
+        "stream_kenyon_peak_rss_mb",
     ):
         if key in res:
             print(f"{key:30s} {res[key]:14.4f}")
@@ -382,6 +460,25 @@ FIGURE_NOTES = {
     "video_localize_ms": ("ms", "flyvpr localize --map, per frame"),
     "video_localize_over_decode": ("ratio", "localize rate / decode rate (target >= 0.8)"),
     "video_localize_over_decode_best": ("ratio", "the same from the fastest run of each"),
+    "kenyon_encode_per_query_ms": ("ms", "kenyon: encode the 1000 queries (batch), per query"),
+    "pixels_encode_per_query_ms": ("ms", "pixels: the same"),
+    "kenyon_cann_match_1000_per_query_ms": (
+        "ms",
+        "kenyon+cann: score 1000 encoded queries x 1000 places + CANN, per query",
+    ),
+    "pixels_cann_match_1000_per_query_ms": ("ms", "pixels+cann: the same"),
+    "kenyon_over_pixels_match_1000": ("ratio", "kenyon+cann / pixels+cann matching, same run"),
+    "kenyon_cann_match_35768_per_query_ms": (
+        "ms",
+        "kenyon+cann: 1000 queries x the 35,768-place map + CANN, per query",
+    ),
+    "pixels_cann_match_35768_per_query_ms": ("ms", "pixels+cann: the same"),
+    "kenyon_over_pixels_match_35768": ("ratio", "kenyon+cann / pixels+cann matching, same run"),
+    "stream_kenyon_queries_per_s": ("frames/s", "kenyon+cann Localizer, one frame at a time"),
+    "stream_kenyon_per_query_ms": ("ms", "the same per frame"),
+    "stream_kenyon_peak_rss_mb": ("MiB", "peak resident memory of that streaming process"),
+    "stream_kenyon_map_build_s": ("s", "building that map: encoding the 35,768 frames"),
+    "stream_kenyon_same_place_within_20_share": ("share", "streamed frames within 20 places"),
 }
 
 

@@ -7,6 +7,7 @@ method registry are built from it.  The torch networks import torch only when us
 from .base import Encoder
 from .flyhash import FlyHash, winner_take_all
 from .flynet import FlyNet
+from .kenyon import KenyonEncoder
 from .netvlad import NetVLADNet
 from .pixels import PixelsEncoder
 from .torch_nets import ConvNet, FCDropoutNet, FCNet
@@ -15,6 +16,7 @@ __all__ = [
     "Encoder",
     "FlyHash",
     "FlyNet",
+    "KenyonEncoder",
     "PixelsEncoder",
     "FCNet",
     "FCDropoutNet",
@@ -27,5 +29,14 @@ __all__ = [
 #: name -> encoder class
 FRONTENDS: dict[str, type[Encoder]] = {
     cls.name: cls
-    for cls in (PixelsEncoder, FlyHash, FlyNet, FCNet, FCDropoutNet, ConvNet, NetVLADNet)
+    for cls in (
+        PixelsEncoder,
+        FlyHash,
+        FlyNet,
+        KenyonEncoder,
+        FCNet,
+        FCDropoutNet,
+        ConvNet,
+        NetVLADNet,
+    )
 }

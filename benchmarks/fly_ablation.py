@@ -1,0 +1,155 @@
+"""Ablation of the ``kenyon`` front end: what each stage adds, every stage followed by the CANN.
+
+Usage::
+
+    python benchmarks/fly_ablation.py --json benchmarks/fly-ablation.json [--data ../shared/data]
+
+Stages (each scored +cann with the CANN's defaults):
+
+* ``pixels``: SeqSLAM's patch-normalised pixels, mean absolute difference (the bar to beat);
+* ``lobe-cosine``: the fixed optic lobe's 512 features, cosine similarity (no Kenyon cells);
+* ``kenyon-uncentred``: + the Kenyon-cell expansion (4096 KCs, 10 inputs each, 5% active),
+  without subtracting the reference traverse's mean features first;
+* ``kenyon``: the front end as shipped (centred features, one population of 4096 KCs);
+* ``kenyon-4proj``: the same 4096 KCs as 4 independent populations of 1024, each with its own
+  winner-take-all (5% of each).
+
+Data: ``nordland_64x32`` summer -> winter, frames 0-999 and 1000-1999, and
+``nordland_64x32_viewpoint`` summer -> winter frames 0-999 (the tuning sets; tolerance 20
+frames); ``nordland_flynet_subset100`` summer -> winter (100 places, tolerance 2) as a check that
+was not used for tuning.  Seeds 0-2 for the random stages.  Metric: area under the
+precision-recall curve (:func:`flyvpr.metrics.pr_auc`) and recall@1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from flyvpr._io import write_json_atomic
+from flyvpr.datasets.nordland import load_nordland
+from flyvpr.frontends import Encoder, KenyonEncoder, PixelsEncoder
+from flyvpr.methods import Method
+from flyvpr.metrics import pr_auc, recall_at_k
+from flyvpr.temporal import FILTERS
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_DATA = HERE.parent.parent / "shared" / "data"
+
+#: key -> (folder, query season, first, count, tolerance, used for tuning)
+DATASETS = {
+    "nordland 0-999": ("nordland_64x32", "winter", 0, 1000, 20, True),
+    "nordland 1000-1999": ("nordland_64x32", "winter", 1000, 1000, 20, True),
+    "viewpoint 0-999": ("nordland_64x32_viewpoint", "winter", 0, 1000, 20, True),
+    "subset100 s->w": ("nordland_flynet_subset100", "winter", 0, None, 2, False),
+}
+SEEDS = (0, 1, 2)
+
+
+class LobeCosine(KenyonEncoder):
+    """The optic lobe's features compared by cosine similarity (no Kenyon cells)."""
+
+    def _fit(self, images):
+        self._optic_lobe = self._make_lobe()
+        self.reference_codes_ = self._unit(self._lobe(images))
+
+    @staticmethod
+    def _unit(features):
+        norm = np.linalg.norm(features, axis=1, keepdims=True)
+        return features / np.where(norm > 0, norm, 1.0)
+
+    def _encode(self, images):
+        return self._unit(self._lobe(images))
+
+    def _score(self, codes):
+        return codes @ self.reference_codes_.T
+
+
+class KenyonUncentred(KenyonEncoder):
+    """``kenyon`` without subtracting the reference traverse's mean features."""
+
+    def _fit(self, images):
+        super()._fit(images)
+        self.feature_mean_ = np.zeros_like(self.feature_mean_)
+        self.reference_codes_ = self._codes(self._lobe(images))
+        self._index()
+
+
+#: stage -> (encoder factory taking a seed, seeded?)
+STAGES = {
+    "pixels": (lambda seed: PixelsEncoder(), False),
+    "lobe-cosine": (lambda seed: LobeCosine(), False),
+    "kenyon-uncentred": (lambda seed: KenyonUncentred(random_state=seed), True),
+    "kenyon": (lambda seed: KenyonEncoder(random_state=seed), True),
+    "kenyon-4proj": (lambda seed: KenyonEncoder(n_projections=4, random_state=seed), True),
+}
+
+
+def run_stage(front: Encoder, ref, qry, gt) -> dict:
+    method = Method("ablation+cann", front, FILTERS["cann"]()).fit(ref)
+    S = method.score(qry)
+    return {"auc": pr_auc(S, gt), "recall_at_1": recall_at_k(S, gt, 1)}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    p.add_argument("--json", type=Path, help="write the results as JSON (atomically)")
+    args = p.parse_args(argv)
+    results = {}
+    for key, (folder, query, first, count, tol, tuning) in DATASETS.items():
+        root = args.data / folder
+        if not root.is_dir():
+            print(f"data folder not found: {root}", file=sys.stderr)
+            return 1
+        bench = load_nordland(root, "summer", query, first=first, count=count, tolerance=tol)
+        ref = bench.reference.load_images(progress=False)
+        qry = bench.query.load_images(progress=False)
+        results[key] = {
+            "protocol": {
+                "folder": folder,
+                "reference": "summer",
+                "query": query,
+                "frames": f"{first}-{first + len(ref) - 1}",
+                "tolerance_frames": tol,
+                "used_for_tuning": tuning,
+            },
+            "stages": {},
+        }
+        for stage, (factory, seeded) in STAGES.items():
+            t0 = time.perf_counter()
+            runs = {
+                seed: run_stage(factory(seed), ref, qry, bench.ground_truth)
+                for seed in (SEEDS if seeded else (None,))
+            }
+            aucs = [r["auc"] for r in runs.values()]
+            results[key]["stages"][stage] = {
+                "seeds": list(SEEDS) if seeded else None,
+                "runs": {str(s): r for s, r in runs.items()},
+                "auc_mean": float(np.mean(aucs)),
+                "auc_min": float(np.min(aucs)),
+                "auc_max": float(np.max(aucs)),
+            }
+            print(
+                f"{key:20s} {stage:18s} AUC mean {np.mean(aucs):.3f} "
+                f"[{np.min(aucs):.3f}, {np.max(aucs):.3f}]  ({time.perf_counter() - t0:.1f} s)",
+                flush=True,
+            )
+    out = {
+        "what": "kenyon front end ablation, every stage +cann (CANN defaults)",
+        "metric": "PR AUC (flyvpr.metrics.pr_auc); recall_at_1 per run",
+        "seeds": list(SEEDS),
+        "results": results,
+    }
+    if args.json:
+        write_json_atomic(args.json, out)
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

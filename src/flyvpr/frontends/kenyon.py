@@ -1,0 +1,406 @@
+"""Kenyon: a fixed optic lobe and a Kenyon-cell expansion with winner-take-all (``kenyon``).
+
+A fly-inspired front end that carries more of the place signal than the paper's FlyNet, built
+from fixed parts only (nothing is trained):
+
+1. **Optic lobe** (``flyvpr.frontends.optic_lobe.optic_lobe``): local contrast
+   normalisation, Gabor energy at 4 orientations, 4x4 max pooling, per-image z-score: 512
+   features at 32x64.
+2. **Centring**: the mean feature vector of the reference traverse is subtracted (the one
+   statistic ``fit`` takes).  Features that are high in every frame (a logo burnt into the
+   video, the horizon) would otherwise win the competition below in every frame and carry no
+   information about the place.
+3. **Kenyon-cell expansion** as in the fly's mushroom body (Dasgupta, Stevens & Navlakha,
+   Science 2017): ``n_kenyon`` Kenyon cells (KCs), each summing ``n_inputs`` distinct features
+   through fixed binary weights, the connections balanced so that every feature feeds the same
+   number of KCs (to within one); then winner-take-all: the ``k = round(active_ratio *
+   n_kenyon)`` most active KCs fire (ties: lower index).  With ``n_projections > 1`` the KCs are
+   split into that many independent populations, each with its own winner-take-all.
+4. **Matching**: the similarity of a query and a place is the number of KCs active in both
+   codes, divided by ``k`` (1 for identical codes), computed through an inverted index (for
+   each KC, the places where it fires) by a parallel numba kernel: the work per query is the
+   total length of the query's ``k`` lists, about ``n_reference * k * active_ratio``.
+
+Codes are bit-packed: ``n_kenyon / 8`` bytes per place (512 with the defaults, 1/16 of the
+8192 bytes of ``pixels``).
+
+Defaults and the data that chose them (``nordland_64x32`` summer -> winter, frames 0-999 and
+1000-1999, and ``nordland_64x32_viewpoint`` frames 0-999, all +cann, tolerance 20; never
+frames 2000-2399): the Gaussian contrast normalisation (``lcn_sigma=4``) beat SeqSLAM's
+8x8 patch normalisation on the viewpoint set (AUC 0.977 vs 0.934 with cosine matching of the
+features); the wavelength 6 beat 4 and 8; max beat mean pooling on frames 0-999; 4096 KCs
+at 5% active kept the Nordland windows' accuracy, where 1-3% active lost 0.01-0.03 AUC on the
+viewpoint set; 10 inputs per KC beat 3, 6 and 16 on the mean of the three sets (seeds 0-2);
+balanced connections narrowed the spread over seeds.  See ``docs/guide/fly-frontend.md`` and
+``benchmarks/fly_ablation.py``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import sparse
+
+from .._validation import (
+    ArraySpec,
+    ScalarSpec,
+    check_fraction,
+    check_images,
+    check_memory,
+    check_positive_int,
+    check_random_state,
+)
+from .base import Encoder
+from .flyhash import winner_take_all
+from .optic_lobe import OpticLobe
+
+__all__ = ["KenyonEncoder", "balanced_connections", "code_overlap"]
+
+#: batches with fewer queries run the serial kernel: for one streamed frame, waking threads
+#: costs more than it saves (and much more on a loaded machine)
+_PARALLEL_MIN_QUERIES = 8
+
+#: images (or places) per block when encoding or indexing: 4096 x 4096 float32 is 64 MiB
+_BLOCK = 4096
+
+_kernels: dict = {}  # compiled on first use so that ``import flyvpr`` does not import numba
+
+
+def balanced_connections(n_kenyon: int, n_features: int, n_inputs: int, random_state=None):
+    """Draw the inputs of every Kenyon cell: ``n_inputs`` distinct features per cell.
+
+    The ``n_kenyon * n_inputs`` connections are consecutive random permutations of the
+    features cut into rows, so every feature feeds ``floor`` or ``ceil`` of
+    ``n_kenyon * n_inputs / n_features`` cells.  A row that would repeat a feature (where two
+    permutations meet) is redrawn as a uniform random subset.
+
+    Returns
+    -------
+    ndarray of int32, shape (n_kenyon, n_inputs)
+        Sorted indices per row.
+    """
+    rng = check_random_state(random_state)
+    n_kenyon = check_positive_int(n_kenyon, "n_kenyon")
+    n_inputs = check_positive_int(n_inputs, "n_inputs")
+    if n_inputs > n_features:
+        raise ValueError(
+            f"n_inputs must be <= the number of optic-lobe features ({n_features}); got {n_inputs}"
+        )
+    n_perm = -(-n_kenyon * n_inputs // n_features)
+    flat = np.concatenate([rng.permutation(n_features) for _ in range(n_perm)])
+    rows = np.sort(flat[: n_kenyon * n_inputs].reshape(n_kenyon, n_inputs), axis=1)
+    repeated = np.flatnonzero((np.diff(rows, axis=1) == 0).any(axis=1))
+    for i in repeated:  # rare: at most one row per pair of permutations
+        rows[i] = np.sort(rng.choice(n_features, n_inputs, replace=False))
+    return rows.astype(np.int32)
+
+
+def _get_kernel(parallel: bool):
+    if parallel not in _kernels:
+        import numba
+
+        def overlap(packed, indptr, places, scale, out):
+            # Queries are independent work items: no two write the same row.  The counts are
+            # small integers, exact in float32.
+            for i in numba.prange(packed.shape[0]):
+                row = out[i]
+                for j in range(packed.shape[1]):
+                    byte = packed[i, j]
+                    if byte == 0:
+                        continue
+                    for t in range(8):  # np.packbits order: the first bit is the highest
+                        if byte & (128 >> t):
+                            b = 8 * j + t
+                            for p in range(indptr[b], indptr[b + 1]):
+                                row[places[p]] += 1.0
+                for p in range(row.shape[0]):
+                    row[p] *= scale
+
+        # numba's on-disk cache tells functions apart by qualified name, not by the
+        # ``parallel`` flag: give each variant its own name, or one would load the other.
+        overlap.__qualname__ = f"kenyon_overlap_{'parallel' if parallel else 'serial'}"
+        try:
+            _kernels[parallel] = numba.njit(parallel=parallel, cache=True)(overlap)
+        except RuntimeError:  # no writable cache folder: compile in memory
+            _kernels[parallel] = numba.njit(parallel=parallel)(overlap)
+    return _kernels[parallel]
+
+
+def _inverted_index(packed: np.ndarray, n_bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each KC, the places where it fires: CSR pointers (int64) and place numbers (int32).
+
+    ``packed``: bit-packed codes (n_places, ceil(n_bits / 8)), unpacked a block at a time.
+    """
+    parts = [
+        sparse.csr_matrix(np.unpackbits(packed[i : i + _BLOCK], axis=1, count=n_bits))
+        for i in range(0, len(packed), _BLOCK)
+    ]
+    csc = sparse.vstack(parts, format="csc")
+    return csc.indptr.astype(np.int64), csc.indices.astype(np.int32)
+
+
+def code_overlap(query_codes, reference_codes) -> np.ndarray:
+    """Number of active bits two binary codes share, for every query and reference.
+
+    Parameters
+    ----------
+    query_codes : array-like of bool, shape (n_query, n_bits)
+    reference_codes : array-like of bool, shape (n_reference, n_bits)
+
+    Returns
+    -------
+    ndarray of int32, shape (n_query, n_reference)
+
+    Examples
+    --------
+    >>> code_overlap([[1, 1, 0, 0]], [[1, 0, 1, 0], [1, 1, 0, 0]])
+    array([[1, 2]], dtype=int32)
+    """
+    q = np.asarray(query_codes).astype(bool)
+    r = np.asarray(reference_codes).astype(bool)
+    if q.ndim != 2 or r.ndim != 2 or q.shape[1] != r.shape[1]:
+        raise ValueError(
+            "query_codes and reference_codes must be 2-d with the same number of bits; "
+            f"got shapes {q.shape} and {r.shape}"
+        )
+    indptr, places = _inverted_index(np.packbits(r, axis=1), r.shape[1])
+    overlap = _overlap_packed(np.packbits(q, axis=1), indptr, places, len(r), 1.0)
+    return overlap.astype(np.int32)
+
+
+def _overlap_packed(packed: np.ndarray, indptr, places, n_reference: int, scale: float):
+    """``scale`` x the overlap of bit-packed queries with the indexed codes, float32."""
+    out = np.zeros((len(packed), n_reference), dtype=np.float32)
+    kernel = _get_kernel(len(packed) >= _PARALLEL_MIN_QUERIES)
+    kernel(np.ascontiguousarray(packed), indptr, places, np.float32(scale), out)
+    return out
+
+
+class KenyonEncoder(Encoder):
+    """Fixed optic lobe + Kenyon-cell expansion with winner-take-all, scored by code overlap.
+
+    Parameters
+    ----------
+    n_kenyon : int, default 4096
+        Number of Kenyon cells (bits per code); a multiple of 8 and of ``n_projections``.
+    n_inputs : int, default 10
+        Optic-lobe features summed by each Kenyon cell.
+    active_ratio : float, default 0.05
+        Share of Kenyon cells that fire per image (the fly's 5%).
+    n_projections : int, default 1
+        Independent Kenyon-cell populations, each with its own winner-take-all.
+    lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size
+        The optic lobe's settings, see ``flyvpr.frontends.optic_lobe.optic_lobe``.
+    random_state : None, int or numpy.random.Generator
+        Seed of the connections.
+
+    Attributes
+    ----------
+    connections_ : ndarray of int32, shape (n_kenyon, n_inputs)
+        Features summed by each Kenyon cell.
+    feature_mean_ : ndarray of float32, shape (n_features_,)
+        Mean optic-lobe features of the reference traverse.
+    n_features_, n_active_ : int
+        Optic-lobe features per image; active Kenyon cells per code.
+    reference_codes_ : ndarray of uint8, shape (n_reference, n_kenyon // 8)
+        Bit-packed codes of the reference places (the map).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> ref = rng.random((5, 32, 64), dtype=np.float32)
+    >>> enc = KenyonEncoder(random_state=0).fit(ref)
+    >>> enc.encode(ref).shape, enc.bytes_per_place()
+    ((5, 512), 512.0)
+    >>> [int(i) for i in enc.score(ref).argmax(axis=1)]
+    [0, 1, 2, 3, 4]
+    """
+
+    name = "kenyon"
+
+    def __init__(
+        self,
+        n_kenyon=4096,
+        n_inputs=10,
+        active_ratio=0.05,
+        n_projections=1,
+        lcn_sigma=4.0,
+        lcn_eps=0.05,
+        n_orientations=4,
+        wavelength=6.0,
+        kernel_size=11,
+        pool_size=4,
+        random_state=None,
+    ):
+        self.n_kenyon = n_kenyon
+        self.n_inputs = n_inputs
+        self.active_ratio = active_ratio
+        self.n_projections = n_projections
+        self.lcn_sigma = lcn_sigma
+        self.lcn_eps = lcn_eps
+        self.n_orientations = n_orientations
+        self.wavelength = wavelength
+        self.kernel_size = kernel_size
+        self.pool_size = pool_size
+        self.random_state = random_state
+
+    # -- set-up ---------------------------------------------------------------
+    def _check_layout(self) -> tuple[int, int]:
+        """(n_kenyon, n_projections), checked against each other."""
+        n_kenyon = check_positive_int(self.n_kenyon, "n_kenyon", minimum=8)
+        n_proj = check_positive_int(self.n_projections, "n_projections")
+        if n_kenyon % 8 or n_kenyon % n_proj:
+            raise ValueError(
+                f"n_kenyon must be a multiple of 8 and of n_projections ({n_proj}); got {n_kenyon}"
+            )
+        return n_kenyon, n_proj
+
+    def _make_lobe(self) -> OpticLobe:
+        return OpticLobe(
+            self.lcn_sigma,
+            self.lcn_eps,
+            self.n_orientations,
+            self.wavelength,
+            self.kernel_size,
+            self.pool_size,
+        )
+
+    def _lobe(self, images: np.ndarray) -> np.ndarray:
+        if getattr(self, "_optic_lobe", None) is None:
+            self._optic_lobe = self._make_lobe()
+        return self._optic_lobe(images)
+
+    def _fit(self, images: np.ndarray) -> None:
+        n_kenyon, n_proj = self._check_layout()
+        ratio = check_fraction(self.active_ratio, "active_ratio")
+        n_in = check_positive_int(self.n_inputs, "n_inputs")
+        # connections (int32, drawn as int64 permutations) and one block's float32 activity,
+        # its partitioned copy and its bits
+        check_memory(
+            n_kenyon * n_in * 16 + min(len(images), _BLOCK) * n_kenyon * 9,
+            f"n_kenyon={n_kenyon} with n_inputs={n_in}",
+        )
+        self._optic_lobe = self._make_lobe()
+        features = self._lobe(images)
+        self.n_features_ = int(features.shape[1])
+        self.n_active_ = max(n_proj, int(round(ratio * n_kenyon / n_proj)) * n_proj)
+        self.connections_ = balanced_connections(
+            n_kenyon, self.n_features_, self.n_inputs, check_random_state(self.random_state)
+        )
+        self.feature_mean_ = features.mean(axis=0).astype(np.float32)
+        self._prepare()
+        self.reference_codes_ = self._codes(features)
+        self._index()
+
+    def _prepare(self) -> None:
+        """The sparse connection matrix (n_kenyon x n_features) used for encoding."""
+        n_kenyon, n_in = self.connections_.shape
+        self._weights = sparse.csr_matrix(
+            (
+                np.ones(n_kenyon * n_in, dtype=np.float32),
+                self.connections_.ravel(),
+                np.arange(0, n_kenyon * n_in + 1, n_in),
+            ),
+            shape=(n_kenyon, self.n_features_),
+        )
+
+    def _index(self) -> None:
+        n_bits = self.connections_.shape[0]
+        self._indptr, self._places = _inverted_index(self.reference_codes_, n_bits)
+
+    # -- encoding and matching -------------------------------------------------
+    def kenyon_activity(self, images) -> np.ndarray:
+        """Summed input of every Kenyon cell, shape (N, n_kenyon), float32 (before the WTA)."""
+        self._check_fitted()
+        features = self._lobe(check_images(images, "images", self.image_shape_))
+        return self._activity(features)
+
+    def _activity(self, features: np.ndarray) -> np.ndarray:
+        centred = features - self.feature_mean_
+        return np.asarray((self._weights @ centred.T).T, dtype=np.float32)
+
+    def _codes(self, features: np.ndarray) -> np.ndarray:
+        n_kenyon = self.connections_.shape[0]
+        n_proj = self.n_projections
+        k = self.n_active_ // n_proj
+        out = np.empty((len(features), n_kenyon // 8), dtype=np.uint8)
+        # Blocks of images bound the float32 activity (and its partitioned copy) in memory.
+        for i in range(0, len(features), _BLOCK):
+            y = self._activity(features[i : i + _BLOCK])
+            # Each population competes on its own: WTA over its columns.
+            bits = winner_take_all(y.reshape(len(y) * n_proj, -1), k).reshape(len(y), -1)
+            out[i : i + _BLOCK] = np.packbits(bits, axis=1)
+        return out
+
+    def _encode(self, images: np.ndarray) -> np.ndarray:
+        return self._codes(self._lobe(images))
+
+    def _unpack(self, codes: np.ndarray) -> np.ndarray:
+        return np.unpackbits(codes, axis=1, count=self.connections_.shape[0]).astype(bool)
+
+    def _score(self, codes: np.ndarray) -> np.ndarray:
+        n_bytes = self.reference_codes_.shape[1]
+        if codes.ndim != 2 or codes.shape[1] != n_bytes or codes.dtype != np.uint8:
+            raise ValueError(
+                f"codes must be bit-packed uint8 of shape (N, {n_bytes}) as returned by "
+                f"encode; got {codes.dtype} of shape {codes.shape}"
+            )
+        return _overlap_packed(
+            codes, self._indptr, self._places, self.n_reference_, 1.0 / self.n_active_
+        )
+
+    # -- saved state -------------------------------------------------------------
+    _state_names = (
+        "n_features_",
+        "n_active_",
+        "connections_",
+        "feature_mean_",
+        "reference_codes_",
+    )
+    _state_scalars = {
+        **Encoder._state_scalars,
+        "n_features_": ScalarSpec("int", low=1),
+        "n_active_": ScalarSpec("int", low=1),
+    }
+
+    def _state_arrays(self, scalars: dict) -> dict:
+        n_kenyon, _ = self._check_layout()
+        n_in = check_positive_int(self.n_inputs, "n_inputs")
+        if scalars["n_active_"] > n_kenyon:
+            raise ValueError(f"n_active_ must be <= n_kenyon = {n_kenyon}")
+        return {
+            "connections_": ArraySpec("int32", (n_kenyon, n_in)),
+            "feature_mean_": ArraySpec("float32", (scalars["n_features_"],)),
+            "reference_codes_": ArraySpec("uint8", (scalars["n_reference_"], n_kenyon // 8)),
+        }
+
+    def _set_state(self, state: dict) -> None:
+        super()._set_state(state)
+        c = self.connections_
+        if c.min() < 0 or c.max() >= self.n_features_:
+            raise ValueError(f"connections_ must index the {self.n_features_} features")
+        if (np.diff(np.sort(c, axis=1), axis=1) == 0).any():
+            raise ValueError("connections_ repeats a feature within a Kenyon cell")
+        self._optic_lobe = self._make_lobe()
+        expected = self._optic_lobe.n_features(*self.image_shape_)
+        if self.n_features_ != expected:
+            raise ValueError(f"n_features_ must be {expected} for images of {self.image_shape_}")
+        active = self._unpack(self.reference_codes_).sum(axis=1)
+        if not np.all(active == self.n_active_):
+            raise ValueError("every reference code must have n_active_ active bits")
+        self._prepare()
+        self._index()
+
+    # -- size -----------------------------------------------------------------
+    def _map_nbytes(self) -> int:
+        # One bit-packed code per place: n_kenyon / 8 bytes (512 with the defaults).  The
+        # inverted index built from them at fit/load time (4 bytes per active bit) is a derived
+        # search structure, not stored in model files; the connections are shared by all places.
+        return int(self.reference_codes_.nbytes)
+
+    def _footprint(self) -> dict:
+        return {
+            "layers": 2,  # optic lobe, Kenyon cells
+            "params": 0,  # nothing is trained
+            "neurons": int(self.n_features_ + self.connections_.shape[0]),
+            "fixed_connections": int(self.connections_.size),
+        }

@@ -1,0 +1,243 @@
+"""A fixed optic lobe: local contrast normalisation, Gabor energy, pooling (no learning).
+
+The first stage of the ``kenyon`` front end (:class:`~flyvpr.frontends.kenyon.KenyonEncoder`),
+loosely modelled on the early visual system of insects, in which photoreceptors adapt to the
+local light level (lamina) and the medulla responds to oriented edges:
+
+1. :func:`local_contrast_normalize`: every pixel minus the Gaussian-weighted mean of its
+   neighbourhood, divided by the Gaussian-weighted standard deviation (plus ``eps``).  Unlike
+   SeqSLAM's patch normalisation on a fixed grid of patches it is shift-equivariant, so a camera
+   that moves by a few pixels sees the same normalised image, moved.
+2. :func:`gabor_energy`: the response energy ``sqrt(even^2 + odd^2)`` of a quadrature pair of
+   Gabor filters at a few orientations (a complex Gabor kernel), computed for a whole batch with
+   one FFT per image: phase-invariant edge and bar detectors.
+3. Max pooling over ``pool_size x pool_size`` cells, the square root (compresses the heavy tail
+   of the energies) and a per-image z-score (divisive normalisation: only the pattern of
+   responses counts, not the image's overall contrast).
+
+:func:`optic_lobe` chains the three; at 32x64 with the defaults it gives
+``4 orientations x 8 x 16 cells = 512`` features per image.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import fft as sfft
+from scipy import ndimage
+
+from .._validation import check_images, check_memory, check_positive_int
+
+__all__ = ["local_contrast_normalize", "gabor_bank", "gabor_energy", "optic_lobe"]
+
+#: images per block: bounds the FFT temporaries (about 0.5 MB per image at 32x64)
+_BLOCK = 256
+
+
+def _check_positive_real(value, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name} must be a number; got {type(value).__name__}")
+    value = float(value)
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive finite number; got {value}")
+    return value
+
+
+def local_contrast_normalize(images, sigma: float = 4.0, eps: float = 0.05) -> np.ndarray:
+    """Subtract the local mean and divide by the local standard deviation (Gaussian windows).
+
+    ``out = (x - G * x) / sqrt(G * (x - G * x)^2 + eps^2)`` with ``G`` a Gaussian of standard
+    deviation ``sigma`` pixels (reflecting borders), per image.  ``eps`` keeps flat regions
+    (sky, snow) from blowing noise up to full contrast.
+
+    Parameters
+    ----------
+    images : array-like, shape (N, H, W)
+        Gray images in [0, 1].
+    sigma : float, default 4.0
+        Width of the neighbourhood in pixels.
+    eps : float, default 0.05
+        Contrast floor, in gray levels.
+
+    Returns
+    -------
+    ndarray of float32, shape (N, H, W)
+
+    Examples
+    --------
+    >>> x = np.random.default_rng(0).random((2, 32, 64))
+    >>> local_contrast_normalize(x).shape
+    (2, 32, 64)
+    >>> float(np.abs(local_contrast_normalize(np.full((1, 8, 8), 0.3))).max())
+    0.0
+    """
+    x = check_images(images, "images")
+    return _lcn(x, _check_positive_real(sigma, "sigma"), _check_positive_real(eps, "eps"))
+
+
+def _lcn(x: np.ndarray, sigma: float, eps: float) -> np.ndarray:
+    mean = ndimage.gaussian_filter(x, (0, sigma, sigma), mode="reflect")
+    centred = x - mean
+    var = ndimage.gaussian_filter(centred * centred, (0, sigma, sigma), mode="reflect")
+    return (centred / np.sqrt(var + np.float32(eps * eps))).astype(np.float32)
+
+
+def gabor_bank(n_orientations: int = 4, wavelength: float = 6.0, size: int = 11) -> np.ndarray:
+    """Complex Gabor kernels: the real part is the even filter, the imaginary part the odd one.
+
+    Kernel ``k`` has orientation ``k * pi / n_orientations``, a circular Gaussian envelope of
+    standard deviation ``0.56 * wavelength`` (a bandwidth of about one octave), zero mean (the
+    even part's DC is removed, so flat regions give no response) and unit L1 norm.
+
+    Returns
+    -------
+    ndarray of complex128, shape (n_orientations, size, size)
+    """
+    n_orientations = check_positive_int(n_orientations, "n_orientations")
+    wavelength = _check_positive_real(wavelength, "wavelength")
+    size = check_positive_int(size, "size", minimum=3)
+    if size % 2 == 0:
+        raise ValueError(f"size must be odd (a kernel centred on a pixel); got {size}")
+    r = size // 2
+    y, x = np.mgrid[-r : r + 1, -r : r + 1].astype(np.float64)
+    theta = np.arange(n_orientations)[:, None, None] * np.pi / n_orientations
+    along = x * np.cos(theta) + y * np.sin(theta)
+    across = -x * np.sin(theta) + y * np.cos(theta)
+    sigma = 0.56 * wavelength
+    envelope = np.exp(-(along**2 + across**2) / (2.0 * sigma**2))
+    kernel = envelope * np.exp(2j * np.pi * along / wavelength)
+    dc = kernel.real.sum(axis=(1, 2), keepdims=True) / envelope.sum(axis=(1, 2), keepdims=True)
+    kernel = kernel - dc * envelope
+    return kernel / np.abs(kernel).sum(axis=(1, 2), keepdims=True)
+
+
+def _spectra(bank: np.ndarray, h: int, w: int) -> tuple[np.ndarray, tuple[int, int]]:
+    """FFT of the kernels at a padded size (fast FFT lengths >= the linear convolution's)."""
+    s = bank.shape[1]
+    shape = (sfft.next_fast_len(h + s - 1), sfft.next_fast_len(w + s - 1))
+    return sfft.fft2(bank, s=shape, axes=(1, 2)).astype(np.complex64), shape
+
+
+def gabor_energy(images, bank, *, _spectra_cache=None) -> np.ndarray:
+    """Energy ``|image * kernel|`` of every image under every complex kernel ("same" size).
+
+    Linear convolution (zero padding) computed by FFT in single precision, in blocks of images.
+
+    Parameters
+    ----------
+    images : ndarray, shape (N, H, W)
+    bank : ndarray of complex, shape (n_kernels, s, s)
+        ``s`` odd, e.g. from :func:`gabor_bank`.
+
+    Returns
+    -------
+    ndarray of float32, shape (N, n_kernels, H, W)
+    """
+    x = np.asarray(images, dtype=np.float32)
+    n, h, w = x.shape
+    spectra, shape = _spectra_cache or _spectra(bank, h, w)
+    r = bank.shape[1] // 2
+    out = np.empty((n, bank.shape[0], h, w), dtype=np.float32)
+    for start in range(0, n, _BLOCK):
+        block = sfft.fft2(x[start : start + _BLOCK], s=shape, axes=(1, 2))
+        full = sfft.ifft2(block[:, None] * spectra[None], axes=(2, 3), overwrite_x=True)
+        out[start : start + _BLOCK] = np.abs(full[:, :, r : r + h, r : r + w])
+    return out
+
+
+def optic_lobe(
+    images,
+    *,
+    lcn_sigma: float = 4.0,
+    lcn_eps: float = 0.05,
+    n_orientations: int = 4,
+    wavelength: float = 6.0,
+    kernel_size: int = 11,
+    pool_size: int = 4,
+) -> np.ndarray:
+    """Fixed optic-lobe features: contrast normalisation, Gabor energy, max pooling, z-score.
+
+    Parameters
+    ----------
+    images : array-like, shape (N, H, W)
+        Gray images in [0, 1]; ``H`` and ``W`` must be multiples of ``pool_size``.
+    lcn_sigma, lcn_eps : float
+        See :func:`local_contrast_normalize`.
+    n_orientations, wavelength, kernel_size : int, float, int
+        See :func:`gabor_bank`.
+    pool_size : int, default 4
+        Side of the max-pooling cells.
+
+    Returns
+    -------
+    ndarray of float32, shape (N, n_orientations * (H // pool_size) * (W // pool_size))
+        Each row has mean 0 and standard deviation 1 (all zeros for a blank image).
+
+    Raises
+    ------
+    ValueError
+        If ``pool_size`` does not divide the image size, or a parameter is out of range.
+
+    Examples
+    --------
+    >>> f = optic_lobe(np.random.default_rng(0).random((3, 32, 64)))
+    >>> f.shape, round(float(f[0].std()), 3)
+    ((3, 512), 1.0)
+    """
+    x = check_images(images, "images")
+    lobe = OpticLobe(lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size)
+    return lobe(x)
+
+
+class OpticLobe:
+    """:func:`optic_lobe` with its settings checked once and the kernels' spectra cached.
+
+    Calling it on a validated float32 stack (N, H, W) returns the features; used by the
+    ``kenyon`` encoder, which encodes one frame at a time when streaming.
+    """
+
+    def __init__(self, lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size):
+        self.lcn_sigma = _check_positive_real(lcn_sigma, "lcn_sigma")
+        self.lcn_eps = _check_positive_real(lcn_eps, "lcn_eps")
+        self.bank = gabor_bank(n_orientations, wavelength, kernel_size)
+        self.pool = check_positive_int(pool_size, "pool_size")
+        self._cache: dict = {}
+
+    def n_features(self, h: int, w: int) -> int:
+        """Features per image of size (h, w); ValueError if ``pool_size`` does not divide it."""
+        pool = self.pool
+        if h % pool or w % pool:
+            raise ValueError(
+                f"pool_size must divide the image size (H, W) = ({h}, {w}); got {pool}"
+            )
+        return self.bank.shape[0] * (h // pool) * (w // pool)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        n, h, w = x.shape
+        n_features = self.n_features(h, w)
+        if (h, w) not in self._cache:
+            self._cache[(h, w)] = _spectra(self.bank, h, w)
+        spectra = self._cache[(h, w)]
+        n_kernels, pool = self.bank.shape[0], self.pool
+        if n > 64:  # small batches (a streamed frame) need no check of /proc/meminfo
+            fh, fw = spectra[1]
+            # per image in a block: complex64 spectra and products of every kernel
+            check_memory(
+                min(n, _BLOCK) * n_kernels * fh * fw * 8 * 3 + n * n_features * 4,
+                f"optic_lobe on {n} images of {h}x{w}",
+            )
+        features = np.empty((n, n_features), dtype=np.float32)
+        for start in range(0, n, _BLOCK):
+            block = _lcn(x[start : start + _BLOCK], self.lcn_sigma, self.lcn_eps)
+            energy = gabor_energy(block, self.bank, _spectra_cache=spectra)
+            m = len(block)
+            # max over the pool's columns (contiguous), then over its rows: two one-axis
+            # reductions are much faster than one over two axes on small batches
+            pooled = energy.reshape(-1, pool).max(axis=1)
+            pooled = pooled.reshape(m * n_kernels * (h // pool), pool, w // pool).max(axis=1)
+            features[start : start + m] = np.sqrt(pooled).reshape(m, -1)
+        mean = features.mean(axis=1, keepdims=True)
+        std = features.std(axis=1, keepdims=True)
+        features -= mean
+        # A blank image has no edges: every feature is equal and the row stays all zeros.
+        np.divide(features, std, out=features, where=std > 1e-12)
+        return features

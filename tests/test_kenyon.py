@@ -1,0 +1,248 @@
+"""The ``kenyon`` front end: optic lobe, Kenyon-cell expansion, packed codes, overlap scores."""
+
+import json
+
+import numpy as np
+import pytest
+
+from flyvpr._validation import NotFittedError
+from flyvpr.frontends import FRONTENDS, KenyonEncoder
+from flyvpr.frontends.kenyon import balanced_connections, code_overlap
+from flyvpr.frontends.optic_lobe import (
+    gabor_bank,
+    gabor_energy,
+    local_contrast_normalize,
+    optic_lobe,
+)
+from flyvpr.localizer import Localizer
+from flyvpr.methods import METHODS, make_method
+from flyvpr.modelio import ModelFileError, _write_archive, load_method, save_method
+
+
+@pytest.fixture(scope="module")
+def route():
+    """A synthetic route: 40 places 8 pixels apart, and a noisy, darker second traverse."""
+    rng = np.random.default_rng(0)
+    world = rng.random((32, 64 + 40 * 8), dtype=np.float32)
+    from scipy import ndimage
+
+    world = ndimage.gaussian_filter(world, 1.5)
+    world = (world - world.min()) / (world.max() - world.min())
+    ref = np.stack([world[:, 8 * i : 8 * i + 64] for i in range(40)]).astype(np.float32)
+    qry = np.clip(0.7 * ref + 0.1 + rng.normal(0, 0.03, ref.shape), 0, 1).astype(np.float32)
+    return ref, qry
+
+
+def test_registered_and_combinable():
+    assert FRONTENDS["kenyon"] is KenyonEncoder
+    for filt in ("cann", "seqslam", "rnn"):
+        assert METHODS[f"kenyon+{filt}"].frontend == "kenyon"
+
+
+def test_codes_are_packed_with_exactly_k_active_bits(route):
+    ref, qry = route
+    enc = KenyonEncoder(random_state=0).fit(ref)
+    codes = enc.encode(qry)
+    assert codes.dtype == np.uint8 and codes.shape == (40, 4096 // 8)
+    bits = np.unpackbits(codes, axis=1)
+    assert enc.n_active_ == round(0.05 * 4096)
+    assert np.all(bits.sum(axis=1) == enc.n_active_)
+    # the bits are the WTA of the Kenyon-cell activity: every winner beats every loser
+    y = enc.kenyon_activity(qry)
+    for row, b in zip(y, bits.astype(bool), strict=True):
+        assert row[b].min() >= row[~b].max()
+
+
+@pytest.mark.parametrize(("n_kenyon", "n_proj", "ratio"), [(1024, 1, 0.1), (2048, 4, 0.05)])
+def test_each_projection_has_its_own_winners(route, n_kenyon, n_proj, ratio):
+    ref, _ = route
+    enc = KenyonEncoder(
+        n_kenyon=n_kenyon, n_projections=n_proj, active_ratio=ratio, random_state=1
+    ).fit(ref)
+    bits = np.unpackbits(enc.encode(ref), axis=1).reshape(len(ref), n_proj, -1)
+    per = round(ratio * n_kenyon / n_proj)
+    assert np.all(bits.sum(axis=2) == per)
+    assert enc.n_active_ == per * n_proj
+
+
+def test_score_is_overlap_over_k_computed_directly(route):
+    ref, qry = route
+    enc = KenyonEncoder(n_kenyon=2048, random_state=3).fit(ref)
+    q = np.unpackbits(enc.encode(qry), axis=1).astype(np.int64)
+    r = np.unpackbits(enc.reference_codes_, axis=1).astype(np.int64)
+    direct = np.array([[np.sum(a & b) for b in r] for a in q]) / enc.n_active_
+    S = enc.score(qry)
+    assert S.dtype == np.float32
+    np.testing.assert_allclose(S, direct, rtol=1e-6)
+    np.testing.assert_allclose(enc.score(ref).diagonal(), 1.0)
+
+
+@pytest.mark.parametrize("n_query", [1, 3, 8, 50])
+def test_code_overlap_matches_a_loop_serial_and_parallel(n_query):
+    rng = np.random.default_rng(n_query)
+    q = rng.random((n_query, 70)) < 0.2
+    r = rng.random((33, 70)) < 0.3
+    expected = [[int(np.sum(a & b)) for b in r] for a in q]
+    np.testing.assert_array_equal(code_overlap(q, r), expected)
+
+
+def test_code_overlap_bad_shapes():
+    with pytest.raises(ValueError, match="same number of bits"):
+        code_overlap(np.zeros((2, 8), bool), np.zeros((2, 9), bool))
+
+
+def test_bytes_per_place_is_an_eighth_of_pixels_or_less(route):
+    ref, _ = route
+    enc = KenyonEncoder(random_state=0).fit(ref)
+    assert enc.bytes_per_place() == 512.0
+    pixels = FRONTENDS["pixels"]().fit(ref).bytes_per_place()
+    assert enc.bytes_per_place() <= pixels / 8
+    assert KenyonEncoder(n_kenyon=8192, random_state=0).fit(ref).bytes_per_place() == 1024.0
+
+
+def test_determinism_per_seed(route):
+    ref, qry = route
+    a = KenyonEncoder(random_state=5).fit(ref)
+    b = KenyonEncoder(random_state=5).fit(ref)
+    c = KenyonEncoder(random_state=6).fit(ref)
+    np.testing.assert_array_equal(a.connections_, b.connections_)
+    np.testing.assert_array_equal(a.encode(qry), b.encode(qry))
+    assert not np.array_equal(a.connections_, c.connections_)
+
+
+def test_encoding_is_batch_independent(route):
+    ref, qry = route
+    enc = KenyonEncoder(random_state=0).fit(ref)
+    batch = enc.encode(qry)
+    one_by_one = np.concatenate([enc.encode(qry[i : i + 1]) for i in range(len(qry))])
+    np.testing.assert_array_equal(batch, one_by_one)
+
+
+def test_streaming_equals_batch_scores(route):
+    ref, qry = route
+    S = make_method("kenyon", 0).fit(ref).score(qry)
+    loc = Localizer(make_method("kenyon", 0)).fit(ref)
+    rows = np.stack([loc.scores(img) for img in qry])
+    np.testing.assert_array_equal(rows, S)
+
+
+def test_balanced_connections():
+    conn = balanced_connections(1000, 120, 6, random_state=0)
+    assert conn.shape == (1000, 6) and conn.dtype == np.int32
+    assert np.all(np.diff(conn, axis=1) > 0)  # distinct, sorted
+    counts = np.bincount(conn.ravel(), minlength=120)
+    assert counts.max() - counts.min() <= 2  # 50 each, give or take a redrawn row
+    with pytest.raises(ValueError, match="n_inputs must be <="):
+        balanced_connections(10, 5, 6)
+
+
+def test_recognises_places_of_the_route(route):
+    ref, qry = route
+    S = KenyonEncoder(random_state=0).fit(ref).score(qry)
+    assert np.mean(S.argmax(axis=1) == np.arange(len(qry))) >= 0.9
+
+
+@pytest.mark.parametrize("filt", ["cann", "seqslam"])
+def test_combines_with_filters(route, filt):
+    ref, qry = route
+    m = make_method(f"kenyon+{filt}", 0).fit(ref)
+    S = m.score(qry)
+    assert S.shape == (40, 40) and np.isfinite(S).all()
+    assert np.mean(np.abs(S.argmax(axis=1) - np.arange(40)) <= 2) >= 0.9
+
+
+def test_model_file_round_trip(route, tmp_path):
+    ref, qry = route
+    model = make_method("kenyon+cann", 0).fit(ref)
+    path = save_method(model, tmp_path / "k.npz")
+    again = load_method(path)
+    np.testing.assert_array_equal(again.frontend.reference_codes_, model.frontend.reference_codes_)
+    np.testing.assert_array_equal(again.score(qry), model.score(qry))
+
+
+def test_model_file_with_inconsistent_codes_refused(route, tmp_path):
+    ref, _ = route
+    path = save_method(make_method("kenyon", 0).fit(ref), tmp_path / "k.npz")
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays.pop("__meta__").tobytes())
+    arrays["frontend/reference_codes_"][0, 0] ^= 0xFF  # 8 more or fewer active bits
+    out = _write_archive(tmp_path / "bad.npz", meta, arrays)
+    with pytest.raises(ModelFileError, match="n_active_ active bits"):
+        load_method(out)
+
+
+@pytest.mark.parametrize(
+    ("params", "error", "match"),
+    [
+        ({"n_kenyon": 1004}, ValueError, "multiple of 8"),
+        ({"n_kenyon": 4096, "n_projections": 3}, ValueError, "multiple of 8 and of n_proj"),
+        ({"active_ratio": 0.0}, ValueError, "active_ratio"),
+        ({"active_ratio": "5%"}, TypeError, "active_ratio"),
+        ({"n_inputs": 10_000}, ValueError, "n_inputs"),
+        ({"n_kenyon": 8 * 10**12}, ValueError, "n_kenyon=8000000000000 .* would need"),
+        ({"pool_size": 5}, ValueError, "pool_size must divide"),
+        ({"lcn_sigma": -1.0}, ValueError, "lcn_sigma"),
+        ({"kernel_size": 10}, ValueError, "size must be odd"),
+        ({"wavelength": float("nan")}, ValueError, "wavelength"),
+    ],
+)
+def test_bad_parameters(route, params, error, match):
+    ref, _ = route
+    with pytest.raises(error, match=match):
+        KenyonEncoder(random_state=0, **params).fit(ref)
+
+
+def test_bad_input(route):
+    ref, qry = route
+    enc = KenyonEncoder(random_state=0)
+    with pytest.raises(NotFittedError):
+        enc.encode(qry)
+    enc.fit(ref)
+    with pytest.raises(ValueError, match="image size"):
+        enc.score(np.zeros((2, 16, 32), np.float32))
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        enc.score(qry * 3)
+    with pytest.raises(ValueError, match="bit-packed uint8"):
+        enc.score_codes(np.zeros((2, 511), np.uint8))
+
+
+def test_blank_frames_are_handled(route):
+    ref, _ = route
+    enc = KenyonEncoder(random_state=0).fit(ref)
+    assert np.all(optic_lobe(np.zeros((2, 32, 64))) == 0)
+    S = enc.score(np.full((2, 32, 64), 0.5, np.float32))
+    assert np.isfinite(S).all()
+    assert np.all(np.unpackbits(enc.encode(np.zeros((1, 32, 64))), axis=1).sum() == enc.n_active_)
+
+
+def test_optic_lobe_parts():
+    rng = np.random.default_rng(0)
+    x = rng.random((3, 32, 64)).astype(np.float32)
+    lcn = local_contrast_normalize(x)
+    # invariant to a gain and an offset of the image (up to the eps floor)
+    brighter = local_contrast_normalize(np.clip(0.5 * x + 0.2, 0, 1), eps=1e-6)
+    np.testing.assert_allclose(brighter, local_contrast_normalize(x, eps=1e-6), atol=1e-3)
+    assert lcn.shape == x.shape and lcn.dtype == np.float32
+    bank = gabor_bank(4, 6.0, 11)
+    assert bank.shape == (4, 11, 11)
+    np.testing.assert_allclose(bank.real.sum(axis=(1, 2)), 0.0, atol=1e-12)  # no DC response
+    # a vertical grating excites the 0-degree filter most (it varies along x)
+    grating = np.tile(0.5 + 0.5 * np.cos(2 * np.pi * np.arange(64) / 6.0), (1, 32, 1))
+    energy = gabor_energy(grating.astype(np.float32), bank)[0, :, 10:22, 20:44].mean(axis=(1, 2))
+    assert energy.argmax() == 0 and energy[0] > 5 * energy[2]
+    # the FFT convolution equals a direct one
+    from scipy.signal import convolve2d
+
+    direct = np.abs(convolve2d(x[0], bank[1], mode="same"))
+    np.testing.assert_allclose(gabor_energy(x[:1], bank)[0, 1], direct, atol=1e-5)
+    f = optic_lobe(x)
+    assert f.shape == (3, 512)
+    np.testing.assert_allclose(f.mean(axis=1), 0, atol=1e-5)
+    np.testing.assert_allclose(f.std(axis=1), 1, atol=1e-4)
+
+
+def test_footprint_counts_no_trained_parameters(route):
+    enc = KenyonEncoder(random_state=0).fit(route[0])
+    fp = enc.footprint()
+    assert fp["params"] == 0 and fp["neurons"] == 512 + 4096
