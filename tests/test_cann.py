@@ -42,7 +42,7 @@ def test_packet_persists_without_input():
     _locked(cann, start=20, frames=40)  # packet at 59
     for t in range(200):
         out = cann.step(_silent())
-        r = _rates(out)
+        r = _rates(cann.potentials_)
         # One packet of a few units, fully active, exactly where the shift put it.
         assert out.argmax() == 60 + t or (
             abs(int(out.argmax()) - (60 + t)) <= 1 and r[60 + t] == 1.0
@@ -66,14 +66,15 @@ def test_packet_moves_by_the_shift_without_input(movement):
     S = _scores(path)
     for row in S:
         cann.step(row)
-    centre = lambda out: float(np.average(np.arange(N_PLACES), weights=_rates(out)))  # noqa: E731
-    before = centre(cann.step(_silent()))
+    centre = lambda u: float(np.average(np.arange(N_PLACES), weights=_rates(u)))  # noqa: E731
+    cann.step(_silent())
+    before = centre(cann.potentials_)
     frames = 80
     for _ in range(frames - 1):
-        out = cann.step(_silent())
-    moved = centre(out) - before
+        cann.step(_silent())
+    moved = centre(cann.potentials_) - before
     assert abs(moved - movement * (frames - 1)) <= 1.0
-    assert np.count_nonzero(_rates(out)) <= 5
+    assert np.count_nonzero(_rates(cann.potentials_)) <= 5
 
 
 def test_single_spurious_frame_does_not_move_the_packet():
@@ -85,13 +86,13 @@ def test_single_spurious_frame_does_not_move_the_packet():
     spurious[160] = 1.0
     out = cann.step(spurious)
     assert out.argmax() == 60
-    assert np.count_nonzero(_rates(out)[100:]) == 0  # it ignites nothing
+    assert np.count_nonzero(_rates(cann.potentials_)[100:]) == 0  # it ignites nothing
     S = _scores([61 + t for t in range(30)], seed=1)
     for t, row in enumerate(S):
         out = cann.step(row)
         assert out.argmax() == 61 + t
         # nothing fires where the spurious frame pointed (it moves on with the shift)
-        assert np.count_nonzero(_rates(out)[158 + t : 165 + t]) == 0
+        assert np.count_nonzero(_rates(cann.potentials_)[158 + t : 165 + t]) == 0
 
 
 def test_spurious_frames_without_support_do_not_move_a_silent_packet():
@@ -112,7 +113,8 @@ def test_consistent_input_elsewhere_captures_the_packet():
     """Kidnapped robot: from frame 60 the input says the robot is 150 places further on."""
     path = [20 + t for t in range(60)] + [230 + t for t in range(120)]
     S = _scores(path, n=N_PLACES + 200, amp=3.0, seed=2)
-    out = CANN(movement=1.0).filter(S)
+    cann = CANN(movement=1.0)
+    out = cann.filter(S)
     peak = out.argmax(axis=1)
     assert np.all(peak[30:60] == np.arange(50, 80))  # locked before the jump
     on_new = np.abs(peak - np.array(path)) <= 1
@@ -121,7 +123,7 @@ def test_consistent_input_elsewhere_captures_the_packet():
     assert on_new[60 + first :].all()  # and it stays there
     # The old packet, held up for a while by the slow current's memory of the old places,
     # falls silent once that memory has decayed.
-    rates = _rates(out[-1])
+    rates = _rates(cann.potentials_)
     assert np.count_nonzero(rates[: path[-1] - 50]) == 0
 
 
@@ -585,3 +587,56 @@ def test_compiled_path_matches_numpy_path(monkeypatch, params, kind):
     assert compiled.n_relocations_ == reference.n_relocations_
     if params.get("relocation_margin") == 0.3:
         assert compiled.n_relocations_ >= 1
+
+
+# -- readout: no confident answer without evidence ----------------------------------------
+@pytest.mark.parametrize("movement", [1.0, "estimate"])
+def test_blank_frames_give_no_answer(movement):
+    # Constant rows, and one fixed non-constant row repeated (a front end that sees the same
+    # blank frame every time): no packet, confidence exactly 0, and the same place every
+    # frame (the lowest index on ties), never one that moves with the frame index.
+    fixed = np.random.default_rng(1).normal(size=120)
+    for S in (np.full((200, 120), 0.5), np.tile(fixed, (200, 1))):
+        cann = CANN(movement=movement)
+        out = cann.filter(S)
+        assert np.all(out.max(axis=1) == 0.0)
+        assert np.all(out.argmax(axis=1) == 0)
+        assert cann.confidence_ == 0.0
+        assert not np.any(cann.potentials_ > cann.threshold)
+
+
+def test_rounding_residue_is_no_evidence():
+    # Nearly constant rows (relative noise 1e-9): a packet never ignites and nothing ranks.
+    rng = np.random.default_rng(2)
+    S = 1.0 + 1e-9 * rng.normal(size=(100, 80))
+    out = CANN(movement=1.0).filter(S)
+    assert np.all(out == 0.0)
+
+
+def test_confidence_is_the_packets_evidence_contrast():
+    cann = CANN(movement=1.0)
+    out = _locked(cann, start=20, frames=40)  # packet at 59
+    s = cann._s
+    own = s[56:63].max()  # kernel radius 3 around the peak
+    expected = (own - s.mean(dtype=np.float64)) / s.std(dtype=np.float64)
+    assert cann.confidence_ == pytest.approx(expected, rel=1e-5)
+    assert out.max() == np.float32(cann.confidence_) and out.argmax() == 59
+    # The rest of the row keeps the potentials' order below the peak.
+    u = cann.potentials_
+    np.testing.assert_allclose(out, u - u[59] + out[59], rtol=0, atol=1e-5)
+
+
+def test_a_packet_without_evidence_spread_has_no_confidence():
+    # Without input the evidence decays everywhere alike: the contrast, a ratio, holds while
+    # the packet coasts on memory, then drops to exactly 0 once the spread is rounding level.
+    cann = CANN(movement=1.0, synaptic_time_constant=5.0, adaptation=None)
+    _locked(cann, start=20, frames=40)
+    held = cann.confidence_
+    confidences = []
+    for _ in range(200):  # the packet moves on to place 259, short of the end (300)
+        out = cann.step(_silent())
+        confidences.append(cann.confidence_)
+    assert confidences[5] == pytest.approx(held, rel=0.05)
+    assert cann.potentials_.max() > cann.threshold  # the packet itself persists
+    assert cann.confidence_ == 0.0 and out.max() == 0.0
+    assert int(out.argmax()) == int(cann.potentials_.argmax())

@@ -144,13 +144,24 @@ draw the packet more than steady ones.
 
 Output
 ------
-:meth:`CANN.step` returns the place units' potentials ``u`` (float32, shape
-``(n_reference,)``): higher = more likely place.  The packet's units hold the largest
-potentials (their recurrent excitation), and among places without a packet ``u`` ranks the
-evidence ``s``.  The row maximum, the readout confidence, is the packet's potential: its
-recurrent excitation minus the inhibition (nearly constant while a packet exists) plus its
-evidence, so a packet that the input supports is more confident than one that coasts through
-frames without support, and rows without any packet are less confident than rows with one.
+:meth:`CANN.step` returns a readout of the network, not its potentials (those are
+:attr:`CANN.potentials_`), float32 of shape ``(n_reference,)``, higher = more likely place; its
+maximum is the confidence of the answer (:attr:`CANN.confidence_`).
+
+- With a packet (a unit above threshold, its peak ``p = argmax u``): the row is
+  ``u - u_p + c``, so the packet's peak is the answer, the other places keep the potentials'
+  order, and the confidence is the packet's evidence contrast
+  ``c = max(0, (max(s over p - R .. p + R) - mean(s)) / std(s))`` (mean and spread over the
+  route, sampled on every ``n // 4096``-th place): how far the evidence under the packet stands
+  out of the evidence along the route.  A packet that coasts through frames without support
+  keeps the contrast its remembered evidence still has; when the evidence spread is at
+  rounding level (1e-4 of what one frame of a one-standard-deviation input adds to ``s``) the
+  confidence is exactly 0.
+- Without a packet the filter has no answer: confidence exactly 0, every place at most 0,
+  ranked by its evidence ``s - max(s)``, with places within rounding of the maximum tied at 0
+  (the lowest index wins).  So constant (blank) frames, or a front end that returns the same
+  row for every frame, give the same place at confidence 0 for every frame: no tie rule
+  depends on the frame index or on the zeros that enter at the route's end.
 
 Cost
 ----
@@ -561,6 +572,11 @@ class CANN(OnlineFilter):
         Frames seen since the last :meth:`reset`.
     n_relocations_ : int
         Relocations since the last :meth:`reset`.
+    confidence_ : float
+        Confidence of the last step's answer (the maximum of the row it returned): the
+        packet's evidence contrast, 0 without a packet.
+    potentials_ : ndarray of float32, shape (n_reference,)
+        The place units' potentials after the last step (a copy).
 
     Notes
     -----
@@ -780,6 +796,7 @@ class CANN(OnlineFilter):
         self.n_frames_ = 0
         self.n_relocations_ = 0
         self.velocity_ = float("nan")
+        self.confidence_ = 0.0
 
     def _allocate(self, n: int) -> None:
         p = self._params
@@ -794,6 +811,7 @@ class CANN(OnlineFilter):
         self._var = np.ones(n, np.float32)  # and running variance (prior: the row's, 1)
         self._tmp = np.empty(n, np.float32)  # scratch
         self._stats_stride = max(1, n // _STATS_SAMPLES)
+        self.confidence_ = 0.0
         self._g = 0.0  # inhibitor rate
         self._offset = 0.0  # fractional movement not yet applied to the packet
         # Per frame, current c decays by keeps[c] and adds coefs[c] * (input_gain * x).
@@ -802,6 +820,9 @@ class CANN(OnlineFilter):
         alphas = -np.expm1(-1.0 / taus)
         self._keeps = (1.0 - alphas).astype(np.float32)
         self._coefs = (alphas * weights).astype(np.float32)
+        # Evidence differences below this are rounding residue (1e-4 of what one frame of a
+        # one-standard-deviation input adds to s), never evidence.
+        self._noise = 1e-4 * float(self._coefs.sum()) * p["input_gain"]
         if self._kernels is not None:
             # Scratch of the compiled path: the input row, the next synaptic currents (updates
             # are out of place, which keeps them plain SIMD loops), the firing units and their
@@ -845,7 +866,8 @@ class CANN(OnlineFilter):
         Returns
         -------
         ndarray of float32, shape (n_reference,)
-            Higher = more likely place; the maximum is the packet's potential.
+            Higher = more likely place; the maximum is the confidence (see "Output" in the
+            module docstring): the packet's evidence contrast, exactly 0 without a packet.
 
         Raises
         ------
@@ -1024,7 +1046,39 @@ class CANN(OnlineFilter):
             self._relocate(p["relocation_floor"], p["relocation_margin"], peak)
         self.n_frames_ = t + 1
         self.velocity_ = float(v)
+        return self._readout()
+
+    @property
+    def potentials_(self) -> np.ndarray:
+        """The place units' potentials ``u`` after the last step (a copy)."""
         return self._u.copy()
+
+    def _readout(self) -> np.ndarray:
+        """The output row: the packet with its confidence, or no answer (see "Output")."""
+        u, s = self._u, self._s
+        noise = self._noise
+        sample = s[:: self._stats_stride]
+        centre = float(sample.mean(dtype=np.float64))
+        spread = float(sample.std(dtype=np.float64))
+        p = int(np.argmax(u))
+        out = np.empty_like(u)
+        if u[p] > self._params["threshold"]:
+            # A packet: its confidence is the contrast of its evidence, the most evidence
+            # within the kernel's radius of its peak, over the evidence along the route.
+            radius = (self._kernel.size - 1) // 2
+            own = float(s[max(p - radius, 0) : p + radius + 1].max())
+            confidence = (own - centre) / spread if spread > noise else 0.0
+            self.confidence_ = max(confidence, 0.0)
+            np.subtract(u, u[p], out=out)
+            out += np.float32(self.confidence_)  # the peak: exactly the confidence
+            return out
+        # No packet: no answer.  Every place scores at most 0, ranked by its evidence; places
+        # within rounding of the most evidence tie at 0 (the lowest index wins), so neither
+        # rounding residue nor the zeros that enter at the route's end pick a place.
+        self.confidence_ = 0.0
+        np.subtract(s, s.max(), out=out)
+        out[out > -noise] = 0.0
+        return out
 
     def _relocate(self, floor: float, margin: float, q: int | None) -> None:
         """Move the packet to ``q``, the place with the most evidence, if the evidence allows.
@@ -1123,8 +1177,7 @@ class CANN(OnlineFilter):
         best = next(j for j in self._preference if values[j] >= level)
         # Rows whose spread is at rounding level (say identical frames, which adaptation turns
         # into rounding residue) carry no evidence and do not vote.
-        noise = 1e-4 * float(self._coefs.sum()) * p["input_gain"]
-        if spread[best] > noise and contrast[best] >= p["velocity_contrast"]:
+        if spread[best] > self._noise and contrast[best] >= p["velocity_contrast"]:
             self._votes[best] += decay
         self._estimate_index = int(np.argmax(self._votes))
         self._estimate = float(vel[self._estimate_index])
