@@ -41,12 +41,11 @@ def test_packet_persists_without_input():
     cann.reset()
     _locked(cann, start=20, frames=40)  # packet at 59
     for t in range(200):
-        out = cann.step(_silent())
-        r = _rates(cann.potentials_)
+        cann.step(_silent())
+        u = cann.potentials_
+        r = _rates(u)
         # One packet of a few units, fully active, exactly where the shift put it.
-        assert out.argmax() == 60 + t or (
-            abs(int(out.argmax()) - (60 + t)) <= 1 and r[60 + t] == 1.0
-        )
+        assert u.argmax() == 60 + t or (abs(int(u.argmax()) - (60 + t)) <= 1 and r[60 + t] == 1.0)
         assert 1 <= np.count_nonzero(r) <= 5
     assert r.max() == 1.0
     assert np.flatnonzero(r).min() >= 258 and np.flatnonzero(r).max() <= 260
@@ -619,8 +618,10 @@ def test_confidence_is_the_packets_evidence_contrast():
     s = cann._s
     own = s[56:63].max()  # kernel radius 3 around the peak
     expected = (own - s.mean(dtype=np.float64)) / s.std(dtype=np.float64)
-    assert cann.confidence_ == pytest.approx(expected, rel=1e-5)
-    assert out.max() == np.float32(cann.confidence_) and out.argmax() == 59
+    assert cann.contrast_ == pytest.approx(expected, rel=1e-5)
+    assert cann.sequence_rate_ >= cann.fallback_rate  # established: 2 + the contrast
+    assert out.max() == np.float32(2.0 + cann.contrast_) and out.argmax() == 59
+    assert cann.confidence_ == out.max()
     # The rest of the row keeps the potentials' order below the peak.
     u = cann.potentials_
     np.testing.assert_allclose(out, u - u[59] + out[59], rtol=0, atol=1e-5)
@@ -631,12 +632,60 @@ def test_a_packet_without_evidence_spread_has_no_confidence():
     # the packet coasts on memory, then drops to exactly 0 once the spread is rounding level.
     cann = CANN(movement=1.0, synaptic_time_constant=5.0, adaptation=None)
     _locked(cann, start=20, frames=40)
-    held = cann.confidence_
-    confidences = []
+    held = cann.contrast_
+    contrasts = []
     for _ in range(200):  # the packet moves on to place 259, short of the end (300)
         out = cann.step(_silent())
-        confidences.append(cann.confidence_)
-    assert confidences[5] == pytest.approx(held, rel=0.05)
+        contrasts.append(cann.contrast_)
+    assert contrasts[5] == pytest.approx(held, rel=0.05)
     assert cann.potentials_.max() > cann.threshold  # the packet itself persists
-    assert cann.confidence_ == 0.0 and out.max() == 0.0
-    assert int(out.argmax()) == int(cann.potentials_.argmax())
+    # No evidence left: no answer, whatever the packet (every place ties at 0).
+    assert cann.contrast_ == 0.0 and cann.confidence_ == 0.0
+    assert np.all(out == 0.0)
+
+
+def test_lost_sequence_falls_back_to_the_front_end():
+    # Shuffled frames: every row has a clear single-frame answer, but no sequence.  After
+    # fallback_memory frames without one, the rows are the front end's: same answers, and
+    # confidences in (1, 2) ordered as the front end's own maxima.
+    rng = np.random.default_rng(12)
+    places = rng.permutation(N_PLACES)[:250]
+    S = _scores(places.tolist(), amp=2.5, seed=12)
+    cann = CANN()
+    out = cann.filter(S)
+    late = slice(150, None)
+    conf = out[late].max(axis=1)
+    front = (conf > 1.0) & (conf < 2.0)
+    assert front.all()
+    np.testing.assert_array_equal(out[late][front].argmax(axis=1), S[late][front].argmax(axis=1))
+    top = S[late][front].max(axis=1)
+    order = np.argsort(conf[front], kind="stable")
+    np.testing.assert_array_equal(order, np.argsort(top, kind="stable"))
+    # The first frames are tentative (confidence below 1) or no answer, never above.
+    assert np.all(out[:100].max(axis=1) < 1.0)
+    # Switched off, the packet answers at every frame it exists.
+    off = CANN(fallback_rate=None).filter(S)
+    assert not np.any((off.max(axis=1) > 1.0) & (off.max(axis=1) < 2.0))
+
+
+def test_an_established_sequence_is_not_dropped_by_a_weak_stretch():
+    # 60 supported frames, then 100 without any input: the packet keeps answering.
+    S = np.vstack([_scores([20 + t for t in range(60)], n=400, seed=13), np.zeros((100, 400))])
+    cann = CANN(movement=1.0)
+    out = cann.filter(S)
+    assert np.all(out[60:].argmax(axis=1) == 80 + np.arange(100))
+    assert np.all(out[30:].max(axis=1) >= 2.0)
+
+
+@pytest.mark.parametrize(
+    ("params", "match"),
+    [
+        ({"fallback_rate": 1.5}, "fallback_rate must be <= 1"),
+        ({"fallback_rate": -0.1}, "fallback_rate must be >= 0"),
+        ({"fallback_memory": 0}, "fallback_memory must be > 0"),
+        ({"fallback_contrast": -1.0}, "fallback_contrast must be > 0"),
+    ],
+)
+def test_invalid_fallback_parameters(params, match):
+    with pytest.raises(ValueError, match=match):
+        CANN(**params).step(np.arange(5.0))

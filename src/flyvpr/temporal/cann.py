@@ -145,23 +145,39 @@ draw the packet more than steady ones.
 Output
 ------
 :meth:`CANN.step` returns a readout of the network, not its potentials (those are
-:attr:`CANN.potentials_`), float32 of shape ``(n_reference,)``, higher = more likely place; its
-maximum is the confidence of the answer (:attr:`CANN.confidence_`).
+:attr:`CANN.potentials_`): float32 of shape ``(n_reference,)``, higher = more likely place,
+whose maximum is the confidence of the answer (:attr:`CANN.confidence_`).  The confidence
+says where the answer comes from:
 
-- With a packet (a unit above threshold, its peak ``p = argmax u``): the row is
-  ``u - u_p + c``, so the packet's peak is the answer, the other places keep the potentials'
-  order, and the confidence is the packet's evidence contrast
-  ``c = max(0, (max(s over p - R .. p + R) - mean(s)) / std(s))`` (mean and spread over the
-  route, sampled on every ``n // 4096``-th place): how far the evidence under the packet stands
-  out of the evidence along the route.  A packet that coasts through frames without support
-  keeps the contrast its remembered evidence still has; when the evidence spread is at
-  rounding level (1e-4 of what one frame of a one-standard-deviation input adds to ``s``) the
-  confidence is exactly 0.
-- Without a packet the filter has no answer: confidence exactly 0, every place at most 0,
-  ranked by its evidence ``s - max(s)``, with places within rounding of the maximum tied at 0
-  (the lowest index wins).  So constant (blank) frames, or a front end that returns the same
-  row for every frame, give the same place at confidence 0 for every frame: no tie rule
-  depends on the frame index or on the zeros that enter at the route's end.
+- ``0``: no answer.  No packet (no unit above threshold), or a packet without evidence
+  contrast (below).  Every place scores at most 0, ranked by its evidence ``s - max(s)``,
+  with places within rounding of the maximum tied at 0 (the lowest index wins).  So constant
+  (blank) frames, or a front end that returns the same row for every frame, give the same
+  place at confidence 0 for every frame: no tie rule depends on the frame index or on the
+  zeros that enter at the route's end.
+- ``2 + c`` (at least 2): the packet's answer while the sequence is established.  The row is
+  ``u - u_p + 2 + c``: the packet's peak ``p = argmax u`` is the answer, the other places keep
+  the potentials' order, and ``c`` (:attr:`CANN.contrast_`) is the packet's evidence contrast,
+  ``max(0, (max(s over p - R .. p + R) - mean(s)) / std(s))`` (mean and spread over the route,
+  sampled on every ``n // 4096``-th place): how far the evidence under the packet stands out
+  of the evidence along the route.  A packet that coasts without input keeps the contrast its
+  remembered evidence still has; once the evidence spread is at rounding level (1e-4 of what
+  one frame of a one-standard-deviation input adds to ``s``) ``c`` is exactly 0.
+- ``c / (1 + c)`` (below 1): a tentative answer of the packet in the first
+  ``fallback_memory`` frames, before the sequence is established.
+- between 1 and 2: the sequence is lost, and the answer is the front end's own: the score
+  row ``r`` as given, mapped to ``1.5 + 0.5 r / (1 + |r|)``, which keeps its argmax and ranks
+  these rows among themselves as the front end's maxima rank them.
+
+The sequence is *established* while at least ``fallback_rate`` of recent frames had a packet
+whose contrast reached ``fallback_contrast`` (5 standard deviations), the share being the
+running mean over the frames so far at first and an exponential average over
+``fallback_memory`` frames later (:attr:`CANN.sequence_rate_`).  On Nordland (below) a tracked
+traverse reaches 5 standard deviations within 50 to 80 frames and keeps the share well above
+0.05; with the query frames shuffled no constant-velocity sequence exists, the contrast of the
+evidence under the packet rarely reaches 4, and the CANN falls back to its front end instead
+of answering confidently from a packet that no evidence supports.  ``fallback_rate=None``
+switches the fallback off (tentative answers then never occur either).
 
 Cost
 ----
@@ -563,6 +579,15 @@ class CANN(OnlineFilter):
     relocation_margin : float or None, default 0.5
         Lead of that place's evidence over the packet's own evidence (in units of ``s``) at
         which the packet is relocated there; ``None`` switches relocation off.
+    fallback_contrast : float, default 5.0
+        Evidence contrast of the packet (standard deviations) that counts as the sequence
+        standing out in a frame (see "Output" in the module docstring).
+    fallback_memory : float, default 100.0
+        Frames over which the share of such frames is averaged; also the length of the
+        tentative start.
+    fallback_rate : float or None, default 0.05
+        Share below which the sequence counts as lost and the front end answers; ``None``:
+        the packet always answers.
 
     Attributes
     ----------
@@ -573,8 +598,12 @@ class CANN(OnlineFilter):
     n_relocations_ : int
         Relocations since the last :meth:`reset`.
     confidence_ : float
-        Confidence of the last step's answer (the maximum of the row it returned): the
-        packet's evidence contrast, 0 without a packet.
+        Confidence of the last step's answer, the maximum of the row it returned (see
+        "Output" in the module docstring); exactly 0 without a packet.
+    contrast_ : float
+        The packet's evidence contrast at the last step; 0 without a packet.
+    sequence_rate_ : float
+        The recent share of frames whose packet contrast reached ``fallback_contrast``.
     potentials_ : ndarray of float32, shape (n_reference,)
         The place units' potentials after the last step (a copy).
 
@@ -593,6 +622,13 @@ class CANN(OnlineFilter):
     back within 20 places after a median of 20 / 14 frames (at most 59 / 27); without
     relocation 32 / 24 (at most 74 / 60), with 1x AUC 0.91 / 0.97.  The slowest jumps land
     where FlyNet's scores hold almost no evidence for the true place for 40-60 frames.
+
+    The readout's fallback (``fallback_*``) was chosen on the same scores with the queries of
+    window 0-999 shuffled (``numpy.random.default_rng(0).permutation(1000)``), tolerance 20:
+    PR AUC of pixels + CANN 0.091 against 0.003 without the fallback (pixels alone 0.108),
+    FlyNet + CANN 0.021 against 0.002 (FlyNet alone 0.022, means over seeds 0-4), while the
+    in-order numbers above stay within 0.001.  The first ``fallback_memory`` frames of a
+    shuffled stream are tentative answers, which is most of what is left of the gap.
 
     Differences from the authors' demo: the route is a line, not a ring; rates saturate at 1
     (the demo clips at 100); the input drives a slow synaptic current instead of the potential
@@ -639,6 +675,9 @@ class CANN(OnlineFilter):
         input_clip=4.0,
         relocation_floor=5.5,
         relocation_margin=0.5,
+        fallback_contrast=5.0,
+        fallback_memory=100.0,
+        fallback_rate=0.05,
     ):
         self.excitation_strength = excitation_strength
         self.excitation_width = excitation_width
@@ -661,6 +700,9 @@ class CANN(OnlineFilter):
         self.input_clip = input_clip
         self.relocation_floor = relocation_floor
         self.relocation_margin = relocation_margin
+        self.fallback_contrast = fallback_contrast
+        self.fallback_memory = fallback_memory
+        self.fallback_rate = fallback_rate
 
     # -- parameters -----------------------------------------------------------
     def _check_params(self) -> dict:
@@ -740,6 +782,14 @@ class CANN(OnlineFilter):
         else:
             p["input_clip"] = _check_real(self.input_clip, "input_clip")
         p["relocation_floor"] = _check_real(self.relocation_floor, "relocation_floor", low=None)
+        p["fallback_contrast"] = _check_real(self.fallback_contrast, "fallback_contrast")
+        p["fallback_memory"] = _check_real(self.fallback_memory, "fallback_memory")
+        if self.fallback_rate is None:
+            p["fallback_rate"] = None
+        else:
+            p["fallback_rate"] = _check_real(self.fallback_rate, "fallback_rate", inclusive=True)
+            if p["fallback_rate"] > 1.0:
+                raise ValueError(f"fallback_rate must be <= 1; got {p['fallback_rate']}")
         if self.relocation_margin is None:
             p["relocation_margin"] = None
         else:
@@ -796,7 +846,8 @@ class CANN(OnlineFilter):
         self.n_frames_ = 0
         self.n_relocations_ = 0
         self.velocity_ = float("nan")
-        self.confidence_ = 0.0
+        self.confidence_ = self.contrast_ = 0.0
+        self.sequence_rate_ = 0.0
 
     def _allocate(self, n: int) -> None:
         p = self._params
@@ -811,7 +862,6 @@ class CANN(OnlineFilter):
         self._var = np.ones(n, np.float32)  # and running variance (prior: the row's, 1)
         self._tmp = np.empty(n, np.float32)  # scratch
         self._stats_stride = max(1, n // _STATS_SAMPLES)
-        self.confidence_ = 0.0
         self._g = 0.0  # inhibitor rate
         self._offset = 0.0  # fractional movement not yet applied to the packet
         # Per frame, current c decays by keeps[c] and adds coefs[c] * (input_gain * x).
@@ -867,7 +917,8 @@ class CANN(OnlineFilter):
         -------
         ndarray of float32, shape (n_reference,)
             Higher = more likely place; the maximum is the confidence (see "Output" in the
-            module docstring): the packet's evidence contrast, exactly 0 without a packet.
+            module docstring): 0 without an answer, below 1 a tentative one, 1 to 2 the front
+            end's while the sequence is lost, 2 + the packet's evidence contrast otherwise.
 
         Raises
         ------
@@ -1046,38 +1097,59 @@ class CANN(OnlineFilter):
             self._relocate(p["relocation_floor"], p["relocation_margin"], peak)
         self.n_frames_ = t + 1
         self.velocity_ = float(v)
-        return self._readout()
+        return self._readout(row)
 
     @property
     def potentials_(self) -> np.ndarray:
         """The place units' potentials ``u`` after the last step (a copy)."""
         return self._u.copy()
 
-    def _readout(self) -> np.ndarray:
-        """The output row: the packet with its confidence, or no answer (see "Output")."""
+    def _readout(self, row: np.ndarray) -> np.ndarray:
+        """The output row: the packet's answer, the front end's, or none (see "Output")."""
+        p = self._params
         u, s = self._u, self._s
         noise = self._noise
-        sample = s[:: self._stats_stride]
-        centre = float(sample.mean(dtype=np.float64))
-        spread = float(sample.std(dtype=np.float64))
-        p = int(np.argmax(u))
+        peak = int(np.argmax(u))
         out = np.empty_like(u)
-        if u[p] > self._params["threshold"]:
-            # A packet: its confidence is the contrast of its evidence, the most evidence
-            # within the kernel's radius of its peak, over the evidence along the route.
-            radius = (self._kernel.size - 1) // 2
-            own = float(s[max(p - radius, 0) : p + radius + 1].max())
-            confidence = (own - centre) / spread if spread > noise else 0.0
-            self.confidence_ = max(confidence, 0.0)
-            np.subtract(u, u[p], out=out)
-            out += np.float32(self.confidence_)  # the peak: exactly the confidence
-            return out
-        # No packet: no answer.  Every place scores at most 0, ranked by its evidence; places
-        # within rounding of the most evidence tie at 0 (the lowest index wins), so neither
-        # rounding residue nor the zeros that enter at the route's end pick a place.
-        self.confidence_ = 0.0
-        np.subtract(s, s.max(), out=out)
-        out[out > -noise] = 0.0
+        contrast = 0.0
+        if u[peak] > p["threshold"]:
+            # The packet's evidence contrast: the most evidence within the kernel's radius of
+            # its peak, over the evidence along the route (sampled places).
+            sample = s[:: self._stats_stride]
+            spread = float(sample.std(dtype=np.float64))
+            if spread > noise:
+                radius = (self._kernel.size - 1) // 2
+                own = float(s[max(peak - radius, 0) : peak + radius + 1].max())
+                contrast = max((own - float(sample.mean(dtype=np.float64))) / spread, 0.0)
+        # The share of recent frames whose packet stood out by fallback_contrast: the running
+        # mean at first, then an exponential average over fallback_memory frames.  The
+        # sequence is established while the share reaches fallback_rate.
+        t = self.n_frames_ - 1
+        rate = max(1.0 / (t + 1), 1.0 / p["fallback_memory"])
+        hit = float(contrast >= p["fallback_contrast"])
+        self.sequence_rate_ += rate * (hit - self.sequence_rate_)
+        self.contrast_ = contrast
+        established = p["fallback_rate"] is None or self.sequence_rate_ >= p["fallback_rate"]
+        if contrast == 0.0:
+            # No packet (or none with evidence): no answer.  Every place scores at most 0,
+            # ranked by its evidence; places within rounding of the most evidence tie at 0
+            # (the lowest index wins), so neither rounding residue nor the zeros that enter at
+            # the route's end pick a place.
+            np.subtract(s, s.max(), out=out)
+            out[out > -noise] = 0.0
+        elif established:
+            np.subtract(u, u[peak], out=out)
+            out += np.float32(2.0 + contrast)  # the peak: exactly 2 + the contrast
+        elif t < p["fallback_memory"]:
+            # A packet, but no sequence yet: a tentative answer, confidence in (0, 1).
+            np.subtract(u, u[peak], out=out)
+            out += np.float32(contrast / (1.0 + contrast))
+        else:
+            # No sequence for fallback_memory frames: the front end's answer, its scores
+            # mapped monotonically into (1, 2), so these rows rank as the front end's would.
+            r = row.astype(np.float64)
+            out[:] = 1.5 + 0.5 * r / (1.0 + np.abs(r))
+        self.confidence_ = float(out.max())
         return out
 
     def _relocate(self, floor: float, margin: float, q: int | None) -> None:
