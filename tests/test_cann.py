@@ -619,7 +619,7 @@ def test_confidence_is_the_packets_evidence_contrast():
     own = s[56:63].max()  # kernel radius 3 around the peak
     expected = (own - s.mean(dtype=np.float64)) / s.std(dtype=np.float64)
     assert cann.contrast_ == pytest.approx(expected, rel=1e-5)
-    assert cann.sequence_rate_ >= cann.fallback_rate  # established: 2 + the contrast
+    assert cann.support_ >= cann.fallback_contrast  # established: 2 + the contrast
     assert out.max() == np.float32(2.0 + cann.contrast_) and out.argmax() == 59
     assert cann.confidence_ == out.max()
     # The rest of the row keeps the potentials' order below the peak.
@@ -664,7 +664,7 @@ def test_lost_sequence_falls_back_to_the_front_end():
     # The first frames are tentative (confidence below 1) or no answer, never above.
     assert np.all(out[:100].max(axis=1) < 1.0)
     # Switched off, the packet answers at every frame it exists.
-    off = CANN(fallback_rate=None).filter(S)
+    off = CANN(fallback_contrast=None).filter(S)
     assert not np.any((off.max(axis=1) > 1.0) & (off.max(axis=1) < 2.0))
 
 
@@ -680,10 +680,8 @@ def test_an_established_sequence_is_not_dropped_by_a_weak_stretch():
 @pytest.mark.parametrize(
     ("params", "match"),
     [
-        ({"fallback_rate": 1.5}, "fallback_rate must be <= 1"),
-        ({"fallback_rate": -0.1}, "fallback_rate must be >= 0"),
         ({"fallback_memory": 0}, "fallback_memory must be > 0"),
-        ({"fallback_contrast": -1.0}, "fallback_contrast must be > 0"),
+        ({"fallback_contrast": -1.0}, "fallback_contrast must be >= 0"),
     ],
 )
 def test_invalid_fallback_parameters(params, match):
