@@ -113,6 +113,9 @@ class CANN(OnlineFilter):
         The packet's evidence contrast averaged over recent frames.
     potentials_ : ndarray of float32, shape (n_reference,)
         The place units' potentials after the last step (a copy).
+    compiled_ : bool
+        Whether the per-frame updates run compiled by numba (short routes, numba importable)
+        or as plain numpy; the results agree up to float rounding.
 
     Notes
     -----
@@ -268,7 +271,7 @@ class CANN(OnlineFilter):
         self._params = self._check_params()
         self._kernel = self._kernel_of(self._params)
         self._n = None  # the state is allocated by the first row, which fixes n_reference
-        self._kernels, self.compiled_ = _kernels.get_kernels()
+        self.compiled_ = False  # chosen with the route's length (see _kernels)
         self.n_frames_ = 0
         self.n_relocations_ = 0
         self.velocity_ = float("nan")
@@ -285,6 +288,7 @@ class CANN(OnlineFilter):
             "(velocities, bidirectional, slow_time_constant)",
         )
         self._n = n
+        self._kernels, self.compiled_ = _kernels.get_kernels(n)
         self._u = np.zeros(n, np.float32)  # potentials
         # The synaptic currents, each already weighted (fast first), and a spare buffer (the
         # update is out of place); s is their sum.
@@ -436,7 +440,6 @@ class CANN(OnlineFilter):
         if getattr(self, "_params", None) is None:
             self.reset()
         p = self._params
-        kernels = self._kernels
         n = row.shape[0]
         if self._n is None:
             self._allocate(n)
@@ -445,6 +448,7 @@ class CANN(OnlineFilter):
                 f"scores_row must have shape ({self._n},) as the previous rows; got {row.shape} "
                 "(call reset() before a new reference traverse)"
             )
+        kernels = self._kernels
         t = self.n_frames_
         x = self._input(row)
         bank = self._bank
@@ -510,9 +514,7 @@ class CANN(OnlineFilter):
         )
         # The packet's support: its contrast averaged over recent frames (the running mean at
         # first, then an exponential average over fallback_memory frames).
-        self.support_ += max(1.0 / (t + 1), 1.0 / p["fallback_memory"]) * (
-            contrast - self.support_
-        )
+        self.support_ += max(1.0 / (t + 1), 1.0 / p["fallback_memory"]) * (contrast - self.support_)
         self.contrast_ = contrast
         tier = _readout.choose_tier(
             contrast, self.support_, p["fallback_contrast"], t, p["fallback_memory"]

@@ -75,17 +75,13 @@ def check_params(est) -> dict:
         "tonic_inhibition": check_real(est.tonic_inhibition, "tonic_inhibition", inclusive=True),
         "threshold": check_real(est.threshold, "threshold", low=None),
         "time_constant": check_real(est.time_constant, "time_constant"),
-        "synaptic_time_constant": check_real(
-            est.synaptic_time_constant, "synaptic_time_constant"
-        ),
+        "synaptic_time_constant": check_real(est.synaptic_time_constant, "synaptic_time_constant"),
         "slow_time_constant": _optional(est.slow_time_constant, "slow_time_constant"),
         "slow_fraction": check_real(est.slow_fraction, "slow_fraction", inclusive=True),
         "input_gain": check_real(est.input_gain, "input_gain", inclusive=True),
         "n_steps": check_positive_int(est.n_steps, "n_steps"),
         "velocity_memory": check_real(est.velocity_memory, "velocity_memory"),
-        "velocity_contrast": check_real(
-            est.velocity_contrast, "velocity_contrast", inclusive=True
-        ),
+        "velocity_contrast": check_real(est.velocity_contrast, "velocity_contrast", inclusive=True),
         "adaptation": _optional(est.adaptation, "adaptation"),
         "input_clip": _optional(est.input_clip, "input_clip"),
         "relocation_floor": check_real(est.relocation_floor, "relocation_floor", low=None),

@@ -35,7 +35,9 @@ class SpeedBank:
         Rows whose spread is at most this (rounding residue) do not vote.
     """
 
-    def __init__(self, velocities, n_currents, n, keeps, coefs, memory, min_contrast, stride, noise):
+    def __init__(
+        self, velocities, n_currents, n, keeps, coefs, memory, min_contrast, stride, noise
+    ):
         self.velocities = velocities
         self.traces = np.zeros((n_currents, velocities.size, n), np.float32)
         self._spare = np.empty_like(self.traces)
