@@ -702,3 +702,25 @@ def test_results_do_not_depend_on_numba(monkeypatch):
     assert a > 0.5  # the route is followed at all
     assert abs(a - b) <= 0.002
     assert np.mean(out_compiled.argmax(axis=1) == out_plain.argmax(axis=1)) > 0.99
+
+
+def test_bidirectional_bank_follows_a_reversed_traverse():
+    # The query drives the route backwards, one place per frame.
+    path = [480 - t for t in range(300)]
+    S = _scores(path, n=500, amp=2.0, seed=15)
+    both = CANN(bidirectional=True)
+    out = both.filter(S)
+    on = np.abs(out.argmax(axis=1) - np.array(path)) <= 1
+    assert on[100:].mean() > 0.95
+    assert both.velocity_ == -1.0
+    forward = CANN().filter(S)
+    assert (np.abs(forward.argmax(axis=1) - np.array(path)) <= 1)[100:].mean() < 0.5
+    # The bank holds each velocity and its mirror image, once.
+    p = CANN(bidirectional=True, velocities=(0.5, 1.0, -1.0))._check_params()
+    np.testing.assert_array_equal(p["velocities"], [-1.0, -0.5, 0.5, 1.0])
+    assert CANN(bidirectional=True).footprint(100)["state_variables"] == (1 + 1 + 22) * 100 + 1
+
+
+def test_bidirectional_must_be_a_bool():
+    with pytest.raises(TypeError, match="bidirectional must be True or False"):
+        CANN(bidirectional="yes").step(np.arange(5.0))
