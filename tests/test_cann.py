@@ -724,3 +724,23 @@ def test_bidirectional_bank_follows_a_reversed_traverse():
 def test_bidirectional_must_be_a_bool():
     with pytest.raises(TypeError, match="bidirectional must be True or False"):
         CANN(bidirectional="yes").step(np.arange(5.0))
+
+
+@pytest.mark.parametrize(
+    ("params", "n", "match"),
+    [
+        ({"excitation_width": 1e15}, 50, "excitation_width=1e\\+15"),
+        ({"velocities": np.linspace(0.5, 2.0, 2000)}, 10**7, "n_reference=10000000 .*velocities"),
+        ({"movement": 1.0}, 10**12, "n_reference=1000000000000"),
+    ],
+)
+def test_state_too_large_for_memory_is_refused(params, n, match, monkeypatch):
+    from flyvpr import _validation
+    from flyvpr._validation import InsufficientMemoryError
+
+    # Pretend 1 GB is available, so the test allocates nothing large either way.
+    monkeypatch.setattr(_validation, "available_memory", lambda: 1 << 30)
+    cann = CANN(**params)
+    with pytest.raises(InsufficientMemoryError, match=match):
+        cann.reset()
+        cann._allocate(n)
