@@ -255,3 +255,29 @@ def test_bank_votes_decay_and_ties_prefer_one(kernels):
         bank.update(np.zeros(300, np.float32), t == 0, kernels["update_traces"])
     assert bank.index == 1 and bank.votes[0] == bank.votes[2] == 0.0
     assert bank.votes[1] == pytest.approx(1e-6 * np.exp(-0.5))
+
+
+def test_get_kernels_chooses_by_flag_numba_and_route_length(monkeypatch):
+    import sys
+
+    monkeypatch.setattr(_kernels, "USE_NUMBA", False)
+    assert _kernels.get_kernels(10) == (_kernels._PLAIN, False)
+    monkeypatch.setattr(_kernels, "USE_NUMBA", True)
+    longest = _kernels.COMPILED_MAX_PLACES
+    assert longest == 4096
+    assert _kernels.get_kernels(longest + 1) == (_kernels._PLAIN, False)
+    # Without numba: plain kernels, and the failed import is remembered.
+    real = sys.modules.get("numba")
+    monkeypatch.setattr(_kernels, "_compiled", None)
+    monkeypatch.setitem(sys.modules, "numba", None)
+    assert _kernels.get_kernels(longest) == (_kernels._PLAIN, False)
+    assert _kernels._compiled is False
+    if real is None:
+        monkeypatch.delitem(sys.modules, "numba")
+    else:
+        monkeypatch.setitem(sys.modules, "numba", real)
+    monkeypatch.setattr(_kernels, "_compiled", None)
+    found, compiled = _kernels.get_kernels(longest)
+    if compiled:
+        assert set(found) == set(_kernels._PLAIN) and found is not _kernels._PLAIN
+        assert _kernels.get_kernels(1)[0] is found  # compiled once, then reused

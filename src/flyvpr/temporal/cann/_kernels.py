@@ -197,7 +197,7 @@ _PLAIN = {
 _compiled = None  # compiled on first use, so that ``import flyvpr`` does not import numba
 
 
-def _jit(numba, func):
+def _jit(numba, func):  # pragma: no mutate block (numba's options; no-ops under mutmut)
     # Fast-math flags allow SIMD reductions but no fused multiply-adds ("contract"), so the
     # compiled updates round close to numpy's.  cache=True keeps the code on disk; where no
     # cache folder is writable numba refuses it with a RuntimeError, and it compiles in memory.
