@@ -267,7 +267,11 @@ def test_get_kernels_chooses_by_flag_numba_and_route_length(monkeypatch):
     assert longest == 4096
     assert _kernels.get_kernels(longest + 1) == (_kernels._PLAIN, False)
     # Without numba: plain kernels, and the failed import is remembered.
+    import importlib.util
+
     real = sys.modules.get("numba")
+    if real is None and importlib.util.find_spec("numba") is not None:
+        import numba as real
     monkeypatch.setattr(_kernels, "_compiled", None)
     monkeypatch.setitem(sys.modules, "numba", None)
     assert _kernels.get_kernels(longest) == (_kernels._PLAIN, False)
@@ -278,6 +282,124 @@ def test_get_kernels_chooses_by_flag_numba_and_route_length(monkeypatch):
         monkeypatch.setitem(sys.modules, "numba", real)
     monkeypatch.setattr(_kernels, "_compiled", None)
     found, compiled = _kernels.get_kernels(longest)
+    assert compiled == (real is not None)  # numba is a dependency: compiled where importable
     if compiled:
         assert set(found) == set(_kernels._PLAIN) and found is not _kernels._PLAIN
         assert _kernels.get_kernels(1)[0] is found  # compiled once, then reused
+
+
+@pytest.mark.parametrize("firing", [[1, 2], [20, 21, 22], [37, 39]])
+def test_integrate_at_the_route_ends(kernels, firing):
+    # Firing units next to the start, in the middle, next to the end: the excitation is
+    # spread over exactly the units within the kernel's radius that exist.
+    n, theta = 40, 1.0
+    u = np.full(n, -2.0, np.float32)
+    u[firing] = 1.4
+    s = np.zeros(n, np.float32)
+    hk = excitation_kernel(15.0, 1.0)
+    out = u.copy()
+    kernels["integrate"](out, s, np.float32(1.0), np.float32(0.0), theta, 0.0, 0.0, hk, 1)
+    expected = np.zeros(n)
+    for i in firing:
+        for d in range(-3, 4):
+            if 0 <= i + d < n:
+                expected[i + d] += hk[d + 3] * 0.4
+    np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_relocation_boundaries_and_clipped_packets(kernels):
+    relocate = kernels["relocate"]
+
+    def case(p, q, own=1.0, sq=6.0, values=(1.1, 1.2, 1.5, 2.0, 1.5, 1.2, 1.1)):
+        u = np.full(120, -3.2, np.float32)
+        lo = p - 3
+        for i, v in enumerate(values):
+            if 0 <= lo + i < 120:
+                u[lo + i] = v
+        s = np.zeros(120, np.float32)
+        s[min(p + 3, 119)] = own  # the packet's own evidence, at the edge of its window
+        s[q] = sq
+        return relocate(u, s, p, q, 3, 5.5, 0.5, np.float32(-3.2)), u
+
+    moved, u = case(50, 100)
+    assert moved
+    np.testing.assert_array_equal(u[97:104], np.float32([1.1, 1.2, 1.5, 2.0, 1.5, 1.2, 1.1]))
+    assert np.all(u[47:54] == np.float32(-3.2))
+    # The own evidence sits at p + 3, inside the window: it must count.
+    assert not case(50, 100, own=5.8)[0]
+    # At the floor or exactly the margin ahead: no move.
+    assert not case(50, 100, sq=5.5)[0]
+    assert not case(50, 100, own=5.5, sq=6.0)[0]
+    # A packet clipped at the route's start (peak at 1) moves whole, rest where it was cut.
+    moved, u = case(1, 60)
+    assert moved
+    np.testing.assert_array_equal(u[57:64], np.float32([-3.2, -3.2, 1.5, 2.0, 1.5, 1.2, 1.1]))
+    assert np.all(u[:5] == np.float32(-3.2))
+    # Moved next to the start: clipped there.
+    moved, u = case(60, 1)
+    assert moved
+    np.testing.assert_array_equal(u[:5], np.float32([1.5, 2.0, 1.5, 1.2, 1.1]))
+
+
+def test_evidence_contrast_window_edges():
+    u = np.full(30, -3.0, np.float32)
+    s = np.linspace(0.0, 1.0, 30).astype(np.float32)
+    u[1] = 2.0  # a packet at the route's start: its window is 0..4
+    s[0] = 8.0
+    _, c = _readout.evidence_contrast(u, s, 1.0, 3, 1, 1e-6)
+    assert c == pytest.approx((8.0 - s.mean(dtype=np.float64)) / s.std(dtype=np.float64))
+    u[1], u[10] = -3.0, 2.0  # peak at 10, window 7..13; the most evidence at 13
+    s[0], s[13] = 0.0, 7.0
+    _, c = _readout.evidence_contrast(u, s, 1.0, 3, 1, 1e-6)
+    assert c == pytest.approx((7.0 - s.mean(dtype=np.float64)) / s.std(dtype=np.float64))
+
+
+def _reference_bank(velocities, traces, x_rows, keeps, coefs, memory, min_contrast):
+    """The speed bank, slowly: integer shifts, traces, contrasts, votes."""
+    n_v, n = len(velocities), x_rows.shape[1]
+    offsets = np.zeros(n_v)
+    votes = np.zeros(n_v)
+    pref = sorted(range(n_v), key=lambda j: (abs(velocities[j] - 1.0), j))
+    votes[pref[0]] = 1e-6
+    decay = 1 - np.exp(-1 / memory)
+    history = []
+    for t, x in enumerate(x_rows):
+        for j, v in enumerate(velocities):
+            k = 0
+            if t:
+                k = int(np.floor(offsets[j] + v + 0.5))
+                offsets[j] += v - k
+            for c in range(traces.shape[0]):
+                old = traces[c, j].copy()
+                for i in range(n):
+                    moved = old[i - k] if 0 <= i - k < n else 0.0
+                    traces[c, j, i] = moved * keeps[c] + x[i] * coefs[c]
+        evidence = traces.sum(axis=0)
+        contrast = (evidence.max(axis=1) - evidence.mean(axis=1)) / evidence.std(axis=1)
+        votes *= 1 - decay
+        best = max(range(n_v), key=lambda j: (contrast[j], -pref.index(j)))
+        if contrast[best] >= min_contrast:
+            votes[best] += decay
+        history.append((contrast.copy(), votes.copy(), int(np.argmax(votes))))
+    return history
+
+
+def test_two_current_bank_against_a_reference(kernels):
+    velocities = np.array([0.5, 1.0, 1.5])
+    rng = np.random.default_rng(3)
+    n, frames = 60, 40
+    x_rows = rng.normal(size=(frames, n)).astype(np.float32)
+    x_rows[
+        np.arange(frames), np.minimum(5 + np.round(1.5 * np.arange(frames)), n - 1).astype(int)
+    ] += 5
+    keeps = np.array([0.9, 0.99], np.float32)
+    coefs = np.array([0.05, 0.01], np.float32)
+    bank = SpeedBank(velocities, 2, n, keeps, coefs, 10.0, 3.0, 1, 1e-9)
+    ref = _reference_bank(velocities, np.zeros((2, 3, n)), x_rows, keeps, coefs, 10.0, 3.0)
+    for t, x in enumerate(x_rows):
+        bank.update(x, t == 0, kernels["update_traces"])
+        contrast, votes, index = ref[t]
+        np.testing.assert_allclose(bank.contrast, contrast, rtol=1e-4)
+        np.testing.assert_allclose(bank.votes, votes, rtol=1e-6, atol=1e-12)
+        assert bank.index == index
+    assert bank.estimate == 1.5 and bank.votes[2] > 0.5
