@@ -392,3 +392,20 @@ def test_nordland_flynet_seqslam_does_not_collapse_on_the_window_start(nordland_
     gt = np.abs(idx[:, None] - idx[None, :]) <= 20
     assert np.bincount(S.argmax(axis=1)).max() <= 0.1 * 200
     assert pr_auc(S, gt) >= 0.5
+
+
+@pytest.mark.parametrize(
+    ("params", "match"),
+    [
+        ({"v_step": 1e-15}, "v_step=1e-15"),
+        ({"sequence_length": 10**15}, "sequence_length=1000000000000000"),
+    ],
+)
+def test_parameters_too_large_for_memory_are_refused(params, match):
+    from flyvpr._validation import InsufficientMemoryError
+
+    S = np.random.default_rng(0).normal(size=(5, 30))
+    with pytest.raises(InsufficientMemoryError, match=match):
+        SeqSLAM(**params).filter(S)
+    with pytest.raises(InsufficientMemoryError, match=match):
+        SeqSLAM(**params).step(S[0])

@@ -67,7 +67,7 @@ from collections import deque
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from .._validation import check_positive_int
+from .._validation import check_memory, check_positive_int
 from .base import OnlineFilter
 
 __all__ = ["SeqSLAM", "enhance_contrast"]
@@ -246,6 +246,13 @@ class SeqSLAM(OnlineFilter):
         """
         self._check_params()
         n_steps = int(np.floor((self.v_max - self.v_min) / self.v_step + 1e-9))
+        # The grid and the table of line shifts (velocities x sequence_length int64), refused
+        # before they are allocated.
+        check_memory(
+            8 * (n_steps + 1) * (2 + 2 * self.sequence_length),
+            f"v_step={self.v_step:g} ({n_steps + 1} velocities from v_min={self.v_min:g} to "
+            f"v_max={self.v_max:g}) with sequence_length={self.sequence_length}",
+        )
         return self.v_min + self.v_step * np.arange(n_steps + 1)
 
     def _offsets(self) -> np.ndarray:
@@ -267,8 +274,9 @@ class SeqSLAM(OnlineFilter):
         key = tuple(self.get_params().values())
         cached = getattr(self, "_table_cache", None)
         if cached is None or cached[0] != key:
+            velocities = self.velocities()  # first: it refuses grids too large for memory
             offsets = self._offsets()
-            shifts = _round_half_away(np.outer(self.velocities(), offsets))
+            shifts = _round_half_away(np.outer(velocities, offsets))
             cached = (key, (offsets, np.unique(shifts, axis=0)))
             self._table_cache = cached
         return cached[1]
@@ -319,6 +327,12 @@ class SeqSLAM(OnlineFilter):
                 f"got {row.shape} (call reset() before a new reference traverse)"
             )
         dtype = np.float32 if row.dtype == np.float32 else np.float64
+        if not buffer:
+            # The buffer will hold sequence_length enhanced rows.
+            check_memory(
+                self.sequence_length * row.shape[0] * np.dtype(dtype).itemsize,
+                f"sequence_length={self.sequence_length} buffered rows of {row.shape[0]} places",
+            )
         buffer.append(enhance_contrast(-row[None, :], self.enhance_window).astype(dtype))
         offsets, shifts = self._shift_table()
         n_frames = len(buffer)
