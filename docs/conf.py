@@ -9,7 +9,6 @@ unbuilt too; sphinx-argparse generates the command-line reference from the real 
 
 from __future__ import annotations
 
-import re
 import sys
 from pathlib import Path
 
@@ -74,24 +73,3 @@ html_theme = "furo"
 html_title = f"flyvpr {release}"
 html_static_path = ["_static"]
 html_last_updated_fmt = None
-
-
-# -- guide pages written on other branches -------------------------------------------------------
-#: Until one of these lands in docs/guide/, its toctree entry and the links to it are left out
-#: (the link text stays), so the build passes; any other missing page or link fails it.
-PENDING_GUIDE_PAGES: tuple[str, ...] = ()
-
-
-def _leave_out_pending_pages(app, docname, source):
-    missing = [p for p in PENDING_GUIDE_PAGES if f"guide/{p}" not in app.env.found_docs]
-    text = source[0]
-    for page in missing:
-        if docname == "guide/index":
-            text = re.sub(rf"^{re.escape(page)}\n", "", text, flags=re.M)
-        link = rf"\[([^\]]+)\]\((?:\.\./guide/|guide/)?{re.escape(page)}\.md(?:#[^)]*)?\)"
-        text = re.sub(link, r"\1", text)
-    source[0] = text
-
-
-def setup(app):
-    app.connect("source-read", _leave_out_pending_pages)
