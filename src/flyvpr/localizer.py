@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._validation import NotFittedError, check_images
-from .methods import Method, make_method
+from .methods import DEFAULT_METHOD, Method, make_method
 from .temporal.base import OnlineFilter
 
 __all__ = ["Localizer"]
@@ -25,7 +25,8 @@ class Localizer:
     Parameters
     ----------
     method : str or Method
-        A method name (built with ``make_method``) or a ready :class:`Method`.
+        A method name (built with ``make_method``) or a ready :class:`Method`; default
+        :data:`flyvpr.methods.DEFAULT_METHOD`.
         Its filter, if any, must be online (offer ``reset``/``step``).
     random_state : None, int or Generator
         Used when ``method`` is a name.
@@ -42,7 +43,7 @@ class Localizer:
     """
 
     def __init__(
-        self, method="flynet+cann", random_state=None, frontend_params=None, filter_params=None
+        self, method=DEFAULT_METHOD, random_state=None, frontend_params=None, filter_params=None
     ):
         if isinstance(method, Method):
             self.method = method

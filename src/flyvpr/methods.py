@@ -29,8 +29,11 @@ __all__ = [
     "method_names",
 ]
 
-#: the method ``flyvpr map``, ``flyvpr localize`` and ``flyvpr demo`` use unless told otherwise
-DEFAULT_METHOD = "pixels+cann"
+#: the method ``flyvpr map``, ``flyvpr localize``, ``flyvpr demo`` and
+#: :class:`flyvpr.localizer.Localizer` use unless told otherwise: the fly-inspired front end
+#: (fixed optic lobe + Kenyon-cell expansion, 512 bytes per place) with the CANN, the best
+#: measured fly-inspired hybrid (docs/results/accuracy.md)
+DEFAULT_METHOD = "kenyon+cann"
 #: short names for combinations the literature calls by one name
 ALIASES = {"seqslam": "pixels+seqslam"}
 

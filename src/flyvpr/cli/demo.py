@@ -27,7 +27,16 @@ logger = logging.getLogger("flyvpr")
 #: `flyvpr localize` (``DEFAULT_METHOD``) is always among them
 DEMO_METHODS = tuple(
     dict.fromkeys(
-        ("pixels", "flyhash", "flynet", "seqslam", "flynet+seqslam", "flynet+cann", DEFAULT_METHOD)
+        (
+            "pixels",
+            "flyhash",
+            "flynet",
+            "seqslam",
+            "flynet+seqslam",
+            "flynet+cann",
+            "pixels+cann",
+            DEFAULT_METHOD,
+        )
     )
 )
 
@@ -65,7 +74,7 @@ def cmd_demo(args) -> int:
         "\nReal data is one flag away, e.g.:\n"
         "  flyvpr evaluate --dataset nordland --root ../shared/data/nordland_64x32 "
         "--reference summer --query winter --first 0 --count 1000 --tolerance 20 "
-        "--method flynet+cann --seed 0 --out result.json\n"
+        "--method kenyon+cann --seed 0 --out result.json\n"
         "and so is your robot's own recording (a video, a ROS bag or an image folder):\n"
         "  flyvpr map drive1.mp4 --out route.map && "
         "flyvpr localize --map route.map drive2.mp4 --out where.csv --render trace.mp4"
