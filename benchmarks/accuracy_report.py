@@ -263,6 +263,20 @@ def _intro(data: dict) -> list[str]:
         + ", ".join(x["label"] for x in data.get("methods", []) if x.get("seeds") == "first"),
         f"Machine: {m.get('processor') or m.get('machine', '?')}, {m.get('cpu_count', '?')} "
         f"CPUs, {m.get('platform', '')}; {versions}; total {data.get('elapsed_s', 0):.0f} s.",
+        *(
+            [
+                "Made in parts (`--merge`); the rows of a method on a view come wholly from "
+                "one part: "
+                + "; ".join(
+                    f"`{' '.join(p.get('command') or [])}` at git "
+                    + str(p.get("versions", {}).get("git", "?"))
+                    for p in data["parts"]
+                )
+                + "."
+            ]
+            if data.get("parts")
+            else []
+        ),
         "AUC: trapezoidal area under the precision-recall curve of each query's best match "
         "(anchored at the first point's precision); R@1: recall at 1; R@100%P: largest recall "
         "at precision 1; EP: VPR-Bench's extended precision (P at the lowest recall + R@100%P) "
