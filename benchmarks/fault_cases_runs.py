@@ -410,8 +410,9 @@ case("signals/sigterm-while-writing-cache", "signals", "exit 143; no .tmp in the
 
 
 # -- evidence: no confident answer without evidence (branches cann and bench) ----------------
-BLANK_METHODS = ("pixels", "flyhash", "flynet", "pixels+cann", "flyhash+cann", "flynet+cann",
-                 "flynet+seqslam", "seqslam")  # fmt: skip
+BLANK_METHODS = ("pixels", "flyhash", "flynet", "kenyon", "pixels+cann", "flyhash+cann",
+                 "flynet+cann", "kenyon+cann", "kenyon+seqslam", "flynet+seqslam",
+                 "seqslam")  # fmt: skip
 
 
 def _blank(path):
