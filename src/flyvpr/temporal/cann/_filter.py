@@ -453,7 +453,7 @@ class CANN(OnlineFilter):
         x = self._input(row)
         bank = self._bank
         if bank is not None:
-            bank.update(x, t == 0, kernels["update_traces"])
+            bank.update(x, t == 0, kernels["update_traces"], kernels["evidence_stats"])
         v = velocity if velocity is not None else p["movement"]
         if v is None:
             v = bank.estimate

@@ -27,11 +27,14 @@ logger = logging.getLogger(__name__)
 USE_NUMBA = os.environ.get("FLYVPR_CANN_NUMBA", "1") != "0"
 
 #: longest route (places) on which the compiled kernels are used (see the module docstring)
-COMPILED_MAX_PLACES = 4096
+COMPILED_MAX_PLACES = 10**9
 #: kernel radius in units of the excitation width
 KERNEL_RADIUS = 3.0
 #: added to each place's running input variance before dividing by its square root
 VAR_FLOOR = 0.1
+#: places per block of an Euler step: a block is rescanned for firing units only when some
+#: potential in it is above threshold
+BLOCK = 512
 
 
 def excitation_kernel(strength: float, width: float) -> np.ndarray:
@@ -77,28 +80,42 @@ def normalise(x, mean, var, take_log, tiny, rate, var_rate, adapt, adapt_var, fl
     gives zeros.  ``adapt``: subtract each place's running mean ``mean`` (updated in place
     with weight ``rate``); ``adapt_var``: then divide by the square root of its running
     variance ``var`` (weight ``var_rate``) plus ``floor``.  Then clip to ``[-clip, clip]``.
+    Three passes over the row: its sum, its spread about the mean, the rest fused.
     """
     if take_log:
         x[:] = np.log(np.maximum(x, tiny))
     n = x.shape[0]
     # The mean in float64: of a constant row it is exactly the row's value.
-    centre = np.float32(x.astype(np.float64).sum() / n)
-    x -= centre
-    spread = np.sqrt((x.astype(np.float64) ** 2).sum() / n)
-    if not spread > 1e-6 * max(1.0, np.abs(x).max()):
-        x[:] = 0.0  # a constant row says nothing about the place
-    else:
-        x *= np.float32(1.0 / spread)
-    if adapt:
-        mean *= np.float32(1.0 - rate)
-        mean += x * np.float32(rate)
-        x -= mean
-        if adapt_var:
-            var *= np.float32(1.0 - var_rate)
-            var += (x * x) * np.float32(var_rate)
-            x /= np.sqrt(var + np.float32(floor))
-    x[:] = np.minimum(np.maximum(x, np.float32(-clip)), np.float32(clip))
-    x *= np.float32(gain)
+    total = 0.0
+    for i in range(n):
+        total += float(x[i])
+    centre = np.float32(total / n)
+    squares = 0.0
+    largest = 0.0
+    for i in range(n):
+        d = x[i] - centre
+        x[i] = d
+        squares += float(d) * float(d)
+        largest = max(largest, abs(float(d)))
+    spread = np.sqrt(squares / n)
+    scale = np.float32(0.0)  # a constant row says nothing about the place
+    if spread > 1e-6 * max(1.0, largest):
+        scale = np.float32(1.0 / spread)
+    keep, fresh = np.float32(1.0 - rate), np.float32(rate)
+    var_keep, var_fresh = np.float32(1.0 - var_rate), np.float32(var_rate)
+    low, high = np.float32(-clip), np.float32(clip)
+    floor32, gain32 = np.float32(floor), np.float32(gain)
+    for i in range(n):
+        v = x[i] * scale
+        if adapt:
+            m = mean[i] * keep + v * fresh
+            mean[i] = m
+            v = v - m
+            if adapt_var:
+                q = var[i] * var_keep + (v * v) * var_fresh
+                var[i] = q
+                v = v / np.sqrt(q + floor32)
+        x[i] = min(max(v, low), high) * gain32
 
 
 def update_traces(old, new, shifts, keeps, coefs, x):
@@ -106,28 +123,66 @@ def update_traces(old, new, shifts, keeps, coefs, x):
 
     ``old`` and ``new`` have shape (n_currents, n_rows, n); row ``j`` of current ``c`` becomes
     ``shift(old[c, j], shifts[j]) * keeps[c] + x * coefs[c]``, with zero evidence entering at
-    the open end.  Loops over the few rows and currents only.
+    the open end.  One pass per row and current.
     """
     n = x.shape[0]
-    fresh = np.empty_like(x)
     for c in range(old.shape[0]):
         keep = keeps[c]
-        np.multiply(x, coefs[c], fresh)
+        coef = coefs[c]
         for j in range(old.shape[1]):
             k = shifts[j]
+            lo = min(max(k, 0), n)  # dst[lo:hi] reads old[c, j, lo - k:hi - k]
+            hi = max(min(n + k, n), lo)
             dst = new[c, j]
-            src = old[c, j]
-            # Written through output arguments: no temporary arrays, numpy or compiled.
-            if 0 <= k < n:
-                np.multiply(src[: n - k], keep, dst[k:])
-                np.add(dst[k:], fresh[k:], dst[k:])
-                dst[:k] = fresh[:k]
-            elif -n < k < 0:
-                np.multiply(src[-k:], keep, dst[: n + k])
-                np.add(dst[: n + k], fresh[: n + k], dst[: n + k])
-                dst[n + k :] = fresh[n + k :]
-            else:
-                dst[:] = fresh
+            # Slices indexed from 0: numba drops its negative-index checks and the loop
+            # becomes SIMD.
+            src = old[c, j, lo - k : hi - k]
+            mid = dst[lo:hi]
+            x_mid = x[lo:hi]
+            for i in range(hi - lo):
+                mid[i] = src[i] * keep + x_mid[i] * coef
+            for i in range(lo):
+                dst[i] = x[i] * coef
+            for i in range(hi, n):
+                dst[i] = x[i] * coef
+
+
+def evidence_stats(traces, evidence, stride, centre, spread, peaks, top):
+    """Per bank row ``j``: its evidence, that evidence's sampled statistics and its maximum.
+
+    ``evidence[j]`` becomes the sum of ``traces[:, j]`` over the currents (with one current
+    ``evidence`` must be ``traces[0]`` and is left as it is); ``centre[j]`` and ``spread[j]``
+    the mean and standard deviation of ``evidence[j, ::stride]`` (float64); ``peaks[j]`` and
+    ``top[j]`` the first place of its maximum and that maximum.
+    """
+    n_cur, n_rows, n = traces.shape
+    m = (n + stride - 1) // stride
+    for j in range(n_rows):
+        row = evidence[j]
+        if n_cur > 1:
+            row[:] = traces[0, j]
+            for c in range(1, n_cur):
+                src = traces[c, j]
+                for i in range(n):
+                    row[i] = row[i] + src[i]
+        total = 0.0
+        for i in range(0, n, stride):
+            total += float(row[i])
+        mu = total / m
+        squares = 0.0
+        for i in range(0, n, stride):
+            d = float(row[i]) - mu
+            squares += d * d
+        centre[j] = mu
+        spread[j] = np.sqrt(squares / m)
+        best = row[0]
+        for i in range(n):  # the maximum (a SIMD reduction), then where it first occurs
+            best = max(best, row[i])
+        at = 0
+        while row[at] < best:
+            at += 1
+        peaks[j] = at
+        top[j] = best
 
 
 def integrate(u, s, h, decay, theta, tonic, hw, hk, n_steps):
@@ -137,28 +192,65 @@ def integrate(u, s, h, decay, theta, tonic, hw, hk, n_steps):
     above ``theta`` fire (rate ``min(u - theta, 1)``); the inhibitor's rate ``g`` is the sum of
     the rates, at least ``tonic``, and follows them within the step.  The recurrent
     excitation is a short convolution over the stretch the firing units span.  Returns the
-    last step's ``g``.
+    last step's ``g``.  Per step one pass over the route; the firing units are bracketed by a
+    scan from both ends before the first step, then by the blocks of that pass.
     """
     n = u.shape[0]
     radius = (hk.shape[0] - 1) // 2
-    drive = s * h
+    lo = 0
+    while lo < n and not u[lo] > theta:
+        lo += 1
+    hi = n - 1
+    while hi >= lo and not u[hi] > theta:
+        hi -= 1
     g = tonic
     for _ in range(n_steps):
-        active = np.flatnonzero(u > theta)
-        g = tonic
-        if active.size:
-            lo = active[0]
-            rates = np.zeros(active[-1] - lo + 1, np.float32)
-            rates[active - lo] = np.minimum(u[active] - theta, np.float32(1.0))
-            g = max(rates.astype(np.float64).sum(), tonic)
-            excitation = np.convolve(rates, hk)  # hk is symmetric: a correlation too
-        u *= decay
-        u += drive
-        u -= np.float32(hw * g)
-        if active.size:
+        # The firing units' rates, from the potentials at the start of the step.
+        rates = np.zeros(max(hi - lo + 1, 0), np.float32)
+        total = 0.0
+        count = 0
+        for i in range(lo, hi + 1):
+            if u[i] > theta:
+                r = min(u[i] - theta, np.float32(1.0))
+                rates[i - lo] = r
+                total += float(r)
+                count += 1
+        g = max(total, tonic) if count else tonic
+        inhibit = np.float32(hw * g)
+        new_lo = n
+        new_hi = -1
+        for b in range(0, n, BLOCK):
+            end = min(b + BLOCK, n)
+            u_block = u[b:end]
+            s_block = s[b:end]
+            above = 0  # a count, not a bracket: the pass stays a SIMD loop
+            for i in range(end - b):
+                v = u_block[i] * decay + s_block[i] * h - inhibit
+                u_block[i] = v
+                above += v > theta
+            if above:
+                for i in range(b, end):
+                    if u[i] > theta:
+                        new_lo = min(new_lo, i)
+                        new_hi = i
+        if count:
+            # The excitation from the firing units (never negative, so it can only add units
+            # above threshold), summed per unit, then added.
             a = max(lo - radius, 0)
-            b = min(active[-1] + radius + 1, n)
-            u[a:b] += excitation[a - (lo - radius) : b - (lo - radius)]
+            z = min(hi + radius + 1, n)
+            excitation = np.zeros(z - a, np.float32)
+            for i in range(lo, hi + 1):
+                r = rates[i - lo]
+                if r > 0:
+                    for t in range(max(i - radius, a), min(i + radius + 1, z)):
+                        excitation[t - a] += hk[t - i + radius] * r
+            for t in range(a, z):
+                u[t] += excitation[t - a]
+                if u[t] > theta:
+                    new_lo = min(new_lo, t)
+                    new_hi = max(new_hi, t)
+        lo = new_lo
+        hi = new_hi
     return g
 
 
@@ -191,6 +283,7 @@ _PLAIN = {
     "shift": shift,
     "normalise": normalise,
     "update_traces": update_traces,
+    "evidence_stats": evidence_stats,
     "integrate": integrate,
     "relocate": relocate,
 }
