@@ -404,8 +404,7 @@ class CANN(OnlineFilter):
         transform = p["input_transform"]
         lowest = float(row.min())
         if transform == "auto":
-            total = float(row.sum(dtype=np.float64))
-            probability = lowest >= 0 and abs(total - 1.0) <= _PROBABILITY_ATOL
+            probability = lowest >= 0 and abs(row.sum(dtype=np.float64) - 1.0) <= _PROBABILITY_ATOL
             transform = "log" if probability else "linear"
         if transform == "log" and lowest < 0:
             raise ValueError(
@@ -420,11 +419,16 @@ class CANN(OnlineFilter):
         var_rate = max(1.0 / (t + 2), 1.0 / p["adaptation"]) if adapt else 0.0
         x = self._x
         x[:] = row
+        if transform == "log":
+            # numpy's log, compiled or not: numba's rounds differently in the last bit, which
+            # the input gain would carry into the potentials.
+            np.maximum(x, _TINY, out=x)
+            np.log(x, out=x)
         self._kernels["normalise"](
             x,
             self._mean,
             self._var,
-            transform == "log",
+            False,
             _TINY,
             rate,
             var_rate,
@@ -510,7 +514,13 @@ class CANN(OnlineFilter):
         """The readout of this frame (see "Output" on the guide page)."""
         p = self._params
         peak, contrast = _readout.evidence_contrast(
-            self._u, self._s, p["threshold"], radius, self._stats_stride, self._noise
+            self._u,
+            self._s,
+            p["threshold"],
+            radius,
+            self._stats_stride,
+            self._noise,
+            self._kernels["evidence_stats"],
         )
         # The packet's support: its contrast averaged over recent frames (the running mean at
         # first, then an exponential average over fallback_memory frames).

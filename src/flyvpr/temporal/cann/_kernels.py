@@ -26,8 +26,6 @@ logger = logging.getLogger(__name__)
 #: compile the kernels with numba when it is importable (else, or when False: plain numpy)
 USE_NUMBA = os.environ.get("FLYVPR_CANN_NUMBA", "1") != "0"
 
-#: longest route (places) on which the compiled kernels are used (see the module docstring)
-COMPILED_MAX_PLACES = 10**9
 #: kernel radius in units of the excitation width
 KERNEL_RADIUS = 3.0
 #: added to each place's running input variance before dividing by its square root
@@ -147,13 +145,12 @@ def update_traces(old, new, shifts, keeps, coefs, x):
                 dst[i] = x[i] * coef
 
 
-def evidence_stats(traces, evidence, stride, centre, spread, peaks, top):
-    """Per bank row ``j``: its evidence, that evidence's sampled statistics and its maximum.
+def evidence_stats(traces, evidence, stride, centre, spread):
+    """Per bank row ``j``: its evidence and that evidence's sampled mean and spread.
 
     ``evidence[j]`` becomes the sum of ``traces[:, j]`` over the currents (with one current
     ``evidence`` must be ``traces[0]`` and is left as it is); ``centre[j]`` and ``spread[j]``
-    the mean and standard deviation of ``evidence[j, ::stride]`` (float64); ``peaks[j]`` and
-    ``top[j]`` the first place of its maximum and that maximum.
+    the mean and standard deviation of ``evidence[j, ::stride]`` (float64 sums).
     """
     n_cur, n_rows, n = traces.shape
     m = (n + stride - 1) // stride
@@ -175,14 +172,6 @@ def evidence_stats(traces, evidence, stride, centre, spread, peaks, top):
             squares += d * d
         centre[j] = mu
         spread[j] = np.sqrt(squares / m)
-        best = row[0]
-        for i in range(n):  # the maximum (a SIMD reduction), then where it first occurs
-            best = max(best, row[i])
-        at = 0
-        while row[at] < best:
-            at += 1
-        peaks[j] = at
-        top[j] = best
 
 
 def integrate(u, s, h, decay, theta, tonic, hw, hk, n_steps):
@@ -302,9 +291,9 @@ def _jit(numba, func):  # pragma: no mutate block (numba's options; no-ops under
 
 
 def get_kernels(n_places: int = 0) -> tuple[dict, bool]:
-    """The kernels by name for a route of ``n_places``, and whether they are compiled."""
+    """The kernels by name, and whether they are compiled (``n_places`` is not used)."""
     global _compiled
-    if not USE_NUMBA or n_places > COMPILED_MAX_PLACES:
+    if not USE_NUMBA:
         return _PLAIN, False
     if _compiled is None:
         try:

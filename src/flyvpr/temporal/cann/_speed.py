@@ -44,8 +44,8 @@ class SpeedBank:
         self.traces = np.zeros((n_currents, velocities.size, n), np.float32)
         self._spare = np.empty_like(self.traces)
         self._sum = np.empty(self.traces.shape[1:], np.float32) if n_currents > 1 else None
-        self._stats = np.zeros((3, velocities.size))  # each row's centre, spread and maximum
-        self.peaks = np.zeros(velocities.size, np.int64)
+        self._stats = np.zeros((2, velocities.size))  # each row's sampled mean and spread
+        self._rows = np.arange(velocities.size)
         self.offsets = np.zeros(velocities.size)  # fractional movement not yet applied
         self.votes = np.zeros(velocities.size)
         self.keeps, self.coefs = keeps, coefs
@@ -87,10 +87,12 @@ class SpeedBank:
         # With one current the evidence is that current's traces.
         self.evidence = self.traces[0] if self._sum is None else self._sum
         # Each row's mean and spread over the sampled places, its peak and its maximum.
-        centre, spread, top = self._stats
+        centre, spread = self._stats
         (evidence_stats or plain_evidence_stats)(
-            self.traces, self.evidence, self.stride, centre, spread, self.peaks, top
+            self.traces, self.evidence, self.stride, centre, spread
         )
+        self.peaks = self.evidence.argmax(axis=1)
+        top = self.evidence[self._rows, self.peaks]
         # Comparing raw maxima would favour slow lines, which count the similar-looking
         # consecutive frames of one place more than once: each row against its own spread.
         self.contrast = (top - centre) / np.maximum(spread, 1e-12)
