@@ -78,7 +78,7 @@ def normalise(x, mean, var, take_log, tiny, rate, var_rate, adapt, adapt_var, fl
     gives zeros.  ``adapt``: subtract each place's running mean ``mean`` (updated in place
     with weight ``rate``); ``adapt_var``: then divide by the square root of its running
     variance ``var`` (weight ``var_rate``) plus ``floor``.  Then clip to ``[-clip, clip]``.
-    Three passes over the row: its sum, its spread about the mean, the rest fused.
+    Three passes over the row: its mean, its spread, then the rest fused.
     """
     if take_log:
         x[:] = np.log(np.maximum(x, tiny))
@@ -89,22 +89,20 @@ def normalise(x, mean, var, take_log, tiny, rate, var_rate, adapt, adapt_var, fl
         total += float(x[i])
     centre = np.float32(total / n)
     squares = 0.0
-    largest = 0.0
     for i in range(n):
-        d = x[i] - centre
-        x[i] = d
-        squares += float(d) * float(d)
-        largest = max(largest, abs(float(d)))
+        d = float(x[i] - centre)
+        squares += d * d
     spread = np.sqrt(squares / n)
-    scale = np.float32(0.0)  # a constant row says nothing about the place
-    if spread > 1e-6 * max(1.0, largest):
-        scale = np.float32(1.0 / spread)
+    # A (numerically) constant row says nothing about the place.  (The spread is compared
+    # with 1e-6 alone: max |x - centre| <= sqrt(n) * spread, so against 1e-6 times the largest
+    # deviation the spread of any row shorter than 1e12 places passes.)
+    scale = np.float32(1.0 / spread) if spread > 1e-6 else np.float32(0.0)
     keep, fresh = np.float32(1.0 - rate), np.float32(rate)
     var_keep, var_fresh = np.float32(1.0 - var_rate), np.float32(var_rate)
     low, high = np.float32(-clip), np.float32(clip)
     floor32, gain32 = np.float32(floor), np.float32(gain)
     for i in range(n):
-        v = x[i] * scale
+        v = (x[i] - centre) * scale
         if adapt:
             m = mean[i] * keep + v * fresh
             mean[i] = m
@@ -154,6 +152,7 @@ def evidence_stats(traces, evidence, stride, centre, spread):
     """
     n_cur, n_rows, n = traces.shape
     m = (n + stride - 1) // stride
+    gathered = np.empty(m, np.float32)  # contiguous: the sums below are SIMD loops
     for j in range(n_rows):
         row = evidence[j]
         if n_cur > 1:
@@ -162,13 +161,18 @@ def evidence_stats(traces, evidence, stride, centre, spread):
                 src = traces[c, j]
                 for i in range(n):
                     row[i] = row[i] + src[i]
+        sample = row
+        if stride > 1:
+            for i in range(m):
+                gathered[i] = row[i * stride]
+            sample = gathered
         total = 0.0
-        for i in range(0, n, stride):
-            total += float(row[i])
+        for i in range(m):
+            total += float(sample[i])
         mu = total / m
         squares = 0.0
-        for i in range(0, n, stride):
-            d = float(row[i]) - mu
+        for i in range(m):
+            d = float(sample[i]) - mu
             squares += d * d
         centre[j] = mu
         spread[j] = np.sqrt(squares / m)
@@ -180,28 +184,37 @@ def integrate(u, s, h, decay, theta, tonic, hw, hk, n_steps):
     ``h = dt / tau``, ``decay = 1 - h``, ``hw = h * inhibition``, ``hk = h * K``.  Only units
     above ``theta`` fire (rate ``min(u - theta, 1)``); the inhibitor's rate ``g`` is the sum of
     the rates, at least ``tonic``, and follows them within the step.  The recurrent
-    excitation is a short convolution over the stretch the firing units span.  Returns the
-    last step's ``g``.  Per step one pass over the route; the firing units are bracketed by a
-    scan from both ends before the first step, then by the blocks of that pass.
+    excitation is spread from the firing units only.  Returns the last step's ``g``.  Per
+    step one pass over the route; the firing units are bracketed by a pass that counts them
+    per block before the first step, then by the blocks of each step's pass.
     """
     n = u.shape[0]
     radius = (hk.shape[0] - 1) // 2
-    lo = 0
-    while lo < n and not u[lo] > theta:
-        lo += 1
-    hi = n - 1
-    while hi >= lo and not u[hi] > theta:
-        hi -= 1
+    lo = n
+    hi = -1
+    for b in range(0, n, BLOCK):
+        end = min(b + BLOCK, n)
+        u_block = u[b:end]
+        above = 0  # a count, not a bracket: the pass stays a SIMD loop
+        for i in range(end - b):
+            above += u_block[i] > theta
+        if above:
+            for i in range(b, end):
+                if u[i] > theta:
+                    lo = min(lo, i)
+                    hi = i
     g = tonic
     for _ in range(n_steps):
-        # The firing units' rates, from the potentials at the start of the step.
-        rates = np.zeros(max(hi - lo + 1, 0), np.float32)
+        # The firing units and their rates, from the potentials at the start of the step.
+        firing = np.empty(max(hi - lo + 1, 0), np.int64)
+        rates = np.empty(max(hi - lo + 1, 0), np.float32)
         total = 0.0
         count = 0
         for i in range(lo, hi + 1):
             if u[i] > theta:
                 r = min(u[i] - theta, np.float32(1.0))
-                rates[i - lo] = r
+                firing[count] = i
+                rates[count] = r
                 total += float(r)
                 count += 1
         g = max(total, tonic) if count else tonic
@@ -212,7 +225,7 @@ def integrate(u, s, h, decay, theta, tonic, hw, hk, n_steps):
             end = min(b + BLOCK, n)
             u_block = u[b:end]
             s_block = s[b:end]
-            above = 0  # a count, not a bracket: the pass stays a SIMD loop
+            above = 0
             for i in range(end - b):
                 v = u_block[i] * decay + s_block[i] * h - inhibit
                 u_block[i] = v
@@ -222,19 +235,13 @@ def integrate(u, s, h, decay, theta, tonic, hw, hk, n_steps):
                     if u[i] > theta:
                         new_lo = min(new_lo, i)
                         new_hi = i
-        if count:
-            # The excitation from the firing units (never negative, so it can only add units
-            # above threshold), summed per unit, then added.
-            a = max(lo - radius, 0)
-            z = min(hi + radius + 1, n)
-            excitation = np.zeros(z - a, np.float32)
-            for i in range(lo, hi + 1):
-                r = rates[i - lo]
-                if r > 0:
-                    for t in range(max(i - radius, a), min(i + radius + 1, z)):
-                        excitation[t - a] += hk[t - i + radius] * r
-            for t in range(a, z):
-                u[t] += excitation[t - a]
+        # The recurrent excitation, spread from each firing unit over its neighbours (never
+        # negative, so it can only add units above threshold).
+        for f in range(count):
+            i = firing[f]
+            r = rates[f]
+            for t in range(max(i - radius, 0), min(i + radius + 1, n)):
+                u[t] += hk[t - i + radius] * r
                 if u[t] > theta:
                     new_lo = min(new_lo, t)
                     new_hi = max(new_hi, t)
