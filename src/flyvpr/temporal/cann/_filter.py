@@ -300,6 +300,17 @@ class CANN(OnlineFilter):
         self._x = np.empty(n, np.float32)  # the input row
         self._stats_stride = max(1, n // _STATS_SAMPLES)
         self._g = 0.0  # inhibitor rate
+        # The Euler steps' constants (see _kernels.integrate).
+        h = 1.0 / (p["n_steps"] * p["time_constant"])
+        self._euler = (
+            np.float32(h),
+            np.float32(1.0 - h),
+            np.float32(p["threshold"]),
+            float(p["tonic_inhibition"]),
+            h * p["inhibition"],
+            self._kernel * np.float32(h),
+            p["n_steps"],
+        )
         self._offset = 0.0  # fractional movement not yet applied to the packet
         # Per frame, current c decays by keeps[c] and adds coefs[c] * (input_gain * x).
         taus = np.array([tau for tau, _ in p["currents"]])
@@ -404,7 +415,9 @@ class CANN(OnlineFilter):
         transform = p["input_transform"]
         lowest = float(row.min())
         if transform == "auto":
-            probability = lowest >= 0 and abs(row.sum(dtype=np.float64) - 1.0) <= _PROBABILITY_ATOL
+            # (A float32 row's pairwise float32 sum: within 1e-6 of its float64 sum, far
+            # below the tolerance.)
+            probability = lowest >= 0 and abs(float(row.sum()) - 1.0) <= _PROBABILITY_ATOL
             transform = "log" if probability else "linear"
         if transform == "log" and lowest < 0:
             raise ValueError(
@@ -480,18 +493,7 @@ class CANN(OnlineFilter):
             self._cur, self._cur_spare = self._cur_spare, self._cur
             np.sum(self._cur[:, 0], axis=0, out=self._s)
             q = int(np.argmax(self._s))
-        h = 1.0 / (p["n_steps"] * p["time_constant"])
-        self._g = kernels["integrate"](
-            self._u,
-            self._s,
-            np.float32(h),
-            np.float32(1.0 - h),
-            np.float32(p["threshold"]),
-            float(p["tonic_inhibition"]),
-            h * p["inhibition"],
-            self._kernel * np.float32(h),
-            p["n_steps"],
-        )
+        self._g = kernels["integrate"](self._u, self._s, *self._euler)
         radius = (self._kernel.size - 1) // 2
         if p["relocation_margin"] is not None:
             peak = int(np.argmax(self._u))

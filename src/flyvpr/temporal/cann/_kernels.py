@@ -59,15 +59,25 @@ def excitation_kernel(strength: float, width: float) -> np.ndarray:
 
 
 def shift(a, k, fill):
-    """Shift the 1-d array ``a`` by ``k`` places in place, filling what enters with ``fill``."""
+    """Shift the 1-d array ``a`` by ``k`` places in place, filling what enters with ``fill``.
+
+    Element by element in the direction that reads each value before it is overwritten (no
+    copy of the array; compiled, a memmove).
+    """
     n = a.shape[0]
     if k >= n or -k >= n:
         a[:] = fill
     elif k > 0:
-        a[k:] = a[: n - k].copy()
+        src = a[: n - k]
+        dst = a[k:]
+        for i in range(n - k - 1, -1, -1):
+            dst[i] = src[i]
         a[:k] = fill
     elif k < 0:
-        a[: n + k] = a[-k:].copy()
+        src = a[-k:]
+        dst = a[: n + k]
+        for i in range(n + k):
+            dst[i] = src[i]
         a[n + k :] = fill
 
 
