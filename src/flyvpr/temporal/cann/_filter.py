@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..._validation import check_memory, check_positive_int, check_scores
@@ -475,11 +477,11 @@ class CANN(OnlineFilter):
         if v is None:
             v = bank.estimate
         k = 0
-        rest = np.float32(-p["inhibition"] * self._g)  # the potential of a unit at rest
         if t > 0:  # the first frame has nothing to move
             total = self._offset + v
-            k = int(np.floor(total + 0.5))
+            k = math.floor(total + 0.5)
             self._offset = total - k
+            rest = np.float32(-p["inhibition"] * self._g)  # the potential of a unit at rest
             kernels["shift"](self._u, k, rest)
         if bank is not None and velocity is None:
             # The evidence follows the estimated speed: the bank's row of that velocity.
