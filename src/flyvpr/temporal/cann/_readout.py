@@ -33,7 +33,7 @@ def evidence_contrast(
     centre, spread = float(moments[0, 0]), float(moments[1, 0])
     if not spread > noise:
         return peak, 0.0
-    own = float(s[max(peak - radius, 0) : peak + radius + 1].max())
+    own = max(s[max(peak - radius, 0) : peak + radius + 1].tolist())
     return peak, max((own - centre) / spread, 0.0)
 
 
@@ -43,7 +43,11 @@ def front_end_row(row, out) -> None:
     The argmax stays, and rows rank among themselves as the front end's maxima rank them.
     """
     r = row.astype(np.float64)
-    out[:] = 1.5 + 0.5 * r / (1.0 + np.abs(r))
+    scale = np.abs(r)
+    scale += 1.0
+    r *= 0.5
+    r /= scale
+    np.add(r, 1.5, out=out)
 
 
 def readout(u, s, row, peak: int, contrast: float, tier: str, noise: float) -> np.ndarray:

@@ -101,7 +101,8 @@ class SpeedBank:
         # tie up to rounding; such ties go to the candidate nearest 1 place per frame, so the
         # vote does not depend on the order of a floating-point sum.
         values = self.contrast.tolist()
-        level = max(values) - TIE_TOLERANCE * max(1.0, max(abs(c) for c in values))
+        highest = max(values)
+        level = highest - TIE_TOLERANCE * max(1.0, highest, -min(values))
         best = next(j for j in self.preference if values[j] >= level)
         # Rows whose spread is at rounding level (identical frames, which adaptation turns
         # into rounding residue) carry no evidence and do not vote.
