@@ -116,8 +116,8 @@ class CANN(OnlineFilter):
     potentials_ : ndarray of float32, shape (n_reference,)
         The place units' potentials after the last step (a copy).
     compiled_ : bool
-        Whether the per-frame updates run compiled by numba (short routes, numba importable)
-        or as plain numpy; the results agree up to float rounding.
+        Whether the per-frame updates run compiled by numba (numba importable, the default)
+        or as plain Python (much slower); the results agree up to float rounding.
 
     Notes
     -----
