@@ -323,6 +323,12 @@ class CANN(OnlineFilter):
         # Evidence differences below this are rounding residue (1e-4 of what one frame of a
         # one-standard-deviation input adds to s), never evidence.
         self._noise = 1e-4 * float(self._coefs.sum()) * p["input_gain"]
+        if p["relocation_margin"] is not None:
+            # Compiled now rather than at the first packet: a call that moves nothing (q = p).
+            radius = (self._kernel.size - 1) // 2
+            self._kernels["relocate"](
+                self._u, self._s, 0, 0, radius, p["relocation_floor"], p["relocation_margin"], _TINY
+            )
         self._bank = None
         if n_vel:
             self._bank = SpeedBank(
@@ -481,8 +487,9 @@ class CANN(OnlineFilter):
             total = self._offset + v
             k = math.floor(total + 0.5)
             self._offset = total - k
-            rest = np.float32(-p["inhibition"] * self._g)  # the potential of a unit at rest
-            kernels["shift"](self._u, k, rest)
+        # What enters is at rest (its potential: the inhibition alone).  On the first frame a
+        # shift by 0, which moves nothing, compiles the kernel.
+        kernels["shift"](self._u, k, np.float32(-p["inhibition"] * self._g))
         if bank is not None and velocity is None:
             # The evidence follows the estimated speed: the bank's row of that velocity.
             self._cur[:, 0] = bank.traces[:, bank.index]
