@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..._validation import check_memory, check_positive_int, check_scores
@@ -114,8 +116,8 @@ class CANN(OnlineFilter):
     potentials_ : ndarray of float32, shape (n_reference,)
         The place units' potentials after the last step (a copy).
     compiled_ : bool
-        Whether the per-frame updates run compiled by numba (short routes, numba importable)
-        or as plain numpy; the results agree up to float rounding.
+        Whether the per-frame updates run compiled by numba (numba importable, the default)
+        or as plain Python (much slower); the results agree up to float rounding.
 
     Notes
     -----
@@ -300,6 +302,17 @@ class CANN(OnlineFilter):
         self._x = np.empty(n, np.float32)  # the input row
         self._stats_stride = max(1, n // _STATS_SAMPLES)
         self._g = 0.0  # inhibitor rate
+        # The Euler steps' constants (see _kernels.integrate).
+        h = 1.0 / (p["n_steps"] * p["time_constant"])
+        self._euler = (
+            np.float32(h),
+            np.float32(1.0 - h),
+            np.float32(p["threshold"]),
+            float(p["tonic_inhibition"]),
+            h * p["inhibition"],
+            self._kernel * np.float32(h),
+            p["n_steps"],
+        )
         self._offset = 0.0  # fractional movement not yet applied to the packet
         # Per frame, current c decays by keeps[c] and adds coefs[c] * (input_gain * x).
         taus = np.array([tau for tau, _ in p["currents"]])
@@ -310,6 +323,12 @@ class CANN(OnlineFilter):
         # Evidence differences below this are rounding residue (1e-4 of what one frame of a
         # one-standard-deviation input adds to s), never evidence.
         self._noise = 1e-4 * float(self._coefs.sum()) * p["input_gain"]
+        if p["relocation_margin"] is not None:
+            # Compiled now rather than at the first packet: a call that moves nothing (q = p).
+            radius = (self._kernel.size - 1) // 2
+            self._kernels["relocate"](
+                self._u, self._s, 0, 0, radius, p["relocation_floor"], p["relocation_margin"], _TINY
+            )
         self._bank = None
         if n_vel:
             self._bank = SpeedBank(
@@ -404,8 +423,9 @@ class CANN(OnlineFilter):
         transform = p["input_transform"]
         lowest = float(row.min())
         if transform == "auto":
-            total = float(row.sum(dtype=np.float64))
-            probability = lowest >= 0 and abs(total - 1.0) <= _PROBABILITY_ATOL
+            # (A float32 row's pairwise float32 sum: within 1e-6 of its float64 sum, far
+            # below the tolerance.)
+            probability = lowest >= 0 and abs(float(row.sum()) - 1.0) <= _PROBABILITY_ATOL
             transform = "log" if probability else "linear"
         if transform == "log" and lowest < 0:
             raise ValueError(
@@ -420,11 +440,16 @@ class CANN(OnlineFilter):
         var_rate = max(1.0 / (t + 2), 1.0 / p["adaptation"]) if adapt else 0.0
         x = self._x
         x[:] = row
+        if transform == "log":
+            # numpy's log, compiled or not: numba's rounds differently in the last bit, which
+            # the input gain would carry into the potentials.
+            np.maximum(x, _TINY, out=x)
+            np.log(x, out=x)
         self._kernels["normalise"](
             x,
             self._mean,
             self._var,
-            transform == "log",
+            False,
             _TINY,
             rate,
             var_rate,
@@ -453,17 +478,18 @@ class CANN(OnlineFilter):
         x = self._input(row)
         bank = self._bank
         if bank is not None:
-            bank.update(x, t == 0, kernels["update_traces"])
+            bank.update(x, t == 0, kernels["update_traces"], kernels["evidence_stats"])
         v = velocity if velocity is not None else p["movement"]
         if v is None:
             v = bank.estimate
         k = 0
-        rest = np.float32(-p["inhibition"] * self._g)  # the potential of a unit at rest
         if t > 0:  # the first frame has nothing to move
             total = self._offset + v
-            k = int(np.floor(total + 0.5))
+            k = math.floor(total + 0.5)
             self._offset = total - k
-            kernels["shift"](self._u, k, rest)
+        # What enters is at rest (its potential: the inhibition alone).  On the first frame a
+        # shift by 0, which moves nothing, compiles the kernel.
+        kernels["shift"](self._u, k, np.float32(-p["inhibition"] * self._g))
         if bank is not None and velocity is None:
             # The evidence follows the estimated speed: the bank's row of that velocity.
             self._cur[:, 0] = bank.traces[:, bank.index]
@@ -476,18 +502,7 @@ class CANN(OnlineFilter):
             self._cur, self._cur_spare = self._cur_spare, self._cur
             np.sum(self._cur[:, 0], axis=0, out=self._s)
             q = int(np.argmax(self._s))
-        h = 1.0 / (p["n_steps"] * p["time_constant"])
-        self._g = kernels["integrate"](
-            self._u,
-            self._s,
-            np.float32(h),
-            np.float32(1.0 - h),
-            np.float32(p["threshold"]),
-            float(p["tonic_inhibition"]),
-            h * p["inhibition"],
-            self._kernel * np.float32(h),
-            p["n_steps"],
-        )
+        self._g = kernels["integrate"](self._u, self._s, *self._euler)
         radius = (self._kernel.size - 1) // 2
         if p["relocation_margin"] is not None:
             peak = int(np.argmax(self._u))
@@ -510,7 +525,13 @@ class CANN(OnlineFilter):
         """The readout of this frame (see "Output" on the guide page)."""
         p = self._params
         peak, contrast = _readout.evidence_contrast(
-            self._u, self._s, p["threshold"], radius, self._stats_stride, self._noise
+            self._u,
+            self._s,
+            p["threshold"],
+            radius,
+            self._stats_stride,
+            self._noise,
+            self._kernels["evidence_stats"],
         )
         # The packet's support: its contrast averaged over recent frames (the running mean at
         # first, then an exponential average over fallback_memory frames).

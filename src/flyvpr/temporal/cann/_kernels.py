@@ -1,17 +1,16 @@
 """The CANN's per-frame updates: one implementation, compiled with numba where it can be.
 
-Each function below is written once, in array operations (no loop over places), so that it
-runs as plain numpy and, unchanged, compiles with ``numba.njit``.  :func:`get_kernels` returns
-the compiled functions when numba is importable, :data:`USE_NUMBA` is true and the route has
-at most :data:`COMPILED_MAX_PLACES` places, the plain ones otherwise; both give the same
-results up to float rounding.  ``FLYVPR_CANN_NUMBA=0`` in the environment (read at import) or
-``USE_NUMBA = False`` (read when the state is allocated) selects the plain functions, as does
-numba's own ``NUMBA_DISABLE_JIT=1``.
+Each function below is written once, as explicit loops over places (fused: each pass over
+the route does as much as it can), so that numba compiles it to SIMD loops; the same
+function also runs as plain Python.  :func:`get_kernels` returns the compiled functions when
+numba is importable and :data:`USE_NUMBA` is true, the plain ones otherwise; both give the
+same results up to the order of floating-point sums.  ``FLYVPR_CANN_NUMBA=0`` in the
+environment (read at import) or ``USE_NUMBA = False`` (read when the state is allocated)
+selects the plain functions, as does numba's own ``NUMBA_DISABLE_JIT=1``.
 
-Why the size limit: compiled, these array operations save numpy's per-call overhead, which
-dominates on short routes, but numba's loops over array slices do not vectorise as numpy's
-do.  Per frame with the defaults (shared 2-core machine, noisy): 1000 places 132 us compiled
-against 222 us plain; 35,768 places 2362 us against 840 us.
+numba is a core dependency, so the compiled kernels are the normal path, at every route
+length.  Plain Python is the fallback: per frame with the defaults (shared 2-core machine)
+about 6 ms for 1000 places and 160 ms for 35,768, against 33 us and 160 us compiled.
 """
 
 from __future__ import annotations
@@ -23,15 +22,16 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-#: compile the kernels with numba when it is importable (else, or when False: plain numpy)
+#: compile the kernels with numba when it is importable (else, or when False: plain Python)
 USE_NUMBA = os.environ.get("FLYVPR_CANN_NUMBA", "1") != "0"
 
-#: longest route (places) on which the compiled kernels are used (see the module docstring)
-COMPILED_MAX_PLACES = 4096
 #: kernel radius in units of the excitation width
 KERNEL_RADIUS = 3.0
 #: added to each place's running input variance before dividing by its square root
 VAR_FLOOR = 0.1
+#: places per block of an Euler step: a block is rescanned for firing units only when some
+#: potential in it is above threshold
+BLOCK = 512
 
 
 def excitation_kernel(strength: float, width: float) -> np.ndarray:
@@ -58,15 +58,25 @@ def excitation_kernel(strength: float, width: float) -> np.ndarray:
 
 
 def shift(a, k, fill):
-    """Shift the 1-d array ``a`` by ``k`` places in place, filling what enters with ``fill``."""
+    """Shift the 1-d array ``a`` by ``k`` places in place, filling what enters with ``fill``.
+
+    Element by element in the direction that reads each value before it is overwritten (no
+    copy of the array; compiled, a memmove).
+    """
     n = a.shape[0]
     if k >= n or -k >= n:
         a[:] = fill
     elif k > 0:
-        a[k:] = a[: n - k].copy()
+        src = a[: n - k]
+        dst = a[k:]
+        for i in range(n - k - 1, -1, -1):
+            dst[i] = src[i]
         a[:k] = fill
     elif k < 0:
-        a[: n + k] = a[-k:].copy()
+        src = a[-k:]
+        dst = a[: n + k]
+        for i in range(n + k):
+            dst[i] = src[i]
         a[n + k :] = fill
 
 
@@ -77,28 +87,40 @@ def normalise(x, mean, var, take_log, tiny, rate, var_rate, adapt, adapt_var, fl
     gives zeros.  ``adapt``: subtract each place's running mean ``mean`` (updated in place
     with weight ``rate``); ``adapt_var``: then divide by the square root of its running
     variance ``var`` (weight ``var_rate``) plus ``floor``.  Then clip to ``[-clip, clip]``.
+    Three passes over the row: its mean, its spread, then the rest fused.
     """
     if take_log:
         x[:] = np.log(np.maximum(x, tiny))
     n = x.shape[0]
     # The mean in float64: of a constant row it is exactly the row's value.
-    centre = np.float32(x.astype(np.float64).sum() / n)
-    x -= centre
-    spread = np.sqrt((x.astype(np.float64) ** 2).sum() / n)
-    if not spread > 1e-6 * max(1.0, np.abs(x).max()):
-        x[:] = 0.0  # a constant row says nothing about the place
-    else:
-        x *= np.float32(1.0 / spread)
-    if adapt:
-        mean *= np.float32(1.0 - rate)
-        mean += x * np.float32(rate)
-        x -= mean
-        if adapt_var:
-            var *= np.float32(1.0 - var_rate)
-            var += (x * x) * np.float32(var_rate)
-            x /= np.sqrt(var + np.float32(floor))
-    x[:] = np.minimum(np.maximum(x, np.float32(-clip)), np.float32(clip))
-    x *= np.float32(gain)
+    total = 0.0
+    for i in range(n):
+        total += float(x[i])
+    centre = np.float32(total / n)
+    squares = 0.0
+    for i in range(n):
+        d = float(x[i] - centre)
+        squares += d * d
+    spread = np.sqrt(squares / n)
+    # A (numerically) constant row says nothing about the place.  (The spread is compared
+    # with 1e-6 alone: max |x - centre| <= sqrt(n) * spread, so against 1e-6 times the largest
+    # deviation the spread of any row shorter than 1e12 places passes.)
+    scale = np.float32(1.0 / spread) if spread > 1e-6 else np.float32(0.0)
+    keep, fresh = np.float32(1.0 - rate), np.float32(rate)
+    var_keep, var_fresh = np.float32(1.0 - var_rate), np.float32(var_rate)
+    low, high = np.float32(-clip), np.float32(clip)
+    floor32, gain32 = np.float32(floor), np.float32(gain)
+    for i in range(n):
+        v = (x[i] - centre) * scale
+        if adapt:
+            m = mean[i] * keep + v * fresh
+            mean[i] = m
+            v = v - m
+            if adapt_var:
+                q = var[i] * var_keep + (v * v) * var_fresh
+                var[i] = q
+                v = v / np.sqrt(q + floor32)
+        x[i] = min(max(v, low), high) * gain32
 
 
 def update_traces(old, new, shifts, keeps, coefs, x):
@@ -106,28 +128,63 @@ def update_traces(old, new, shifts, keeps, coefs, x):
 
     ``old`` and ``new`` have shape (n_currents, n_rows, n); row ``j`` of current ``c`` becomes
     ``shift(old[c, j], shifts[j]) * keeps[c] + x * coefs[c]``, with zero evidence entering at
-    the open end.  Loops over the few rows and currents only.
+    the open end.  One pass per row and current.
     """
     n = x.shape[0]
-    fresh = np.empty_like(x)
     for c in range(old.shape[0]):
         keep = keeps[c]
-        np.multiply(x, coefs[c], fresh)
+        coef = coefs[c]
         for j in range(old.shape[1]):
             k = shifts[j]
+            lo = min(max(k, 0), n)  # dst[lo:hi] reads old[c, j, lo - k:hi - k]
+            hi = max(min(n + k, n), lo)
             dst = new[c, j]
-            src = old[c, j]
-            # Written through output arguments: no temporary arrays, numpy or compiled.
-            if 0 <= k < n:
-                np.multiply(src[: n - k], keep, dst[k:])
-                np.add(dst[k:], fresh[k:], dst[k:])
-                dst[:k] = fresh[:k]
-            elif -n < k < 0:
-                np.multiply(src[-k:], keep, dst[: n + k])
-                np.add(dst[: n + k], fresh[: n + k], dst[: n + k])
-                dst[n + k :] = fresh[n + k :]
-            else:
-                dst[:] = fresh
+            # Slices indexed from 0: numba drops its negative-index checks and the loop
+            # becomes SIMD.
+            src = old[c, j, lo - k : hi - k]
+            mid = dst[lo:hi]
+            x_mid = x[lo:hi]
+            for i in range(hi - lo):
+                mid[i] = src[i] * keep + x_mid[i] * coef
+            for i in range(lo):
+                dst[i] = x[i] * coef
+            for i in range(hi, n):
+                dst[i] = x[i] * coef
+
+
+def evidence_stats(traces, evidence, stride, centre, spread):
+    """Per bank row ``j``: its evidence and that evidence's sampled mean and spread.
+
+    ``evidence[j]`` becomes the sum of ``traces[:, j]`` over the currents (with one current
+    ``evidence`` must be ``traces[0]`` and is left as it is); ``centre[j]`` and ``spread[j]``
+    the mean and standard deviation of ``evidence[j, ::stride]`` (float64 sums).
+    """
+    n_cur, n_rows, n = traces.shape
+    m = (n + stride - 1) // stride
+    gathered = np.empty(m, np.float32)  # contiguous: the sums below are SIMD loops
+    for j in range(n_rows):
+        row = evidence[j]
+        if n_cur > 1:
+            row[:] = traces[0, j]
+            for c in range(1, n_cur):
+                src = traces[c, j]
+                for i in range(n):
+                    row[i] = row[i] + src[i]
+        sample = row
+        if stride > 1:
+            for i in range(m):
+                gathered[i] = row[i * stride]
+            sample = gathered
+        total = 0.0
+        for i in range(m):
+            total += float(sample[i])
+        mu = total / m
+        squares = 0.0
+        for i in range(m):
+            d = float(sample[i]) - mu
+            squares += d * d
+        centre[j] = mu
+        spread[j] = np.sqrt(squares / m)
 
 
 def integrate(u, s, h, decay, theta, tonic, hw, hk, n_steps):
@@ -136,29 +193,69 @@ def integrate(u, s, h, decay, theta, tonic, hw, hk, n_steps):
     ``h = dt / tau``, ``decay = 1 - h``, ``hw = h * inhibition``, ``hk = h * K``.  Only units
     above ``theta`` fire (rate ``min(u - theta, 1)``); the inhibitor's rate ``g`` is the sum of
     the rates, at least ``tonic``, and follows them within the step.  The recurrent
-    excitation is a short convolution over the stretch the firing units span.  Returns the
-    last step's ``g``.
+    excitation is spread from the firing units only.  Returns the last step's ``g``.  Per
+    step one pass over the route; the firing units are bracketed by a pass that counts them
+    per block before the first step, then by the blocks of each step's pass.
     """
     n = u.shape[0]
     radius = (hk.shape[0] - 1) // 2
-    drive = s * h
+    lo = n
+    hi = -1
+    for b in range(0, n, BLOCK):
+        end = min(b + BLOCK, n)
+        u_block = u[b:end]
+        above = 0  # a count, not a bracket: the pass stays a SIMD loop
+        for i in range(end - b):
+            above += u_block[i] > theta
+        if above:
+            for i in range(b, end):
+                if u[i] > theta:
+                    lo = min(lo, i)
+                    hi = i
     g = tonic
     for _ in range(n_steps):
-        active = np.flatnonzero(u > theta)
-        g = tonic
-        if active.size:
-            lo = active[0]
-            rates = np.zeros(active[-1] - lo + 1, np.float32)
-            rates[active - lo] = np.minimum(u[active] - theta, np.float32(1.0))
-            g = max(rates.astype(np.float64).sum(), tonic)
-            excitation = np.convolve(rates, hk)  # hk is symmetric: a correlation too
-        u *= decay
-        u += drive
-        u -= np.float32(hw * g)
-        if active.size:
-            a = max(lo - radius, 0)
-            b = min(active[-1] + radius + 1, n)
-            u[a:b] += excitation[a - (lo - radius) : b - (lo - radius)]
+        # The firing units and their rates, from the potentials at the start of the step.
+        firing = np.empty(max(hi - lo + 1, 0), np.int64)
+        rates = np.empty(max(hi - lo + 1, 0), np.float32)
+        total = 0.0
+        count = 0
+        for i in range(lo, hi + 1):
+            if u[i] > theta:
+                r = min(u[i] - theta, np.float32(1.0))
+                firing[count] = i
+                rates[count] = r
+                total += float(r)
+                count += 1
+        g = max(total, tonic) if count else tonic
+        inhibit = np.float32(hw * g)
+        new_lo = n
+        new_hi = -1
+        for b in range(0, n, BLOCK):
+            end = min(b + BLOCK, n)
+            u_block = u[b:end]
+            s_block = s[b:end]
+            above = 0
+            for i in range(end - b):
+                v = u_block[i] * decay + s_block[i] * h - inhibit
+                u_block[i] = v
+                above += v > theta
+            if above:
+                for i in range(b, end):
+                    if u[i] > theta:
+                        new_lo = min(new_lo, i)
+                        new_hi = i
+        # The recurrent excitation, spread from each firing unit over its neighbours (never
+        # negative, so it can only add units above threshold).
+        for f in range(count):
+            i = firing[f]
+            r = rates[f]
+            for t in range(max(i - radius, 0), min(i + radius + 1, n)):
+                u[t] += hk[t - i + radius] * r
+                if u[t] > theta:
+                    new_lo = min(new_lo, t)
+                    new_hi = max(new_hi, t)
+        lo = new_lo
+        hi = new_hi
     return g
 
 
@@ -191,6 +288,7 @@ _PLAIN = {
     "shift": shift,
     "normalise": normalise,
     "update_traces": update_traces,
+    "evidence_stats": evidence_stats,
     "integrate": integrate,
     "relocate": relocate,
 }
@@ -209,15 +307,15 @@ def _jit(numba, func):  # pragma: no mutate block (numba's options; no-ops under
 
 
 def get_kernels(n_places: int = 0) -> tuple[dict, bool]:
-    """The kernels by name for a route of ``n_places``, and whether they are compiled."""
+    """The kernels by name, and whether they are compiled (``n_places`` is not used)."""
     global _compiled
-    if not USE_NUMBA or n_places > COMPILED_MAX_PLACES:
+    if not USE_NUMBA:
         return _PLAIN, False
     if _compiled is None:
         try:
             import numba
         except ImportError:
-            logger.info("numba is not installed; the CANN runs as plain numpy (slower)")
+            logger.info("numba is not installed; the CANN runs as plain Python (much slower)")
             _compiled = False
         else:
             _compiled = {name: _jit(numba, f) for name, f in _PLAIN.items()}

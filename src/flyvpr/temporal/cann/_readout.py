@@ -9,26 +9,32 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._kernels import evidence_stats as plain_evidence_stats
+
 #: confidence of an established packet's answer: this + its evidence contrast
 ESTABLISHED = 2.0
 
 
-def evidence_contrast(u, s, theta, radius: int, stride: int, noise: float) -> tuple[int, float]:
+def evidence_contrast(
+    u, s, theta, radius: int, stride: int, noise: float, evidence_stats=None
+) -> tuple[int, float]:
     """The packet's peak and its evidence contrast (0 without a packet or evidence spread).
 
     The contrast is ``(max(s over peak - radius .. peak + radius) - mean(s)) / std(s)``,
-    clipped at 0, with the mean and spread over every ``stride``-th place; a spread at or
-    below ``noise`` (rounding residue) gives 0.
+    clipped at 0, with the mean and spread over every ``stride``-th place (computed by the
+    kernel ``evidence_stats``, by default the plain one); a spread at or below ``noise``
+    (rounding residue) gives 0.
     """
     peak = int(np.argmax(u))
     if not u[peak] > theta:
         return peak, 0.0
-    sample = s[::stride]
-    spread = float(sample.std(dtype=np.float64))
+    moments = np.empty((2, 1))
+    (evidence_stats or plain_evidence_stats)(s[None, None], s[None], stride, *moments)
+    centre, spread = float(moments[0, 0]), float(moments[1, 0])
     if not spread > noise:
         return peak, 0.0
-    own = float(s[max(peak - radius, 0) : peak + radius + 1].max())
-    return peak, max((own - float(sample.mean(dtype=np.float64))) / spread, 0.0)
+    own = max(s[max(peak - radius, 0) : peak + radius + 1].tolist())
+    return peak, max((own - centre) / spread, 0.0)
 
 
 def front_end_row(row, out) -> None:
@@ -37,7 +43,11 @@ def front_end_row(row, out) -> None:
     The argmax stays, and rows rank among themselves as the front end's maxima rank them.
     """
     r = row.astype(np.float64)
-    out[:] = 1.5 + 0.5 * r / (1.0 + np.abs(r))
+    scale = np.abs(r)
+    scale += 1.0
+    r *= 0.5
+    r /= scale
+    np.add(r, 1.5, out=out)
 
 
 def readout(u, s, row, peak: int, contrast: float, tier: str, noise: float) -> np.ndarray:

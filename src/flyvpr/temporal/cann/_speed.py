@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._kernels import evidence_stats as plain_evidence_stats
+
 #: bank rows whose contrasts tie within this (relative) tolerance give the vote to the
 #: candidate nearest 1 place per frame
 TIE_TOLERANCE = 1e-5
@@ -41,6 +43,9 @@ class SpeedBank:
         self.velocities = velocities
         self.traces = np.zeros((n_currents, velocities.size, n), np.float32)
         self._spare = np.empty_like(self.traces)
+        self._sum = np.empty(self.traces.shape[1:], np.float32) if n_currents > 1 else None
+        self._stats = np.zeros((2, velocities.size))  # each row's sampled mean and spread
+        self._rows = np.arange(velocities.size)
         self.offsets = np.zeros(velocities.size)  # fractional movement not yet applied
         self.votes = np.zeros(velocities.size)
         self.keeps, self.coefs = keeps, coefs
@@ -71,16 +76,23 @@ class SpeedBank:
         self.offsets = total - rounded
         return rounded.astype(np.int64)
 
-    def update(self, x, first: bool, update_traces) -> None:
-        """Move, decay and feed every row with the input ``x``; then vote."""
+    def update(self, x, first: bool, update_traces, evidence_stats=None) -> None:
+        """Move, decay and feed every row with the input ``x``; then vote.
+
+        ``update_traces`` and ``evidence_stats`` are the kernels of that name (the latter, by
+        default, the plain one).
+        """
         update_traces(self.traces, self._spare, self.shifts(first), self.keeps, self.coefs, x)
         self.traces, self._spare = self._spare, self.traces
-        self.evidence = self.traces.sum(axis=0) if self.traces.shape[0] > 1 else self.traces[0]
-        sample = self.evidence[:, :: self.stride].astype(np.float64)
-        centre = sample.mean(axis=1)
-        spread = sample.std(axis=1)
+        # With one current the evidence is that current's traces.
+        self.evidence = self.traces[0] if self._sum is None else self._sum
+        # Each row's mean and spread over the sampled places, its peak and its maximum.
+        centre, spread = self._stats
+        (evidence_stats or plain_evidence_stats)(
+            self.traces, self.evidence, self.stride, centre, spread
+        )
         self.peaks = self.evidence.argmax(axis=1)
-        top = self.evidence[np.arange(self.velocities.size), self.peaks]
+        top = self.evidence[self._rows, self.peaks]
         # Comparing raw maxima would favour slow lines, which count the similar-looking
         # consecutive frames of one place more than once: each row against its own spread.
         self.contrast = (top - centre) / np.maximum(spread, 1e-12)
@@ -89,7 +101,8 @@ class SpeedBank:
         # tie up to rounding; such ties go to the candidate nearest 1 place per frame, so the
         # vote does not depend on the order of a floating-point sum.
         values = self.contrast.tolist()
-        level = max(values) - TIE_TOLERANCE * max(1.0, max(abs(c) for c in values))
+        highest = max(values)
+        level = highest - TIE_TOLERANCE * max(1.0, highest, -min(values))
         best = next(j for j in self.preference if values[j] >= level)
         # Rows whose spread is at rounding level (identical frames, which adaptation turns
         # into rounding residue) carry no evidence and do not vote.
