@@ -59,10 +59,18 @@ __all__ = ["KenyonEncoder", "balanced_connections", "code_overlap"]
 #: costs more than it saves (and much more on a loaded machine)
 _PARALLEL_MIN_QUERIES = 8
 
-#: images (or places) per block when encoding or indexing: 4096 x 4096 float32 is 64 MiB
+#: places per block when indexing: 4096 x 4096 unpacked bits are 16 MiB
 _BLOCK = 4096
 
-_kernels: dict = {}  # compiled on first use so that ``import flyvpr`` does not import numba
+#: number of set bits of every byte value
+_BIT_COUNT = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(axis=1)
+
+
+def _compiled():
+    """The compiled kernels of the front end (imports numba on first use)."""
+    from . import _kenyon_kernels
+
+    return _kenyon_kernels
 
 
 def balanced_connections(n_kenyon: int, n_features: int, n_inputs: int, random_state=None):
@@ -92,37 +100,6 @@ def balanced_connections(n_kenyon: int, n_features: int, n_inputs: int, random_s
     for i in repeated:  # rare: at most one row per pair of permutations
         rows[i] = np.sort(rng.choice(n_features, n_inputs, replace=False))
     return rows.astype(np.int32)
-
-
-def _get_kernel(parallel: bool):
-    if parallel not in _kernels:
-        import numba
-
-        def overlap(packed, indptr, places, scale, out):
-            # Queries are independent work items: no two write the same row.  The counts are
-            # small integers, exact in float32.
-            for i in numba.prange(packed.shape[0]):
-                row = out[i]
-                for j in range(packed.shape[1]):
-                    byte = packed[i, j]
-                    if byte == 0:
-                        continue
-                    for t in range(8):  # np.packbits order: the first bit is the highest
-                        if byte & (128 >> t):
-                            b = 8 * j + t
-                            for p in range(indptr[b], indptr[b + 1]):
-                                row[places[p]] += 1.0
-                for p in range(row.shape[0]):
-                    row[p] *= scale
-
-        # numba's on-disk cache tells functions apart by qualified name, not by the
-        # ``parallel`` flag: give each variant its own name, or one would load the other.
-        overlap.__qualname__ = f"kenyon_overlap_{'parallel' if parallel else 'serial'}"
-        try:
-            _kernels[parallel] = numba.njit(parallel=parallel, cache=True)(overlap)
-        except RuntimeError:  # no writable cache folder: compile in memory
-            _kernels[parallel] = numba.njit(parallel=parallel)(overlap)
-    return _kernels[parallel]
 
 
 def _inverted_index(packed: np.ndarray, n_bits: int) -> tuple[np.ndarray, np.ndarray]:
@@ -169,9 +146,20 @@ def code_overlap(query_codes, reference_codes) -> np.ndarray:
 
 def _overlap_packed(packed: np.ndarray, indptr, places, n_reference: int, scale: float):
     """``scale`` x the overlap of bit-packed queries with the indexed codes, float32."""
-    out = np.zeros((len(packed), n_reference), dtype=np.float32)
-    kernel = _get_kernel(len(packed) >= _PARALLEL_MIN_QUERIES)
-    kernel(np.ascontiguousarray(packed), indptr, places, np.float32(scale), out)
+    packed = np.ascontiguousarray(packed)
+    out = np.empty((len(packed), n_reference), dtype=np.float32)
+    scale = np.float32(scale)
+    if len(packed) >= _PARALLEL_MIN_QUERIES:
+        return _compiled().overlap_parallel(packed, indptr, places, scale, out)
+    # A few queries (a streamed frame): one at a time, counting in the narrowest integers
+    # that hold the largest possible overlap (the query's number of bits) -- a counter array
+    # small enough to stay in the fastest cache -- then one float32 product per place, which
+    # equals the parallel kernel's float32 ``+= 1.0`` and ``*= scale``.
+    kernel = _compiled().overlap_counts
+    for i, query in enumerate(packed):
+        n_on = int(_BIT_COUNT[query].sum())
+        dtype = np.uint8 if n_on < 2**8 else np.uint16 if n_on < 2**16 else np.int64
+        kernel(query, indptr, places, scale, np.empty(n_reference, dtype=dtype), out[i])
     return out
 
 
@@ -292,16 +280,8 @@ class KenyonEncoder(Encoder):
         self._index()
 
     def _prepare(self) -> None:
-        """The sparse connection matrix (n_kenyon x n_features) used for encoding."""
-        n_kenyon, n_in = self.connections_.shape
-        self._weights = sparse.csr_matrix(
-            (
-                np.ones(n_kenyon * n_in, dtype=np.float32),
-                self.connections_.ravel(),
-                np.arange(0, n_kenyon * n_in + 1, n_in),
-            ),
-            shape=(n_kenyon, self.n_features_),
-        )
+        """The connections as the compiled kernels read them (C-ordered int32)."""
+        self._connections = np.ascontiguousarray(self.connections_, dtype=np.int32)
 
     def _index(self) -> None:
         n_bits = self.connections_.shape[0]
@@ -315,21 +295,19 @@ class KenyonEncoder(Encoder):
         return self._activity(features)
 
     def _activity(self, features: np.ndarray) -> np.ndarray:
-        centred = features - self.feature_mean_
-        return np.asarray((self._weights @ centred.T).T, dtype=np.float32)
+        # float32 sums in the order of the sorted connections (as a CSR matrix product would)
+        out = np.empty((len(features), self._connections.shape[0]), dtype=np.float32)
+        return _compiled().kenyon_activity(features, self.feature_mean_, self._connections, out)
 
     def _codes(self, features: np.ndarray) -> np.ndarray:
-        n_kenyon = self.connections_.shape[0]
+        # activity, winner-take-all per population and bit packing in one compiled pass per
+        # image: nothing of size (N, n_kenyon) is materialised
+        n_kenyon = self._connections.shape[0]
         n_proj = self.n_projections
-        k = self.n_active_ // n_proj
         out = np.empty((len(features), n_kenyon // 8), dtype=np.uint8)
-        # Blocks of images bound the float32 activity (and its partitioned copy) in memory.
-        for i in range(0, len(features), _BLOCK):
-            y = self._activity(features[i : i + _BLOCK])
-            # Each population competes on its own: WTA over its columns.
-            bits = winner_take_all(y.reshape(len(y) * n_proj, -1), k).reshape(len(y), -1)
-            out[i : i + _BLOCK] = np.packbits(bits, axis=1)
-        return out
+        return _compiled().kenyon_codes(
+            features, self.feature_mean_, self._connections, n_proj, self.n_active_ // n_proj, out
+        )
 
     def _encode(self, images: np.ndarray) -> np.ndarray:
         return self._codes(self._lobe(images))
