@@ -50,7 +50,6 @@ from .._validation import (
     check_random_state,
 )
 from .base import Encoder
-from .flyhash import winner_take_all
 from .optic_lobe import OpticLobe
 
 __all__ = ["KenyonEncoder", "balanced_connections", "code_overlap"]
