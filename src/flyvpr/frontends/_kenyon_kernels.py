@@ -71,39 +71,43 @@ def reflect_index(n: int, radius: int) -> np.ndarray:
 
 
 @_jit
-def _filter_rows(src, dst, taps, index, acc):
-    # along axis 0 of a 2-d image: whole rows at a time, so the inner loop runs over columns
+def _smooth(pad, n, m, taps, acc, dst, transpose):
+    # ``pad``: n + 2r lines of m float64 values (flat, lines extended by reflection); line i
+    # of the result, float32, into row i of ``dst`` (or column i when ``transpose``).  The
+    # loops run over all n * m outputs at once: long, vectorisable, and each output still
+    # sums its terms in scipy's order.
     r = taps.shape[0] - 1
-    h, w = src.shape
-    for i in range(h):
-        for j in range(w):
-            acc[j] = np.float64(src[i, j]) * taps[0]
-        for t in range(r, 0, -1):
-            lo = index[i + r - t]
-            hi = index[i + r + t]
-            wt = taps[t]
-            for j in range(w):
-                acc[j] += (np.float64(src[lo, j]) + np.float64(src[hi, j])) * wt
-        for j in range(w):
-            dst[i, j] = np.float32(acc[j])
+    size = n * m
+    centre = pad[r * m : r * m + size]
+    w0 = taps[0]
+    for k in range(size):
+        acc[k] = centre[k] * w0
+    for t in range(r, 0, -1):
+        a = pad[(r - t) * m : (r - t) * m + size]
+        b = pad[(r + t) * m : (r + t) * m + size]
+        wt = taps[t]
+        for k in range(size):
+            acc[k] += (a[k] + b[k]) * wt
+    for i in range(n):
+        for j in range(m):
+            if transpose:
+                dst[j, i] = np.float32(acc[i * m + j])
+            else:
+                dst[i, j] = np.float32(acc[i * m + j])
 
 
 @_jit
-def _filter_cols(src, dst, taps, index, line, acc):
-    # along axis 1: each row extended by reflection into ``line`` (float64)
-    r = taps.shape[0] - 1
+def _gaussian(src, taps, index_h, index_w, pad, acc, tmp, dst):
+    # along axis 0, then axis 1 (on the transposed float32 result), as gaussian_filter
     h, w = src.shape
-    for i in range(h):
-        for p in range(w + 2 * r):
-            line[p] = np.float64(src[i, index[p]])
+    for p in range(index_h.shape[0]):
         for j in range(w):
-            acc[j] = line[j + r] * taps[0]
-        for t in range(r, 0, -1):
-            wt = taps[t]
-            for j in range(w):
-                acc[j] += (line[j + r - t] + line[j + r + t]) * wt
-        for j in range(w):
-            dst[i, j] = np.float32(acc[j])
+            pad[p * w + j] = src[index_h[p], j]
+    _smooth(pad, h, w, taps, acc, tmp, False)
+    for p in range(index_w.shape[0]):
+        for i in range(h):
+            pad[p * h + i] = tmp[i, index_w[p]]
+    _smooth(pad, w, h, taps, acc, dst, True)
 
 
 @_jit
@@ -115,25 +119,24 @@ def lcn(x, taps, index_h, index_w, eps2, out):
     """
     n, h, w = x.shape
     r = taps.shape[0] - 1
+    pad = np.empty(max((h + 2 * r) * w, (w + 2 * r) * h), dtype=np.float64)
+    acc = np.empty(h * w, dtype=np.float64)
     tmp = np.empty((h, w), dtype=np.float32)
     mean = np.empty((h, w), dtype=np.float32)
     centred = np.empty((h, w), dtype=np.float32)
-    acc = np.empty(w, dtype=np.float64)
-    line = np.empty(w + 2 * r, dtype=np.float64)
     for m in range(n):
         img = x[m]
-        _filter_rows(img, tmp, taps, index_h, acc)
-        _filter_cols(tmp, mean, taps, index_w, line, acc)
+        o = out[m]
+        _gaussian(img, taps, index_h, index_w, pad, acc, tmp, mean)
         for i in range(h):
             for j in range(w):
                 c = img[i, j] - mean[i, j]
                 centred[i, j] = c
-                out[m, i, j] = c * c
-        _filter_rows(out[m], tmp, taps, index_h, acc)
-        _filter_cols(tmp, mean, taps, index_w, line, acc)  # ``mean`` now holds the variance
+                o[i, j] = c * c
+        _gaussian(o, taps, index_h, index_w, pad, acc, tmp, mean)  # ``mean``: the variance
         for i in range(h):
             for j in range(w):
-                out[m, i, j] = centred[i, j] / np.sqrt(mean[i, j] + eps2)
+                o[i, j] = centred[i, j] / np.sqrt(mean[i, j] + eps2)
     return out
 
 
@@ -276,34 +279,80 @@ def kenyon_activity(features, feature_mean, connections, out):
 
 
 @_jit
-def _winners(y, k, bits, buf):
-    # bits[i] = 1 for the k largest of y (ties: the lower index), 0 elsewhere
-    m = y.shape[0]
-    for i in range(m):
-        buf[i] = y[i]
-    kth = np.partition(buf, m - k)[m - k]
-    n_above = 0
-    for i in range(m):
-        if y[i] > kth:
-            n_above += 1
-    free = k - n_above
-    for i in range(m):
+def _select(a, n, kk):
+    # the kk-th smallest (0-based) of a[:n], which it reorders: Wirth's quickselect with a
+    # median-of-three pivot
+    lo, hi = 0, n - 1
+    while lo < hi:
+        x, pivot, z = a[lo], a[(lo + hi) // 2], a[hi]
+        if x > pivot:
+            x, pivot = pivot, x
+        if pivot > z:
+            pivot = max(x, z)
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while pivot < a[j]:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if j < kk:
+            lo = i
+        if kk < i:
+            hi = j
+    return a[kk]
+
+
+@_jit
+def _kth_largest(y, k, buf):
+    # The k-th largest value of y (as a multiset).  A sample of about 128 values gives a
+    # threshold with about 2k values of y at or above it; the k-th largest of those is the
+    # answer whenever there are at least k of them (else select from all of y).
+    n = y.shape[0]
+    step = max(1, n // 128)
+    n_sample = (n + step - 1) // step
+    for i in range(n_sample):
+        buf[i] = y[i * step]
+    rank = min(n_sample - 1, (2 * k * n_sample) // n)
+    floor = _select(buf, n_sample, n_sample - 1 - rank)
+    c = 0
+    for i in range(n):  # branch-free: keep the values >= floor at the front of buf
         v = y[i]
+        buf[c] = v
+        c += v >= floor
+    if c < k:
+        buf[:n] = y
+        c = n
+    return _select(buf, c, c - k)
+
+
+@_jit
+def _winners(y, k, buf, bits):
+    # bits[i] = 1 for the k largest of y, among equal values the lower index (as
+    # winner_take_all does), else 0
+    kth = _kth_largest(y, k, buf)
+    free = k
+    for v in y:
         if v > kth:
-            bits[i] = 1
-        elif v == kth and free > 0:
-            bits[i] = 1
             free -= 1
-        else:
-            bits[i] = 0
+    for i in range(y.shape[0]):
+        v = y[i]
+        win = v > kth
+        if not win and v == kth and free > 0:
+            win = True
+            free -= 1
+        bits[i] = win
 
 
 @_jit
 def kenyon_codes(features, feature_mean, connections, n_projections, k, out):
     """Bit-packed winner-take-all codes (``np.packbits`` order) of every row of ``features``.
 
-    Each of the ``n_projections`` consecutive populations of Kenyon cells keeps its ``k`` most
-    active cells.  ``out``: uint8 (N, n_kenyon // 8).
+    Each of the ``n_projections`` consecutive populations of Kenyon cells keeps its ``k``
+    most active cells.  ``out``: uint8 (N, n_kenyon // 8).
     """
     n_kenyon = connections.shape[0]
     per = n_kenyon // n_projections
@@ -314,8 +363,8 @@ def kenyon_codes(features, feature_mean, connections, n_projections, k, out):
     for m in range(features.shape[0]):
         _activity_row(features[m], feature_mean, connections, centred, y)
         for p in range(n_projections):
-            _winners(y[p * per : (p + 1) * per], k, bits[p * per : (p + 1) * per], buf)
-        for b in range(n_kenyon // 8):
+            _winners(y[p * per : (p + 1) * per], k, buf, bits[p * per : (p + 1) * per])
+        for b in range(n_kenyon // 8):  # np.packbits order: the first bit is the highest
             byte = 0
             for t in range(8):
                 byte = (byte << 1) | bits[8 * b + t]
@@ -324,46 +373,56 @@ def kenyon_codes(features, feature_mean, connections, n_projections, k, out):
 
 
 @_jit
-def overlap_counts(packed, indptr, places, scale, counts, out):
+def overlap_counts(packed, indptr, places, chunk, scale, counts, out):
     """``scale`` x the overlap of one bit-packed query with every indexed place, into ``out``.
 
-    ``counts`` (integers wide enough for the largest overlap, zeroed here) is a small, cache-
-    resident accumulator; ``out`` float32 receives ``count * scale`` (as a float32 product).
+    ``indptr`` (n_chunks, n_bits + 1) and ``places`` (offsets within each chunk of ``chunk``
+    places): the inverted index.  ``counts`` (integers wide enough for the
+    largest overlap, zeroed here) is a small, cache-resident accumulator; ``out`` float32
+    receives ``count * scale`` (as a float32 product).
     """
     counts[:] = 0
-    for j in range(packed.shape[0]):
-        byte = packed[j]
-        if byte == 0:
-            continue
-        for t in range(8):  # np.packbits order: the first bit is the highest
-            if byte & (128 >> t):
-                b = 8 * j + t
-                for p in range(indptr[b], indptr[b + 1]):
-                    counts[places[p]] += 1
+    for c in range(indptr.shape[0]):
+        # a view per chunk, indexed by the unsigned offsets themselves: no index arithmetic
+        # or negative-index check in the innermost loop
+        sub = counts[c * chunk :]
+        ptr = indptr[c]
+        for j in range(packed.shape[0]):
+            byte = packed[j]
+            if byte == 0:
+                continue
+            for t in range(8):  # np.packbits order: the first bit is the highest
+                if byte & (128 >> t):
+                    b = 8 * j + t
+                    for p in range(ptr[b], ptr[b + 1]):
+                        sub[places[p]] += 1
     for p in range(out.shape[0]):
         out[p] = np.float32(counts[p]) * scale
     return out
 
 
 @_jit(parallel=True)
-def overlap_parallel(packed, indptr, places, scale, out):
+def overlap_parallel(packed, indptr, places, chunk, scale, out):
     """``scale`` x the overlap of every bit-packed query (rows of ``packed``), into ``out``.
 
-    Queries are independent work items: no two threads write the same row of ``out``.  The
-    counts are small integers, exact in float32.
+    The index as for :func:`overlap_counts`.  Queries are independent work items: no two
+    threads write the same row of ``out``.  The counts are small integers, exact in float32.
     """
     for i in numba.prange(packed.shape[0]):
         row = out[i]
         row[:] = 0.0
-        for j in range(packed.shape[1]):
-            byte = packed[i, j]
-            if byte == 0:
-                continue
-            for t in range(8):
-                if byte & (128 >> t):
-                    b = 8 * j + t
-                    for p in range(indptr[b], indptr[b + 1]):
-                        row[places[p]] += 1.0
+        for c in range(indptr.shape[0]):
+            sub = row[c * chunk :]
+            ptr = indptr[c]
+            for j in range(packed.shape[1]):
+                byte = packed[i, j]
+                if byte == 0:
+                    continue
+                for t in range(8):
+                    if byte & (128 >> t):
+                        b = 8 * j + t
+                        for p in range(ptr[b], ptr[b + 1]):
+                            sub[places[p]] += 1.0
         for p in range(row.shape[0]):
             row[p] *= scale
     return out
