@@ -68,9 +68,6 @@ _BLOCK = 4096
 #: memory, so that about halves its time)
 _CHUNK = 1 << 16
 
-#: number of set bits of every byte value
-_BIT_COUNT = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(axis=1)
-
 
 def _compiled():
     """The compiled kernels of the front end (imports numba on first use)."""
@@ -173,15 +170,10 @@ def _overlap_packed(packed, indptr, places, n_reference: int, scale: float, chun
     scale = np.float32(scale)
     if len(packed) >= _PARALLEL_MIN_QUERIES:
         return _compiled().overlap_parallel(packed, indptr, places, chunk, scale, out)
-    # A few queries (a streamed frame): one at a time, counting in the narrowest integers
-    # that hold the largest possible overlap (the query's number of bits) -- a counter array
-    # small enough to stay in the fastest cache -- then one float32 product per place, which
-    # equals the parallel kernel's float32 ``+= 1.0`` and ``*= scale``.
+    # A few queries (a streamed frame): one at a time, without waking threads
     kernel = _compiled().overlap_counts
     for i, query in enumerate(packed):
-        n_on = int(_BIT_COUNT[query].sum())
-        dtype = np.uint8 if n_on < 2**8 else np.uint16 if n_on < 2**16 else np.int64
-        kernel(query, indptr, places, chunk, scale, np.empty(n_reference, dtype=dtype), out[i])
+        kernel(query, indptr, places, chunk, scale, out[i])
     return out
 
 
