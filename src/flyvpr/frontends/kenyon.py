@@ -275,8 +275,9 @@ class KenyonEncoder(Encoder):
         n_kenyon, n_proj = self._check_layout()
         ratio = check_fraction(self.active_ratio, "active_ratio")
         n_in = check_positive_int(self.n_inputs, "n_inputs")
-        # connections (int32, drawn as int64 permutations) and one block's float32 activity,
-        # its partitioned copy and its bits
+        # connections (int32, drawn as int64 permutations) and, while indexing, one block of
+        # places' unpacked bits (a byte each) with its sparse copies (a few bytes per active
+        # bit): 9 bytes per bit bounds both
         check_memory(
             n_kenyon * n_in * 16 + min(len(images), _BLOCK) * n_kenyon * 9,
             f"n_kenyon={n_kenyon} with n_inputs={n_in}",
