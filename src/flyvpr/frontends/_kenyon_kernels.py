@@ -18,6 +18,8 @@ bit.  What makes that possible:
   ``scipy.sparse`` does for a CSR matrix times a dense one.
 * Every other step is exact (maximum, comparisons) or one correctly rounded float32 operation
   (subtraction, product, quotient, square root).
+* The FFTs, the product of spectra and the complex magnitude are not here: they stay the same
+  SciPy and NumPy calls (NumPy's SIMD magnitude rounds differently from C's ``hypotf``).
 
 No kernel uses ``fastmath``: reassociating or fusing any of these operations would change the
 rounding.
