@@ -295,8 +295,9 @@ class KenyonEncoder(Encoder):
         self._index()
 
     def _prepare(self) -> None:
-        """The connections as the compiled kernels read them (C-ordered int32)."""
-        self._connections = np.ascontiguousarray(self.connections_, dtype=np.int32)
+        """The connections as the compiled kernels read them: C-ordered uint32 (unsigned
+        indices spare the kernel numba's negative-index check: about twice as fast)."""
+        self._connections = np.ascontiguousarray(self.connections_, dtype=np.uint32)
 
     def _index(self) -> None:
         n_bits = self.connections_.shape[0]
