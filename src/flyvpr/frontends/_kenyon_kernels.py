@@ -66,10 +66,11 @@ def reflect_index(n: int, radius: int) -> np.ndarray:
     """Indices of a line of length ``n`` extended by ``radius`` on both sides ('reflect' mode).
 
     ``d c b a | a b c d | d c b a``, repeated for a radius longer than the line: position
-    ``p`` of the extended line reads element ``reflect_index(n, r)[p]``.
+    ``p`` of the extended line reads element ``reflect_index(n, r)[p]``.  Unsigned, which
+    spares the kernels numba's negative-index check.
     """
     p = np.arange(-radius, n + radius) % (2 * n)
-    return np.where(p < n, p, 2 * n - 1 - p).astype(np.intp)
+    return np.where(p < n, p, 2 * n - 1 - p).astype(np.uint32)
 
 
 @_jit
