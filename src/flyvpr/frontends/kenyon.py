@@ -18,8 +18,10 @@ from fixed parts only (nothing is trained):
    split into that many independent populations, each with its own winner-take-all.
 4. **Matching**: the similarity of a query and a place is the number of KCs active in both
    codes, divided by ``k`` (1 for identical codes), computed through an inverted index (for
-   each KC, the places where it fires) by a parallel numba kernel: the work per query is the
-   total length of the query's ``k`` lists, about ``n_reference * k * active_ratio``.
+   each KC, the places where it fires, as 16-bit numbers) by numba kernels -- parallel over
+   the queries of a batch, or for a streamed frame one query counting in small integers
+   that stay in cache: the work per query is the total length of the query's ``k`` lists,
+   about ``n_reference * k * active_ratio``.
 
 Codes are bit-packed: ``n_kenyon / 8`` bytes per place (512 with the defaults, 1/16 of the
 8192 bytes of ``pixels``).
@@ -50,7 +52,6 @@ from .._validation import (
     check_random_state,
 )
 from .base import Encoder
-from .flyhash import winner_take_all
 from .optic_lobe import OpticLobe
 
 __all__ = ["KenyonEncoder", "balanced_connections", "code_overlap"]
@@ -59,10 +60,20 @@ __all__ = ["KenyonEncoder", "balanced_connections", "code_overlap"]
 #: costs more than it saves (and much more on a loaded machine)
 _PARALLEL_MIN_QUERIES = 8
 
-#: images (or places) per block when encoding or indexing: 4096 x 4096 float32 is 64 MiB
+#: places per block when indexing: 4096 x 4096 unpacked bits are 16 MiB
 _BLOCK = 4096
 
-_kernels: dict = {}  # compiled on first use so that ``import flyvpr`` does not import numba
+#: places per chunk of the inverted index: place numbers are stored as uint16 offsets within
+#: their chunk, half the memory traffic of int32 (scoring one query reads its lists from main
+#: memory, so that about halves its time)
+_CHUNK = 1 << 16
+
+
+def _compiled():
+    """The compiled kernels of the front end (imports numba on first use)."""
+    from . import _kenyon_kernels
+
+    return _kenyon_kernels
 
 
 def balanced_connections(n_kenyon: int, n_features: int, n_inputs: int, random_state=None):
@@ -94,48 +105,32 @@ def balanced_connections(n_kenyon: int, n_features: int, n_inputs: int, random_s
     return rows.astype(np.int32)
 
 
-def _get_kernel(parallel: bool):
-    if parallel not in _kernels:
-        import numba
-
-        def overlap(packed, indptr, places, scale, out):
-            # Queries are independent work items: no two write the same row.  The counts are
-            # small integers, exact in float32.
-            for i in numba.prange(packed.shape[0]):
-                row = out[i]
-                for j in range(packed.shape[1]):
-                    byte = packed[i, j]
-                    if byte == 0:
-                        continue
-                    for t in range(8):  # np.packbits order: the first bit is the highest
-                        if byte & (128 >> t):
-                            b = 8 * j + t
-                            for p in range(indptr[b], indptr[b + 1]):
-                                row[places[p]] += 1.0
-                for p in range(row.shape[0]):
-                    row[p] *= scale
-
-        # numba's on-disk cache tells functions apart by qualified name, not by the
-        # ``parallel`` flag: give each variant its own name, or one would load the other.
-        overlap.__qualname__ = f"kenyon_overlap_{'parallel' if parallel else 'serial'}"
-        try:
-            _kernels[parallel] = numba.njit(parallel=parallel, cache=True)(overlap)
-        except RuntimeError:  # no writable cache folder: compile in memory
-            _kernels[parallel] = numba.njit(parallel=parallel)(overlap)
-    return _kernels[parallel]
-
-
-def _inverted_index(packed: np.ndarray, n_bits: int) -> tuple[np.ndarray, np.ndarray]:
-    """For each KC, the places where it fires: CSR pointers (int64) and place numbers (int32).
+def _inverted_index(packed: np.ndarray, n_bits: int, chunk: int = _CHUNK) -> tuple:
+    """For each KC, the places where it fires, in chunks of ``chunk`` (<= 65,536) places.
 
     ``packed``: bit-packed codes (n_places, ceil(n_bits / 8)), unpacked a block at a time.
+
+    Returns
+    -------
+    indptr : ndarray of int64, shape (n_chunks, n_bits + 1)
+        The places of KC ``b`` in chunk ``c`` are ``places[indptr[c, b] : indptr[c, b + 1]]``.
+    places : ndarray of uint16
+        Offsets within the chunk, ascending per list.
     """
-    parts = [
-        sparse.csr_matrix(np.unpackbits(packed[i : i + _BLOCK], axis=1, count=n_bits))
-        for i in range(0, len(packed), _BLOCK)
-    ]
-    csc = sparse.vstack(parts, format="csc")
-    return csc.indptr.astype(np.int64), csc.indices.astype(np.int32)
+    indptr, places, base = [], [], 0
+    for start in range(0, len(packed), chunk):
+        stop = min(start + chunk, len(packed))
+        parts = [
+            sparse.csr_matrix(
+                np.unpackbits(packed[i : min(i + _BLOCK, stop)], axis=1, count=n_bits)
+            )
+            for i in range(start, stop, _BLOCK)
+        ]
+        csc = sparse.vstack(parts, format="csc")
+        indptr.append(csc.indptr.astype(np.int64) + base)
+        places.append(csc.indices.astype(np.uint16))
+        base += csc.nnz
+    return np.stack(indptr), np.concatenate(places)
 
 
 def code_overlap(query_codes, reference_codes) -> np.ndarray:
@@ -167,11 +162,18 @@ def code_overlap(query_codes, reference_codes) -> np.ndarray:
     return overlap.astype(np.int32)
 
 
-def _overlap_packed(packed: np.ndarray, indptr, places, n_reference: int, scale: float):
-    """``scale`` x the overlap of bit-packed queries with the indexed codes, float32."""
-    out = np.zeros((len(packed), n_reference), dtype=np.float32)
-    kernel = _get_kernel(len(packed) >= _PARALLEL_MIN_QUERIES)
-    kernel(np.ascontiguousarray(packed), indptr, places, np.float32(scale), out)
+def _overlap_packed(packed, indptr, places, n_reference: int, scale: float, chunk: int = _CHUNK):
+    """``scale`` x the overlap of bit-packed queries with the codes indexed in chunks of
+    ``chunk`` places (:func:`_inverted_index`), float32."""
+    packed = np.ascontiguousarray(packed)
+    out = np.empty((len(packed), n_reference), dtype=np.float32)
+    scale = np.float32(scale)
+    if len(packed) >= _PARALLEL_MIN_QUERIES:
+        return _compiled().overlap_parallel(packed, indptr, places, chunk, scale, out)
+    # A few queries (a streamed frame): one at a time, without waking threads
+    kernel = _compiled().overlap_counts
+    for i, query in enumerate(packed):
+        kernel(query, indptr, places, chunk, scale, out[i])
     return out
 
 
@@ -273,8 +275,9 @@ class KenyonEncoder(Encoder):
         n_kenyon, n_proj = self._check_layout()
         ratio = check_fraction(self.active_ratio, "active_ratio")
         n_in = check_positive_int(self.n_inputs, "n_inputs")
-        # connections (int32, drawn as int64 permutations) and one block's float32 activity,
-        # its partitioned copy and its bits
+        # connections (int32, drawn as int64 permutations) and, while indexing, one block of
+        # places' unpacked bits (a byte each) with its sparse copies (a few bytes per active
+        # bit): 9 bytes per bit bounds both
         check_memory(
             n_kenyon * n_in * 16 + min(len(images), _BLOCK) * n_kenyon * 9,
             f"n_kenyon={n_kenyon} with n_inputs={n_in}",
@@ -292,16 +295,9 @@ class KenyonEncoder(Encoder):
         self._index()
 
     def _prepare(self) -> None:
-        """The sparse connection matrix (n_kenyon x n_features) used for encoding."""
-        n_kenyon, n_in = self.connections_.shape
-        self._weights = sparse.csr_matrix(
-            (
-                np.ones(n_kenyon * n_in, dtype=np.float32),
-                self.connections_.ravel(),
-                np.arange(0, n_kenyon * n_in + 1, n_in),
-            ),
-            shape=(n_kenyon, self.n_features_),
-        )
+        """The connections as the compiled kernels read them: C-ordered uint32 (unsigned
+        indices spare the kernel numba's negative-index check: about twice as fast)."""
+        self._connections = np.ascontiguousarray(self.connections_, dtype=np.uint32)
 
     def _index(self) -> None:
         n_bits = self.connections_.shape[0]
@@ -315,21 +311,19 @@ class KenyonEncoder(Encoder):
         return self._activity(features)
 
     def _activity(self, features: np.ndarray) -> np.ndarray:
-        centred = features - self.feature_mean_
-        return np.asarray((self._weights @ centred.T).T, dtype=np.float32)
+        # float32 sums in the order of the sorted connections (as a CSR matrix product would)
+        out = np.empty((len(features), self._connections.shape[0]), dtype=np.float32)
+        return _compiled().kenyon_activity(features, self.feature_mean_, self._connections, out)
 
     def _codes(self, features: np.ndarray) -> np.ndarray:
-        n_kenyon = self.connections_.shape[0]
+        # activity, winner-take-all per population and bit packing in one compiled pass per
+        # image: nothing of size (N, n_kenyon) is materialised
+        n_kenyon = self._connections.shape[0]
         n_proj = self.n_projections
-        k = self.n_active_ // n_proj
         out = np.empty((len(features), n_kenyon // 8), dtype=np.uint8)
-        # Blocks of images bound the float32 activity (and its partitioned copy) in memory.
-        for i in range(0, len(features), _BLOCK):
-            y = self._activity(features[i : i + _BLOCK])
-            # Each population competes on its own: WTA over its columns.
-            bits = winner_take_all(y.reshape(len(y) * n_proj, -1), k).reshape(len(y), -1)
-            out[i : i + _BLOCK] = np.packbits(bits, axis=1)
-        return out
+        return _compiled().kenyon_codes(
+            features, self.feature_mean_, self._connections, n_proj, self.n_active_ // n_proj, out
+        )
 
     def _encode(self, images: np.ndarray) -> np.ndarray:
         return self._codes(self._lobe(images))
@@ -393,7 +387,7 @@ class KenyonEncoder(Encoder):
     # -- size -----------------------------------------------------------------
     def _map_nbytes(self) -> int:
         # One bit-packed code per place: n_kenyon / 8 bytes (512 with the defaults).  The
-        # inverted index built from them at fit/load time (4 bytes per active bit) is a derived
+        # inverted index built from them at fit/load time (2 bytes per active bit) is a derived
         # search structure, not stored in model files; the connections are shared by all places.
         return int(self.reference_codes_.nbytes)
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import fft as sfft
-from scipy import ndimage
 
 from .._validation import check_images, check_memory, check_positive_int
 
@@ -74,11 +73,29 @@ def local_contrast_normalize(images, sigma: float = 4.0, eps: float = 0.05) -> n
     return _lcn(x, _check_positive_real(sigma, "sigma"), _check_positive_real(eps, "eps"))
 
 
-def _lcn(x: np.ndarray, sigma: float, eps: float) -> np.ndarray:
-    mean = ndimage.gaussian_filter(x, (0, sigma, sigma), mode="reflect")
-    centred = x - mean
-    var = ndimage.gaussian_filter(centred * centred, (0, sigma, sigma), mode="reflect")
-    return (centred / np.sqrt(var + np.float32(eps * eps))).astype(np.float32)
+def _kernels():
+    """The compiled kernels (numba), imported on first use: ``import flyvpr`` stays light."""
+    from . import _kenyon_kernels
+
+    return _kenyon_kernels
+
+
+def _lcn_plan(sigma: float, eps: float, h: int, w: int) -> tuple:
+    """What the LCN kernel needs for images of size (h, w): Gaussian taps, border indices."""
+    k = _kernels()
+    taps = k.gaussian_taps(sigma)
+    r = len(taps) - 1
+    return taps, k.reflect_index(h, r), k.reflect_index(w, r), np.float32(eps * eps)
+
+
+def _lcn(x: np.ndarray, sigma: float, eps: float, plan=None) -> np.ndarray:
+    # Same arithmetic as ``scipy.ndimage.gaussian_filter(x, (0, sigma, sigma),
+    # mode="reflect")`` for the local mean and variance (float32 between steps), then
+    # ``(x - mean) / sqrt(var + eps**2)``, in one compiled pass per image.
+    n, h, w = x.shape
+    taps, index_h, index_w, eps2 = plan or _lcn_plan(sigma, eps, h, w)
+    out = np.empty((n, h, w), dtype=np.float32)
+    return _kernels().lcn(np.ascontiguousarray(x), taps, index_h, index_w, eps2, out)
 
 
 def gabor_bank(n_orientations: int = 4, wavelength: float = 6.0, size: int = 11) -> np.ndarray:
@@ -211,33 +228,36 @@ class OpticLobe:
             )
         return self.bank.shape[0] * (h // pool) * (w // pool)
 
+    def _plan(self, h: int, w: int) -> tuple:
+        """Kernel spectra, FFT size and LCN set-up for images of (h, w), made once."""
+        if (h, w) not in self._cache:
+            spectra, shape = _spectra(self.bank, h, w)
+            lcn = _lcn_plan(self.lcn_sigma, self.lcn_eps, h, w)
+            self._cache[(h, w)] = (spectra, shape, lcn)
+        return self._cache[(h, w)]
+
     def __call__(self, x: np.ndarray) -> np.ndarray:
         n, h, w = x.shape
         n_features = self.n_features(h, w)
-        if (h, w) not in self._cache:
-            self._cache[(h, w)] = _spectra(self.bank, h, w)
-        spectra = self._cache[(h, w)]
+        spectra, shape, lcn_plan = self._plan(h, w)
         n_kernels, pool = self.bank.shape[0], self.pool
         if n > 64:  # small batches (a streamed frame) need no check of /proc/meminfo
-            fh, fw = spectra[1]
+            fh, fw = shape
             # per image in a block: complex64 spectra and products of every kernel
             check_memory(
                 min(n, _BLOCK) * n_kernels * fh * fw * 8 * 3 + n * n_features * 4,
                 f"optic_lobe on {n} images of {h}x{w}",
             )
+        kernels = _kernels()
+        r = self.bank.shape[1] // 2
         features = np.empty((n, n_features), dtype=np.float32)
         for start in range(0, n, _BLOCK):
-            block = _lcn(x[start : start + _BLOCK], self.lcn_sigma, self.lcn_eps)
-            energy = gabor_energy(block, self.bank, _spectra_cache=spectra)
-            m = len(block)
-            # max over the pool's columns (contiguous), then over its rows: two one-axis
-            # reductions are much faster than one over two axes on small batches
-            pooled = energy.reshape(-1, pool).max(axis=1)
-            pooled = pooled.reshape(m * n_kernels * (h // pool), pool, w // pool).max(axis=1)
-            features[start : start + m] = np.sqrt(pooled).reshape(m, -1)
-        mean = features.mean(axis=1, keepdims=True)
-        std = features.std(axis=1, keepdims=True)
-        features -= mean
-        # A blank image has no edges: every feature is equal and the row stays all zeros.
-        np.divide(features, std, out=features, where=std > 1e-12)
-        return features
+            block = _lcn(x[start : start + _BLOCK], self.lcn_sigma, self.lcn_eps, lcn_plan)
+            # as gabor_energy, then max pooling and the square root in one compiled pass
+            spectrum = sfft.fft2(block, s=shape, axes=(1, 2))
+            full = sfft.ifft2(spectrum[:, None] * spectra[None], axes=(2, 3), overwrite_x=True)
+            energy = np.abs(full[:, :, r : r + h, r : r + w])
+            kernels.pool_sqrt(energy, pool, features[start : start + len(block)])
+        # per-image z-score (NumPy's mean and std, float32); a blank image has no edges:
+        # every feature is equal and the row stays all zeros
+        return kernels.zscore_rows(features, np.float32(1e-12))

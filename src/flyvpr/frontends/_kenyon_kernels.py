@@ -1,0 +1,452 @@
+"""Compiled (numba) kernels of the ``kenyon`` front end: optic lobe, Kenyon cells, matching.
+
+Imported on first use by :mod:`flyvpr.frontends.optic_lobe` and
+:mod:`flyvpr.frontends.kenyon`, so that ``import flyvpr`` does not import numba.
+
+Every kernel reproduces, operation for operation, the NumPy/SciPy computation it replaces, so
+that the codes do not depend on which path computed them (and stay bit-identical to those of
+the earlier, NumPy-only implementation); ``tests/test_kenyon_kernels.py`` compares them bit for
+bit.  What makes that possible:
+
+* Gaussian filtering as ``scipy.ndimage.correlate1d`` does it for a symmetric kernel: each
+  line converted to float64 and extended by reflection, ``x[i] * w[0]`` plus the pairs
+  ``(x[i - t] + x[i + t]) * w[t]`` for ``t = r, ..., 1`` (outermost first), accumulated in
+  float64 and stored as float32 after each axis.
+* Sums of float32 rows as NumPy's ``add.reduce`` does them (pairwise summation with eight
+  accumulators in blocks of at most 128), means and variances divided in float64.
+* The Kenyon-cell sums accumulated in float32 in the order of the (sorted) connections, as
+  ``scipy.sparse`` does for a CSR matrix times a dense one.
+* Every other step is exact (maximum, comparisons) or one correctly rounded float32 operation
+  (subtraction, product, quotient, square root).
+* The FFTs, the product of spectra and the complex magnitude are not here: they stay the same
+  SciPy and NumPy calls (NumPy's SIMD magnitude rounds differently from C's ``hypotf``).
+
+No kernel uses ``fastmath``: reassociating or fusing any of these operations would change the
+rounding.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = [
+    "gaussian_taps",
+    "reflect_index",
+    "lcn",
+    "pool_sqrt",
+    "zscore_rows",
+    "kenyon_activity",
+    "kenyon_codes",
+    "overlap_counts",
+    "overlap_parallel",
+]
+
+
+def _jit(fn=None, *, parallel=False):
+    """``numba.njit`` with the on-disk cache, or in memory where no cache folder is writable."""
+    if fn is None:
+        return lambda f: _jit(f, parallel=parallel)
+    try:
+        return numba.njit(cache=True, parallel=parallel)(fn)
+    except RuntimeError:
+        return numba.njit(parallel=parallel)(fn)
+
+
+def gaussian_taps(sigma: float, truncate: float = 4.0) -> np.ndarray:
+    """The float64 taps of ``scipy.ndimage.gaussian_filter1d``: ``w[0]`` the centre, then out."""
+    radius = int(truncate * float(sigma) + 0.5)
+    x = np.arange(-radius, radius + 1)
+    phi = np.exp(-0.5 / (float(sigma) * float(sigma)) * x**2)
+    phi = phi / phi.sum()
+    return np.ascontiguousarray(phi[radius:])
+
+
+def reflect_index(n: int, radius: int) -> np.ndarray:
+    """Indices of a line of length ``n`` extended by ``radius`` on both sides ('reflect' mode).
+
+    ``d c b a | a b c d | d c b a``, repeated for a radius longer than the line: position
+    ``p`` of the extended line reads element ``reflect_index(n, r)[p]``.  Unsigned, which
+    spares the kernels numba's negative-index check.
+    """
+    p = np.arange(-radius, n + radius) % (2 * n)
+    return np.where(p < n, p, 2 * n - 1 - p).astype(np.uint32)
+
+
+@_jit
+def _smooth(pad, n, m, taps, acc, dst, transpose):
+    # ``pad``: n + 2r lines of m float64 values (flat, lines extended by reflection); line i
+    # of the result, float32, into row i of ``dst`` (or column i when ``transpose``).  The
+    # loops run over all n * m outputs at once: long, vectorisable, and each output still
+    # sums its terms in scipy's order.
+    r = taps.shape[0] - 1
+    size = n * m
+    centre = pad[r * m : r * m + size]
+    w0 = taps[0]
+    for k in range(size):
+        acc[k] = centre[k] * w0
+    for t in range(r, 0, -1):
+        a = pad[(r - t) * m : (r - t) * m + size]
+        b = pad[(r + t) * m : (r + t) * m + size]
+        wt = taps[t]
+        for k in range(size):
+            acc[k] += (a[k] + b[k]) * wt
+    for i in range(n):
+        for j in range(m):
+            if transpose:
+                dst[j, i] = np.float32(acc[i * m + j])
+            else:
+                dst[i, j] = np.float32(acc[i * m + j])
+
+
+@_jit
+def _gaussian(src, taps, index_h, index_w, pad, acc, tmp, dst):
+    # along axis 0, then axis 1 (on the transposed float32 result), as gaussian_filter
+    h, w = src.shape
+    for p in range(index_h.shape[0]):
+        for j in range(w):
+            pad[p * w + j] = src[index_h[p], j]
+    _smooth(pad, h, w, taps, acc, tmp, False)
+    for p in range(index_w.shape[0]):
+        for i in range(h):
+            pad[p * h + i] = tmp[i, index_w[p]]
+    _smooth(pad, w, h, taps, acc, dst, True)
+
+
+@_jit
+def lcn(x, taps, index_h, index_w, eps2, out):
+    """Local contrast normalisation of float32 images (N, H, W) into ``out``.
+
+    ``(x - G x) / sqrt(G (x - G x)^2 + eps2)`` with ``G`` the Gaussian of ``taps`` along both
+    axes (``index_h``, ``index_w`` from :func:`reflect_index`), float32 between steps.
+    """
+    n, h, w = x.shape
+    r = taps.shape[0] - 1
+    pad = np.empty(max((h + 2 * r) * w, (w + 2 * r) * h), dtype=np.float64)
+    acc = np.empty(h * w, dtype=np.float64)
+    tmp = np.empty((h, w), dtype=np.float32)
+    mean = np.empty((h, w), dtype=np.float32)
+    centred = np.empty((h, w), dtype=np.float32)
+    for m in range(n):
+        img = x[m]
+        o = out[m]
+        _gaussian(img, taps, index_h, index_w, pad, acc, tmp, mean)
+        for i in range(h):
+            for j in range(w):
+                c = img[i, j] - mean[i, j]
+                centred[i, j] = c
+                o[i, j] = c * c
+        _gaussian(o, taps, index_h, index_w, pad, acc, tmp, mean)  # ``mean``: the variance
+        for i in range(h):
+            for j in range(w):
+                o[i, j] = centred[i, j] / np.sqrt(mean[i, j] + eps2)
+    return out
+
+
+@_jit
+def pool_sqrt(energy, pool, out):
+    """Max over ``pool x pool`` cells of (N, K, H, W) energies, then the square root.
+
+    ``out``: float32 (N, K * (H // pool) * (W // pool)), cells in (K, row, column) order.
+    """
+    n, n_kernels, h, w = energy.shape
+    ph, pw = h // pool, w // pool
+    for m in range(n):
+        f = 0
+        for k in range(n_kernels):
+            for a in range(ph):
+                for b in range(pw):
+                    best = energy[m, k, a * pool, b * pool]
+                    for u in range(pool):
+                        for v in range(pool):
+                            e = energy[m, k, a * pool + u, b * pool + v]
+                            if e > best:
+                                best = e
+                    out[m, f] = np.sqrt(best)
+                    f += 1
+    return out
+
+
+@_jit
+def _block_sum(a, lo, n):
+    # a leaf of NumPy's pairwise summation (``add.reduce`` of contiguous float32): a plain
+    # loop below 8 values, else eight interleaved accumulators and the leftover at the end
+    if n < 8:
+        s = np.float32(0.0)
+        for i in range(lo, lo + n):
+            s += a[i]
+        return s
+    r = np.empty(8, dtype=np.float32)
+    for u in range(8):
+        r[u] = a[lo + u]
+    i = 8
+    while i < n - n % 8:
+        for u in range(8):
+            r[u] += a[lo + i + u]
+        i += 8
+    s = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    while i < n:
+        s += a[lo + i]
+        i += 1
+    return s
+
+
+@_jit
+def _pairwise_sum(a, n, frames, partial):
+    """NumPy's pairwise sum of ``a[:n]`` (float32): halves (cut at a multiple of 8) until at
+    most 128 values, summed as left + right.  Iterative (numba cannot cache recursion):
+    ``frames`` (int64, (64, 3): start, length, stage) and ``partial`` (float32, 64) are the
+    explicit stack."""
+    top = 0
+    frames[0, 0] = 0
+    frames[0, 1] = n
+    frames[0, 2] = 0
+    value = np.float32(0.0)
+    have = False
+    while True:
+        if not have:
+            lo, m = frames[top, 0], frames[top, 1]
+            if m <= 128:
+                value = _block_sum(a, lo, m)
+                have = True
+                top -= 1
+            else:  # descend into the left half
+                half = m // 2
+                frames[top, 2] = 1
+                frames[top + 1, 0] = lo
+                frames[top + 1, 1] = half - half % 8
+                frames[top + 1, 2] = 0
+                top += 1
+        elif top < 0:
+            return value
+        elif frames[top, 2] == 1:  # left half done: keep it, descend into the right half
+            partial[top] = value
+            half = frames[top, 1] // 2
+            half -= half % 8
+            frames[top, 2] = 2
+            frames[top + 1, 0] = frames[top, 0] + half
+            frames[top + 1, 1] = frames[top, 1] - half
+            frames[top + 1, 2] = 0
+            top += 1
+            have = False
+        else:  # both halves done
+            value = partial[top] + value
+            top -= 1
+
+
+@_jit
+def zscore_rows(features, min_std):
+    """Per row, in place: subtract the mean, divide by the standard deviation if > ``min_std``.
+
+    As ``f.mean(axis=1)`` and ``f.std(axis=1)`` of NumPy compute them for float32 rows.
+    """
+    n, d = features.shape
+    sq = np.empty(d, dtype=np.float32)
+    frames = np.empty((64, 3), dtype=np.int64)
+    partial = np.empty(64, dtype=np.float32)
+    for m in range(n):
+        row = features[m]
+        mean = np.float32(np.float64(_pairwise_sum(row, d, frames, partial)) / np.float64(d))
+        for i in range(d):
+            c = row[i] - mean
+            sq[i] = c * c
+        var = np.float32(np.float64(_pairwise_sum(sq, d, frames, partial)) / np.float64(d))
+        std = np.sqrt(var)
+        for i in range(d):
+            row[i] -= mean
+        if std > min_std:
+            for i in range(d):
+                row[i] /= std
+    return features
+
+
+@_jit
+def _activity_row(features, feature_mean, connections, centred, y):
+    for i in range(features.shape[0]):
+        centred[i] = features[i] - feature_mean[i]
+    n_kenyon, n_inputs = connections.shape
+    for c in range(n_kenyon):
+        s = np.float32(0.0)
+        for j in range(n_inputs):
+            s += centred[connections[c, j]]
+        y[c] = s
+
+
+@_jit
+def kenyon_activity(features, feature_mean, connections, out):
+    """Summed centred input of every Kenyon cell: ``out`` float32 (N, n_kenyon)."""
+    centred = np.empty(features.shape[1], dtype=np.float32)
+    for m in range(features.shape[0]):
+        _activity_row(features[m], feature_mean, connections, centred, out[m])
+    return out
+
+
+@_jit
+def _select(a, n, kk):
+    # the kk-th smallest (0-based) of a[:n], which it reorders: Wirth's quickselect with a
+    # median-of-three pivot
+    lo, hi = 0, n - 1
+    while lo < hi:
+        x, pivot, z = a[lo], a[(lo + hi) // 2], a[hi]
+        if x > pivot:
+            x, pivot = pivot, x
+        if pivot > z:
+            pivot = max(x, z)
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while pivot < a[j]:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if j < kk:
+            lo = i
+        if kk < i:
+            hi = j
+    return a[kk]
+
+
+@_jit
+def _kth_largest(y, k, buf):
+    # The k-th largest value of y (as a multiset).  A sample of about 128 values gives a
+    # threshold with about 2k values of y at or above it; the k-th largest of those is the
+    # answer whenever there are at least k of them (else select from all of y).
+    n = y.shape[0]
+    step = max(1, n // 128)
+    n_sample = (n + step - 1) // step
+    for i in range(n_sample):
+        buf[i] = y[i * step]
+    rank = min(n_sample - 1, (2 * k * n_sample) // n)
+    floor = _select(buf, n_sample, n_sample - 1 - rank)
+    c = 0
+    for i in range(n):  # branch-free: keep the values >= floor at the front of buf
+        v = y[i]
+        buf[c] = v
+        c += v >= floor
+    if c < k:
+        buf[:n] = y
+        c = n
+    return _select(buf, c, c - k)
+
+
+@_jit
+def _winners(y, k, buf, bits):
+    # bits[i] = 1 for the k largest of y, among equal values the lower index (as
+    # winner_take_all does), else 0
+    kth = _kth_largest(y, k, buf)
+    free = k
+    for v in y:
+        if v > kth:
+            free -= 1
+    for i in range(y.shape[0]):
+        v = y[i]
+        win = v > kth
+        if not win and v == kth and free > 0:
+            win = True
+            free -= 1
+        bits[i] = win
+
+
+@_jit
+def kenyon_codes(features, feature_mean, connections, n_projections, k, out):
+    """Bit-packed winner-take-all codes (``np.packbits`` order) of every row of ``features``.
+
+    Each of the ``n_projections`` consecutive populations of Kenyon cells keeps its ``k``
+    most active cells.  ``out``: uint8 (N, n_kenyon // 8).
+    """
+    n_kenyon = connections.shape[0]
+    per = n_kenyon // n_projections
+    centred = np.empty(features.shape[1], dtype=np.float32)
+    y = np.empty(n_kenyon, dtype=np.float32)
+    bits = np.empty(n_kenyon, dtype=np.uint8)
+    buf = np.empty(per, dtype=np.float32)
+    for m in range(features.shape[0]):
+        _activity_row(features[m], feature_mean, connections, centred, y)
+        for p in range(n_projections):
+            _winners(y[p * per : (p + 1) * per], k, buf, bits[p * per : (p + 1) * per])
+        for b in range(n_kenyon // 8):  # np.packbits order: the first bit is the highest
+            byte = 0
+            for t in range(8):
+                byte = (byte << 1) | bits[8 * b + t]
+            out[m, b] = byte
+    return out
+
+
+@_jit
+def _count(packed, indptr, places, chunk, counts):
+    # counts[place] += 1 for every active bit of the query that the place shares
+    counts[:] = 0
+    for c in range(indptr.shape[0]):
+        # a view per chunk, indexed by the unsigned offsets themselves: no index arithmetic
+        # or negative-index check in the innermost loop
+        sub = counts[c * chunk :]
+        ptr = indptr[c]
+        for j in range(packed.shape[0]):
+            byte = packed[j]
+            if byte == 0:
+                continue
+            for t in range(8):  # np.packbits order: the first bit is the highest
+                if byte & (128 >> t):
+                    b = 8 * j + t
+                    for p in range(ptr[b], ptr[b + 1]):
+                        sub[places[p]] += 1
+
+
+@_jit
+def overlap_counts(packed, indptr, places, chunk, scale, out):
+    """``scale`` x the overlap of one bit-packed query with every indexed place, into ``out``.
+
+    ``indptr`` (n_chunks, n_bits + 1) and ``places`` (offsets within each chunk of ``chunk``
+    places): the inverted index.  The counts go to the narrowest integers that hold the
+    largest possible overlap (the query's number of bits): with at most 255, one byte per
+    place, an array small enough to stay in the fastest cache.  ``out`` float32 receives
+    ``count * scale`` (as a float32 product, which equals a float32 ``+= 1.0`` per shared
+    bit followed by ``*= scale``).
+    """
+    n_on = 0
+    for byte in packed:
+        while byte:
+            n_on += 1
+            byte &= byte - 1
+    n = out.shape[0]
+    if n_on < 256:
+        small = np.empty(n, dtype=np.uint8)
+        _count(packed, indptr, places, chunk, small)
+        for p in range(n):
+            out[p] = np.float32(small[p]) * scale
+    else:
+        wide = np.empty(n, dtype=np.int64)
+        _count(packed, indptr, places, chunk, wide)
+        for p in range(n):
+            out[p] = np.float32(wide[p]) * scale
+    return out
+
+
+@_jit(parallel=True)
+def overlap_parallel(packed, indptr, places, chunk, scale, out):
+    """``scale`` x the overlap of every bit-packed query (rows of ``packed``), into ``out``.
+
+    The index as for :func:`overlap_counts`.  Queries are independent work items: no two
+    threads write the same row of ``out``.  The counts are small integers, exact in float32.
+    """
+    for i in numba.prange(packed.shape[0]):
+        row = out[i]
+        row[:] = 0.0
+        for c in range(indptr.shape[0]):
+            sub = row[c * chunk :]
+            ptr = indptr[c]
+            for j in range(packed.shape[1]):
+                byte = packed[i, j]
+                if byte == 0:
+                    continue
+                for t in range(8):
+                    if byte & (128 >> t):
+                        b = 8 * j + t
+                        for p in range(ptr[b], ptr[b + 1]):
+                            sub[places[p]] += 1.0
+        for p in range(row.shape[0]):
+            row[p] *= scale
+    return out
