@@ -312,3 +312,17 @@ def test_area_matrix_averages_exactly():
     a = area_matrix(2, 5)  # output pixel 0 covers [0, 2.5): pixels 0, 1 and half of 2
     np.testing.assert_allclose(a, [[0.4, 0.4, 0.2, 0, 0], [0, 0, 0.2, 0.4, 0.4]], atol=1e-7)
     np.testing.assert_allclose(area_matrix(3, 6).sum(axis=1), 1.0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("shape", [(480, 640), (720, 1280), (361, 500), (64, 128), (20, 30)])
+def test_area_resize_equals_the_dense_area_product(shape):
+    from flyvpr.sources.video import area_matrix, area_resize
+
+    rng = np.random.default_rng(shape[0])
+    y = rng.integers(0, 256, (shape[0], shape[1] + 5), dtype=np.uint8)[:, : shape[1]]
+    dense = area_matrix(32, shape[0]) @ y.astype(np.float32) @ area_matrix(64, shape[1]).T
+    out = area_resize(y, 32, 64)
+    assert out.shape == (32, 64) and out.dtype == np.float32
+    np.testing.assert_allclose(out, dense, atol=1e-3)
+    # a constant frame stays that constant, whatever the band weights
+    np.testing.assert_allclose(area_resize(np.full(shape, 200, np.uint8), 32, 64), 200, rtol=1e-5)

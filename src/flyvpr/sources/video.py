@@ -112,6 +112,63 @@ def area_matrix(n_out: int, n_in: int) -> np.ndarray:
     return (weights / weights.sum(axis=1, keepdims=True)).astype(np.float32)
 
 
+@lru_cache(maxsize=16)
+def _row_band(n_out: int, n_in: int):
+    """:func:`area_matrix` as a band: per output row its first input row, the count of input
+    rows it covers and their weights (zero-padded to the widest band)."""
+    m = area_matrix(n_out, n_in)
+    nz = m > 0
+    starts = nz.argmax(axis=1).astype(np.int64)
+    counts = nz.sum(axis=1).astype(np.int64)
+    weights = np.zeros((n_out, int(counts.max())), np.float32)
+    for i in range(n_out):  # n_out rows (32 by default), once per frame size
+        weights[i, : counts[i]] = m[i, starts[i] : starts[i] + counts[i]]
+    return starts, counts, weights
+
+
+_band_kernel = None
+
+
+def _get_band_kernel():
+    """The row-band kernel compiled by numba (None where numba is missing)."""
+    global _band_kernel
+    if _band_kernel is None:
+        try:
+            import numba
+        except ImportError:  # pragma: no cover - numba is a core dependency
+            _band_kernel = False
+        else:
+
+            def band(y, starts, counts, weights, out):
+                for i in range(out.shape[0]):
+                    for k in range(counts[i]):
+                        wk = weights[i, k]
+                        r = starts[i] + k
+                        for j in range(out.shape[1]):
+                            out[i, j] += wk * y[r, j]
+
+            _band_kernel = numba.njit(cache=True, nogil=True)(band)
+    return _band_kernel or None
+
+
+def area_resize(y: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Area-average the 2-d array ``y`` (uint8 or float) to ``(h, w)``, float32.
+
+    The same weights as :func:`area_matrix` along both axes.  Along the rows only the band of
+    input rows each output row covers is read (a compiled loop: one multiply-add per input
+    pixel, instead of the dense product's ``h`` per pixel), then the same along the columns
+    of that small result.  No BLAS call: BLAS threads would compete with the video decoder's.
+    """
+    kernel = _get_band_kernel()
+    if kernel is None:
+        return area_matrix(h, y.shape[0]) @ y.astype(np.float32) @ area_matrix(w, y.shape[1]).T
+    rows = np.zeros((h, y.shape[1]), np.float32)
+    kernel(y, *_row_band(h, y.shape[0]), rows)
+    cols = np.zeros((w, h), np.float32)
+    kernel(rows.T, *_row_band(w, y.shape[1]), cols)
+    return np.ascontiguousarray(cols.T)
+
+
 def _luma(frame) -> tuple[np.ndarray, bool]:
     """The frame's 8-bit luma (H, W) without a copy where possible, and whether full range."""
     name = frame.format.name
@@ -127,7 +184,7 @@ def _decoder(frame):
     def decode(size):
         h, w = size
         y, full = _luma(frame)
-        small = area_matrix(h, y.shape[0]) @ y.astype(np.float32) @ area_matrix(w, y.shape[1]).T
+        small = area_resize(y, h, w)
         if full:
             small *= np.float32(1.0 / 255.0)
         else:  # limited range: 16 -> 0, 235 -> 1
