@@ -262,19 +262,6 @@ def test_cut_video_without_an_index_is_refused(suffix, tmp_path):
         open_source(cut).read_all(SIZE)
 
 
-def test_recording_libraries_are_imported_lazily():
-    import subprocess
-    import sys
-
-    code = (
-        "import sys, flyvpr, flyvpr.cli, flyvpr.maps, flyvpr.sources, flyvpr.tracking, "
-        "flyvpr.trace; bad = [m for m in ('av', 'rosbags') if m in sys.modules]; "
-        "print(','.join(bad)); sys.exit(1 if bad else 0)"
-    )
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
-    assert res.returncode == 0, f"imported: {res.stdout} {res.stderr}"
-
-
 def test_missing_extra_names_it(route, tmp_path, monkeypatch):
     import importlib
 
