@@ -125,21 +125,37 @@ def test_normalise_log_and_constant_rows(kernels):
 
 
 # -- integration -----------------------------------------------------------------------------
-def test_integrate_against_a_loop(kernels):
+@pytest.mark.parametrize(
+    ("n", "firing", "steps"),
+    [
+        (40, [5, 6, 7, 20, 38], 2),  # one unit near the end
+        # Candidates a block or more apart (blocks of 512 places): one just before a block's
+        # end, whose excitation lifts a unit of the next block above threshold in step 1 (so
+        # it fires in step 2), one at the route's end; a quiet block between.
+        (1400, [3, 510, 511, 1100, 1399], 3),
+    ],
+)
+def test_integrate_against_a_loop(kernels, n, firing, steps):
     rng = np.random.default_rng(1)
-    n, theta, tonic, steps = 40, 1.0, 1.0, 2
+    theta, tonic = 1.0, 1.0
     u = rng.uniform(-3.0, 0.5, n).astype(np.float32)
-    u[[5, 6, 7, 20, 38]] = [1.5, 2.5, 1.2, 1.7, 3.0]  # firing, one unit near the end
+    u[firing] = np.linspace(1.2, 3.0, len(firing))
     s = rng.normal(size=n).astype(np.float32)
+    if n > 512:
+        # Just below threshold, and kept below it by the inhibition unless the excitation
+        # from 510-511 lifts it.
+        u[512], s[512] = 0.9, 12.0
     hk = excitation_kernel(15.0, 1.0) / np.float32(3.0)
     h, hw = 1 / 3, 3.2 / 3
     ref = u.astype(np.float64)
-    for _ in range(steps):
+    for step in range(steps):
         r = np.clip(ref - theta, 0.0, 1.0) * (ref > theta)
         g = max(r.sum(), tonic)
         exc = np.array([sum(hk[d + 3] * r[i + d] for d in range(-3, 4) if 0 <= i + d < n)
                         for i in range(n)])  # fmt: skip
         ref = ref * (1 - h) + s * h - hw * g + exc
+        if n > 512 and step == 0:
+            assert ref[512] - exc[512] < theta < ref[512]  # it fires in step 2
     out = u.copy()
     g_out = kernels["integrate"](
         out, s, np.float32(h), np.float32(1 - h), np.float32(theta), tonic, hw, hk, steps

@@ -194,56 +194,52 @@ def integrate(u, s, h, decay, theta, tonic, hw, hk, n_steps):
     above ``theta`` fire (rate ``min(u - theta, 1)``); the inhibitor's rate ``g`` is the sum of
     the rates, at least ``tonic``, and follows them within the step.  The recurrent
     excitation is spread from the firing units only.  Returns the last step's ``g``.  Per
-    step one pass over the route; the firing units are bracketed by a pass that counts them
-    per block before the first step, then by the blocks of each step's pass.
+    step one pass over the route, which also marks the blocks of ``BLOCK`` places holding a
+    unit above threshold; the firing units are then looked for in the marked blocks only
+    (a pass that marks them comes before the first step).  Candidates far apart along the
+    route (a route that passes one place twice) cost a block each, not the stretch between.
     """
     n = u.shape[0]
     radius = (hk.shape[0] - 1) // 2
-    lo = n
-    hi = -1
-    for b in range(0, n, BLOCK):
-        end = min(b + BLOCK, n)
-        u_block = u[b:end]
-        above = 0  # a count, not a bracket: the pass stays a SIMD loop
-        for i in range(end - b):
+    n_blocks = (n + BLOCK - 1) // BLOCK
+    hot = np.zeros(n_blocks, np.bool_)  # blocks holding a unit above threshold
+    n_hot = 0
+    for b in range(n_blocks):
+        u_block = u[b * BLOCK : min(b * BLOCK + BLOCK, n)]
+        above = 0  # a count, not a branch: the pass stays a SIMD loop
+        for i in range(u_block.shape[0]):
             above += u_block[i] > theta
-        if above:
-            for i in range(b, end):
-                if u[i] > theta:
-                    lo = min(lo, i)
-                    hi = i
+        hot[b] = above > 0
+        n_hot += above > 0
     g = tonic
     for _ in range(n_steps):
-        # The firing units and their rates, from the potentials at the start of the step.
-        firing = np.empty(max(hi - lo + 1, 0), np.int64)
-        rates = np.empty(max(hi - lo + 1, 0), np.float32)
+        # The firing units and their rates, from the potentials at the start of the step
+        # (in route order, so the rates are summed in that order).
+        firing = np.empty(n_hot * BLOCK, np.int64)
+        rates = np.empty(n_hot * BLOCK, np.float32)
         total = 0.0
         count = 0
-        for i in range(lo, hi + 1):
-            if u[i] > theta:
-                r = min(u[i] - theta, np.float32(1.0))
-                firing[count] = i
-                rates[count] = r
-                total += float(r)
-                count += 1
+        for b in range(n_blocks):
+            if hot[b]:
+                for i in range(b * BLOCK, min(b * BLOCK + BLOCK, n)):
+                    if u[i] > theta:
+                        r = min(u[i] - theta, np.float32(1.0))
+                        firing[count] = i
+                        rates[count] = r
+                        total += float(r)
+                        count += 1
         g = max(total, tonic) if count else tonic
         inhibit = np.float32(hw * g)
-        new_lo = n
-        new_hi = -1
-        for b in range(0, n, BLOCK):
-            end = min(b + BLOCK, n)
-            u_block = u[b:end]
-            s_block = s[b:end]
+        n_hot = 0
+        for b in range(n_blocks):
+            u_block = u[b * BLOCK : min(b * BLOCK + BLOCK, n)]
+            s_block = s[b * BLOCK : min(b * BLOCK + BLOCK, n)]
             above = 0
-            for i in range(end - b):
+            for i in range(u_block.shape[0]):
                 v = u_block[i] * decay + s_block[i] * h - inhibit
                 u_block[i] = v
                 above += v > theta
-            if above:
-                for i in range(b, end):
-                    if u[i] > theta:
-                        new_lo = min(new_lo, i)
-                        new_hi = i
+            hot[b] = above > 0
         # The recurrent excitation, spread from each firing unit over its neighbours (never
         # negative, so it can only add units above threshold).
         for f in range(count):
@@ -252,10 +248,9 @@ def integrate(u, s, h, decay, theta, tonic, hw, hk, n_steps):
             for t in range(max(i - radius, 0), min(i + radius + 1, n)):
                 u[t] += hk[t - i + radius] * r
                 if u[t] > theta:
-                    new_lo = min(new_lo, t)
-                    new_hi = max(new_hi, t)
-        lo = new_lo
-        hi = new_hi
+                    hot[t // BLOCK] = True
+        for b in range(n_blocks):
+            n_hot += hot[b]
     return g
 
 
