@@ -9,8 +9,10 @@ local light level (lamina) and the medulla responds to oriented edges:
    SeqSLAM's patch normalisation on a fixed grid of patches it is shift-equivariant, so a camera
    that moves by a few pixels sees the same normalised image, moved.
 2. :func:`gabor_energy`: the response energy ``sqrt(even^2 + odd^2)`` of a quadrature pair of
-   Gabor filters at a few orientations (a complex Gabor kernel), computed for a whole batch with
-   one FFT per image: phase-invariant edge and bar detectors.
+   Gabor filters at a few orientations (a complex Gabor kernel): phase-invariant edge and bar
+   detectors.  :func:`gabor_energy` convolves by FFT; :func:`optic_lobe` by a compiled direct
+   convolution (each kernel is the sum of two separable ones), which agrees with it to
+   float32 rounding and is about three times faster on one 32x64 frame.
 3. Max pooling over ``pool_size x pool_size`` cells, the square root (compresses the heavy tail
    of the energies) and a per-image z-score (divisive normalisation: only the pattern of
    responses counts, not the image's overall contrast).
@@ -98,6 +100,36 @@ def _lcn(x: np.ndarray, sigma: float, eps: float, plan=None) -> np.ndarray:
     return _kernels().lcn(np.ascontiguousarray(x), taps, index_h, index_w, eps2, out)
 
 
+def _gabor_factors(n_orientations: int, wavelength: float, size: int) -> tuple:
+    """The 1-d factors of the Gabor kernels (checked settings): ``g, a, b, dc, z``.
+
+    Kernel ``k`` is ``(a[k](x) b[k](y) - dc[k] g(x) g(y)) / z[k]``: the circular Gaussian
+    envelope ``g(x) g(y)`` times the carrier ``exp(2 pi i (x cos + y sin) / wavelength)``,
+    which splits into a factor along x and one along y; minus the envelope times the even
+    part's mean (``dc``, so that flat regions give no response); over its L1 norm ``z``.
+    """
+    r = size // 2
+    t = np.arange(-r, r + 1, dtype=np.float64)
+    g = np.exp(-(t**2) / (2.0 * (0.56 * wavelength) ** 2))
+    theta = np.arange(n_orientations)[:, None] * np.pi / n_orientations
+    a = g * np.exp(2j * np.pi * np.cos(theta) * t / wavelength)
+    b = g * np.exp(2j * np.pi * np.sin(theta) * t / wavelength)
+    carrier = b[:, :, None] * a[:, None, :]  # (orientation, y, x)
+    envelope = np.outer(g, g)
+    dc = carrier.real.sum(axis=(1, 2)) / envelope.sum()
+    z = np.abs(carrier - dc[:, None, None] * envelope).sum(axis=(1, 2))
+    return g, a, b, dc, z
+
+
+def _check_gabor(n_orientations, wavelength, size) -> tuple[int, float, int]:
+    n_orientations = check_positive_int(n_orientations, "n_orientations")
+    wavelength = _check_positive_real(wavelength, "wavelength")
+    size = check_positive_int(size, "size", minimum=3)
+    if size % 2 == 0:
+        raise ValueError(f"size must be odd (a kernel centred on a pixel); got {size}")
+    return n_orientations, wavelength, size
+
+
 def gabor_bank(n_orientations: int = 4, wavelength: float = 6.0, size: int = 11) -> np.ndarray:
     """Complex Gabor kernels: the real part is the even filter, the imaginary part the odd one.
 
@@ -108,23 +140,11 @@ def gabor_bank(n_orientations: int = 4, wavelength: float = 6.0, size: int = 11)
     Returns
     -------
     ndarray of complex128, shape (n_orientations, size, size)
+        Axis 1 is y (rows), axis 2 is x (columns).
     """
-    n_orientations = check_positive_int(n_orientations, "n_orientations")
-    wavelength = _check_positive_real(wavelength, "wavelength")
-    size = check_positive_int(size, "size", minimum=3)
-    if size % 2 == 0:
-        raise ValueError(f"size must be odd (a kernel centred on a pixel); got {size}")
-    r = size // 2
-    y, x = np.mgrid[-r : r + 1, -r : r + 1].astype(np.float64)
-    theta = np.arange(n_orientations)[:, None, None] * np.pi / n_orientations
-    along = x * np.cos(theta) + y * np.sin(theta)
-    across = -x * np.sin(theta) + y * np.cos(theta)
-    sigma = 0.56 * wavelength
-    envelope = np.exp(-(along**2 + across**2) / (2.0 * sigma**2))
-    kernel = envelope * np.exp(2j * np.pi * along / wavelength)
-    dc = kernel.real.sum(axis=(1, 2), keepdims=True) / envelope.sum(axis=(1, 2), keepdims=True)
-    kernel = kernel - dc * envelope
-    return kernel / np.abs(kernel).sum(axis=(1, 2), keepdims=True)
+    g, a, b, dc, z = _gabor_factors(*_check_gabor(n_orientations, wavelength, size))
+    kernel = b[:, :, None] * a[:, None, :] - dc[:, None, None] * np.outer(g, g)
+    return kernel / z[:, None, None]
 
 
 def _spectra(bank: np.ndarray, h: int, w: int) -> tuple[np.ndarray, tuple[int, int]]:
@@ -206,7 +226,7 @@ def optic_lobe(
 
 
 class OpticLobe:
-    """:func:`optic_lobe` with its settings checked once and the kernels' spectra cached.
+    """:func:`optic_lobe` with its settings checked once and the kernels' factors cached.
 
     Calling it on a validated float32 stack (N, H, W) returns the features; used by the
     ``kenyon`` encoder, which encodes one frame at a time when streaming.
@@ -215,7 +235,15 @@ class OpticLobe:
     def __init__(self, lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size):
         self.lcn_sigma = _check_positive_real(lcn_sigma, "lcn_sigma")
         self.lcn_eps = _check_positive_real(lcn_eps, "lcn_eps")
-        self.bank = gabor_bank(n_orientations, wavelength, kernel_size)
+        gabor = _check_gabor(n_orientations, wavelength, kernel_size)
+        self.bank = gabor_bank(*gabor)
+        # the kernels' 1-d factors as the compiled filter takes them, float32
+        g, a, b, dc, z = _gabor_factors(*gabor)
+        f32 = np.float32
+        self._factors = tuple(
+            np.ascontiguousarray(v, dtype=f32)
+            for v in (g, a.real, a.imag, b.real, b.imag, dc, 1.0 / z)
+        )
         self.pool = check_positive_int(pool_size, "pool_size")
         self._cache: dict = {}
 
@@ -229,35 +257,20 @@ class OpticLobe:
         return self.bank.shape[0] * (h // pool) * (w // pool)
 
     def _plan(self, h: int, w: int) -> tuple:
-        """Kernel spectra, FFT size and LCN set-up for images of (h, w), made once."""
+        """The LCN set-up for images of (h, w), made once."""
         if (h, w) not in self._cache:
-            spectra, shape = _spectra(self.bank, h, w)
-            lcn = _lcn_plan(self.lcn_sigma, self.lcn_eps, h, w)
-            self._cache[(h, w)] = (spectra, shape, lcn)
+            self._cache[(h, w)] = _lcn_plan(self.lcn_sigma, self.lcn_eps, h, w)
         return self._cache[(h, w)]
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         n, h, w = x.shape
         n_features = self.n_features(h, w)
-        spectra, shape, lcn_plan = self._plan(h, w)
-        n_kernels, pool = self.bank.shape[0], self.pool
         if n > 64:  # small batches (a streamed frame) need no check of /proc/meminfo
-            fh, fw = shape
-            # per image in a block: complex64 spectra and products of every kernel
-            check_memory(
-                min(n, _BLOCK) * n_kernels * fh * fw * 8 * 3 + n * n_features * 4,
-                f"optic_lobe on {n} images of {h}x{w}",
-            )
-        kernels = _kernels()
-        r = self.bank.shape[1] // 2
+            check_memory(n * n_features * 4, f"optic_lobe on {n} images of {h}x{w}")
         features = np.empty((n, n_features), dtype=np.float32)
-        for start in range(0, n, _BLOCK):
-            block = _lcn(x[start : start + _BLOCK], self.lcn_sigma, self.lcn_eps, lcn_plan)
-            # as gabor_energy, then max pooling and the square root in one compiled pass
-            spectrum = sfft.fft2(block, s=shape, axes=(1, 2))
-            full = sfft.ifft2(spectrum[:, None] * spectra[None], axes=(2, 3), overwrite_x=True)
-            energy = np.abs(full[:, :, r : r + h, r : r + w])
-            kernels.pool_sqrt(energy, pool, features[start : start + len(block)])
-        # per-image z-score (NumPy's mean and std, float32); a blank image has no edges:
-        # every feature is equal and the row stays all zeros
-        return kernels.zscore_rows(features, np.float32(1e-12))
+        # LCN, Gabor energy, max pooling, square root and the per-image z-score (a blank
+        # image has no edges: every feature is equal and the row stays all zeros), compiled,
+        # one image at a time
+        return _kernels().optic_lobe(
+            np.ascontiguousarray(x), *self._plan(h, w), *self._factors, self.pool, features
+        )
