@@ -89,6 +89,46 @@ STAGES = {
 }
 
 
+#: stage -> its row label in the table
+LABELS = {
+    "pixels": "`pixels` (bar)",
+    "lobe-cosine": "optic lobe, cosine",
+    "kenyon-uncentred": "+ Kenyon cells, not centred",
+    "kenyon": "+ centring (`kenyon`, shipped)",
+    "kenyon-4proj": "+ 4 projections (4 x 1024 cells)",
+}
+#: data set -> its column heading in the table
+COLUMNS = {
+    "nordland 0-999": "Nordland 0-999",
+    "nordland 1000-1999": "Nordland 1000-1999",
+    "viewpoint 0-999": "viewpoint 0-999",
+    "subset100 s->w": "subset100 s->w",
+}
+
+
+def render_table(data: dict) -> str:
+    """The Markdown table of a ``--json`` document: AUC per stage and data set (the random
+    stages as mean [min, max] over the seeds)."""
+    results = data["results"]
+    keys = [k for k in COLUMNS if k in results]
+    lines = [
+        "| stage (+cann) | " + " | ".join(COLUMNS[k] for k in keys) + " |",
+        "|---" * (len(keys) + 1) + "|",
+    ]
+    for stage, label in LABELS.items():
+        cells = []
+        for key in keys:
+            row = results[key]["stages"].get(stage)
+            if row is None:
+                cells.append("-")
+            elif row["seeds"]:
+                cells.append(f"{row['auc_mean']:.3f} [{row['auc_min']:.3f}, {row['auc_max']:.3f}]")
+            else:
+                cells.append(f"{row['auc_mean']:.3f}")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def run_stage(front: Encoder, ref, qry, gt) -> dict:
     method = Method("ablation+cann", front, FILTERS["cann"]()).fit(ref)
     S = method.score(qry)
