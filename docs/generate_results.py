@@ -5,9 +5,9 @@ Usage::
     python docs/generate_results.py           # rewrite the pages that changed
     python docs/generate_results.py --check   # exit 1, naming them, if any page is stale
 
-Every number on ``docs/results/*.md``, in the README's "Which method should I use" table and
-in the fly front end's ablation table comes from a JSON file committed under ``benchmarks/``;
-nothing is typed by hand.  Each
+Every number on ``docs/results/*.md``, in the README's "Which method should I use" table, in
+the fly front end's ablation table and in the reliability page's fault table comes from a JSON
+file committed under ``benchmarks/``; nothing is typed by hand.  Each
 benchmark script owns the Markdown of its page: a pure function
 ``render_markdown(data: dict) -> str`` in ``benchmarks/<name>.py`` that returns the protocol,
 the machine and the tables, with headings from level 2.  This script adds the page title and
@@ -38,6 +38,8 @@ BEGIN = (
     "from benchmarks/accuracy.json -->"
 )
 END = "<!-- which-method:end -->"
+#: the guide page that repeats the fault battery's table between the markers of faults.py
+RELIABILITY_FILE = ROOT / "docs" / "guide" / "reliability.md"
 #: the guide page that holds the kenyon ablation table between its two marker lines
 ABLATION_FILE = ROOT / "docs" / "guide" / "fly-frontend.md"
 ABLATION_JSON = "benchmarks/fly-ablation.json"
@@ -322,6 +324,11 @@ def outputs() -> dict[Path, str]:
     accuracy = load_json(PAGES[0])
     if accuracy is not None:
         out.update({path: render_block(path, accuracy) for path in WHICH_METHOD_FILES})
+    faults = load_json(PAGES[3])
+    if faults is not None:  # the battery's table on the reliability guide page, too
+        module = _benchmark_module("faults")
+        table = module.render_markdown(faults).rstrip("\n")
+        out[RELIABILITY_FILE] = splice(RELIABILITY_FILE, module.DOC_BEGIN, module.DOC_END, table)
     ablation = ROOT / ABLATION_JSON
     if ablation.is_file():
         table = _benchmark_module("fly_ablation").render_table(json.loads(ablation.read_text()))
