@@ -10,7 +10,7 @@ import pytest
 
 from flyvpr.temporal.cann import _kernels, _readout
 from flyvpr.temporal.cann._kernels import excitation_kernel
-from flyvpr.temporal.cann._speed import SpeedBank
+from flyvpr.temporal.cann._speed import SpeedBank, tie_winner
 
 
 @pytest.fixture(params=["plain", "compiled"])
@@ -38,7 +38,7 @@ def test_kernel_taps_and_normalisation(width, radius):
 
 
 # -- shift, traces ---------------------------------------------------------------------------
-@pytest.mark.parametrize("k", [0, 1, 3, -2, 7, -7, 9])
+@pytest.mark.parametrize("k", [0, 1, 3, -2, 7, -7, 9, -9, -12])
 def test_shift(kernels, k):
     a = np.arange(7, dtype=np.float32)
     expected = np.full(7, -1.0, np.float32)
@@ -64,6 +64,21 @@ def test_update_traces_against_a_loop(kernels):
             for i in range(n):
                 moved = old[c, j, i - k] * keeps[c] if 0 <= i - k < n else 0.0
                 assert new[c, j, i] == pytest.approx(moved + x[i] * coefs[c], abs=1e-6)
+
+
+@pytest.mark.parametrize("n_cur", [1, 2])
+@pytest.mark.parametrize("stride", [1, 2, 3])
+def test_evidence_stats_against_numpy(kernels, n_cur, stride):
+    rng = np.random.default_rng(10 * n_cur + stride)
+    traces = rng.normal(size=(n_cur, 3, 11)).astype(np.float32)
+    evidence = traces[0] if n_cur == 1 else np.full((3, 11), np.nan, np.float32)
+    centre, spread = np.empty(3), np.empty(3)
+    kernels["evidence_stats"](traces, evidence, stride, centre, spread)
+    total = traces.sum(axis=0)
+    np.testing.assert_allclose(evidence, total, rtol=1e-6)
+    sample = total[:, ::stride].astype(np.float64)
+    np.testing.assert_allclose(centre, sample.mean(axis=1), rtol=1e-6)
+    np.testing.assert_allclose(spread, sample.std(axis=1), rtol=1e-6)
 
 
 # -- input normalisation ---------------------------------------------------------------------
@@ -96,8 +111,10 @@ def test_normalise_against_a_reference(kernels):
     m = 0.5 * np.array([0.0, 0.5, -0.5, 1.0, 0.0]) + 0.5 * z
     v = z - m
     q = 0.75 * 1.0 + 0.25 * v * v
-    expected = 3.0 * np.clip(v / np.sqrt(q + 0.1), -0.6, 0.6)
-    out = _normalise(kernels, row, mean, var, clip=0.6, gain=3.0)
+    # clip 0.45: the values are -0.463, -0.493, 0.493, 0.401, -0.463, clipped on both sides
+    expected = 3.0 * np.clip(v / np.sqrt(q + 0.1), -0.45, 0.45)
+    assert (expected == -1.35).sum() == 3 and (expected == 1.35).sum() == 1
+    out = _normalise(kernels, row, mean, var, clip=0.45, gain=3.0)
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(mean, m, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(var, q, rtol=1e-5)
@@ -133,6 +150,10 @@ def test_normalise_log_and_constant_rows(kernels):
         # end, whose excitation lifts a unit of the next block above threshold in step 1 (so
         # it fires in step 2), one at the route's end; a quiet block between.
         (1400, [3, 510, 511, 1100, 1399], 3),
+        # A route of 4 blocks and one place (the last block holds only the route's end, which
+        # fires), and a unit that input alone lifts above threshold in step 1 in a block
+        # where nothing else is above it (1536-2047): it fires in step 2.
+        (2049, [3, 510, 511, 1100, 2048], 3),
     ],
 )
 def test_integrate_against_a_loop(kernels, n, firing, steps):
@@ -145,6 +166,8 @@ def test_integrate_against_a_loop(kernels, n, firing, steps):
         # Just below threshold, and kept below it by the inhibition unless the excitation
         # from 510-511 lifts it.
         u[512], s[512] = 0.9, 12.0
+    if n > 2048:
+        u[1700], s[1700] = 0.9, 15.0
     hk = excitation_kernel(15.0, 1.0) / np.float32(3.0)
     h, hw = 1 / 3, 3.2 / 3
     ref = u.astype(np.float64)
@@ -156,6 +179,9 @@ def test_integrate_against_a_loop(kernels, n, firing, steps):
         ref = ref * (1 - h) + s * h - hw * g + exc
         if n > 512 and step == 0:
             assert ref[512] - exc[512] < theta < ref[512]  # it fires in step 2
+        if n > 2048 and step == 0:
+            assert exc[1700] == 0 and ref[1700] > theta
+            assert (ref[1536:2048] > theta).sum() == 1
     out = u.copy()
     g_out = kernels["integrate"](
         out, s, np.float32(h), np.float32(1 - h), np.float32(theta), tonic, hw, hk, steps
@@ -271,6 +297,23 @@ def test_bank_votes_decay_and_ties_prefer_one(kernels):
         bank.update(np.zeros(300, np.float32), t == 0, kernels["update_traces"])
     assert bank.index == 1 and bank.votes[0] == bank.votes[2] == 0.0
     assert bank.votes[1] == pytest.approx(1e-6 * np.exp(-0.5))
+
+
+@pytest.mark.parametrize(
+    ("values", "winner"),
+    [
+        ([0.5, 0.5 + 0.7e-5, 0.2], 0),  # within 1e-5 (the floor of the tolerance): a tie
+        ([0.5, 0.5 + 1.5e-5, 0.2], 1),  # beyond it
+        ([100.0, 100.0 + 0.9e-3, 3.0], 0),  # relative to the highest: 1e-5 x 100
+        ([100.0, 100.0 + 1.1e-3, 3.0], 1),
+        ([0.5, 0.505, -1000.0], 0),  # relative to the largest magnitude: 1e-5 x 1000
+        ([0.5, 0.515, -1000.0], 1),
+    ],
+)
+def test_tie_winner_tolerance(values, winner):
+    # candidate 0 is preferred (nearest 1 place per frame), then 1, then 2
+    assert tie_winner(values, [0, 1, 2]) == winner
+    assert tie_winner(values, [2, 1, 0]) == 1  # 2 is never within reach of the highest
 
 
 def test_get_kernels_chooses_by_flag_and_numba(monkeypatch):

@@ -19,6 +19,17 @@ from ._kernels import evidence_stats as plain_evidence_stats
 TIE_TOLERANCE = 1e-5
 
 
+def tie_winner(values: list, preference: list) -> int:
+    """The first index in ``preference`` whose value is within rounding of the highest.
+
+    Within rounding: at least the highest minus ``TIE_TOLERANCE`` times the largest magnitude
+    among the values (and at least ``TIE_TOLERANCE`` itself).
+    """
+    highest = max(values)
+    level = highest - TIE_TOLERANCE * max(1.0, highest, -min(values))
+    return next(j for j in preference if values[j] >= level)
+
+
 class SpeedBank:
     """Evidence traces per candidate velocity and the votes between them.
 
@@ -100,10 +111,7 @@ class SpeedBank:
         # Rows holding the same values in other places (early on, or along a blank stretch)
         # tie up to rounding; such ties go to the candidate nearest 1 place per frame, so the
         # vote does not depend on the order of a floating-point sum.
-        values = self.contrast.tolist()
-        highest = max(values)
-        level = highest - TIE_TOLERANCE * max(1.0, highest, -min(values))
-        best = next(j for j in self.preference if values[j] >= level)
+        best = tie_winner(self.contrast.tolist(), self.preference)
         # Rows whose spread is at rounding level (identical frames, which adaptation turns
         # into rounding residue) carry no evidence and do not vote.
         if spread[best] > self.noise and self.contrast[best] >= self.min_contrast:
