@@ -308,6 +308,7 @@ def test_bank_votes_decay_and_ties_prefer_one(kernels):
         ([100.0, 100.0 + 1.1e-3, 3.0], 1),
         ([0.5, 0.505, -1000.0], 0),  # relative to the largest magnitude: 1e-5 x 1000
         ([0.5, 0.515, -1000.0], 1),
+        ([1.0 - 1e-5 * 1.0, 1.0, 0.0], 0),  # exactly at the edge: still a tie
     ],
 )
 def test_tie_winner_tolerance(values, winner):
