@@ -142,7 +142,11 @@ def gabor_bank(n_orientations: int = 4, wavelength: float = 6.0, size: int = 11)
     ndarray of complex128, shape (n_orientations, size, size)
         Axis 1 is y (rows), axis 2 is x (columns).
     """
-    g, a, b, dc, z = _gabor_factors(*_check_gabor(n_orientations, wavelength, size))
+    return _compose(*_gabor_factors(*_check_gabor(n_orientations, wavelength, size)))
+
+
+def _compose(g, a, b, dc, z) -> np.ndarray:
+    """The 2-d kernels (orientation, y, x) of the factors of :func:`_gabor_factors`."""
     kernel = b[:, :, None] * a[:, None, :] - dc[:, None, None] * np.outer(g, g)
     return kernel / z[:, None, None]
 
@@ -235,10 +239,10 @@ class OpticLobe:
     def __init__(self, lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size):
         self.lcn_sigma = _check_positive_real(lcn_sigma, "lcn_sigma")
         self.lcn_eps = _check_positive_real(lcn_eps, "lcn_eps")
-        gabor = _check_gabor(n_orientations, wavelength, kernel_size)
-        self.bank = gabor_bank(*gabor)
+        factors = _gabor_factors(*_check_gabor(n_orientations, wavelength, kernel_size))
+        self.bank = _compose(*factors)
         # the kernels' 1-d factors as the compiled filter takes them, float32
-        g, a, b, dc, z = _gabor_factors(*gabor)
+        g, a, b, dc, z = factors
         f32 = np.float32
         self._factors = tuple(
             np.ascontiguousarray(v, dtype=f32)
