@@ -11,10 +11,12 @@ computed from the observation; nothing is hard-coded.
 Usage::
 
     python benchmarks/faults.py [--json faults.json] [--only PREFIX ...] [--markdown out.md]
-                                [--docs docs/guide/reliability.md] [--from-json faults.json]
+                                [--from-json faults.json]
 
 Prints the table (case, class, expected, observed, verdict); exit status 0 when every case
-is OK, 1 otherwise.  ``render_markdown(json.load(...))`` renders the table for the docs.
+is OK, 1 otherwise.  ``render_markdown(json.load(...))`` renders the table for the docs:
+``python docs/generate_results.py`` puts it on the results page and, between the markers
+below, on ``docs/guide/reliability.md``.
 The cases live in ``fault_cases.py`` and ``fault_cases_runs.py``; fixtures in
 ``fault_fixtures.py``.
 """
@@ -298,13 +300,6 @@ DOC_BEGIN = (
 DOC_END = "<!-- END faults table -->"
 
 
-def splice_table(doc: Path, data: dict) -> None:
-    """Replace the table between the markers of ``doc`` with ``render_markdown(data)``."""
-    text = doc.read_text()
-    start, end = text.index(DOC_BEGIN) + len(DOC_BEGIN), text.index(DOC_END)
-    doc.write_text(text[:start] + "\n" + render_markdown(data) + text[end:])
-
-
 def render_text(data: dict) -> str:
     rows = [("case", "class", "expected", "observed", "verdict")]
     keys = ("case", "class", "expected", "observed", "verdict")
@@ -326,9 +321,6 @@ def main(argv=None) -> int:
     parser.add_argument("--only", nargs="*", default=(), help="case id prefixes to run")
     parser.add_argument("--keep", type=Path, help="run in this folder and keep it")
     parser.add_argument(
-        "--docs", type=Path, help="splice the table into this page (docs/guide/reliability.md)"
-    )
-    parser.add_argument(
         "--from-json", type=Path, help="render an earlier run's JSON instead of running"
     )
     args = parser.parse_args(argv)
@@ -345,8 +337,6 @@ def main(argv=None) -> int:
         args.json.write_text(json.dumps(data, indent=2) + "\n")
     if args.markdown:
         args.markdown.write_text(render_markdown(data))
-    if args.docs:
-        splice_table(args.docs, data)
     return 0 if data["counts"]["FAIL"] == 0 else 1
 
 
