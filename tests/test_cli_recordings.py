@@ -12,6 +12,7 @@ import pytest
 av = pytest.importorskip("av")
 pytest.importorskip("rosbags")
 
+from fake_filters import Scripted  # noqa: E402
 from flyvpr.cli import main  # noqa: E402
 from flyvpr.sources.writers import write_bag, write_video  # noqa: E402
 from flyvpr.synthetic import make_route, save_route  # noqa: E402
@@ -86,11 +87,17 @@ def test_map_then_localize_scores_like_evaluate(
         capsys, "localize", "--map", tmp_path / "r.map", rec[QUERY], "--out", tmp_path / "q.csv"
     )
     assert code == 0, err
-    assert re.search(rf"{N} frames .* frames/s, median confidence .*, \d+ relocations", out)
+    assert re.search(
+        rf"{N} frames .* frames/s, median confidence .*, localized \d+\.\d% of frames, "
+        r"\d+ relocations\n",
+        out,
+    )
+    assert "odometry" not in out  # the query has no positions
     rows = list(csv.DictReader((tmp_path / "q.csv").open()))
     assert len(rows) == N and list(rows[0]) == [
-        "frame", "timestamp", "place", "confidence", "relocated"
+        "frame", "timestamp", "place", "confidence", "state", "relocated"
     ]  # fmt: skip
+    assert {r["state"] for r in rows} <= {"localized", "lost"}
     code, out, err = _run(
         capsys, "localize", "--map", tmp_path / "r.map", rec[QUERY],
         "--ground-truth", "frames", "--tolerance", TOL, "--out", tmp_path / "q.jsonl",
@@ -101,6 +108,7 @@ def test_map_then_localize_scores_like_evaluate(
         assert abs(_auc(out) - expected) < 1e-4
     records = [json.loads(line) for line in (tmp_path / "q.jsonl").read_text().splitlines()]
     assert len(records) == N and set(records[0]) >= {"frame", "place", "confidence", "correct"}
+    assert list(records[0])[3:5] == ["confidence", "state"]
 
 
 def test_positions_from_the_bag_and_every(recordings, tmp_path, capsys):
@@ -200,6 +208,43 @@ def test_localize_benchmark_mode_still_works(recordings, tmp_path, capsys):
     )  # fmt: skip
     assert code == 0, err
     assert f"{N} frames streamed" in out
+    assert re.search(
+        r" correct \(best place within tolerance\), localized \d+\.\d% of frames, ", out
+    )
+    rows = list(csv.DictReader((tmp_path / "l.csv").open()))
+    assert list(rows[0]) == ["frame", "source_frame", "place", "confidence", "state", "correct"]
+    assert {r["state"] for r in rows} <= {"localized", "lost"}
+
+
+@pytest.mark.parametrize("odometry", [True, False])
+def test_localize_benchmark_mode_states_and_odometry(
+    recordings, tmp_path, capsys, monkeypatch, odometry
+):
+    import flyvpr.methods
+
+    velocities = []
+
+    class Alternating(Scripted):
+        def __init__(self, states=("lost", "localized")):
+            super().__init__(states)
+
+        def step(self, scores_row, velocity=None):
+            velocities.append(velocity)
+            return super().step(scores_row, velocity)
+
+    monkeypatch.setitem(flyvpr.methods.FILTERS, "cann", Alternating)
+    code, out, err = _run(
+        capsys, "localize", "--dataset", "generic", "--root", recordings["png"]["summer"].parent,
+        "--reference", "summer", "--query", QUERY, "--tolerance", TOL, "--no-cache",
+        "--method", "pixels+cann", "--speed", "2", "--out", tmp_path / "l.csv",
+        *(["--odometry"] if odometry else []),
+    )  # fmt: skip
+    assert code == 0, err
+    assert f"{N // 2} frames streamed" in out and ", localized 50.0% of frames, " in out
+    rows = list(csv.DictReader((tmp_path / "l.csv").open()))
+    assert [r["state"] for r in rows] == ["lost", "localized"] * (N // 4)
+    assert [int(r["source_frame"]) for r in rows] == list(range(0, N, 2))
+    assert velocities == [None] + [2.0 if odometry else None] * (N // 2 - 1)
 
 
 def test_ground_truth_by_positions_scores_like_frames(recordings, tmp_path, capsys):
@@ -249,3 +294,197 @@ def test_video_speed_benchmark_runs_small():
         res["video_localize_fps"] / res["video_decode_fps"]
     )
     assert res["video_peak_rss_mb_12"] > 10 and res["video_peak_rss_mb_24"] > 10
+
+
+# -- state and odometry, with a scripted filter in place of the map's CANN ----------------------
+@pytest.fixture
+def scripted(monkeypatch):
+    """Every map loaded gets a :class:`Scripted` filter (alternately lost and localized, the
+    lost first); the list holds them, to read the velocities they were given."""
+    from flyvpr.maps import Map
+
+    load = Map.load.__func__
+    made = []
+
+    def load_scripted(cls, path, *, size=None):
+        m = load(cls, path, size=size)
+        m.method.filter = Scripted(("lost", "localized"))
+        m.method.filter.reset()
+        made.append(m.method.filter)
+        return m
+
+    monkeypatch.setattr(Map, "load", classmethod(load_scripted))
+    return made
+
+
+@pytest.fixture(scope="module")
+def maps(recordings, tmp_path_factory):
+    """The summer bag as a map with positions (3 m per place) and as one without."""
+    root = tmp_path_factory.mktemp("maps")
+    bag = str(recordings["ros1"]["summer"])
+    assert main(["map", bag, "--position-topic", "/odom", "--out", str(root / "xy.map")]) == 0
+    assert main(["map", bag, "--out", str(root / "bare.map")]) == 0
+    return {"xy": root / "xy.map", "bare": root / "bare.map"}
+
+
+def test_records_carry_the_filters_state(recordings, maps, scripted, tmp_path, capsys):
+    night = recordings["ros1"][QUERY]
+    for name in ("s.csv", "s.jsonl"):
+        code, out, err = _run(
+            capsys, "localize", "--map", maps["xy"], night, "--every", "3", "--out", tmp_path / name
+        )
+        assert code == 0, err
+        assert ", localized 50.0% of frames, 0 relocations\n" in out
+    rows = list(csv.DictReader((tmp_path / "s.csv").open()))
+    assert list(rows[0]) == [
+        "frame", "timestamp", "place", "confidence", "state", "relocated", "x", "y"
+    ]  # fmt: skip
+    assert [r["state"] for r in rows] == ["lost", "localized"] * (N // 6)
+    records = [json.loads(line) for line in (tmp_path / "s.jsonl").read_text().splitlines()]
+    assert [r["state"] for r in records] == ["lost", "localized"] * (N // 6)
+    assert list(records[0])[:6] == [
+        "frame", "timestamp", "place", "confidence", "state", "relocated"
+    ]  # fmt: skip
+    code, out, err = _run(capsys, "localize", "--map", maps["xy"], night, "--every", "20")
+    assert code == 0, err
+    assert f"{N // 20} frames" in out and ", localized 33.3% of frames," in out  # 1 of 3
+
+
+def test_odometry_from_a_positions_csv(recordings, maps, scripted, tmp_path, capsys):
+    xy = tmp_path / "night_xy.csv"  # 1.5 m per frame, from frame 5 on
+    xy.write_text("frame,x,y\n" + "".join(f"{i},{1.5 * i},7\n" for i in range(5, N)))
+    code, out, err = _run(
+        capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY], "--positions", xy
+    )
+    assert code == 0, err
+    assert (
+        f"\nodometry: path integration from --positions {xy} (map spacing 3 m per place)\n" in out
+    )
+    # frames 0-4 have no position and frame 5 none before it: no odometry for them
+    assert scripted[-1].velocities == [None] * 6 + [0.5] * (N - 6)
+
+
+def test_odometry_from_the_bags_topic_and_every(recordings, maps, scripted, capsys):
+    code, out, err = _run(
+        capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY],
+        "--position-topic", "/odom", "--every", "2",
+    )  # fmt: skip
+    assert code == 0, err
+    assert (
+        "odometry: path integration from --position-topic /odom (map spacing 3 m per place)" in out
+    )
+    assert scripted[-1].velocities == [None] + [2.0] * (N // 2 - 1)
+
+
+def test_no_odometry_turns_it_off(recordings, maps, scripted, capsys):
+    code, out, err = _run(
+        capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY],
+        "--position-topic", "/odom", "--no-odometry",
+    )  # fmt: skip
+    assert code == 0, err
+    assert "\nodometry: off (--no-odometry)\n" in out and "path integration" not in out
+    assert scripted[-1].velocities == [None] * N
+
+
+def test_odometry_off_when_the_map_has_no_positions(recordings, maps, scripted, capsys):
+    code, out, err = _run(
+        capsys, "localize", "--map", maps["bare"], recordings["ros1"][QUERY],
+        "--position-topic", "/odom",
+    )  # fmt: skip
+    assert code == 0, err
+    note = [line for line in out.splitlines() if line.startswith("odometry")]
+    assert note == [
+        "odometry: off, the map has no positions to turn the metres of --position-topic /odom "
+        "into places (build it with --positions or --position-topic)"
+    ]
+    assert scripted[-1].velocities == [None] * N
+
+
+def test_odometry_off_for_a_filter_without_it(recordings, maps, capsys):
+    code, out, err = _run(
+        capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY],
+        "--position-topic", "/odom", "--every", "10",
+    )  # fmt: skip
+    assert code == 0, err  # the real CANN takes odometry
+    assert "odometry: path integration from --position-topic /odom" in out
+    bag = str(recordings["ros1"]["summer"])
+    plain = maps["xy"].parent / "pixels.map"
+    argv = ["map", bag, "--method", "pixels", "--position-topic", "/odom", "--out", str(plain)]
+    assert main(argv) == 0
+    code, out, err = _run(
+        capsys, "localize", "--map", plain, recordings["ros1"][QUERY], "--position-topic", "/odom"
+    )
+    assert code == 0, err
+    assert "\nodometry: off, pixels has no filter that takes it\n" in out
+
+
+def test_map_summary_gives_the_spacing(recordings, tmp_path, capsys):
+    code, out, err = _run(
+        capsys, "map", recordings["ros1"]["summer"], "--position-topic", "/odom", "--every", "2",
+        "--out", tmp_path / "m.map",
+    )  # fmt: skip
+    assert code == 0, err
+    assert "(every 2, with positions, 6 m per place, size 32x64" in out
+
+
+def test_odometry_options_belong_to_their_mode(recordings, maps, tmp_path, capsys):
+    code, _, err = _run(capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY],
+                        "--odometry")  # fmt: skip
+    assert code == 2 and "--odometry: with --map, odometry comes from the recording's" in err
+    code, _, err = _run(capsys, "localize", "--dataset", "generic", "--no-odometry")
+    assert code == 2 and "--no-odometry needs --map MAP SOURCE" in err
+
+
+def test_odometry_off_when_the_maps_positions_give_no_spacing(
+    recordings, scripted, tmp_path, capsys
+):
+    still = tmp_path / "still.csv"  # every place at the same spot
+    still.write_text("frame,x,y\n" + "".join(f"{i},4,2\n" for i in range(N)))
+    bag = recordings["ros1"]["summer"]
+    code, out, err = _run(capsys, "map", bag, "--positions", still, "--out", tmp_path / "s.map")
+    assert code == 0, err
+    assert "(every 1, with positions, size 32x64" in out
+    code, out, err = _run(
+        capsys, "localize", "--map", tmp_path / "s.map", recordings["ros1"][QUERY],
+        "--position-topic", "/odom",
+    )  # fmt: skip
+    assert code == 0, err
+    assert "\nodometry: off, the map's positions give no spacing between places\n" in out
+    assert scripted[-1].velocities == [None] * N
+
+
+def test_html_trace_carries_the_state(recordings, maps, scripted, tmp_path, capsys):
+    code, _, err = _run(
+        capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY], "--every", "10",
+        "--render", tmp_path / "t.html",
+    )  # fmt: skip
+    assert code == 0, err
+    page = (tmp_path / "t.html").read_text()
+    data = json.loads(re.search(r"const D = (\{.*\});", page).group(1))
+    assert [row[5] for row in data["rows"]] == ["lost", "localized"] * 3
+    assert 'r[5] === "lost" ? "  LOST"' in page
+
+
+def test_video_caption_says_lost(recordings, maps, scripted, tmp_path, capsys, monkeypatch):
+    from PIL import ImageDraw
+
+    captions = []
+    draw = ImageDraw.Draw
+
+    class Spy:
+        def __init__(self, img):
+            self.draw = draw(img)
+
+        def text(self, xy, text, **kwargs):
+            captions.append(text)
+            self.draw.text(xy, text, **kwargs)
+
+    monkeypatch.setattr(ImageDraw, "Draw", Spy)
+    code, _, err = _run(
+        capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY], "--every", "10",
+        "--render", tmp_path / "t.mp4",
+    )  # fmt: skip
+    assert code == 0, err
+    # "frame 0  t=1000.00s  place 0  conf 0.224  LOST": what follows the confidence
+    assert [c.split("  ")[4:] for c in captions] == [["LOST"], []] * 3
+    assert [c.split("  ")[0] for c in captions] == [f"frame {i}" for i in range(0, N, 10)]

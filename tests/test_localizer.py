@@ -1,8 +1,12 @@
+import math
+
 import numpy as np
 import pytest
 
-from flyvpr.localizer import Localizer
-from flyvpr.methods import make_method
+from fake_filters import Scripted, Stateless
+from flyvpr.localizer import LOCALIZED, LOST, Fix, Fixes, Localizer
+from flyvpr.maps import Map
+from flyvpr.methods import Method, make_method
 from flyvpr.synthetic import make_route
 
 
@@ -19,7 +23,7 @@ def test_stream_matches_batch(route, method):
     batch = make_method(method, 0, frontend_params=params).fit(ref)
     S = batch.score(qry)
     loc = Localizer(method, random_state=0, frontend_params=params).fit(ref)
-    places, confs = zip(*(loc.update(img) for img in qry), strict=True)
+    places, confs, _ = zip(*(loc.update(img) for img in qry), strict=True)
     np.testing.assert_array_equal(places, S.argmax(axis=1))
     np.testing.assert_allclose(confs, S.max(axis=1), rtol=1e-4, atol=1e-5)
     assert loc.n_frames_ == len(qry)
@@ -82,3 +86,165 @@ def test_calls_before_fit_raise_not_fitted_naming_the_call(call):
     loc = Localizer("flyhash", random_state=0)
     with pytest.raises(NotFittedError, match=f"Localizer.{call}"):
         getattr(loc, call) if call == "n_places" else getattr(loc, call)(np.zeros((32, 64)))
+
+
+# -- Fix, states and odometry, with scripted filters (fake_filters.py) ---------------------------
+@pytest.fixture(scope="module")
+def ref():
+    return np.random.default_rng(0).random((6, 32, 64), dtype=np.float32)
+
+
+def _loc(ref, filt, **kwargs):
+    method = Method("pixels+test", make_method("pixels", 0).frontend, filt)
+    return Localizer(method, **kwargs).fit(ref)
+
+
+def test_fix_is_a_named_tuple_of_place_confidence_state(ref):
+    assert Fix._fields == ("place", "confidence", "state")
+    loc = _loc(ref, Scripted())
+    raw = make_method("pixels", 0).fit(ref).score(ref[4][None])[0]
+    fix = loc.update(ref[4])
+    assert type(fix) is Fix
+    assert fix == (4, pytest.approx(float(raw.max())), LOCALIZED)
+    assert type(fix.place) is int and type(fix.confidence) is float and type(fix.state) is str
+
+
+def test_update_batch_returns_fixes(ref):
+    assert Fixes._fields == ("places", "confidences", "scores", "relocated", "states")
+    loc = _loc(ref, Scripted((LOST, LOCALIZED)))
+    out = loc.update_batch(ref[[2, 0, 5]])
+    assert type(out) is Fixes
+    assert out.places.tolist() == [2, 0, 5]
+    assert out.scores.shape == (3, 6)
+    np.testing.assert_array_equal(out.confidences, out.scores.max(axis=1))
+    assert out.relocated.tolist() == [False, False, False]
+    assert out.states.tolist() == [LOST, LOCALIZED, LOST]
+    assert out.states.dtype.kind == "U"
+
+
+def test_states_come_from_the_filter(ref):
+    assert (LOCALIZED, LOST) == ("localized", "lost")
+    loc = _loc(ref, Scripted((LOCALIZED, LOST, LOST)))
+    assert [loc.update(img).state for img in ref[:5]] == [
+        LOCALIZED, LOST, LOST, LOCALIZED, LOST
+    ]  # fmt: skip
+    loc.reset()
+    assert loc.update_batch(ref[:4]).states.tolist() == [LOCALIZED, LOST, LOST, LOCALIZED]
+
+
+@pytest.mark.parametrize("filt", [None, Stateless()], ids=["no filter", "stateless filter"])
+def test_without_a_filter_state_the_fix_is_localized_with_the_raw_score(ref, filt):
+    loc = _loc(ref, filt)
+    raw = make_method("pixels", 0).fit(ref).score(ref)
+    scale = 1.0 if filt is None else 2.0  # the stateless filter doubles the row
+    for i in range(len(ref)):
+        assert loc.update(ref[i]) == (i, pytest.approx(scale * raw[i].max()), LOCALIZED)
+    out = loc.update_batch(ref)
+    assert out.states.tolist() == [LOCALIZED] * len(ref)
+    np.testing.assert_allclose(out.confidences, scale * raw.max(axis=1), rtol=1e-6)
+
+
+def test_distance_is_divided_by_the_place_spacing(ref):
+    loc = _loc(ref, Scripted(), place_spacing=2.0)
+    assert loc.place_spacing == 2.0 and loc.uses_odometry
+    loc.update(ref[0], distance=3.0)
+    loc.update(ref[1])
+    loc.update(ref[2], velocity=0.25)
+    loc.update(ref[3], distance=0)  # standing still is odometry too
+    loc.scores(ref[4], distance=5.0)
+    loc.update(ref[5], velocity=-1)  # driving backwards, in places
+    assert loc.method.filter.velocities == [1.5, None, 0.25, 0.0, 2.5, -1.0]
+    loc.reset()
+    loc.update_batch(ref[:4], distances=[3.0, np.nan, None, 0.0])
+    loc.update_batch(ref[:2], velocities=np.array([0.5, np.nan]))
+    loc.update_batch(ref[:2], velocities=[1, 2])
+    loc.update_batch(ref[:1])
+    assert loc.method.filter.velocities == [1.5, None, None, 0.0, 0.5, None, 1.0, 2.0, None]
+
+
+def test_filters_without_odometry_ignore_it(ref):
+    loc = _loc(ref, Stateless(), place_spacing=2.0)
+    assert not loc.uses_odometry
+    assert loc.update(ref[3], distance=4.0).place == 3
+    assert loc.update_batch(ref[:2], velocities=[1.0, 1.0]).places.tolist() == [0, 1]
+    assert loc.method.filter.n_steps == 3
+    assert not _loc(ref, None).uses_odometry
+    assert Localizer("pixels+cann").uses_odometry
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        ({"distance": 1.0}, ValueError, "needs place_spacing"),
+        ({"distance": 1.0, "velocity": 1.0}, ValueError, "not both"),
+        ({"distance": math.nan}, ValueError, "distance must be finite; got nan"),
+        ({"distance": math.inf}, ValueError, "distance must be finite"),
+        ({"distance": -0.5}, ValueError, "distance must be >= 0; got -0.5"),
+        ({"distance": "3"}, TypeError, "distance must be a number; got str"),
+        ({"distance": True}, TypeError, "distance must be a number; got bool"),
+        ({"velocity": math.nan}, ValueError, "velocity must be finite; got nan"),
+        ({"velocity": None, "distance": None}, None, None),
+    ],
+)
+@pytest.mark.parametrize("spacing", [None, 2.0])
+def test_bad_odometry_is_refused(ref, kwargs, error, match, spacing):
+    loc = _loc(ref, Scripted(), place_spacing=spacing)
+    if error is None:
+        assert loc.update(ref[0], **kwargs).place == 0
+        return
+    if match == "needs place_spacing" and spacing is not None:
+        assert loc.update(ref[0], **kwargs).place == 0
+        assert loc.method.filter.velocities == [0.5]
+        return
+    with pytest.raises(error, match=match):
+        loc.update(ref[0], **kwargs)
+    assert loc.n_frames_ == 0 and loc.method.filter.velocities == []
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        ({"distances": [1.0, 1.0]}, ValueError, "distances .*need place_spacing"),
+        ({"distances": [1.0, 1.0], "velocities": [1.0, 1.0]}, ValueError, "not both"),
+        ({"distances": [1.0]}, ValueError, r"distances must have shape \(2,\).*got \(1,\)"),
+        ({"velocities": [[1.0, 1.0]]}, ValueError, r"velocities must have shape \(2,\)"),
+        ({"distances": [1.0, -2.0]}, ValueError, "distances must be >= 0; got -2"),
+        ({"velocities": [np.inf, 1.0]}, ValueError, "velocities must be finite"),
+        ({"distances": ["a", 1.0]}, TypeError, "distances must be numbers"),
+        ({"velocities": [True, False]}, TypeError, "velocities must be numbers"),
+    ],
+)
+def test_bad_batch_odometry_is_refused(ref, kwargs, error, match):
+    spacing = None if "need place_spacing" in match else 2.0
+    loc = _loc(ref, Scripted(), place_spacing=spacing)
+    with pytest.raises(error, match=match):
+        loc.update_batch(ref[:2], **kwargs)
+    assert loc.n_frames_ == 0 and loc.method.filter.velocities == []
+
+
+@pytest.mark.parametrize(
+    "spacing, error, match",
+    [
+        (0.0, ValueError, "place_spacing must be a finite number of metres > 0; got 0.0"),
+        (-1.0, ValueError, "> 0; got -1.0"),
+        (math.nan, ValueError, "> 0; got nan"),
+        (math.inf, ValueError, "> 0; got inf"),
+        ("2", TypeError, "place_spacing must be a number of metres; got str"),
+        (True, TypeError, "got bool"),
+    ],
+)
+def test_bad_place_spacing_is_refused(spacing, error, match):
+    with pytest.raises(error, match=match):
+        Localizer("pixels", place_spacing=spacing)
+
+
+def test_from_map_takes_the_maps_spacing(ref):
+    method = make_method("pixels+cann", 0).fit(ref)
+    xy = np.c_[np.arange(6) * 2.5, np.zeros(6)]
+    with_xy = Map(method, (32, 64), np.zeros(6), np.arange(6), xy)
+    assert Localizer.from_map(with_xy).place_spacing == 2.5
+    assert Localizer.from_map(with_xy, place_spacing=4).place_spacing == 4.0
+    bare = Map(method, (32, 64), np.zeros(6), np.arange(6))
+    assert Localizer.from_map(bare).place_spacing is None
+    assert Localizer.from_map(bare, place_spacing=1.5).place_spacing == 1.5
+    assert Localizer("pixels").place_spacing is None

@@ -139,6 +139,26 @@ def test_positions_csv_by_frame_and_timestamp(tmp_path):
         read_positions(bad)
 
 
+def test_positions_interpolated_between_rows(tmp_path):
+    by_frame = tmp_path / "f.csv"
+    by_frame.write_text("frame,x,y\n2,0,10\n6,8,2\n")
+    p = read_positions(by_frame)
+    frames = np.array([0, 2, 3, 4, 6, 7])
+    near = p.at(frames, np.full(6, np.nan))
+    assert np.isnan(near[[0, 2, 3, 5]]).all() and near[[1, 4]].tolist() == [[0, 10], [8, 2]]
+    out = p.at(frames, np.full(6, np.nan), interpolate=True)
+    assert np.isnan(out[[0, 5]]).all()  # outside the rows: no position, as without
+    assert out[1:5].tolist() == [[0, 10], [2, 8], [4, 6], [8, 2]]
+    by_time = tmp_path / "t.csv"
+    by_time.write_text("timestamp,x,y\n10,0,0\n12,4,-2\n13,4,-2\n")
+    q = read_positions(by_time)
+    t = np.array([9.0, 10.0, 10.5, 11.0, 12.5, 14.0])
+    assert q.at(np.zeros(6), t, interpolate=True).tolist() == [
+        [0, 0], [0, 0], [1, -0.5], [2, -1], [4, -2], [4, -2]
+    ]  # fmt: skip
+    assert q.at(np.zeros(6), t).tolist() == [[0, 0], [0, 0], [0, 0], [0, 0], [4, -2], [4, -2]]
+
+
 def test_navsatfix_positions_in_local_metres(tmp_path):
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
@@ -218,7 +238,8 @@ def test_map_round_trip_and_from_map(route, tmp_path):
     assert loaded.info == m.info
     loc = Localizer.from_map(path)
     q = np.stack([resize_area(f, SIZE) for f in route.images["summer"][::2]])
-    places, _, scores, _ = loc.update_batch(q)
+    places, _, scores, _, states = loc.update_batch(q)
+    assert states.shape == (N // 2,)
     assert scores.shape == (N // 2, N // 2)
     assert np.mean(places == np.arange(N // 2)) > 0.8
     with pytest.raises(ModelFileError, match="fitted on 32x64 images"):
@@ -243,10 +264,11 @@ def test_update_batch_equals_update(route):
     qry = np.stack([resize_area(f, SIZE) for f in route.images["winter"]])
     a = Localizer("pixels+cann").fit(ref)
     b = Localizer("pixels+cann").fit(ref)
-    places, conf, _, _ = a.update_batch(qry)
+    places, conf, _, _, states = a.update_batch(qry)
     one = [b.update(f) for f in qry]
-    assert places.tolist() == [p for p, _ in one]
-    np.testing.assert_allclose(conf, [c for _, c in one], rtol=1e-5)
+    assert places.tolist() == [p for p, _, _ in one]
+    np.testing.assert_allclose(conf, [c for _, c, _ in one], rtol=1e-5)
+    assert states.tolist() == [s for _, _, s in one]
 
 
 @pytest.mark.parametrize("suffix", [".mkv", ".avi"])

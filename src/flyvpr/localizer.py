@@ -1,4 +1,4 @@
-"""Streaming localization: one camera frame in, (place index, confidence) out.
+"""Streaming localization: one camera frame in, a :class:`Fix` (place, confidence, state) out.
 
 The :class:`Localizer` wraps a fitted :class:`~flyvpr.methods.Method` whose
 temporal filter (if any) is online.  Each :meth:`Localizer.update` encodes one
@@ -6,9 +6,18 @@ frame, scores it against the reference places and advances the filter by one
 step, so time and memory per frame do not grow with the number of frames seen.
 It gives the same answers as the batch path (``Method.score`` then the row
 argmax), up to float rounding of the one-row versus many-row products.
+
+Odometry, when the robot has it, goes to the filter as the number of places moved since the
+previous frame (``velocity``), or as metres (``distance``), which the localizer divides by
+the map's spacing between places (``place_spacing``).
 """
 
 from __future__ import annotations
+
+import math
+import numbers
+from inspect import signature
+from typing import NamedTuple
 
 import numpy as np
 
@@ -16,7 +25,81 @@ from ._validation import NotFittedError, check_images
 from .methods import DEFAULT_METHOD, Method, make_method
 from .temporal.base import OnlineFilter
 
-__all__ = ["Localizer"]
+__all__ = ["Localizer", "Fix", "Fixes", "LOCALIZED", "LOST"]
+
+#: the filter is sure enough of its place (see :class:`Fix`)
+LOCALIZED = "localized"
+#: the filter's place is only a hint
+LOST = "lost"
+
+
+class Fix(NamedTuple):
+    """The localizer's answer for one frame (see :meth:`Localizer.update`).
+
+    Attributes
+    ----------
+    place : int
+        Index of the best reference place.
+    confidence : float
+        With a filter that reports a state (the CANN): the filter's probability, in [0, 1],
+        that ``place`` is right.  Otherwise (no filter, or a filter without a state) the raw
+        score of the place (similarity or filtered activity; higher = surer), not a
+        probability.
+    state : str
+        ``"localized"`` or ``"lost"``, as the filter decides (the CANN: ``"localized"`` when
+        the confidence is at least 0.5); always ``"localized"`` without a filter or with a
+        filter that has no state.
+    """
+
+    place: int
+    confidence: float
+    state: str
+
+
+class Fixes(NamedTuple):
+    """The localizer's answers for consecutive frames (see :meth:`Localizer.update_batch`).
+
+    Attributes
+    ----------
+    places : ndarray of int64, shape (n,)
+    confidences : ndarray, shape (n,)
+    scores : ndarray, shape (n, n_places)
+        The filtered score rows.
+    relocated : ndarray of bool, shape (n,)
+        Whether the filter relocated its packet at that frame (filters that count
+        relocations, such as the CANN; False otherwise).
+    states : ndarray of str, shape (n,)
+        ``"localized"`` or ``"lost"`` per frame, as in :class:`Fix`.
+    """
+
+    places: np.ndarray
+    confidences: np.ndarray
+    scores: np.ndarray
+    relocated: np.ndarray
+    states: np.ndarray
+
+
+def _check_place_spacing(value) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"place_spacing must be a number of metres; got {type(value).__name__}")
+    value = float(value)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"place_spacing must be a finite number of metres > 0; got {value}")
+    return value
+
+
+def _check_motion(value, name: str, low: float | None) -> float:
+    """One frame's odometry: a finite number (at least ``low`` when given)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a number; got {type(value).__name__}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite; got {value}")
+    if low is not None and value < low:
+        raise ValueError(f"{name} must be >= {low:g}; got {value}")
+    return value
 
 
 class Localizer:
@@ -32,18 +115,27 @@ class Localizer:
         Used when ``method`` is a name.
     frontend_params, filter_params : dict, optional
         Used when ``method`` is a name.
+    place_spacing : float, optional
+        Metres between consecutive reference places, to turn the ``distance`` given to
+        :meth:`update` into places.  :meth:`from_map` takes it from the map's positions
+        (:attr:`flyvpr.maps.Map.place_spacing`).
 
     Examples
     --------
     >>> rng = np.random.default_rng(0)
     >>> ref = rng.random((50, 32, 64), dtype=np.float32)
     >>> loc = Localizer("flyhash", random_state=0).fit(ref)
-    >>> loc.update(ref[7])[0]
+    >>> loc.update(ref[7]).place
     7
     """
 
     def __init__(
-        self, method=DEFAULT_METHOD, random_state=None, frontend_params=None, filter_params=None
+        self,
+        method=DEFAULT_METHOD,
+        random_state=None,
+        frontend_params=None,
+        filter_params=None,
+        place_spacing=None,
     ):
         if isinstance(method, Method):
             self.method = method
@@ -55,10 +147,12 @@ class Localizer:
                 f"method {self.method.name!r} uses filter {type(filt).__name__}, which cannot run "
                 "one frame at a time; choose an online filter (e.g. cann)"
             )
+        self.place_spacing = _check_place_spacing(place_spacing)
+        self._takes_velocity = filt is not None and "velocity" in signature(filt.step).parameters
         self.n_frames_ = 0
 
     @classmethod
-    def from_map(cls, path, *, size=None) -> Localizer:
+    def from_map(cls, path, *, size=None, place_spacing=None) -> Localizer:
         """A localizer over the places of a map (see :class:`flyvpr.maps.Map`).
 
         Parameters
@@ -67,13 +161,18 @@ class Localizer:
             A map file written by ``flyvpr map`` / :meth:`Map.save`, or a loaded map.
         size : (int, int), optional
             The image size the caller will feed; a map built for another size is refused.
+        place_spacing : float, optional
+            Metres between consecutive places; default the map's
+            :attr:`~flyvpr.maps.Map.place_spacing` (None for a map without positions).
 
         The map is kept as ``map_`` (timestamps, positions and thumbnails of the places).
         """
         from .maps import Map
 
         m = path if isinstance(path, Map) else Map.load(path, size=size)
-        loc = cls(m.method)
+        if place_spacing is None:
+            place_spacing = m.place_spacing
+        loc = cls(m.method, place_spacing=place_spacing)
         loc.map_ = m
         return loc
 
@@ -101,8 +200,68 @@ class Localizer:
         self._check_fitted("n_places")
         return self.method.frontend.n_reference_
 
-    def scores(self, image, velocity=None) -> np.ndarray:
+    @property
+    def uses_odometry(self) -> bool:
+        """Whether the filter takes odometry (path integration: the CANN); others ignore it."""
+        return self._takes_velocity
+
+    def _step(self, row, velocity):
+        filt = self.method.filter
+        if velocity is None or not self._takes_velocity:
+            return filt.step(row)
+        return filt.step(row, velocity=velocity)
+
+    def _velocity(self, velocity, distance) -> float | None:
+        """One frame's odometry in places (None: the filter estimates the movement itself)."""
+        if distance is None:
+            return None if velocity is None else _check_motion(velocity, "velocity", None)
+        if velocity is not None:
+            raise ValueError(
+                "give the movement as velocity (places) or distance (metres), not both"
+            )
+        distance = _check_motion(distance, "distance", 0.0)
+        if self.place_spacing is None:
+            raise ValueError(
+                "distance (metres) needs place_spacing, the metres between places: give "
+                "Localizer(place_spacing=...) or a map with positions, or pass velocity in places"
+            )
+        return distance / self.place_spacing
+
+    def _velocities(self, velocities, distances, n: int) -> list:
+        """Per-frame odometry in places for :meth:`update_batch` (None where NaN or None)."""
+        if velocities is not None and distances is not None:
+            raise ValueError(
+                "give the movement as velocities (places) or distances (metres), not both"
+            )
+        if velocities is None and distances is None:
+            return [None] * n
+        name = "velocities" if distances is None else "distances"
+        raw = np.asarray(velocities if distances is None else distances)
+        if raw.dtype == object:  # None marks a frame without odometry
+            raw = np.array([np.nan if v is None else v for v in raw.ravel()]).reshape(raw.shape)
+        if raw.dtype.kind not in "iuf":
+            raise TypeError(f"{name} must be numbers (NaN or None for none); got dtype {raw.dtype}")
+        arr = raw.astype(np.float64)
+        if arr.shape != (n,):
+            raise ValueError(f"{name} must have shape ({n},), one entry per image; got {arr.shape}")
+        if np.isinf(arr).any():
+            raise ValueError(f"{name} must be finite (NaN or None: no odometry for that frame)")
+        if distances is not None:
+            if (arr < 0).any():
+                raise ValueError(f"distances must be >= 0; got {arr[arr < 0][0]:g}")
+            if self.place_spacing is None:
+                raise ValueError(
+                    "distances (metres) need place_spacing, the metres between places: give "
+                    "Localizer(place_spacing=...) or a map with positions, or pass velocities "
+                    "in places"
+                )
+            arr = arr / self.place_spacing
+        return [None if math.isnan(v) else float(v) for v in arr]
+
+    def scores(self, image, velocity=None, distance=None) -> np.ndarray:
         """Advance by one frame and return the filtered score row (n_reference,).
+
+        ``velocity`` and ``distance`` are as in :meth:`update`.
 
         Raises
         ------
@@ -110,54 +269,71 @@ class Localizer:
             Before :meth:`fit`.
         """
         self._check_fitted("scores")
-        return self._scores(image, velocity)
+        return self._scores(image, self._velocity(velocity, distance))
 
     def _scores(self, image, velocity) -> np.ndarray:
         frontend = self.method.frontend
         frame = check_images(np.asarray(image)[None], "image", frontend.image_shape_)
         row = frontend.score_codes(frontend._encode(frame))[0]
-        filt = self.method.filter
-        if filt is not None:
-            row = filt.step(row) if velocity is None else filt.step(row, velocity=velocity)
+        if self.method.filter is not None:
+            row = self._step(row, velocity)
         self.n_frames_ += 1
         return row
 
-    def update_batch(self, images):
+    def _state(self) -> str:
+        state = getattr(self.method.filter, "state_", None)
+        return LOCALIZED if state is None else str(state)
+
+    def update_batch(self, images, velocities=None, distances=None) -> Fixes:
         """Process consecutive frames: the front end scores them in one vectorised call, then
         the filter steps through the rows in order (as :meth:`update` frame by frame).
 
         Parameters
         ----------
         images : array-like, shape (n, H, W)
+        velocities : array-like, shape (n,), optional
+            Places moved since the previous frame, per frame (NaN or None: no odometry for
+            that frame).
+        distances : array-like, shape (n,), optional
+            Metres moved since the previous frame, per frame (NaN or None: none), divided by
+            ``place_spacing``.  Not with ``velocities``.
 
         Returns
         -------
-        places : ndarray of int64, shape (n,)
-        confidences : ndarray, shape (n,)
-        scores : ndarray, shape (n, n_places)
-            The filtered score rows.
-        relocated : ndarray of bool, shape (n,)
-            Whether the filter relocated its packet at that frame (filters that count
-            relocations, such as the CANN; False otherwise).
+        Fixes
+            ``places``, ``confidences``, ``scores`` (the filtered rows, (n, n_places)),
+            ``relocated`` and ``states``.
+
+        Raises
+        ------
+        NotFittedError
+            Before :meth:`fit`.
+        ValueError
+            As :meth:`update`, or for odometry of another length than ``images``.
         """
         self._check_fitted("update_batch")
         frontend = self.method.frontend
         frames = check_images(images, "images", frontend.image_shape_)
+        moves = self._velocities(velocities, distances, len(frames))
         S = frontend.score_codes(frontend._encode(frames))
         relocated = np.zeros(len(S), dtype=bool)
+        states = [LOCALIZED] * len(S)
         filt = self.method.filter
         if filt is not None:
             out = np.empty(S.shape, dtype=np.float32)
             for i in range(len(S)):
                 before = getattr(filt, "n_relocations_", 0)
-                out[i] = filt.step(S[i])
+                out[i] = self._step(S[i], moves[i])
                 relocated[i] = getattr(filt, "n_relocations_", 0) != before
+                states[i] = self._state()
             S = out
         self.n_frames_ += len(S)
         places = np.argmax(S, axis=1)
-        return places, S[np.arange(len(S)), places], S, relocated
+        return Fixes(
+            places, S[np.arange(len(S)), places], S, relocated, np.array(states, dtype=np.str_)
+        )
 
-    def update(self, image, velocity=None) -> tuple[int, float]:
+    def update(self, image, velocity=None, distance=None) -> Fix:
         """Process one frame.
 
         Parameters
@@ -165,21 +341,34 @@ class Localizer:
         image : array-like, shape (H, W)
             Gray image in [0, 1] at the reference images' size.
         velocity : float, optional
-            Places moved since the previous frame (odometry), for filters that use it.
+            Places moved since the previous frame (odometry), for filters that use it
+            (:attr:`uses_odometry`: path integration in the CANN; other filters ignore it);
+            without it the CANN estimates the movement from the images.
+        distance : float, optional
+            Metres moved since the previous frame (odometry, GPS), instead of ``velocity``:
+            the filter gets ``distance / place_spacing`` places.
 
         Returns
         -------
-        place : int
-            Index of the best reference place.
-        confidence : float
-            Its score (the filtered activity or similarity; higher = surer).
+        Fix
+            ``place`` (index of the best reference place), ``confidence`` and ``state``.
+            With a filter that reports a state (the CANN), ``confidence`` is its probability
+            that the place is right and ``state`` is ``"localized"`` or ``"lost"``; without a
+            filter, or with one that has no state, ``confidence`` is the raw score of the place
+            (similarity or filtered activity; higher = surer, not a probability) and ``state``
+            is always ``"localized"``.
 
         Raises
         ------
         NotFittedError
             Before :meth:`fit`.
+        ValueError
+            For both ``velocity`` and ``distance``; a non-finite one or a negative
+            ``distance``; ``distance`` without a ``place_spacing``.
+        TypeError
+            For a ``velocity`` or ``distance`` that is not a number.
         """
         self._check_fitted("update")
-        row = self._scores(image, velocity)
+        row = self._scores(image, self._velocity(velocity, distance))
         place = int(np.argmax(row))
-        return place, float(row[place])
+        return Fix(place, float(row[place]), self._state())

@@ -97,6 +97,23 @@ class Map:
     def has_positions(self) -> bool:
         return self.positions is not None
 
+    @property
+    def place_spacing(self) -> float | None:
+        """Metres between consecutive places: the median over neighbouring places that both
+        have a position (None without positions, or when that median is 0 or undefined).
+
+        It turns odometry in metres into places for the localizer
+        (:meth:`flyvpr.localizer.Localizer.from_map`).
+        """
+        if self.positions is None:
+            return None
+        steps = np.hypot(*np.diff(self.positions, axis=0).T)
+        steps = steps[np.isfinite(steps)]
+        if steps.size == 0:
+            return None
+        spacing = float(np.median(steps))
+        return spacing if spacing > 0 else None
+
     # -- building ---------------------------------------------------------------------------
     @classmethod
     def build(

@@ -2,7 +2,8 @@
 
 Each frame shows the query image, the matched place's thumbnail from the map, the filter's
 activity over all places (the CANN's place units, normalised per frame, the matched place
-marked) and the confidence over time, with a red mark where the filter relocated its packet.
+marked) and the confidence over time, with a red mark where the filter relocated its packet;
+the caption says ``LOST`` on frames where the filter is lost (its place is only a hint).
 Everything is drawn with numpy (and Pillow for one line of text), so no plotting library is
 needed.  The video is encoded with PyAV as it goes (H.264, or MPEG-4 Part 2 where libx264 is
 missing), so memory does not grow with the run; the page keeps a small summary per frame (the
@@ -21,6 +22,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from ._io import atomic_open
+from .localizer import LOST
 
 __all__ = ["VideoTrace", "HtmlTrace", "open_trace", "HTML_BINS"]
 
@@ -121,6 +123,7 @@ class VideoTrace:
         text = (
             f"frame {int(b.indices[i])}" + (f"  t={t:.2f}s" if np.isfinite(t) else "")
             + f"  place {place}  conf {float(step.confidences[i]):.3g}"
+            + ("  LOST" if step.states[i] == LOST else "")
             + ("  RELOCATED" if step.relocated[i] else "")
         )  # fmt: skip
         ImageDraw.Draw(img).text((4, 2), text, fill=(0, 0, 0))
@@ -147,7 +150,7 @@ class HtmlTrace:
             t = float(b.timestamps[i])
             self.rows.append(
                 [int(b.indices[i]), t if np.isfinite(t) else None, int(step.places[i]),
-                 float(step.confidences[i]), bool(step.relocated[i])]
+                 float(step.confidences[i]), bool(step.relocated[i]), str(step.states[i])]
             )  # fmt: skip
 
     def close(self) -> None:
@@ -229,7 +232,8 @@ function draw(i) {
   }
   g.fillStyle = "#000"; g.fillRect(i * 512 / n, 192, 1, 64);
   info.textContent = "frame " + r[0] + (r[1] === null ? "" : "  t=" + r[1].toFixed(2) + " s") +
-    "  place " + r[2] + "  confidence " + r[3].toPrecision(3) + (r[4] ? "  RELOCATED" : "");
+    "  place " + r[2] + "  confidence " + r[3].toPrecision(3) + (r[5] === "lost" ? "  LOST" : "") +
+    (r[4] ? "  RELOCATED" : "");
 }
 let timer = null;
 document.getElementById("play").onclick = () => {

@@ -1,8 +1,9 @@
 """Localizing a recording against a map, frame by frame, with or without a ground truth.
 
 :func:`track` streams a source (:mod:`flyvpr.sources`) through a map's localizer a batch at a
-time and yields one :class:`Step` per batch; memory does not grow with the recording, unless
-``keep_scores`` asks for the score rows (needed to score the run against a ground truth).
+time and yields one :class:`Step` per batch; memory does not grow with the recording.  With
+``odometry`` it also passes the distance the robot moved between kept frames, from the
+recording's own positions, to the localizer (path integration).
 :func:`ground_truth_frames` and :func:`ground_truth_positions` build the ground truth of a
 recording from frame alignment or from positions.
 """
@@ -32,6 +33,8 @@ class Step:
     scores : ndarray, shape (n, n_places)
         The filter's score rows (the CANN's activity over places).
     relocated : ndarray of bool, shape (n,)
+    states : ndarray of str, shape (n,)
+        ``"localized"`` or ``"lost"`` (see :class:`flyvpr.localizer.Fix`).
     positions : ndarray, shape (n, 2), or None
         The map positions of the matched places, when the map has positions.
     """
@@ -41,22 +44,48 @@ class Step:
     confidences: np.ndarray
     scores: np.ndarray
     relocated: np.ndarray
+    states: np.ndarray
     positions: np.ndarray | None
 
 
 def track(
-    localizer, source: Source, *, every=None, positions=None, realtime=False, batch: int = 32
+    localizer,
+    source: Source,
+    *,
+    every=None,
+    positions=None,
+    odometry: bool = False,
+    realtime=False,
+    batch: int = 32,
 ) -> Iterator[Step]:
     """Localize every kept frame of ``source`` with ``localizer`` (from :meth:`Map.localizer`).
 
     Parameters
     ----------
+    every : str or Every, optional
+        Which frames to keep (:func:`flyvpr.sources.parse_every`).
+    positions : Positions, optional
+        The recording's own positions (metres): needed by a metres ``every`` and by
+        ``odometry``.
+    odometry : bool
+        Pass each kept frame's distance from the previous kept frame, from ``positions``
+        (interpolated between their rows), to :meth:`Localizer.update_batch`, which turns it
+        into places with its ``place_spacing``.  The first frame, and a frame where either
+        position is unknown, get no odometry (the filter estimates that step itself).
     realtime : bool
         Pace the frames to the recording's timestamps (wall clock), one frame at a time.
+
+    Raises
+    ------
+    ValueError
+        For ``odometry`` without ``positions``.
     """
+    if odometry and positions is None:
+        raise ValueError("odometry needs positions: the recording's own (--positions CSV)")
     m = getattr(localizer, "map_", None)
     size = localizer.method.frontend.image_shape_
     start_wall = start_t = None
+    last_xy = np.full((1, 2), np.nan)  # the previous kept frame's position
     for b in source.batches(size, every=every, positions=positions, batch=1 if realtime else batch):
         if realtime and np.isfinite(b.timestamps[0]):
             if start_wall is None:
@@ -64,11 +93,19 @@ def track(
             delay = (float(b.timestamps[0]) - start_t) - (time.monotonic() - start_wall)
             if delay > 0:
                 time.sleep(delay)
-        places, conf, scores, relocated = localizer.update_batch(b.images)
+        distances = None
+        if odometry:
+            xy = positions.at(b.indices, b.timestamps, interpolate=True)
+            moved = xy - np.concatenate([last_xy, xy[:-1]])
+            distances = np.hypot(moved[:, 0], moved[:, 1])  # NaN where a position is unknown
+            last_xy = xy[-1:]
+        fixes = localizer.update_batch(b.images, distances=distances)
         xy = None
         if m is not None and m.positions is not None:
-            xy = m.positions[places]
-        yield Step(b, places, conf, scores, relocated, xy)
+            xy = m.positions[fixes.places]
+        yield Step(
+            b, fixes.places, fixes.confidences, fixes.scores, fixes.relocated, fixes.states, xy
+        )
 
 
 def ground_truth_frames(query_index, reference_index, tolerance: int) -> np.ndarray:

@@ -60,10 +60,35 @@ def _ground_truth(args, m, step, gt_positions):
     return ground_truth_positions(xy, m.positions, args.radius)
 
 
+def _odometry(args, loc, positions) -> tuple[bool, str | None]:
+    """Whether to integrate the recording's motion, and the summary's line about it."""
+    if positions is None:
+        return False, None
+    if args.no_odometry:
+        return False, "odometry: off (--no-odometry)"
+    where = (
+        f"--positions {args.positions}"
+        if args.positions is not None
+        else f"--position-topic {args.position_topic}"
+    )
+    if not loc.map_.has_positions:
+        return False, (
+            f"odometry: off, the map has no positions to turn the metres of {where} into places "
+            "(build it with --positions or --position-topic)"
+        )
+    if loc.place_spacing is None:
+        return False, "odometry: off, the map's positions give no spacing between places"
+    if not loc.uses_odometry:
+        return False, f"odometry: off, {loc.map_.method.name} has no filter that takes it"
+    return True, (
+        f"odometry: path integration from {where} (map spacing {loc.place_spacing:.3g} m per place)"
+    )
+
+
 def cmd_localize_recording(args) -> int:
     from tqdm.auto import tqdm
 
-    from ..localizer import Localizer
+    from ..localizer import LOCALIZED, Localizer
     from ..sources import RecordingError, open_source, read_positions
     from ..tracking import track
 
@@ -96,14 +121,15 @@ def cmd_localize_recording(args) -> int:
     gt_positions = None
     if args.ground_truth not in (None, "frames"):
         gt_positions = read_positions(args.ground_truth)
-    columns = ["frame", "timestamp", "place", "confidence", "relocated"]
+    odometry, odometry_note = _odometry(args, loc, positions)
+    columns = ["frame", "timestamp", "place", "confidence", "state", "relocated"]
     if m.has_positions:
         columns += ["x", "y"]
     if args.ground_truth is not None:
         columns.append("correct")
     show = not args.quiet and sys.stderr.isatty()
     confidences, scores, truth = [], [], []
-    n_frames = n_reloc = 0
+    n_frames = n_reloc = n_localized = 0
     t0 = time.perf_counter()
     with ExitStack() as stack:
         out = None
@@ -113,7 +139,7 @@ def cmd_localize_recording(args) -> int:
         tracers = [stack.enter_context(_tracer(path, m)) for path in renders]
         bar = stack.enter_context(tqdm(desc="localizing", unit="frame", disable=not show))
         for step in track(loc, source, every=args.every, positions=positions,
-                          realtime=args.realtime):  # fmt: skip
+                          odometry=odometry, realtime=args.realtime):  # fmt: skip
             b = step.batch
             gt = None
             if args.ground_truth is not None:
@@ -130,6 +156,7 @@ def cmd_localize_recording(args) -> int:
                     "timestamp": float(b.timestamps[i]),
                     "place": int(step.places[i]),
                     "confidence": float(step.confidences[i]),
+                    "state": str(step.states[i]),
                     "relocated": int(step.relocated[i]),
                 }
                 if m.has_positions:
@@ -141,6 +168,7 @@ def cmd_localize_recording(args) -> int:
             confidences.append(step.confidences.astype(np.float32))
             n_frames += len(b)
             n_reloc += int(step.relocated.sum())
+            n_localized += int((step.states == LOCALIZED).sum())
             bar.update(len(b))
         if n_frames == 0:  # inside the with: no output file is left behind
             raise RecordingError(f"{source.describe()}: --every {args.every} keeps no frame")
@@ -149,8 +177,11 @@ def cmd_localize_recording(args) -> int:
     print(
         f"{m.method.name}: {n_frames} frames of {source.describe()} (every "
         f"{args.every or 1}) against {m.n_places} places: {n_frames / elapsed:.1f} frames/s, "
-        f"median confidence {float(np.median(conf)):.4g}, {n_reloc} relocations"
+        f"median confidence {float(np.median(conf)):.4g}, localized "
+        f"{100 * n_localized / n_frames:.1f}% of frames, {n_reloc} relocations"
     )
+    if odometry_note is not None:
+        print(odometry_note)
     if args.ground_truth is not None:
         _print_scores(args, np.concatenate(scores), np.concatenate(truth))
     for path in [args.out, *renders]:

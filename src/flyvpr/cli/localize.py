@@ -36,7 +36,9 @@ def cmd_localize(args) -> int:
         return _cmd_recording(args)
     if args.dataset is None:
         raise UsageError("give --map MAP SOURCE (a recording) or --dataset (a benchmark layout)")
-    for option in ("render", "ground_truth", "topic", "every", "positions", "position_topic"):
+    for option in (
+        "render", "ground_truth", "topic", "every", "positions", "position_topic", "no_odometry"
+    ):  # fmt: skip
         if getattr(args, option):
             raise UsageError(f"{flag(option)} needs --map MAP SOURCE")
     if args.realtime:
@@ -53,7 +55,12 @@ def _cmd_recording(args) -> int:
         raise UsageError("a recording needs both --map MAP and SOURCE")
     if args.dataset is not None:
         raise UsageError("--dataset: give a benchmark layout or --map MAP SOURCE, not both")
-    for option in ("speed", "odometry", "method", "param"):
+    if args.odometry:
+        raise UsageError(
+            "--odometry: with --map, odometry comes from the recording's own positions "
+            "(--positions or --position-topic) and is on by default; --no-odometry turns it off"
+        )
+    for option in ("speed", "method", "param"):
         if getattr(args, option):
             raise UsageError(f"{flag(option)}: the map fixes the method; not with --map")
     return cmd_localize_recording(args)
@@ -63,7 +70,7 @@ def _cmd_benchmark(args) -> int:
     from tqdm.auto import tqdm
 
     from ..evaluation import speed_profile
-    from ..localizer import Localizer
+    from ..localizer import LOCALIZED, Localizer
 
     if args.method not in METHODS:
         raise UsageError(f"--method: unknown method {args.method!r}")
@@ -81,25 +88,27 @@ def _cmd_benchmark(args) -> int:
     gt = bench.ground_truth
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(["frame", "source_frame", "place", "confidence", "correct"])
-    correct = 0
+    writer.writerow(["frame", "source_frame", "place", "confidence", "state", "correct"])
+    correct = n_localized = 0
     t0 = time.perf_counter()
     show = not args.quiet and sys.stderr.isatty()
     for i in tqdm(range(len(qry)), desc="localizing", unit="frame", disable=not show):
         velocity = None
         if args.odometry and i > 0:
             velocity = float(keep[i] - keep[i - 1])
-        place, conf = loc.update(qry[i], velocity=velocity)
+        place, conf, state = loc.update(qry[i], velocity=velocity)
         ok = bool(gt[i, place])
         correct += ok
-        writer.writerow([i, int(keep[i]), place, f"{conf:.6g}", int(ok)])
+        n_localized += state == LOCALIZED
+        writer.writerow([i, int(keep[i]), place, f"{conf:.6g}", state, int(ok)])
     elapsed = time.perf_counter() - t0
     if args.out is not None:
         write_text_atomic(args.out, buf.getvalue())
     print_protocol(bench.protocol(), args)
     print(
         f"{args.method}: {len(qry)} frames streamed, {correct / len(qry):.3f} correct "
-        f"(best place within tolerance), {1000 * elapsed / len(qry):.3f} ms/frame"
+        f"(best place within tolerance), localized {100 * n_localized / len(qry):.1f}% of "
+        f"frames, {1000 * elapsed / len(qry):.3f} ms/frame"
     )
     if args.out is not None:
         print(f"wrote {args.out}")
@@ -114,10 +123,12 @@ def register(sub) -> None:
         description=(
             "With --map MAP SOURCE: stream a recording (image folder, video or ROS bag) through "
             "the map's localizer and write one record per frame (frame, timestamp, place, "
-            "confidence, relocated, and x, y when the map has positions) as CSV or JSON Lines "
-            "(.jsonl); with --ground-truth it also scores itself. With --dataset: fit METHOD on "
-            "the benchmark's reference traverse, then feed its query frames one at a time to "
-            "the streaming localizer and write frame, place, confidence and correctness to CSV."
+            "confidence, state, relocated, and x, y when the map has positions) as CSV or JSON "
+            "Lines (.jsonl); with --ground-truth it also scores itself. When the recording has "
+            "positions and the map too, the distance moved between frames goes to the filter "
+            "as odometry (path integration). With --dataset: fit METHOD on the benchmark's "
+            "reference traverse, then feed its query frames one at a time to the streaming "
+            "localizer and write frame, place, confidence, state and correctness to CSV."
         ),
     )
     p.add_argument(
@@ -154,7 +165,13 @@ def register(sub) -> None:
     p.add_argument(
         "--odometry",
         action="store_true",
-        help="pass the true places moved per frame to the filter as velocity input",
+        help="with --dataset: pass the true places moved per frame to the filter as velocity input",
+    )
+    p.add_argument(
+        "--no-odometry",
+        action="store_true",
+        help="with --map: do not pass the distance moved between frames (from --positions or "
+        "--position-topic) to the filter; it then estimates the movement from the images",
     )
     p.add_argument(
         "--out", type=Path, help="CSV (or with --map, .jsonl) file to write (atomically)"

@@ -77,6 +77,8 @@ def cmd_map(args) -> int:
     )
     m.save(args.out)
     where = "with positions" if m.has_positions else "without positions"
+    if m.place_spacing is not None:
+        where += f", {m.place_spacing:.3g} m per place"
     print(
         f"{args.method}: map of {m.n_places} places from {m.info['source_kind']} {args.source} "
         f"(every {m.info['every']}, {where}, size {args.size[0]}x{args.size[1]}, "

@@ -40,13 +40,22 @@ class Positions:
         self.by = by
         self.origin = origin
 
-    def at(self, indices, timestamps) -> np.ndarray:
-        """Positions (n, 2) of frames; NaN where a frame index has no row."""
+    def at(self, indices, timestamps, *, interpolate: bool = False) -> np.ndarray:
+        """Positions (n, 2) of frames; NaN where a frame index has no row.
+
+        With ``interpolate``, a frame between two rows gets the straight-line blend of their
+        positions instead of the nearer one (or, keyed by frame, NaN), so that distances
+        between consecutive frames follow the motion when positions are sparser than frames
+        (odometry); outside the rows' range it is as without.
+        """
         if self.by == "frame":
             q = np.asarray(indices, np.float64)
             pos = np.clip(np.searchsorted(self.keys, q), 0, len(self.keys) - 1)
             out = self.xy[pos].copy()
             out[self.keys[pos] != q] = np.nan
+            if interpolate:
+                inside = (q >= self.keys[0]) & (q <= self.keys[-1])
+                out[inside] = self._interp(q[inside])
             return out
         t = np.asarray(timestamps, np.float64)
         if not np.isfinite(t).all():
@@ -54,12 +63,18 @@ class Positions:
                 f"positions {self.origin} are keyed by timestamp, but the recording's frames "
                 "have no timestamps: use a frame,x,y CSV"
             )
+        if interpolate:
+            return self._interp(t)
         right = np.clip(np.searchsorted(self.keys, t), 1, max(1, len(self.keys) - 1))
         left = right - 1
         if len(self.keys) == 1:
             return np.repeat(self.xy[:1], len(t), axis=0)
         nearer_left = np.abs(t - self.keys[left]) <= np.abs(self.keys[right] - t)
         return self.xy[np.where(nearer_left, left, right)]
+
+    def _interp(self, q: np.ndarray) -> np.ndarray:
+        """Linear interpolation between rows (the first/last row's position beyond them)."""
+        return np.c_[np.interp(q, self.keys, self.xy[:, 0]), np.interp(q, self.keys, self.xy[:, 1])]
 
 
 def _read_csv(path: Path) -> Positions:

@@ -1,0 +1,39 @@
+"""Map properties that need no recording: the spacing between places."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from flyvpr.maps import Map
+
+
+def _map(positions):
+    n = 5 if positions is None else len(positions)
+    return Map(None, (32, 64), np.zeros(n), np.arange(n), positions)
+
+
+@pytest.mark.parametrize(
+    "positions, spacing",
+    [
+        (None, None),
+        ([[0, 0], [3, 4]], 5.0),
+        ([[0, 0], [3, 4], [3, 6], [3, 9]], 3.0),  # steps 5, 2, 3: the median, not the mean
+        ([[0, 0], [3, 4], [3, 6], [3, 7]], 2.0),  # steps 5, 2, 1
+        ([[0, 0], [0, 1], [0, 4], [0, 8], [0, 9]], 2.0),  # steps 1, 3, 4, 1: mean of the middle
+        # only neighbours that both have a position: steps 5 and 2 (not 10 across the gap)
+        ([[0, 0], [3, 4], [np.nan, np.nan], [9, 12], [9, 14]], 3.5),
+        ([[0, 0], [np.nan, 1.0], [2, 0]], None),  # no two neighbours with positions
+        ([[np.nan, np.nan]] * 3, None),
+        ([[1, 1]] * 4, None),  # a map recorded standing still has no spacing
+    ],
+)
+def test_place_spacing_is_the_median_step_between_neighbours(positions, spacing):
+    m = _map(None if positions is None else np.array(positions, dtype=np.float64))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "mean of empty slice" on the way to None
+        assert m.place_spacing == spacing
+    if spacing is not None:
+        assert type(m.place_spacing) is float

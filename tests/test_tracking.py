@@ -1,0 +1,81 @@
+"""Tracking a recording: states per batch and odometry from the recording's own positions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fake_filters import Scripted
+from flyvpr.localizer import LOCALIZED, LOST, Localizer
+from flyvpr.methods import Method, make_method
+from flyvpr.sources import Positions, Source
+from flyvpr.tracking import track
+
+N = 6
+
+
+class Frames(Source):
+    """A recording in memory: frame i at i / 10 s."""
+
+    kind = "frames"
+
+    def __init__(self, images):
+        super().__init__("memory")
+        self.images = images
+
+    def _frames(self):
+        for i, img in enumerate(self.images):
+            yield i, i / 10, lambda size, img=img: img
+
+
+@pytest.fixture
+def images():
+    return np.random.default_rng(1).random((N, 32, 64), dtype=np.float32)
+
+
+def _loc(images, spacing=2.0):
+    method = Method(
+        "pixels+scripted", make_method("pixels", 0).frontend, Scripted((LOCALIZED, LOST))
+    )
+    return Localizer(method, place_spacing=spacing).fit(images)
+
+
+@pytest.mark.parametrize("batch", [1, 2, 32])
+def test_odometry_is_the_distance_between_kept_frames(images, batch):
+    # frames 0..5 at x = 0, 2, 5, 5, 9, 9 and y = 0 except frame 4 (unknown position)
+    xy = np.array([[0, 0], [2, 0], [5, 0], [5, 0], [np.nan, np.nan], [9, 0]])
+    keep = np.isfinite(xy[:, 0])
+    positions = Positions(np.arange(N)[keep], xy[keep], "frame", "test")
+    loc = _loc(images)
+    steps = list(track(loc, Frames(images), positions=positions, odometry=True, batch=batch))
+    assert sum(len(s.batch) for s in steps) == N
+    # frame 4 gets the position between its neighbours (7, 0): steps of 2, 3, 0, 2 and 2 m
+    assert loc.method.filter.velocities == [None, 1.0, 1.5, 0.0, 1.0, 1.0]
+    places = np.concatenate([s.places for s in steps])
+    states = np.concatenate([s.states for s in steps])
+    assert places.tolist() == list(range(N))
+    assert states.tolist() == [LOCALIZED, LOST] * (N // 2)
+
+
+def test_frames_without_a_position_get_no_odometry(images):
+    positions = Positions(np.array([2, 3, 5]), np.array([[0, 0], [0, 3], [4, 6]]), "frame", "t")
+    loc = _loc(images, spacing=3.0)
+    list(track(loc, Frames(images), positions=positions, odometry=True, batch=4))
+    assert loc.method.filter.velocities == [None, None, None, 1.0, 5 / 6, 5 / 6]
+
+
+def test_odometry_by_timestamp_and_every(images):
+    positions = Positions(np.array([0.0, 0.5]), np.array([[0, 0], [0, 10]]), "timestamp", "t")
+    loc = _loc(images, spacing=4.0)
+    list(track(loc, Frames(images), every="2", positions=positions, odometry=True, batch=2))
+    # frames 0, 2, 4 at t = 0, 0.2, 0.4: 4 m apart (interpolated), one place each
+    assert loc.method.filter.velocities == [None, 1.0, 1.0]
+
+
+def test_without_odometry_the_filter_gets_none(images):
+    positions = Positions(np.arange(N), np.c_[np.arange(N) * 2.0, np.zeros(N)], "frame", "t")
+    loc = _loc(images)
+    list(track(loc, Frames(images), positions=positions))
+    assert loc.method.filter.velocities == [None] * N
+    with pytest.raises(ValueError, match="odometry needs positions"):
+        next(track(loc, Frames(images), odometry=True))
