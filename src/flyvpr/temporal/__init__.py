@@ -4,11 +4,12 @@
 """
 
 from .base import OnlineFilter, TemporalFilter
-from .cann import CANN
+from .cann import CANN, AttractorCANN
 from .rnn import RNNFilter
 from .seqslam import SeqSLAM
 
-__all__ = ["TemporalFilter", "OnlineFilter", "SeqSLAM", "CANN", "RNNFilter", "FILTERS"]
+__all__ = ["TemporalFilter", "OnlineFilter", "SeqSLAM", "CANN", "AttractorCANN", "RNNFilter", "FILTERS"]
 
 #: name -> filter class
-FILTERS: dict[str, type[TemporalFilter]] = {cls.name: cls for cls in (SeqSLAM, CANN, RNNFilter)}
+FILTERS: dict[str, type[TemporalFilter]] = {cls.name: cls for cls in (SeqSLAM, CANN, AttractorCANN, RNNFilter)
+}

@@ -13,8 +13,9 @@ excitation kernel and the per-frame updates, compiled with numba where it can be
 (the :class:`CANN` class that holds the state).
 """
 
-from ._filter import CANN
+from ._attractor import AttractorCANN
+from ._filter import CANN, LAYER_VELOCITIES
 from ._kernels import excitation_kernel
 from ._params import FAST_RECOVERY
 
-__all__ = ["CANN", "FAST_RECOVERY", "excitation_kernel"]
+__all__ = ["CANN", "AttractorCANN", "FAST_RECOVERY", "LAYER_VELOCITIES", "excitation_kernel"]

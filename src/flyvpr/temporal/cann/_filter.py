@@ -1,4 +1,9 @@
-"""The CANN filter class: state, the per-frame step, and the online contract."""
+"""The CANN filter: a place-velocity layer, its sequence test and its answer.
+
+See "The place-velocity layer" on the user guide's CANN page for the equations and for the
+data that chose the defaults; :class:`~flyvpr.temporal.cann.AttractorCANN` is the paper's
+attractor network (the ``cann-paper`` filter).
+"""
 
 from __future__ import annotations
 
@@ -8,148 +13,126 @@ import numpy as np
 
 from ..._validation import check_memory, check_positive_int, check_scores
 from ..base import OnlineFilter
-from . import _kernels, _readout
-from ._kernels import VAR_FLOOR, excitation_kernel
-from ._params import DEFAULT_VELOCITIES, check_params, check_real
-from ._speed import SpeedBank
+from . import _kernels
+from ._kernels import VAR_FLOOR
+from ._params import TRANSFORMS, check_real
 
+#: candidate velocities, places per frame: standing still to 2 in steps of 1/8, then to 3 in
+#: steps of 1/4
+LAYER_VELOCITIES = tuple(float(v) for v in np.r_[np.arange(0.0, 2.0, 0.125), np.arange(2.0, 3.01, 0.25)])
+#: the calibration table (see the class's docstring)
+CALIBRATION = (0.0, 0.45, 0.56, 0.71, 0.79, 0.875, 0.945, 0.966, 0.99, 0.997, 1.0)
 #: smallest positive float32, the floor before the log of a probability row
 _TINY = np.float32(np.finfo(np.float32).tiny)
 #: rows are treated as probability vectors when they sum to 1 within this tolerance
 _PROBABILITY_ATOL = 1e-3
-#: about this many places estimate the evidence's mean and spread
-_STATS_SAMPLES = 4096
+#: about this many places are sampled by the sequence test
+_SAMPLES = 4096
+#: bounds of the learned exponent of the sequence test's rank model (see _support)
+_SHAPE_RANGE = (0.05, 1.0)
+#: raw confidences at which the calibration table is given
+_KNOTS = np.linspace(0.0, 1.0, 11)
+#: the rank model learns from frames whose support reaches this
+_LEARN_ABOVE = 0.5
+
+
+def _calibrate(raw: float, table) -> float:
+    """``raw`` mapped through the calibration ``table`` (values at raw = 0, 0.1, ..., 1,
+    linearly between them); ``None``: ``raw`` itself."""
+    if table is None:
+        return raw
+    return float(np.interp(raw, _KNOTS, table))
+
+
+def _probability(value, name: str) -> float:
+    """A probability: a finite real number in [0, 1]."""
+    value = check_real(value, name, low=0.0, inclusive=True)
+    if value > 1.0:
+        raise ValueError(f"{name} must be <= 1; got {value}")
+    return value
 
 
 class CANN(OnlineFilter):
-    """1-d continuous attractor network: FlyNet's temporal filter (paper's FlyNet+CANN).
+    """A 1-d place network with velocity: where the robot is, how fast, and whether at all.
 
-    The equations, the readout and how the defaults were chosen are on the user guide's CANN
-    page (``docs/guide/cann.md``).  All times are in frame periods, all distances in
-    reference places.
+    Every place of the route has one unit per candidate velocity; a unit's activity is the
+    probability that the robot is at that place moving at that velocity (the posterior of a
+    Bayes filter over position and speed).  Each frame the activity of every velocity row is
+    shifted by its velocity (the paper's *shift and copy*), spreads to neighbouring
+    velocities, is multiplied by the evidence ``exp(evidence_gain * x)`` of the frame's
+    normalised scores ``x`` and divisively normalised (global inhibition).  A sequence test
+    compares the evidence at the predicted place with the evidence at every other place; its
+    outcome, the *support*, is the probability that the query is following the route.  See
+    the user guide's CANN page (``docs/guide/cann.md``).
 
     Parameters
     ----------
-    excitation_strength : float, default 15.0
-        ``A``: total weight of a place unit's recurrent excitation onto itself and its
-        neighbours (the Gaussian kernel's weights sum to about ``A``).
-    excitation_width : float, default 1.0
-        Standard deviation of the Gaussian excitation, in places (the demo's width).
-    inhibition : float, default 3.2
-        Weight of the global inhibitor onto every place unit (the inhibitor reads the place
-        units with weight 1).  Between the values where a packet dies on its own and where two
-        unsupported packets coexist.
-    tonic_inhibition : float, default 1.0
-        The inhibitor's minimum (tonic) rate, in units of one fully active place unit.
-    threshold : float, default 1.0
-        Potential above which a place unit fires (its rate is ``u - threshold``, at most 1).
-    time_constant : float, default 1.0
-        Time constant of the place units' potentials, in frames.
-    synaptic_time_constant : float, default 25.0
-        Time constant of the input synapses, in frames: how long evidence for a place is
-        remembered (the CANN's counterpart of SeqSLAM's sequence length).  With
-        ``slow_time_constant`` set, the fast current's.
-    slow_time_constant : float or None, default None
-        Time constant, in frames, of a second, slow synaptic current driven by the same input;
-        ``None``: a single current.
-    slow_fraction : float, default 0.5
-        Weight of the slow current in the evidence (the fast one gets ``1 - slow_fraction``);
-        only used with ``slow_time_constant``.
-    input_gain : float, default 10.0
-        Gain from the normalised input (z-scores) to the synaptic current.
-    n_steps : int, default 3
-        Euler integration steps per frame; ``n_steps * time_constant`` must be >= 1.
-    movement : float or "estimate", default "estimate"
-        Places moved per frame when :meth:`step` gets no ``velocity``: a number (for
-        frame-aligned traverses, 1.0) or ``"estimate"`` to estimate it online from the data.
-    velocities : sequence of float, default 0.75, 0.875, ..., 2.0 (steps of 1/8)
-        Candidate movements per frame for ``movement="estimate"``; the estimate is always one
-        of them.  Before any vote the candidate nearest 1 is used.
+    velocities : sequence of float, default 0, 1/8, ..., 2, 2.25, ..., 3
+        Candidate movements, places per frame (each row of the layer moves by one of them).
     bidirectional : bool, default False
-        With ``movement="estimate"``, also try each velocity's negative, so that a query
-        traverse driven the other way along the route (places in decreasing order) is
-        followed too; doubles the bank.  Off by default: the CANN assumes forward motion.
-    velocity_memory : float, default 100.0
-        Time constant, in frames, of the votes that choose the estimated velocity.
-    velocity_contrast : float, default 4.0
-        A frame votes only if its best line's ``(max - mean) / std`` reaches this.
+        Also the negative of every velocity: a query driven the other way along the route.
+    speed_prior : float, default 1.0
+        Most likely speed, places per frame, before the evidence (the map's own pace).
+    speed_prior_width : float, default 0.25
+        Standard deviation of the Gaussian prior over velocities around ``speed_prior``
+        (it weighs where the layer starts and where a redrawn velocity lands).
+    velocity_change : float, default 0.02
+        Probability per frame that the velocity moves to a neighbouring candidate.
+    velocity_jump : float, default 0.02
+        Probability per frame that the velocity is redrawn from the prior (stops, starts).
+    evidence_gain : float, default 0.4
+        Gain of the normalised scores in the evidence ``exp(evidence_gain * x)``: lower
+        integrates over more frames.
     adaptation : float or None, default 50.0
-        Time constant, in frames, of each place's input adaptation (subtraction of its running
-        mean input); ``None`` switches adaptation off.
+        Time constant, in frames, of each place's running mean input, subtracted from it;
+        ``None``: off.
     adapt_variance : bool, default True
-        Also divide each place's input by the square root of its running variance (see
-        "Input" on the guide page); needs ``adaptation``.
+        Also divide by the square root of each place's running input variance.
     input_transform : {"auto", "log", "linear"}, default "auto"
         How a score row becomes the input before its z-score; ``"log"`` needs non-negative
-        scores.
+        scores ("auto": log for rows that sum to 1).
     input_clip : float or None, default 4.0
-        Bound on the normalised input, in standard deviations; ``None``: no bound.
-    relocation_floor : float, default 5.5
-        Evidence (in units of ``s``) that a place must exceed before the packet can be
-        relocated there (see "Relocation" on the guide page).
-    relocation_margin : float or None, default 0.5
-        Lead of that place's evidence over the packet's own evidence (in units of ``s``) at
-        which the packet is relocated there; ``None`` switches relocation off.
-    fallback_contrast : float or None, default 2.5
-        Support (the packet's evidence contrast averaged over recent frames, in standard
-        deviations) below which the sequence counts as lost and the front end answers (see
-        "Output" on the guide page); ``None``: the packet always answers.
-    fallback_memory : float, default 200.0
-        Frames over which the support is averaged; the first half as many frames give
-        tentative answers.
+        Bound on the normalised input, in standard deviations.
+    relocation : float, default 0.001
+        Probability per frame that the robot is anywhere on the route (a kidnap).
+    recovery : float, default 0.01
+        Extra probability per frame of being anywhere, times the probability that the
+        sequence is lost (``1 - support_``): a lost filter looks around more.
+    tolerance : int, default 2
+        The answer is the place with the most probability within ``tolerance`` places; the
+        confidence is that probability (times the support).
+    sequence_break : float, default 0.05
+        Probability per frame that the query leaves the route (the support's prior decay).
+    sequence_start : float, default 0.05
+        Probability per frame that a query off the route joins it.
+    outlier : float, default 0.3
+        Share of frames on the route whose evidence at the true place is no better than
+        anywhere else (the sequence test's robustness).
+    support_memory : float, default 100.0
+        Frames over which the support, the test's rank model and the front end's precision
+        are averaged.
+    fallback : bool, default True
+        Answer with the front end's best place when the front end's estimated precision beats
+        the sequence's (see "Output" on the guide page).
 
     Attributes
     ----------
-    velocity_ : float
-        Movement applied at the last step (places per frame; NaN before the first step).
-    n_frames_ : int
-        Frames seen since the last :meth:`reset`.
-    n_relocations_ : int
-        Relocations since the last :meth:`reset`.
     confidence_ : float
-        Confidence of the last step's answer, the maximum of the row it returned (see
-        "Output" on the guide page); exactly 0 without a packet.
-    contrast_ : float
-        The packet's evidence contrast at the last step; 0 without a packet.
+        Probability, in [0, 1], that the last answer is right (within ``tolerance``).
+    state_ : str
+        ``"localized"`` when the answer comes from the sequence with confidence >= 0.5,
+        ``"lost"`` otherwise (the place is then a hint).
     support_ : float
-        The packet's evidence contrast averaged over recent frames.
-    potentials_ : ndarray of float32, shape (n_reference,)
-        The place units' potentials after the last step (a copy).
+        Probability that the query is following the route.
+    velocity_ : float
+        Mean velocity of the layer after the last step, or the odometry given to it.
+    source_ : str
+        ``"sequence"`` or ``"front end"``: where the last answer came from.
+    n_frames_, n_relocations_ : int
+        Frames since :meth:`reset`; frames whose answer landed more than ``2 * tolerance + 1``
+        places from the predicted place.
     compiled_ : bool
-        Whether the per-frame updates run compiled by numba (numba importable, the default)
-        or as plain Python (much slower); the results agree up to float rounding.
-
-    Notes
-    -----
-    Defaults.  Tuned on FlyNet scores (``FlyNet(random_state=seed)``, seeds 0-4) of Nordland
-    summer (reference) -> winter (query) at 64 x 32, frame-aligned, windows of frames 0-999 and
-    1000-1999, ground truth within 20 frames, at 1x, 2x and a random 1-1.5x speed, and on a
-    query stream that jumps 200 places; the attractor properties above were required of every
-    candidate; the 100-place summer -> winter subset (tolerance 2) served as a check.  A wide
-    range of nearby values does as well.  Measured there (PR AUC, mean over seeds, windows
-    0-999 / 1000-1999): 0.89 / 0.98 at 1x (FlyNet alone 0.02, FlyNet + SeqSLAM 0.57 and
-    0.62), 0.82 / 0.95 at the random 1-1.5x speed, 0.91 / 0.97 at 2x; the same defaults on
-    pixel (SAD) scores give 0.98 / 0.995 (pixels + SeqSLAM 0.88 / 0.95).  After a jump of 200
-    places (the kidnap of ``benchmarks/accuracy.py``, 35 jumps per window) the argmax is first
-    back within 20 places after a median of 20 / 14 frames (at most 59 / 27); without
-    relocation 32 / 24 (at most 74 / 60), with 1x AUC 0.91 / 0.97.  The slowest jumps land
-    where FlyNet's scores hold almost no evidence for the true place for 40-60 frames.
-
-    The readout's fallback (``fallback_*``) was chosen on the same scores with the queries of
-    window 0-999 shuffled (``numpy.random.default_rng(0).permutation(1000)``), tolerance 20:
-    PR AUC of pixels + CANN 0.091 against 0.003 without the fallback (pixels alone 0.108),
-    FlyNet + CANN 0.021 against 0.002 (FlyNet alone 0.022, means over seeds 0-4), while the
-    in-order numbers at 1x, 1.5x, 2x and 1-1.5x stay within 0.001 or improve.  The first
-    ``fallback_memory / 2`` frames of a shuffled stream are tentative answers, which is most of
-    what is left of the gap.
-
-    Differences from the authors' demo: the route is a line, not a ring; rates saturate at 1
-    (the demo clips at 100); the input drives a slow synaptic current instead of the potential
-    directly for 0.4 of each frame, and the place units are fast (``tau = 1`` frame, the demo's
-    is 4), so a packet forms or switches within a frame or two once the evidence is there,
-    while the evidence itself is remembered for ``synaptic_time_constant`` frames; a few Euler
-    steps per frame (the demo takes 1000); the inhibitor has a tonic rate; inputs are
-    normalised, adapted and clipped.
+        Whether the per-frame updates run compiled by numba.
 
     Examples
     --------
@@ -158,225 +141,246 @@ class CANN(OnlineFilter):
     >>> rng = np.random.default_rng(0)
     >>> S = rng.normal(size=(60, 200))
     >>> S[np.arange(60), 20 + np.arange(60)] += 3.0    # the true place advances 1 per frame
-    >>> out = CANN(movement=1.0).filter(S)
-    >>> int(out[-1].argmax())
-    79
+    >>> out = CANN().filter(S)
+    >>> int(out[-1].argmax()), bool(out[-1].max() > 0.9)
+    (79, True)
     """
 
     name = "cann"
 
     def __init__(
         self,
-        excitation_strength=15.0,
-        excitation_width=1.0,
-        inhibition=3.2,
-        tonic_inhibition=1.0,
-        threshold=1.0,
-        time_constant=1.0,
-        synaptic_time_constant=25.0,
-        slow_time_constant=None,
-        slow_fraction=0.5,
-        input_gain=10.0,
-        n_steps=3,
-        movement="estimate",
-        velocities=DEFAULT_VELOCITIES,
+        velocities=LAYER_VELOCITIES,
         bidirectional=False,
-        velocity_memory=100.0,
-        velocity_contrast=4.0,
+        speed_prior=1.0,
+        speed_prior_width=0.25,
+        velocity_change=0.02,
+        velocity_jump=0.02,
+        evidence_gain=0.4,
         adaptation=50.0,
         adapt_variance=True,
         input_transform="auto",
         input_clip=4.0,
-        relocation_floor=5.5,
-        relocation_margin=0.5,
-        fallback_contrast=2.5,
-        fallback_memory=200.0,
+        relocation=0.001,
+        recovery=0.01,
+        tolerance=2,
+        sequence_break=0.05,
+        sequence_start=0.05,
+        outlier=0.3,
+        support_memory=100.0,
+        fallback=True,
+        calibration=CALIBRATION,
     ):
-        self.excitation_strength = excitation_strength
-        self.excitation_width = excitation_width
-        self.inhibition = inhibition
-        self.tonic_inhibition = tonic_inhibition
-        self.threshold = threshold
-        self.time_constant = time_constant
-        self.synaptic_time_constant = synaptic_time_constant
-        self.slow_time_constant = slow_time_constant
-        self.slow_fraction = slow_fraction
-        self.input_gain = input_gain
-        self.n_steps = n_steps
-        self.movement = movement
         self.velocities = velocities
         self.bidirectional = bidirectional
-        self.velocity_memory = velocity_memory
-        self.velocity_contrast = velocity_contrast
+        self.speed_prior = speed_prior
+        self.speed_prior_width = speed_prior_width
+        self.velocity_change = velocity_change
+        self.velocity_jump = velocity_jump
+        self.evidence_gain = evidence_gain
         self.adaptation = adaptation
         self.adapt_variance = adapt_variance
         self.input_transform = input_transform
         self.input_clip = input_clip
-        self.relocation_floor = relocation_floor
-        self.relocation_margin = relocation_margin
-        self.fallback_contrast = fallback_contrast
-        self.fallback_memory = fallback_memory
+        self.relocation = relocation
+        self.recovery = recovery
+        self.tolerance = tolerance
+        self.sequence_break = sequence_break
+        self.sequence_start = sequence_start
+        self.outlier = outlier
+        self.support_memory = support_memory
+        self.fallback = fallback
+        self.calibration = calibration
 
+    # -- parameters -------------------------------------------------------------
     def _check_params(self) -> dict:
-        """Validate the constructor parameters; return them as plain numbers."""
-        return check_params(self)
+        p = {
+            "speed_prior": check_real(self.speed_prior, "speed_prior", low=None),
+            "speed_prior_width": check_real(self.speed_prior_width, "speed_prior_width"),
+            "velocity_change": _probability(self.velocity_change, "velocity_change"),
+            "velocity_jump": _probability(self.velocity_jump, "velocity_jump"),
+            "evidence_gain": check_real(self.evidence_gain, "evidence_gain"),
+            "adaptation": None
+            if self.adaptation is None
+            else check_real(self.adaptation, "adaptation", low=1.0, inclusive=True),
+            "input_clip": None
+            if self.input_clip is None
+            else check_real(self.input_clip, "input_clip"),
+            "relocation": _probability(self.relocation, "relocation"),
+            "recovery": _probability(self.recovery, "recovery"),
+            "tolerance": check_positive_int(self.tolerance, "tolerance", minimum=0),
+            "sequence_break": _probability(self.sequence_break, "sequence_break"),
+            "sequence_start": _probability(self.sequence_start, "sequence_start"),
+            "outlier": _probability(self.outlier, "outlier"),
+            "support_memory": check_real(
+                self.support_memory, "support_memory", low=1.0, inclusive=True
+            ),
+        }
+        if p["velocity_change"] + p["velocity_jump"] > 1.0:
+            raise ValueError(
+                "velocity_change + velocity_jump must be <= 1; got "
+                f"{p['velocity_change']} + {p['velocity_jump']}"
+            )
+        if p["relocation"] + p["recovery"] > 1.0:
+            raise ValueError(
+                f"relocation + recovery must be <= 1; got {p['relocation']} + {p['recovery']}"
+            )
+        if p["sequence_break"] + p["sequence_start"] > 1.0:
+            raise ValueError(
+                "sequence_break + sequence_start must be <= 1; got "
+                f"{p['sequence_break']} + {p['sequence_start']}"
+            )
+        for flag in ("adapt_variance", "bidirectional", "fallback"):
+            value = getattr(self, flag)
+            if not isinstance(value, (bool, np.bool_)):
+                raise TypeError(f"{flag} must be True or False; got {type(value).__name__}")
+            p[flag] = bool(value)
+        if self.input_transform not in TRANSFORMS:
+            raise ValueError(
+                f"input_transform must be one of {TRANSFORMS}; got {self.input_transform!r}"
+            )
+        p["input_transform"] = self.input_transform
+        if self.calibration is None:
+            p["calibration"] = None
+        else:
+            try:
+                table = np.asarray(self.calibration, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise TypeError(
+                    "calibration must be None or 11 numbers (at raw confidence 0, 0.1, ..., 1); "
+                    f"got {self.calibration!r}"
+                ) from None
+            if table.shape != (_KNOTS.size,):
+                raise ValueError(
+                    f"calibration must hold {_KNOTS.size} values (at raw confidence 0, 0.1, "
+                    f"..., 1); got shape {table.shape}"
+                )
+            if not (np.isfinite(table).all() and table.min() >= 0.0 and table.max() <= 1.0):
+                raise ValueError(f"calibration values must lie in [0, 1]; got {table.tolist()}")
+            if (np.diff(table) <= 0).any():
+                raise ValueError(f"calibration must increase strictly; got {table.tolist()}")
+            p["calibration"] = table
+        try:
+            vel = np.asarray(self.velocities, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise TypeError(f"velocities must be a sequence of numbers; {exc}") from exc
+        if vel.ndim != 1 or vel.size == 0:
+            raise ValueError(f"velocities must be a non-empty 1-d sequence; got shape {vel.shape}")
+        if not np.isfinite(vel).all():
+            raise ValueError(f"velocities must be finite; got {vel.tolist()}")
+        if np.unique(vel).size != vel.size:
+            raise ValueError(f"velocities must not repeat a value; got {vel.tolist()}")
+        if p["bidirectional"]:
+            vel = np.concatenate([vel, -vel])
+        # Sorted, so that neighbouring rows are neighbouring speeds.
+        vel = np.unique(vel)
+        p["velocities"] = vel
+        prior = np.exp(-0.5 * ((np.abs(vel) - p["speed_prior"]) / p["speed_prior_width"]) ** 2)
+        if not prior.sum() > 0.0:
+            raise ValueError(
+                f"speed_prior={p['speed_prior']} with speed_prior_width="
+                f"{p['speed_prior_width']} gives no weight to any of the velocities"
+            )
+        p["prior"] = prior / prior.sum()
+        return p
 
-    @staticmethod
-    def _kernel_of(p: dict) -> np.ndarray:
-        """The excitation kernel, refused before allocation if it would not fit in memory."""
-        radius = np.ceil(3.0 * p["excitation_width"])
-        check_memory(
-            (2 * radius + 1) * 8 * 4,
-            f"excitation_width={p['excitation_width']:g} (a kernel of {2 * radius + 1:.0f} taps)",
-        )
-        return excitation_kernel(p["excitation_strength"], p["excitation_width"])
-
-    # -- footprint ------------------------------------------------------------
     def footprint(self, n_reference: int) -> dict:
-        """Layers, parameters and neurons the CANN adds on top of a front end.
+        """Layers, parameters and neurons the filter adds on top of a front end.
 
-        ``params`` counts connections: the recurrent excitation's synapses (each place unit
-        onto itself and its neighbours within the kernel radius, fewer at the route's ends)
-        plus the ``n_reference`` synapses onto the inhibitor and the ``n_reference`` from it.
-        ``distinct_weights`` counts the different non-zero weight values instead: the kernel's
-        symmetric taps plus the two inhibitor weights.  ``neurons`` = place units + the
-        inhibitor.  The paper's table reports 72k parameters and 2066 neurons for FlyNet+CANN
-        with 1000 places (FlyNet: 64k, 1064), i.e. about 8k parameters and 1002 units for its
-        CANN.  The synaptic currents (and with ``movement="estimate"`` the velocity bank's
-        ``len(velocities) * n_reference`` evidence traces) are state, not parameters; they are
-        reported as ``state_variables``.
+        ``neurons``: one unit per place and velocity, plus the global normaliser.  ``params``
+        counts connections: each unit receives its shifted predecessor, its two velocity
+        neighbours (one at the bank's ends), the redrawn-velocity input from its place and
+        the evidence input; every unit also feeds the normaliser and receives from it.
+        ``distinct_weights``: stay, neighbour, redraw (one per velocity) and the evidence
+        gain.
         """
         n = check_positive_int(n_reference, "n_reference")
         p = self._check_params()
-        k = self._kernel_of(p)
-        radius = (k.size - 1) // 2
-        offsets = np.arange(-radius, radius + 1)
-        # Synapses of offset d exist for the n - |d| units whose neighbour lies on the route.
-        recurrent = int(np.sum(np.maximum(n - np.abs(offsets), 0)[k != 0]))
-        n_bank = 0 if p["movement"] is not None else p["velocities"].size
-        n_cur = len(p["currents"])
+        n_v = p["velocities"].size
+        units = n_v * n
+        neighbours = 2 * (n_v - 1) * n
         return {
             "layers": 1,
-            "params": recurrent + 2 * n,
-            "neurons": n + 1,
-            "distinct_weights": int(np.unique(k[k != 0]).size) + 2,
-            "state_variables": (1 + n_cur + n_cur * n_bank) * n + 1,
+            "params": units + neighbours + units + units + 2 * units,
+            "neurons": units + 1,
+            "distinct_weights": 3 + n_v,
+            "state_variables": units + 2 * n + 6,
         }
 
-    # -- online ---------------------------------------------------------------
+    # -- online -----------------------------------------------------------------
     def reset(self) -> None:
-        """Forget all past frames: no packet, no evidence, no adaptation, no velocity votes.
-
-        Parameters changed with ``set_params`` take effect here (``filter`` always resets;
-        the first ``step`` after construction resets by itself).
-        """
+        """Forget all past frames (parameters changed with ``set_params`` apply from here)."""
         self._params = self._check_params()
-        self._kernel = self._kernel_of(self._params)
-        self._n = None  # the state is allocated by the first row, which fixes n_reference
-        self.compiled_ = False  # chosen with the route's length (see _kernels)
+        self._n = None
+        self.compiled_ = False
         self.n_frames_ = 0
         self.n_relocations_ = 0
         self.velocity_ = float("nan")
-        self.confidence_ = self.contrast_ = self.support_ = 0.0
+        self.confidence_ = 0.0
+        self.support_ = 0.5
+        self.state_ = "lost"
+        self.source_ = "sequence"
 
     def _allocate(self, n: int) -> None:
         p = self._params
-        n_cur = len(p["currents"])
-        n_vel = 0 if p["movement"] is not None else p["velocities"].size
-        # Potentials, evidence, adaptation, scratch, the currents (twice) and the bank (twice).
+        n_v = p["velocities"].size
         check_memory(
-            4 * n * (8 + 2 * n_cur + 2 * n_cur * n_vel + (n_vel if n_cur > 1 else 0)),
-            f"n_reference={n} places with {n_vel} velocities x {n_cur} synaptic currents "
-            "(velocities, bidirectional, slow_time_constant)",
+            8 * n_v * n + 24 * n,
+            f"n_reference={n} places x {n_v} velocities (velocities, bidirectional)",
         )
         self._n = n
-        self._kernels, self.compiled_ = _kernels.get_kernels(n)
-        self._u = np.zeros(n, np.float32)  # potentials
-        # The synaptic currents, each already weighted (fast first), and a spare buffer (the
-        # update is out of place); s is their sum.
-        self._cur = np.zeros((n_cur, 1, n), np.float32)
-        self._cur_spare = np.empty_like(self._cur)
-        self._s = np.zeros(n, np.float32)
-        self._mean = np.zeros(n, np.float32)  # adaptation: running mean input per place
-        self._var = np.ones(n, np.float32)  # and running variance (prior: the row's, 1)
-        self._x = np.empty(n, np.float32)  # the input row
-        self._stats_stride = max(1, n // _STATS_SAMPLES)
-        self._g = 0.0  # inhibitor rate
-        # The Euler steps' constants (see _kernels.integrate).
-        h = 1.0 / (p["n_steps"] * p["time_constant"])
-        self._euler = (
-            np.float32(h),
-            np.float32(1.0 - h),
-            np.float32(p["threshold"]),
-            float(p["tonic_inhibition"]),
-            h * p["inhibition"],
-            self._kernel * np.float32(h),
-            p["n_steps"],
-        )
-        self._offset = 0.0  # fractional movement not yet applied to the packet
-        # Per frame, current c decays by keeps[c] and adds coefs[c] * (input_gain * x).
-        taus = np.array([tau for tau, _ in p["currents"]])
-        weights = np.array([w for _, w in p["currents"]])
-        alphas = -np.expm1(-1.0 / taus)
-        self._keeps = (1.0 - alphas).astype(np.float32)
-        self._coefs = (alphas * weights).astype(np.float32)
-        # Evidence differences below this are rounding residue (1e-4 of what one frame of a
-        # one-standard-deviation input adds to s), never evidence.
-        self._noise = 1e-4 * float(self._coefs.sum()) * p["input_gain"]
-        if p["relocation_margin"] is not None:
-            # Compiled now rather than at the first packet: a call that moves nothing (q = p).
-            radius = (self._kernel.size - 1) // 2
-            self._kernels["relocate"](
-                self._u, self._s, 0, 0, radius, p["relocation_floor"], p["relocation_margin"], _TINY
-            )
-        self._bank = None
-        if n_vel:
-            self._bank = SpeedBank(
-                p["velocities"],
-                n_cur,
-                n,
-                self._keeps,
-                self._coefs,
-                p["velocity_memory"],
-                p["velocity_contrast"],
-                self._stats_stride,
-                self._noise,
-            )
+        self._kernels, self.compiled_ = _kernels.get_kernels(n, table="layer")
+        prior = p["prior"].astype(np.float32)
+        self._p = np.repeat(prior[:, None] / np.float32(n), n, axis=1)
+        self._spare = np.empty_like(self._p)
+        # A velocity drawn afresh may be any of them: a robot stops or starts at any speed.
+        self._redraw = np.full(n_v, 1.0 / n_v)
+        self._marginal = np.empty(n, np.float32)
+        self._box = np.empty(n, np.float64)
+        self._mean = np.zeros(n, np.float32)
+        self._var = np.ones(n, np.float32)
+        self._x = np.empty(n, np.float32)
+        self._offsets = np.zeros(n_v)
+        self._odometry_offset = 0.0
+        self._stride = max(1, n // _SAMPLES)
+        # The sequence test's rank model: the share u of places at least as good as the
+        # predicted one has density shape * u**(shape - 1) on the route (learned), 1 off it.
+        self._log_rank = [1.0 / 0.3, 1.0 / 0.5]  # running means of -log(rank), supported frames
+        self._support_mean = 0.0  # the support averaged over support_memory frames
+        self._front_strength = None  # running mean of the front end's best z-score
+        self._front_precision = 0.5 ** (2 + p["tolerance"])  # prior: a weak front end
 
     @property
-    def potentials_(self) -> np.ndarray:
-        """The place units' potentials ``u`` after the last step (a copy)."""
-        return self._u.copy()
+    def shape_(self) -> float:
+        """Exponent of the sequence test's learned rank model (see :meth:`_support`)."""
+        return min(_SHAPE_RANGE[1], max(_SHAPE_RANGE[0], 1.0 / self._log_rank[0]))
 
     def step(self, scores_row, velocity=None) -> np.ndarray:
-        """Feed one query frame's scores and return the readout row.
+        """Feed one query frame's scores and return its row of answer probabilities.
 
         Parameters
         ----------
         scores_row : array-like, shape (n_reference,)
-            The front end's scores of this query frame, higher = more similar.
+            The front end's scores of this frame, higher = more similar.
         velocity : float, optional
-            Places moved since the previous frame (odometry); overrides ``movement`` for
-            this frame.
+            Places moved since the previous frame (odometry): every row of the layer moves
+            by it instead of by its own velocity.
 
         Returns
         -------
         ndarray of float32, shape (n_reference,)
-            Higher = more likely place; the maximum is the confidence (see "Output" on the
-            guide page): 0 without an answer, below 1 a tentative one, 1 to 2 the front
-            end's while the sequence is lost, 2 + the packet's evidence contrast otherwise.
+            Its argmax is the answer and its maximum the confidence (:attr:`confidence_`);
+            from the sequence, entry ``i`` is the support times the probability of being
+            within ``tolerance`` places of ``i``.
 
         Raises
         ------
         ValueError
-            For a row that is not 1-d, empty, holds NaN/inf, has another length than the
-            rows since :meth:`reset`, or negative scores with ``input_transform="log"``; for
-            a non-finite ``velocity``; for invalid parameters (naming them).
+            For a row that is not 1-d, empty, holds NaN/inf, changes length since
+            :meth:`reset`, or is negative with ``input_transform="log"``; a non-finite
+            ``velocity``; invalid parameters (naming them).
         TypeError
             For a non-numeric row or ``velocity``.
-        InsufficientMemoryError
-            When the state for this many places would not fit in memory (naming the
-            parameters that size it).
         """
         row = check_scores(scores_row, "scores_row", ndim=1)
         if velocity is not None:
@@ -384,19 +388,17 @@ class CANN(OnlineFilter):
         return self._step(row, velocity)
 
     def filter(self, S, velocity=None) -> np.ndarray:
-        """Filter a whole traverse, from a fresh state.
+        """Filter a whole traverse from a fresh state.
 
         Parameters
         ----------
         S : array-like, shape (n_query, n_reference)
         velocity : array-like, shape (n_query,), optional
-            Places moved before each query frame (odometry; the first entry is ignored as
-            there is no packet yet); overrides ``movement``.
+            Places moved before each query frame (odometry; the first entry is not used).
 
         Returns
         -------
-        ndarray, same shape and float dtype as S
-            Row ``t`` is what :meth:`step` returns for frame ``t``.
+        ndarray, same shape as S (float32, or float64 for float64 scores)
         """
         if velocity is None:
             return super().filter(S)
@@ -417,14 +419,12 @@ class CANN(OnlineFilter):
         return out
 
     def _input(self, row: np.ndarray) -> np.ndarray:
-        """This frame's input: the row normalised, adapted, clipped and scaled (see "Input")."""
+        """The row as z-scores, adapted per place and clipped (see "Input" on the guide)."""
         p = self._params
         t = self.n_frames_
         transform = p["input_transform"]
         lowest = float(row.min())
         if transform == "auto":
-            # (A float32 row's pairwise float32 sum: within 1e-6 of its float64 sum, far
-            # below the tolerance.)
             probability = lowest >= 0 and abs(float(row.sum()) - 1.0) <= _PROBABILITY_ATOL
             transform = "log" if probability else "linear"
         if transform == "log" and lowest < 0:
@@ -432,17 +432,12 @@ class CANN(OnlineFilter):
                 "scores_row must be non-negative for input_transform='log'; got minimum "
                 f"{lowest:g} (use input_transform='linear' for such scores)"
             )
-        # Running mean (and variance) of each place's input: the mean of the frames so far at
-        # first, then an exponential average over ``adaptation`` frames.  The variance starts
-        # from a prior of 1 (the z-scored row's) worth one frame.
         adapt = p["adaptation"] is not None
         rate = max(1.0 / (t + 1), 1.0 / p["adaptation"]) if adapt else 0.0
         var_rate = max(1.0 / (t + 2), 1.0 / p["adaptation"]) if adapt else 0.0
         x = self._x
         x[:] = row
         if transform == "log":
-            # numpy's log, compiled or not: numba's rounds differently in the last bit, which
-            # the input gain would carry into the potentials.
             np.maximum(x, _TINY, out=x)
             np.log(x, out=x)
         self._kernels["normalise"](
@@ -457,9 +452,50 @@ class CANN(OnlineFilter):
             p["adapt_variance"],
             VAR_FLOOR,
             np.inf if p["input_clip"] is None else p["input_clip"],
-            p["input_gain"],
+            1.0,
         )
         return x
+
+    def _shifts(self, velocity: float | None) -> np.ndarray:
+        """Whole places each row moves this frame (fractions accumulate, halves round up)."""
+        vel = self._params["velocities"]
+        if velocity is not None:
+            total = self._odometry_offset + velocity
+            k = math.floor(total + 0.5)
+            self._odometry_offset = total - k
+            return np.full(vel.size, k, np.int64)
+        total = self._offsets + vel
+        rounded = np.floor(total + 0.5)
+        self._offsets = total - rounded
+        return rounded.astype(np.int64)
+
+    def _support(self, x: np.ndarray, predicted: int) -> None:
+        """The sequence test: update ``support_`` with this frame's evidence at ``predicted``.
+
+        Two ranks of the predicted place's evidence: ``u`` among all places (every
+        ``stride``-th) and ``w`` among its neighbours within ``2 * tolerance + 1`` places.  Off
+        the route both are uniform; on it, each has density ``shape * u**(shape - 1)``
+        (``shape`` < 1 puts the predicted place near the top; learned per rank from the
+        frames the test already supports: the maximum-likelihood value, one over the mean of
+        ``-log u``) on all but an ``outlier`` share of the frames.  Two states, on and off the
+        route, switch with probabilities ``sequence_break`` and ``sequence_start`` per frame.
+        """
+        p = self._params
+        reach = 2 * p["tolerance"] + 1
+        u = float(self._kernels["exceedance"](x, predicted, self._stride))
+        lo = max(predicted - reach, 0)
+        near = x[lo : predicted + reach + 1]
+        w = float(np.count_nonzero(near >= x[predicted])) / near.size
+        on = 1.0
+        for rank, k in ((u, 0), (w, 1)):
+            shape = min(_SHAPE_RANGE[1], max(_SHAPE_RANGE[0], 1.0 / self._log_rank[k]))
+            on *= (1.0 - p["outlier"]) * shape * rank ** (shape - 1.0) + p["outlier"]
+        s = self.support_
+        before = s * (1.0 - p["sequence_break"]) + (1.0 - s) * p["sequence_start"]
+        self.support_ = before * on / (before * on + (1.0 - before))
+        if self.support_ >= _LEARN_ABOVE:
+            self._log_rank[0] += (-math.log(u) - self._log_rank[0]) / p["support_memory"]
+            self._log_rank[1] += (-math.log(w) - self._log_rank[1]) / p["support_memory"]
 
     def _step(self, row: np.ndarray, velocity: float | None = None) -> np.ndarray:
         if getattr(self, "_params", None) is None:
@@ -475,71 +511,100 @@ class CANN(OnlineFilter):
             )
         kernels = self._kernels
         t = self.n_frames_
+        radius = p["tolerance"]
         x = self._input(row)
-        bank = self._bank
-        if bank is not None:
-            bank.update(x, t == 0, kernels["update_traces"], kernels["evidence_stats"])
-        v = velocity if velocity is not None else p["movement"]
-        if v is None:
-            v = bank.estimate
-        k = 0
-        if t > 0:  # the first frame has nothing to move
-            total = self._offset + v
-            k = math.floor(total + 0.5)
-            self._offset = total - k
-        # What enters is at rest (its potential: the inhibition alone).  On the first frame a
-        # shift by 0, which moves nothing, compiles the kernel.
-        kernels["shift"](self._u, k, np.float32(-p["inhibition"] * self._g))
-        if bank is not None and velocity is None:
-            # The evidence follows the estimated speed: the bank's row of that velocity.
-            self._cur[:, 0] = bank.traces[:, bank.index]
-            self._s[:] = bank.evidence[bank.index]
-            q = int(bank.peaks[bank.index])
-        else:
-            kernels["update_traces"](
-                self._cur, self._cur_spare, np.array([k]), self._keeps, self._coefs, x
+        predicted = -1
+        if t > 0:
+            floor_rate = p["relocation"] + p["recovery"] * (1.0 - self.support_)
+            if velocity is None:
+                change, jump = p["velocity_change"], p["velocity_jump"]
+            else:  # odometry moves every row alike; the velocities stay as they are
+                change = jump = 0.0
+            kernels["propagate"](
+                self._p,
+                self._spare,
+                self._shifts(velocity),
+                1.0 - change - jump,
+                change,
+                jump,
+                self._redraw,
+                p["prior"],
+                floor_rate,
             )
-            self._cur, self._cur_spare = self._cur_spare, self._cur
-            np.sum(self._cur[:, 0], axis=0, out=self._s)
-            q = int(np.argmax(self._s))
-        self._g = kernels["integrate"](self._u, self._s, *self._euler)
-        radius = (self._kernel.size - 1) // 2
-        if p["relocation_margin"] is not None:
-            peak = int(np.argmax(self._u))
-            if self._u[peak] > p["threshold"] and kernels["relocate"](
-                self._u,
-                self._s,
-                peak,
-                q,
-                radius,
-                p["relocation_floor"],
-                p["relocation_margin"],
-                np.float32(-p["inhibition"] * self._g),
-            ):
+            np.sum(self._p, axis=0, out=self._marginal)
+            predicted = int(kernels["window_sums"](self._marginal, radius, self._box))
+            self._support(x, predicted)
+        kernels["observe"](self._p, x, p["evidence_gain"], self._marginal)
+        # The window holding the most probability, and in it the most probable place: the
+        # answer (its own window's probability is the confidence, at most the window's).
+        best = int(kernels["window_sums"](self._marginal, radius, self._box))
+        lo = max(best - radius, 0)
+        answer = lo + int(np.argmax(self._marginal[lo : best + radius + 1]))
+        probability = float(self._box[answer])
+        memory = p["support_memory"]
+        rate = max(1.0 / (t + 1), 1.0 / memory)
+        self._support_mean += rate * (self.support_ - self._support_mean)
+        # The window's probability times the support (calibrated below).
+        confidence = self.support_ * probability
+        # The front end's own answer and an estimate of how often it is right: how often it
+        # agrees with the sequence's confident answers.  (Not scaled by the strength of its
+        # peak: on the dev windows the strongest peaks are places that resemble every frame.)
+        front = int(np.argmax(row))
+        spread = float(row.std())
+        strength = (float(row[front]) - float(row.mean())) / spread if spread > 0 else 0.0
+        if self._front_strength is None:
+            self._front_strength = strength
+        else:
+            self._front_strength += rate * (strength - self._front_strength)
+        if confidence >= 0.5:
+            agree = float(abs(front - answer) <= radius)
+            self._front_precision += (agree - self._front_precision) / memory
+        # The front end's precision, with a tie-break that keeps its own order of answers.
+        front_confidence = self._front_precision * (
+            1.0 + 1e-3 * math.tanh(strength - self._front_strength)
+        )
+        out = np.empty(n, np.float32)
+        if p["fallback"] and self._support_mean * probability < front_confidence * (
+            1.0 - self._support_mean
+        ):
+            self.source_ = "front end"
+            confidence = front_confidence
+            z = row.astype(np.float64) - float(row.mean())
+            top = float(z[front])
+            if top > 0:
+                np.maximum(z, 0.0, out=z)
+                z *= confidence / top
+            else:  # a constant row: every place ties at the confidence
+                z[:] = confidence
+            out[:] = z
+            answer = front
+        else:
+            self.source_ = "sequence"
+            np.multiply(self._box, self.support_, out=out, casting="unsafe")
+            if predicted >= 0 and abs(answer - predicted) > 2 * radius + 1:
                 self.n_relocations_ += 1
+        self.probability_ = probability if self.source_ == "sequence" else 0.0
+        if self.source_ == "sequence":
+            # The sequence's raw confidence mapped through the calibration table (strictly
+            # increasing: the order of its answers stays).
+            calibrated = _calibrate(confidence, p["calibration"])
+            if confidence > 0.0 and calibrated != confidence:
+                out *= np.float32(calibrated / confidence)  # the row keeps its order
+            confidence = calibrated
+        # Exactly the confidence at the answer, and no other place above it or tied with it
+        # ahead of it (float32 rounding of the product could make one).
+        level = np.float32(confidence)
+        below = np.nextafter(level, np.float32(-1.0))
+        np.minimum(out, level, out=out)
+        out[:answer][out[:answer] >= level] = below
+        out[answer] = level
+        self.confidence_ = float(level)
+        localized = self.source_ == "sequence" and self.support_ * self.probability_ >= 0.5
+        self.state_ = "localized" if localized else "lost"
+        if velocity is None:
+            weights = self._p.sum(axis=1, dtype=np.float64)
+            self.velocity_ = float(weights @ p["velocities"] / weights.sum())
+        else:
+            self.velocity_ = float(velocity)
         self.n_frames_ = t + 1
-        self.velocity_ = float(v)
-        return self._read(row, radius, t)
-
-    def _read(self, row: np.ndarray, radius: int, t: int) -> np.ndarray:
-        """The readout of this frame (see "Output" on the guide page)."""
-        p = self._params
-        peak, contrast = _readout.evidence_contrast(
-            self._u,
-            self._s,
-            p["threshold"],
-            radius,
-            self._stats_stride,
-            self._noise,
-            self._kernels["evidence_stats"],
-        )
-        # The packet's support: its contrast averaged over recent frames (the running mean at
-        # first, then an exponential average over fallback_memory frames).
-        self.support_ += max(1.0 / (t + 1), 1.0 / p["fallback_memory"]) * (contrast - self.support_)
-        self.contrast_ = contrast
-        tier = _readout.choose_tier(
-            contrast, self.support_, p["fallback_contrast"], t, p["fallback_memory"]
-        )
-        out = _readout.readout(self._u, self._s, row, peak, contrast, tier, self._noise)
-        self.confidence_ = float(out.max())
         return out

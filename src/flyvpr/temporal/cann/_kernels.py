@@ -287,7 +287,7 @@ _PLAIN = {
     "integrate": integrate,
     "relocate": relocate,
 }
-_compiled = None  # compiled on first use, so that ``import flyvpr`` does not import numba
+_compiled: dict = {}  # compiled tables by name, on first use: ``import flyvpr`` skips numba
 
 
 def _jit(numba, func):  # pragma: no mutate block (numba's options; no-ops under mutmut)
@@ -301,19 +301,27 @@ def _jit(numba, func):  # pragma: no mutate block (numba's options; no-ops under
         return numba.njit(**opts)(func)
 
 
-def get_kernels(n_places: int = 0) -> tuple[dict, bool]:
-    """The kernels by name, and whether they are compiled (``n_places`` is not used)."""
-    global _compiled
+def get_kernels(n_places: int = 0, table: str = "attractor") -> tuple[dict, bool]:
+    """The kernels of ``table`` by name, and whether they are compiled (``n_places`` is not
+    used).  Tables: ``"attractor"`` (this module's) and ``"layer"`` (the place-velocity
+    layer's, :mod:`._layer`, with this module's ``normalise``)."""
+    plain = _tables()[table]
     if not USE_NUMBA:
-        return _PLAIN, False
-    if _compiled is None:
+        return plain, False
+    if table not in _compiled:
         try:
             import numba
         except ImportError:
             logger.info("numba is not installed; the CANN runs as plain Python (much slower)")
-            _compiled = False
+            _compiled[table] = False
         else:
-            _compiled = {name: _jit(numba, f) for name, f in _PLAIN.items()}
-    if _compiled is False:
-        return _PLAIN, False
-    return _compiled, True
+            _compiled[table] = {name: _jit(numba, f) for name, f in plain.items()}
+    if _compiled[table] is False:
+        return plain, False
+    return _compiled[table], True
+
+
+def _tables() -> dict:
+    from . import _layer
+
+    return {"attractor": _PLAIN, "layer": {**_layer.PLAIN, "normalise": normalise}}
