@@ -160,7 +160,9 @@ def _conditions(views, protocols) -> list[dict]:
                     "key": f"{v.key}@{tol}",
                     "view_key": v.key,
                     "label": f"{v.label} (±{tol})",
-                    "group": v.group if tol == v.tolerances[0] else "tolerance",
+                    "group": v.group
+                    if tol == v.tolerances[0] or v.group == "robot"
+                    else "tolerance",
                     "tolerance": tol,
                     "tolerances": list(v.tolerances),
                     "dataset": v.dataset,
@@ -286,6 +288,7 @@ def main(argv=None) -> int:
             for m in entries
         },
         "kidnap": [k for r in results for k in r["kidnap"]],
+        "reliability": [x for r in results for x in r.get("reliability", [])],
         "evidence": [e for r in results for e in r["evidence"]],
         "kidnap_protocol": {
             "jump": KIDNAP_JUMP,

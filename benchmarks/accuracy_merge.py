@@ -77,6 +77,9 @@ def merge_runs(old: dict, new: dict, order_methods: list[str], order_conditions:
     rows += new["rows"]
     rows.sort(key=lambda r: (crank.get(r["condition"], len(crank)), mrank[r["method"]], r["seed"]))
     kidnap = [k for k in old.get("kidnap", []) if not replaced(_base(k["method"]), k["view"])]
+    reliability = [
+        x for x in old.get("reliability", []) if not replaced(x["method"], x["view"])
+    ]
     fresh = {(e["view"], e["frontend"]) for e in new.get("evidence", [])}
     evidence = [e for e in old.get("evidence", []) if (e["view"], e["frontend"]) not in fresh]
     merged = dict(new)
@@ -92,6 +95,7 @@ def merge_runs(old: dict, new: dict, order_methods: list[str], order_conditions:
             "bytes_per_place": {**old.get("bytes_per_place", {}), **new.get("bytes_per_place", {})},
             "bytes_note": {**old.get("bytes_note", {}), **new.get("bytes_note", {})},
             "kidnap": kidnap + new.get("kidnap", []),
+            "reliability": reliability + new.get("reliability", []),
             "evidence": evidence + new.get("evidence", []),
             "errors": [e for e in old.get("errors", []) if e["method"] not in ran]
             + new.get("errors", []),

@@ -23,6 +23,8 @@ GROUP_TITLES = {
     "speed": "Query driven faster than the reference (tolerance 20)",
     "synthetic": "Built-in synthetic route, hardest conditions",
     "viewpoint": "Nordland with a drifting viewpoint (nordland_64x32_viewpoint)",
+    "robot": "A robot's motion and camera: speeds, stops, a detour, odometry, a fisheye disc "
+    "(tolerance 2 and 20)",
     "control": "Control rows",
 }
 
@@ -53,6 +55,13 @@ def summarise(rows: list[dict]) -> list[dict]:
         for key in _METRICS[1:-1]:
             entry[f"{key}_mean"] = statistics.fmean(r[key] for r in rs)
         entry["top_share_max"] = max(r["top_share"] for r in rs)
+        for key in ("localized_share", "offmap_localized_share"):
+            values = [r[key] for r in rs if r.get(key) is not None]
+            if values:
+                entry[f"{key}_mean"] = statistics.fmean(values)
+        rejoin = [r.get("rejoin_frames") for r in rs if "rejoin_frames" in r]
+        if rejoin:
+            entry["rejoin_frames"] = rejoin
         out.append(entry)
     return out
 
@@ -213,6 +222,63 @@ def _kidnap_lines(data: dict) -> list[str]:
     return lines
 
 
+def reliability_table(data: dict, method: str) -> list[list[str]]:
+    """Rows (confidence bin, frames, mean confidence, share right, gap) of ``method``'s answers
+    on the robot views at their strictest tolerance, pooled over views and seeds."""
+    parts = [x for x in data.get("reliability", []) if x["method"] == method]
+    if not parts:
+        return []
+    bins = len(parts[0]["n"])
+    rows = []
+    for b in range(bins):
+        n = sum(x["n"][b] for x in parts)
+        if not n:
+            continue
+        conf = sum(x["confidence"][b] for x in parts) / n
+        right = sum(x["right"][b] for x in parts) / n
+        rows.append(
+            [f"{b / bins:.1f}-{(b + 1) / bins:.1f}", str(n), _f(conf), _f(right), _f(right - conf)]
+        )
+    return rows
+
+
+def _robot_lines(data: dict) -> list[str]:
+    """Verdicts of the robot views: each filter against its front end alone, the detour."""
+    conditions = _conditions(data)
+    summary = [
+        s for s in _summary(data) if conditions.get(s["condition"], {}).get("group") == "robot"
+    ]
+    if not summary:
+        return []
+    by = {(s["condition"], s["method"]): s for s in summary}
+    methods = {m["label"]: m for m in data.get("methods", [])}
+    lines, below = [], []
+    for (cond, label), s in by.items():
+        method = methods.get(label, {}).get("method", label)
+        if "+" not in method:
+            continue
+        front = by.get((cond, method.split("+")[0]))
+        if front is not None and s["auc_mean"] < front["auc_mean"] - 0.01:
+            below.append(
+                f"{conditions[cond]['label']}: {label} {s['auc_mean']:.3f} < "
+                f"{front['method']} {front['auc_mean']:.3f}"
+            )
+    lines.append(
+        "Every filter against its front end alone (AUC mean, allowed 0.01 below): "
+        + ("; ".join(below) + "." if below else "none is below.")
+    )
+    for s in summary:
+        if "offmap_localized_share_mean" in s:
+            rejoin = s.get("rejoin_frames", [])
+            shown = ", ".join("never" if r is None else str(r) for r in rejoin)
+            lines.append(
+                f"{conditions[s['condition']]['label']}, {s['method']}: "
+                f"{s['offmap_localized_share_mean']:.1%} of the off-map frames localized; "
+                f"frames after rejoining the map until localized and right, per seed: {shown}."
+            )
+    return lines
+
+
 def _protocol_lines(data: dict) -> list[str]:
     lines = []
     for c in data.get("conditions", []):
@@ -330,6 +396,20 @@ def render_markdown(data: dict) -> str:
     checks = _control_checks(data)
     if checks:
         parts += ["### Control verdicts", "", *(f"- {c}" for c in checks), ""]
+    robot = _robot_lines(data)
+    if robot:
+        parts += ["### Robot verdicts", "", *(f"- {line}" for line in robot), ""]
+    for method in dict.fromkeys(x["method"] for x in data.get("reliability", [])):
+        rows = reliability_table(data, method)
+        parts += [
+            f"### Reliability of {method}'s confidence",
+            "",
+            "Its answers on the robot views (tolerance 2), pooled over views and seeds, by "
+            "confidence: a calibrated confidence is right as often as it says (gap near 0).",
+            "",
+            _md_table(["confidence", "frames", "mean confidence", "share right", "gap"], rows),
+            "",
+        ]
     kid = _kidnap_lines(data)
     if kid:
         p = data.get("kidnap_protocol", {})
@@ -372,6 +452,16 @@ def render_text(data: dict) -> str:
     if rows:
         parts += ["Bytes per reference place", _text_table(header, rows), ""]
     parts += _control_checks(data)
+    parts += _robot_lines(data)
+    for method in dict.fromkeys(x["method"] for x in data.get("reliability", [])):
+        parts += [
+            "",
+            f"Reliability of {method}'s confidence (robot views, tolerance 2):",
+            _text_table(
+                ["confidence", "frames", "mean confidence", "share right", "gap"],
+                reliability_table(data, method),
+            ),
+        ]
     kid = _kidnap_lines(data)
     if kid:
         parts += ["", "Kidnap:", *kid]

@@ -20,7 +20,7 @@ from flyvpr import metrics
 from flyvpr.datasets import ground_truth_from_frames, load_benchmark
 from flyvpr.methods import make_method
 
-from .accuracy_setup import Dataset, Entry, View
+from .accuracy_setup import Dataset, Entry, View, fisheye
 
 #: stream frames at which the kidnap test's query stream jumps KIDNAP_JUMP places ahead
 KIDNAP_AT = (100, 200, 300, 400, 500, 600, 700)
@@ -57,6 +57,9 @@ def load_dataset(dataset: Dataset, data: Path):
         ref, qry = bench.load_images(cache=True, progress=False)
         protocol = json.loads(json.dumps(bench.protocol(), default=str))
         protocol.pop("tolerance", None)  # each row names its own
+        if dataset.mask == "fisheye":
+            ref, qry = fisheye(ref), fisheye(qry)
+            protocol["mask"] = "fisheye disc (benchmarks/accuracy_setup.py FISHEYE_DISC)"
         return ref, qry, bench.reference.frame_ids, bench.query.frame_ids, protocol
     if dataset.source == "synthetic":
         from flyvpr.synthetic import make_route
@@ -105,7 +108,7 @@ def run_task(task: Task) -> dict:
     t_start, cpu_start = time.perf_counter(), time.process_time()
     ref, qry, ref_ids, qry_ids, protocol = load_dataset(task.dataset, task.data)
     n_ref = len(ref)
-    rows, kidnaps, evidence, errors, fitted = [], [], [], [], []
+    rows, kidnaps, evidence, errors, fitted, reliability = [], [], [], [], [], []
     shared = {}  # front-end key -> (encoder, S, seconds)
     for entry in task.entries:
         views = [v for v in task.views if entry.runs_on(v)]
@@ -119,26 +122,50 @@ def run_task(task: Task) -> dict:
             )
             for view in views:
                 idx = view.indices(len(qry))
+                view_model, view_S, view_ref_ids = model, S, ref_ids
+                if view.gap is not None:
+                    keep = gap_keep(len(ref), view.gap)
+                    view_model, view_S, _ = _fit(entry, task.seed, ref[keep], qry, shared, view.gap)
+                    view_ref_ids = ref_ids[keep]
+                velocity = None
+                if view.odometry:
+                    velocity = np.diff(qry_ids[idx], prepend=qry_ids[idx][0]).astype(np.float64)
                 t0 = time.perf_counter()
-                out = S[idx] if model.filter is None else model.filter.filter(S[idx])
+                filt = view_model.filter
+                states = None
+                if filt is None:
+                    out = view_S[idx]
+                elif view.group == "robot" and _has_state(filt):
+                    out, states = _stream(filt, view_S[idx], velocity)
+                elif velocity is not None:
+                    out = filt.filter(view_S[idx], velocity=velocity)
+                else:
+                    out = filt.filter(view_S[idx])
                 filter_s = time.perf_counter() - t0
                 top_share = float(np.bincount(out.argmax(axis=1)).max() / len(idx))
                 for tol in view.tolerances:
-                    gt = ground_truth_from_frames(qry_ids[idx], ref_ids, tol)
+                    gt = ground_truth_from_frames(qry_ids[idx], view_ref_ids, tol)
                     m = metrics.evaluate(out, gt, ks=(1,))
-                    rows.append(
-                        {
-                            "condition": f"{view.key}@{tol}",
-                            "method": entry.label,
-                            "seed": task.seed,
-                            "auc": m["auc"],
-                            "recall_at_1": m["recall_at_1"],
-                            "recall_at_100_precision": m["recall_at_100_precision"],
-                            "extended_precision": m["extended_precision"],
-                            "top_share": top_share,
-                            "filter_s": filter_s,
-                        }
-                    )
+                    row = {
+                        "condition": f"{view.key}@{tol}",
+                        "method": entry.label,
+                        "seed": task.seed,
+                        "auc": m["auc"],
+                        "recall_at_1": m["recall_at_1"],
+                        "recall_at_100_precision": m["recall_at_100_precision"],
+                        "extended_precision": m["extended_precision"],
+                        "top_share": top_share,
+                        "filter_s": filter_s,
+                    }
+                    if states is not None:
+                        row["localized_share"] = float(np.mean(states))
+                        if tol == min(view.tolerances):
+                            reliability.append(
+                                _reliability(entry.label, view.key, task.seed, out, gt)
+                            )
+                        if view.gap is not None and tol == min(view.tolerances):
+                            row.update(_detour(qry_ids[idx], view_ref_ids, out, states, tol))
+                    rows.append(row)
                 if task.kidnap and view.kidnap and entry.spec.filter == "cann":
                     tol = view.tolerances[0]
                     kidnaps.append(_kidnap_row(view, entry.label, task.seed, model.filter, S, tol))
@@ -167,6 +194,7 @@ def run_task(task: Task) -> dict:
         "kidnap": kidnaps,
         "evidence": evidence,
         "fitted": fitted,
+        "reliability": reliability,
         "errors": errors,
         "seconds": time.perf_counter() - t_start,
         # CPU seconds of all threads: a measure of the work that does not depend on the load.
@@ -174,7 +202,7 @@ def run_task(task: Task) -> dict:
     }
 
 
-def _fit(entry: Entry, seed: int, ref, qry, shared: dict):
+def _fit(entry: Entry, seed: int, ref, qry, shared: dict, variant=None):
     """A fitted method and its front end's scores of every query frame.
 
     The front end is fitted once per (front end, parameters) and shared.  ``make_method`` gives
@@ -184,7 +212,11 @@ def _fit(entry: Entry, seed: int, ref, qry, shared: dict):
     ``flyvpr evaluate --method ... --seed ...`` without fitting the front end again.
     """
     model = make_method(entry.name, seed, entry.frontend_params, entry.filter_params)
-    key = (entry.spec.frontend, json.dumps(entry.frontend_params, sort_keys=True, default=str))
+    key = (
+        entry.spec.frontend,
+        json.dumps(entry.frontend_params, sort_keys=True, default=str),
+        repr(variant),  # a detour's map is fitted on its own places
+    )
     if key not in shared:
         t0 = time.perf_counter()
         model.frontend.fit(ref)
@@ -200,6 +232,70 @@ def _fit(entry: Entry, seed: int, ref, qry, shared: dict):
         if getattr(model.filter, "needs_reference_scores", False):
             model.filter.fit(model.frontend.score(ref))
     return model, S, seconds
+
+
+def gap_keep(n: int, gap) -> np.ndarray:
+    """Indices of the reference places a detour view keeps: all but ``gap[0] n .. gap[1] n``."""
+    lo, hi = int(gap[0] * n), int(gap[1] * n)
+    return np.r_[0:lo, hi:n]
+
+
+def _has_state(filt) -> bool:
+    """Filters that say per frame whether they are localized (the CANN)."""
+    from flyvpr.temporal.cann import CANN
+
+    return isinstance(filt, CANN)
+
+
+def _stream(filt, S, velocity):
+    """The filter's rows frame by frame, with whether each frame was ``localized``."""
+    filt.reset()
+    out = np.empty(S.shape, np.float32)
+    states = np.zeros(len(S), bool)
+    for t in range(len(S)):
+        v = None if velocity is None or t == 0 else float(velocity[t])
+        out[t] = filt.step(S[t]) if v is None else filt.step(S[t], velocity=v)
+        states[t] = filt.state_ == "localized"
+    return out, states
+
+
+#: confidence bins of the reliability table
+RELIABILITY_BINS = 10
+
+
+def _reliability(label: str, view: str, seed: int, out, gt) -> dict:
+    """Per confidence decile: frames, summed confidence and right answers (the row maximum is
+    the confidence, the argmax the answer, right = within the tolerance)."""
+    answer = out.argmax(axis=1)
+    conf = out[np.arange(len(out)), answer].astype(np.float64)
+    right = gt[np.arange(len(out)), answer]
+    b = np.minimum((conf * RELIABILITY_BINS).astype(np.int64), RELIABILITY_BINS - 1)
+    return {
+        "method": label,
+        "view": view,
+        "seed": seed,
+        "n": np.bincount(b, minlength=RELIABILITY_BINS).tolist(),
+        "confidence": np.bincount(b, conf, minlength=RELIABILITY_BINS).tolist(),
+        "right": np.bincount(b, right, minlength=RELIABILITY_BINS).astype(int).tolist(),
+    }
+
+
+def _detour(query_ids, ref_ids, out, states, tol: int) -> dict:
+    """Off-map frames (whose place the map leaves out) reported ``localized``, and frames
+    after rejoining the map until the answer is ``localized`` and right (within ``tol``)."""
+    off = ~np.isin(query_ids, ref_ids)
+    right = ground_truth_from_frames(query_ids, ref_ids, tol)[
+        np.arange(len(out)), out.argmax(axis=1)
+    ]
+    back = None
+    if off.any():
+        after = np.arange(np.flatnonzero(off)[-1] + 1, len(out))
+        hit = after[states[after] & right[after]]
+        back = int(hit[0] - after[0]) if hit.size else None
+    return {
+        "offmap_localized_share": float(states[off].mean()) if off.any() else None,
+        "rejoin_frames": back,
+    }
 
 
 def _extra_cann_variants(entry: Entry):

@@ -46,6 +46,61 @@ class Dataset:
     count: int | None = None
     route: dict = field(default_factory=dict)
     tuning: str = "not used for tuning"
+    #: "fisheye": both traverses black (0.05) outside the disc of FISHEYE_DISC
+    mask: str = ""
+
+
+#: motion profiles of a robot over a frame-aligned route (query frame -> true place)
+MOTIONS = {
+    "0.6x": "place floor(0.6 i) at frame i",
+    "0.8x": "place floor(0.8 i) at frame i",
+    "2.5x": "place floor(2.5 i) at frame i",
+    "walk": "speed v = clip(1 + cumsum(N(0, 0.05)), 0.4, 1.6) per frame from "
+    "numpy.random.default_rng(view_seed); frame k shows place floor(sum(v[:k+1]))",
+    "stopgo": "1 place per frame, standing 30 frames after every 150 moving frames",
+    "stop100": "1 place per frame with one stop of 100 frames at place floor(0.3 n)",
+    "reversed": "the places in decreasing order, 1 per frame",
+}
+#: the fisheye disc: pixels with ((y - 15.5) / 16)^2 + ((x - 31.5) / 16.8)^2 > 1 are 0.05
+FISHEYE_DISC = (15.5, 16.0, 31.5, 16.8, 0.05)
+
+
+def motion_places(kind: str, n: int, seed: int = 0) -> np.ndarray:
+    """The true place of every query frame for motion profile ``kind`` (see MOTIONS)."""
+    if kind in ("0.6x", "0.8x", "2.5x"):
+        speed = float(kind[:-1])
+        places = np.floor(speed * np.arange(int(np.ceil(n / speed)) + 1)).astype(np.int64)
+        return places[places < n]
+    if kind == "walk":
+        rng = np.random.default_rng(seed)
+        v = np.clip(1.0 + np.cumsum(rng.normal(0.0, 0.05, 4 * n)), 0.4, 1.6)
+        places = np.floor(np.cumsum(v)).astype(np.int64)
+        return places[places < n]
+    if kind == "stopgo":
+        out, place = [], 0
+        while place < n:
+            moving = np.arange(place, min(place + 150, n))
+            out.append(moving)
+            place += moving.size
+            if place < n:
+                out.append(np.full(30, place))
+        return np.concatenate(out).astype(np.int64)
+    if kind == "stop100":
+        at = int(0.3 * n)
+        return np.concatenate([np.arange(at), np.full(100, at), np.arange(at, n)]).astype(np.int64)
+    if kind == "reversed":
+        return np.arange(n - 1, -1, -1, dtype=np.int64)
+    raise ValueError(f"unknown motion profile {kind!r}; known: {sorted(MOTIONS)}")
+
+
+def fisheye(images: np.ndarray) -> np.ndarray:
+    """``images`` (N, 32, 64) with everything outside FISHEYE_DISC set to its value."""
+    cy, ry, cx, rx, value = FISHEYE_DISC
+    y, x = np.mgrid[: images.shape[1], : images.shape[2]]
+    outside = ((y - cy) / ry) ** 2 + ((x - cx) / rx) ** 2 > 1.0
+    out = images.copy()
+    out[:, outside] = value
+    return out
 
 
 @dataclass(frozen=True)
@@ -71,6 +126,12 @@ class View:
     view_seed: int = 0
     kidnap: bool = False
     note: str = ""
+    #: kind "motion": the profile's name (see :func:`motion_places`)
+    motion: str = ""
+    #: pass the true places moved per frame to filters that take odometry
+    odometry: bool = False
+    #: a detour: the reference places from ``gap[0] * n`` to ``gap[1] * n`` are not in the map
+    gap: tuple[float, float] | None = None
 
     def indices(self, n_query: int) -> np.ndarray:
         """Positions of the kept query frames, in the order they are fed to the methods."""
@@ -82,16 +143,27 @@ class View:
             return np.random.default_rng(self.view_seed).permutation(n_query)
         if self.kind == "from":
             return np.arange(self.start, n_query)
+        if self.kind == "motion":
+            return motion_places(self.motion, n_query, self.view_seed)
         raise ValueError(f"view {self.key!r}: unknown kind {self.kind!r}")
 
     def protocol(self) -> dict:
         out = {"kind": self.kind, "tolerances": list(self.tolerances), "group": self.group}
         if self.kind == "speed":
             out["speed"] = list(self.speed) if isinstance(self.speed, tuple) else self.speed
-        if self.kind in ("speed", "shuffle"):
+        if self.kind in ("speed", "shuffle") or self.motion == "walk":
             out["view_seed"] = self.view_seed
         if self.kind == "from":
             out["start"] = self.start
+        if self.kind == "motion":
+            out["motion"] = MOTIONS[self.motion]
+        if self.odometry:
+            out["odometry"] = "true places moved per frame, given to filters that take it"
+        if self.gap is not None:
+            out["gap"] = (
+                f"reference places {self.gap[0]:g} n to {self.gap[1]:g} n left out of the map "
+                "(the query drives through them)"
+            )
         if self.note:
             out["note"] = self.note
         return out
@@ -128,6 +200,12 @@ class Entry:
         return not any("random_state" in part.get_params() for part in parts)
 
     def runs_on(self, view: View) -> bool:
+        if view.group == "robot":
+            if self.label not in ROBOT_METHODS:
+                return False
+            if view.odometry:  # only filters that take odometry
+                return self.spec.filter in ("cann", "cann-paper")
+            return True
         return self.groups is None or view.group in self.groups
 
     def runs_with(self, seed: int, first_seed: int) -> bool:
@@ -228,6 +306,13 @@ DATASETS: list[Dataset] = [
         1000,
         folder="nordland_64x32_viewpoint",
     ),
+    _nordland(
+        "n64-0-fish",
+        "Nordland 64x32 summer->winter 0-999 through a fisheye disc",
+        0,
+        mask="fisheye",
+        tuning="the fly front end's static-pixel mask was checked here",
+    ),
     Dataset(
         "blank",
         "blank frames (500 constant frames, value 0.5)",
@@ -297,8 +382,48 @@ VIEWS: list[View] = [
     ),
 ]
 
+_ROBOT = (2, 20)
+
+
+def _motion(key, dataset, label, motion, odometry=False, **kw) -> View:
+    note = "with odometry" if odometry else ""
+    return View(
+        key, dataset, label, "robot", _ROBOT, "motion", motion=motion, odometry=odometry,
+        note=note, **kw
+    )  # fmt: skip
+
+
+#: A robot's motion and camera on the dev window 0-999 (the filter's defaults were chosen
+#: here) and the held-out window 2000-2399 (tuned nothing)
+ROBOT_VIEWS: list[View] = [
+    View("r-1x", "n64-0", "0-999 at 1x", "robot", _ROBOT),
+    _motion("r-0.8x", "n64-0", "0-999 at 0.8x", "0.8x"),
+    _motion("r-0.6x", "n64-0", "0-999 at 0.6x", "0.6x"),
+    _motion("r-0.6x-odo", "n64-0", "0-999 at 0.6x, odometry", "0.6x", odometry=True),
+    _motion("r-walk", "n64-0", "0-999, random 0.4-1.6x", "walk"),
+    _motion("r-walk-odo", "n64-0", "0-999, random 0.4-1.6x, odometry", "walk", odometry=True),
+    _motion("r-stopgo", "n64-0", "0-999, stop-and-go", "stopgo"),
+    _motion("r-stopgo-odo", "n64-0", "0-999, stop-and-go, odometry", "stopgo", odometry=True),
+    _motion("r-stop100", "n64-0", "0-999, one 100-frame stop", "stop100"),
+    _motion("r-2.5x", "n64-0", "0-999 at 2.5x", "2.5x"),
+    _motion("r-2.5x-odo", "n64-0", "0-999 at 2.5x, odometry", "2.5x", odometry=True),
+    View("r-detour", "n64-0", "0-999, detour off the map (400-699)", "robot", _ROBOT, gap=(0.4, 0.7)),
+    View("r-fisheye", "n64-0-fish", "0-999 through a fisheye disc", "robot", _ROBOT),
+    View("r-shuffled", "n64-0", "0-999, queries shuffled", "robot", _ROBOT, "shuffle"),
+    _motion("r-reversed", "n64-0", "0-999 driven backwards", "reversed"),
+    _motion("r-walk-2000", "n64-2000", "2000-2399 held out, random 0.4-1.6x", "walk"),
+    _motion("r-stopgo-2000", "n64-2000", "2000-2399 held out, stop-and-go", "stopgo"),
+    View(
+        "r-detour-2000", "n64-2000", "2000-2399 held out, detour (160-279)", "robot", _ROBOT,
+        gap=(0.4, 0.7),
+    ),  # fmt: skip
+]
+VIEWS += ROBOT_VIEWS
+
 #: SeqSLAM searching the CANN's speed range (0.75-2 places per frame, steps of 1/8)
 CANN_SPEEDS = {"v_min": 0.75, "v_max": 2.0, "v_step": 0.125}
+#: SeqSLAM searching the robot views' speeds (0.25-3 places per frame, steps of 1/8)
+ROBOT_SPEEDS = {"v_min": 0.25, "v_max": 3.0, "v_step": 0.125}
 _FAST_ROWS = ("nordland", "speed")
 
 METHODS: list[Entry] = [
@@ -337,7 +462,22 @@ METHODS: list[Entry] = [
     Entry("flyhash+cann"),
     Entry("kenyon+cann"),
     Entry("netvlad+cann", first_seed_only=True),
+    Entry("flynet+cann-paper", groups=("nordland", "speed", "robot")),
+    Entry("seqslam-60 v0.25-3", "seqslam", filter_params=ROBOT_SPEEDS, groups=("robot",)),
 ]
+
+#: the methods that run on the robot views (the rest skip them)
+ROBOT_METHODS = (
+    "pixels",
+    "flynet",
+    "kenyon",
+    "seqslam-60",
+    "seqslam-60 v0.25-3",
+    "flynet+cann",
+    "flynet+cann-paper",
+    "pixels+cann",
+    "kenyon+cann",
+)
 
 #: ``--quick``: these views and methods, seeds 0-1
 QUICK_VIEWS = ("n64-0", "sub-sw", "n64-0-1.5x", "blank", "shuffled", "offset-300")

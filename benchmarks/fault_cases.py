@@ -446,7 +446,7 @@ for _id, _method, _param_text, _name in (
     ("resources/v_step-1e-12", "flyhash+seqslam", "v_step=1e-12", "v_step"),
     (
         "resources/excitation_width-1e12",
-        "flyhash+cann",
+        "flyhash+cann-paper",
         "excitation_width=1e12",
         "excitation_width",
     ),

@@ -1,9 +1,10 @@
-"""The CANN temporal filter: attractor properties, online contract, movement, errors."""
+"""The paper's attractor CANN (AttractorCANN, filter cann-paper): attractor properties, online contract, movement, errors."""
 
 import numpy as np
 import pytest
 
-from flyvpr.temporal.cann import CANN, FAST_RECOVERY, excitation_kernel
+from flyvpr.temporal.cann import FAST_RECOVERY, excitation_kernel
+from flyvpr.temporal.cann import AttractorCANN as CANN
 
 N_PLACES = 300
 

@@ -330,15 +330,15 @@ def test_get_kernels_chooses_by_flag_and_numba(monkeypatch):
     real = sys.modules.get("numba")
     if real is None and importlib.util.find_spec("numba") is not None:
         import numba as real
-    monkeypatch.setattr(_kernels, "_compiled", None)
+    monkeypatch.setattr(_kernels, "_compiled", {})
     monkeypatch.setitem(sys.modules, "numba", None)
     assert _kernels.get_kernels(longest) == (_kernels._PLAIN, False)
-    assert _kernels._compiled is False
+    assert _kernels._compiled == {"attractor": False}
     if real is None:
         monkeypatch.delitem(sys.modules, "numba")
     else:
         monkeypatch.setitem(sys.modules, "numba", real)
-    monkeypatch.setattr(_kernels, "_compiled", None)
+    monkeypatch.setattr(_kernels, "_compiled", {})
     found, compiled = _kernels.get_kernels(longest)
     assert compiled == (real is not None)  # numba is a dependency: compiled where importable
     if compiled:

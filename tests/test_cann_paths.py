@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from flyvpr.temporal.cann import CANN, _kernels
+from flyvpr.temporal.cann import AttractorCANN as CANN
+from flyvpr.temporal.cann import _kernels
 
 
 def test_compiled_at_every_route_length(monkeypatch):

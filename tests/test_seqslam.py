@@ -112,11 +112,11 @@ def test_velocity_grid():
 
 
 def test_cann_speed_range():
-    # The CANN's default velocity bank, 0.75-2 places per frame in steps of 1/8.
-    from flyvpr.temporal.cann import CANN
+    # The paper CANN's default velocity bank, 0.75-2 places per frame in steps of 1/8.
+    from flyvpr.temporal.cann import AttractorCANN
 
     grid = SeqSLAM(v_min=0.75, v_max=2.0, v_step=0.125).velocities()
-    np.testing.assert_allclose(grid, CANN().velocities, atol=1e-12)
+    np.testing.assert_allclose(grid, AttractorCANN().velocities, atol=1e-12)
 
 
 @pytest.mark.parametrize("velocity", [1.5, 2.0])

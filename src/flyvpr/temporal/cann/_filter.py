@@ -21,7 +21,7 @@ from ._params import TRANSFORMS, check_real
 #: steps of 1/4
 LAYER_VELOCITIES = tuple(float(v) for v in np.r_[np.arange(0.0, 2.0, 0.125), np.arange(2.0, 3.01, 0.25)])
 #: the calibration table (see the class's docstring)
-CALIBRATION = (0.0, 0.45, 0.56, 0.71, 0.79, 0.875, 0.945, 0.966, 0.99, 0.997, 1.0)
+CALIBRATION = (0.0, 0.455, 0.563, 0.711, 0.792, 0.88, 0.951, 0.973, 0.998, 0.999, 1.0)
 #: smallest positive float32, the floor before the log of a probability row
 _TINY = np.float32(np.finfo(np.float32).tiny)
 #: rows are treated as probability vectors when they sum to 1 within this tolerance
@@ -335,7 +335,10 @@ class CANN(OnlineFilter):
         self._spare = np.empty_like(self._p)
         # A velocity drawn afresh may be any of them: a robot stops or starts at any speed.
         self._redraw = np.full(n_v, 1.0 / n_v)
-        self._marginal = np.empty(n, np.float32)
+        self._marginal = np.empty(n, np.float32)  # the posterior over places
+        self._predicted = np.empty(n, np.float32)  # the prior over places, before the evidence
+        self._weight = np.empty(n, np.float32)  # the evidence exp(gain * (x - max x))
+        self._row_mass = np.empty(n_v, np.float64)  # the posterior over velocities
         self._box = np.empty(n, np.float64)
         self._mean = np.zeros(n, np.float32)
         self._var = np.ones(n, np.float32)
@@ -513,28 +516,40 @@ class CANN(OnlineFilter):
         t = self.n_frames_
         radius = p["tolerance"]
         x = self._input(row)
-        predicted = -1
         if t > 0:
             floor_rate = p["relocation"] + p["recovery"] * (1.0 - self.support_)
             if velocity is None:
                 change, jump = p["velocity_change"], p["velocity_jump"]
             else:  # odometry moves every row alike; the velocities stay as they are
                 change = jump = 0.0
-            kernels["propagate"](
-                self._p,
-                self._spare,
-                self._shifts(velocity),
-                1.0 - change - jump,
-                change,
-                jump,
-                self._redraw,
-                p["prior"],
-                floor_rate,
-            )
-            np.sum(self._p, axis=0, out=self._marginal)
-            predicted = int(kernels["window_sums"](self._marginal, radius, self._box))
+            shifts = self._shifts(velocity)
+        else:  # the first frame: the prior as it is, weighed by the evidence
+            floor_rate = change = jump = 0.0
+            shifts = np.zeros(p["velocities"].size, np.int64)
+        weight = self._weight
+        np.subtract(x, x.max(), out=weight)
+        weight *= np.float32(p["evidence_gain"])
+        np.exp(weight, out=weight)
+        kernels["advance"](
+            self._p,
+            self._spare,
+            shifts,
+            1.0 - change - jump,
+            change,
+            jump,
+            self._redraw,
+            p["prior"],
+            floor_rate,
+            weight,
+            self._predicted,
+            self._marginal,
+            self._row_mass,
+        )
+        self._p, self._spare = self._spare, self._p
+        predicted = -1
+        if t > 0:
+            predicted = int(kernels["window_sums"](self._predicted, radius, self._box))
             self._support(x, predicted)
-        kernels["observe"](self._p, x, p["evidence_gain"], self._marginal)
         # The window holding the most probability, and in it the most probable place: the
         # answer (its own window's probability is the confidence, at most the window's).
         best = int(kernels["window_sums"](self._marginal, radius, self._box))
@@ -584,13 +599,15 @@ class CANN(OnlineFilter):
             if predicted >= 0 and abs(answer - predicted) > 2 * radius + 1:
                 self.n_relocations_ += 1
         self.probability_ = probability if self.source_ == "sequence" else 0.0
+        # The sequence's raw confidence mapped through the calibration table (strictly
+        # increasing: the order of its answers stays); the front end's is its estimated
+        # precision as it is.
+        calibrated = confidence
         if self.source_ == "sequence":
-            # The sequence's raw confidence mapped through the calibration table (strictly
-            # increasing: the order of its answers stays).
             calibrated = _calibrate(confidence, p["calibration"])
-            if confidence > 0.0 and calibrated != confidence:
-                out *= np.float32(calibrated / confidence)  # the row keeps its order
-            confidence = calibrated
+        if confidence > 0.0 and calibrated != confidence:
+            out *= np.float32(calibrated / confidence)  # the row keeps its order
+        confidence = calibrated
         # Exactly the confidence at the answer, and no other place above it or tied with it
         # ahead of it (float32 rounding of the product could make one).
         level = np.float32(confidence)
@@ -602,8 +619,7 @@ class CANN(OnlineFilter):
         localized = self.source_ == "sequence" and self.support_ * self.probability_ >= 0.5
         self.state_ = "localized" if localized else "lost"
         if velocity is None:
-            weights = self._p.sum(axis=1, dtype=np.float64)
-            self.velocity_ = float(weights @ p["velocities"] / weights.sum())
+            self.velocity_ = float(self._row_mass @ p["velocities"])
         else:
             self.velocity_ = float(velocity)
         self.n_frames_ = t + 1

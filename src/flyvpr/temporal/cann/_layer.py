@@ -140,7 +140,101 @@ def exceedance(x, place, stride):
     return max(count, 1) / m
 
 
+def advance(p, out, shifts, stay, neighbour, jump, redraw, prior, floor_rate, weight,
+            predicted, marginal, row_mass):  # fmt: skip
+    """One frame of the layer in two passes: :func:`propagate` then :func:`observe` fused.
+
+    ``p`` holds the activity (any positive scale: it is normalised here); ``out`` receives the
+    new activity, weighted by the evidence ``weight`` (``exp(gain * (x - max x))``) but not
+    normalised.  Writes the prior's place marginal (after the move, before the evidence) into
+    ``predicted``, the posterior's (normalised) into ``marginal`` and the posterior mass of
+    every velocity row (normalised) into ``row_mass``.  With ``shifts`` all equal to a
+    negative of at least ``n``, or every unit at 0, the layer starts again from
+    ``prior / n``.  Returns the posterior's normaliser (the sum of ``out``).
+    """
+    n_v, n = p.shape
+    # Pass 1: the place marginal after the move (what enters at the open end is 0).
+    for i in range(n):
+        predicted[i] = 0.0
+    for j in range(n_v):
+        k = shifts[j]
+        lo = min(max(k, 0), n)
+        hi = max(min(n + k, n), lo)
+        src = p[j, lo - k : hi - k]
+        dst = predicted[lo:hi]
+        for i in range(hi - lo):
+            dst[i] += src[i]
+    total = 0.0
+    for i in range(n):
+        total += float(predicted[i])
+    reset = not total > 0.0
+    scale = 0.0 if reset else (1.0 - floor_rate) / total
+    rate = 1.0 if reset else floor_rate
+    half = 0.5 * neighbour
+    # Pass 2: mix velocities, redraw, re-seed, weigh by the evidence.
+    for i in range(n):
+        marginal[i] = 0.0
+    drawn_total = np.float32(jump * scale)
+    z = 0.0
+    for j in range(n_v):
+        jl = max(j - 1, 0)
+        ju = min(j + 1, n_v - 1)
+        k, kl, ku = shifts[j], shifts[jl], shifts[ju]
+        a = np.float32(stay * scale)
+        b = np.float32(half * scale)
+        c = drawn_total * np.float32(redraw[j])
+        base = np.float32(rate * prior[j] / n)
+        own, lower, upper = p[j], p[jl], p[ju]
+        dst = out[j]
+        mass = 0.0
+        # Where all three source rows are on the route: no bounds checks (a SIMD loop) ...
+        lo = min(max(max(k, kl), max(ku, 0)), n)
+        hi = max(min(n + min(min(k, kl), ku), n), lo)
+        s_own = own[lo - k : hi - k]
+        s_low = lower[lo - kl : hi - kl]
+        s_up = upper[lo - ku : hi - ku]
+        m_mid = predicted[lo:hi]
+        w_mid = weight[lo:hi]
+        d_mid = dst[lo:hi]
+        g_mid = marginal[lo:hi]
+        middle = np.float32(0.0)  # a float32 sum: a SIMD reduction (partial sums)
+        for i in range(hi - lo):
+            w = (a * s_own[i] + b * (s_low[i] + s_up[i]) + c * m_mid[i] + base) * w_mid[i]
+            d_mid[i] = w
+            g_mid[i] += w
+            middle += w
+        mass += float(middle)
+        # ... and near the ends, where a shifted row may have nothing to give.
+        for end in range(2):
+            start, stop = (0, lo) if end == 0 else (hi, n)
+            for i in range(start, stop):
+                v = c * predicted[i] + base
+                if 0 <= i - k < n:
+                    v += a * own[i - k]
+                if 0 <= i - kl < n:
+                    v += b * lower[i - kl]
+                if 0 <= i - ku < n:
+                    v += b * upper[i - ku]
+                w = v * weight[i]
+                dst[i] = w
+                marginal[i] += w
+                mass += float(w)
+        row_mass[j] = mass
+        z += mass
+    prior_scale = np.float32(scale)  # stay + neighbour + jump = 1: the mixing keeps the mass
+    prior_base = np.float32(rate / n)
+    for i in range(n):
+        predicted[i] = predicted[i] * prior_scale + prior_base
+    inv = np.float32(1.0 / z)
+    for i in range(n):
+        marginal[i] *= inv
+    for j in range(n_v):
+        row_mass[j] /= z
+    return z
+
+
 PLAIN = {
+    "advance": advance,
     "propagate": propagate,
     "observe": observe,
     "window_sums": window_sums,
