@@ -166,7 +166,7 @@ def run_task(task: Task) -> dict:
                         if view.gap is not None and tol == min(view.tolerances):
                             row.update(_detour(qry_ids[idx], view_ref_ids, out, states, tol))
                     rows.append(row)
-                if task.kidnap and view.kidnap and entry.spec.filter == "cann":
+                if task.kidnap and view.kidnap and entry.spec.filter in ("cann", "cann-paper"):
                     tol = view.tolerances[0]
                     kidnaps.append(_kidnap_row(view, entry.label, task.seed, model.filter, S, tol))
                     for label, params in _extra_cann_variants(entry):
@@ -299,13 +299,13 @@ def _detour(query_ids, ref_ids, out, states, tol: int) -> dict:
 
 
 def _extra_cann_variants(entry: Entry):
-    """The CANN's FAST_RECOVERY preset next to flynet+cann in the kidnap test, if it exists."""
-    if entry.label != "flynet+cann":
+    """The paper CANN's FAST_RECOVERY preset next to flynet+cann-paper in the kidnap test."""
+    if entry.label != "flynet+cann-paper":
         return []
     from flyvpr.temporal import cann
 
     preset = getattr(cann, "FAST_RECOVERY", None)
-    return [("flynet+cann[fast]", preset)] if preset else []
+    return [("flynet+cann-paper[fast]", preset)] if preset else []
 
 
 def jump_positions(n: int) -> list[int]:

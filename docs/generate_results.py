@@ -208,23 +208,28 @@ ADAPTERS: dict[str, Callable[[dict], str]] = {
 
 # -- the "which method" table of the README and the methods guide -------------------------------
 
-#: columns: (title, condition key in the accuracy JSON); tolerance 20 frames
+#: columns: (title, condition key in the accuracy JSON); tolerance 20 frames unless the title
+#: says otherwise
 WHICH_METHOD_COLUMNS = [
     ("0-999", "n64-0@20"),
     ("1000-1999", "n64-1000@20"),
     ("2000-2399, held out", "n64-2000@20"),
     ("drifting viewpoint, 0-999", "vp-0@20"),
     ("1.5x speed, 0-999", "n64-0-1.5x@20"),
+    ("random 0.4-1.6x, 0-999, ±2", "r-walk@2"),
+    ("stop-and-go, 0-999, ±2", "r-stopgo@2"),
 ]
 #: rows: (method label in the accuracy JSON, as the table shows it), those the JSON has
 WHICH_METHOD_ROWS = [
     ("kenyon+cann", "`kenyon+cann`"),
     ("pixels+cann", "`pixels+cann`"),
-    ("flynet+cann", "`flynet+cann` (the paper's)"),
+    ("flynet+cann", "`flynet+cann`"),
+    ("flynet+cann-paper", "`flynet+cann-paper` (the paper's)"),
     ("netvlad+cann", "`netvlad+cann`"),
     ("seqslam-20", "`seqslam` (length 20, the paper's)"),
     ("seqslam-60", "`seqslam`, length 60"),
     ("seqslam-20 v0.75-2", "`seqslam`, speeds 0.75-2"),
+    ("seqslam-60 v0.25-3", "`seqslam`, length 60, speeds 0.25-3"),
     ("flynet+seqslam", "`flynet+seqslam`"),
     ("flynet+rnn", "`flynet+rnn`"),
     ("pixels", "`pixels` (single frames)"),
@@ -287,7 +292,8 @@ def which_method_table(data: dict, where: Path) -> str:
         "",
         f"AUC of the precision-recall curve on Nordland 64x32 "
         f"([`nordland_64x32`]({link('docs/guide/datasets.md')}) and its drifting-viewpoint "
-        "copy), summer = reference, winter = query, tolerance 20 frames. Methods with a seed: "
+        "copy), summer = reference, winter = query, tolerance 20 frames (±2: 2 frames; the "
+        "random speed profile's seed is 0). Methods with a seed: "
         f"mean over {usual} seeds"
         + (f" ({', '.join(others)})" if others else "")
         + ", the worst seed in brackets; one value: a single run (deterministic, or run with "

@@ -1,16 +1,19 @@
-"""A 1-d continuous attractor neural network (CANN) over the reference places.
+"""The CANN: a network over the reference places that filters a front end's scores over time.
 
-Paper, Sec. "FlyNet+CANN" (Fig. "FlyNet baselines" (d)): FlyNet's output for each query frame
-is injected into a 1-d CANN with pre-assigned (never trained) weights: every place unit excites
-itself and its neighbours, all place units are inhibited through one global inhibitor unit, and
-movement along the route is a direct *shift and copy* of the activity packet (no velocity
-units).  What the network computes, its readout, its parameters and the data that tuned their
-defaults are on the user guide's CANN page (``docs/guide/cann.md``).
+:class:`CANN` (filter ``cann``, the default) is a place-velocity layer: one unit per place and
+candidate speed whose activity is the probability that the robot is there moving at that speed;
+rows move by their speed (the paper's *shift and copy*) or by odometry, the front end's
+evidence multiplies them and global divisive inhibition normalises them.  A sequence test says
+whether the query follows the route at all; the answer comes with a calibrated confidence and a
+``localized``/``lost`` state (user guide, ``docs/guide/cann.md``).
 
-The package follows the design: ``_params`` (defaults and validation), ``_kernels`` (the
-excitation kernel and the per-frame updates, compiled with numba where it can be),
-``_speed`` (the online speed estimate), ``_readout`` (answer and confidence) and ``_filter``
-(the :class:`CANN` class that holds the state).
+:class:`AttractorCANN` (filter ``cann-paper``) is the paper's 1-d continuous attractor network
+(Sec. "FlyNet+CANN"), kept for reproducing the paper (``docs/guide/cann-paper.md``).
+
+Modules: ``_filter`` (:class:`CANN`), ``_layer`` (its per-frame kernels), ``_attractor``
+(:class:`AttractorCANN`) with ``_params``, ``_speed`` and ``_readout``; ``_kernels`` holds the
+attractor's kernels, the input normalisation both use, and the numba compilation of both
+tables.
 """
 
 from ._attractor import AttractorCANN

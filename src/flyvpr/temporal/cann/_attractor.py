@@ -29,7 +29,7 @@ class AttractorCANN(OnlineFilter):
     """The paper's 1-d continuous attractor network (FlyNet+CANN as published).
 
     The equations, the readout and how the defaults were chosen are on the user guide's CANN
-    page (``docs/guide/cann.md``).  All times are in frame periods, all distances in
+    page (``docs/guide/cann-paper.md``).  All times are in frame periods, all distances in
     reference places.
 
     Parameters
