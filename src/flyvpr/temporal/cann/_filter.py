@@ -21,7 +21,9 @@ from ._params import TRANSFORMS, check_real
 #: steps of 1/4
 LAYER_VELOCITIES = tuple(float(v) for v in np.r_[np.arange(0.0, 2.0, 0.125), np.arange(2.0, 3.01, 0.25)])
 #: the calibration table (see the class's docstring)
-CALIBRATION = (0.0, 0.455, 0.563, 0.711, 0.792, 0.88, 0.951, 0.973, 0.998, 0.999, 1.0)
+CALIBRATION = (0.0, 0.753, 0.754, 0.8, 0.877, 0.901, 0.949, 0.968, 0.991, 0.999, 1.0)
+#: the front end's answers: its estimated precision times this (fitted with CALIBRATION)
+FRONT_CALIBRATION = 2.0
 #: smallest positive float32, the floor before the log of a probability row
 _TINY = np.float32(np.finfo(np.float32).tiny)
 #: rows are treated as probability vectors when they sum to 1 within this tolerance
@@ -600,11 +602,13 @@ class CANN(OnlineFilter):
                 self.n_relocations_ += 1
         self.probability_ = probability if self.source_ == "sequence" else 0.0
         # The sequence's raw confidence mapped through the calibration table (strictly
-        # increasing: the order of its answers stays); the front end's is its estimated
-        # precision as it is.
+        # increasing: the order of its answers stays); the front end's estimated precision
+        # times FRONT_CALIBRATION.
         calibrated = confidence
         if self.source_ == "sequence":
             calibrated = _calibrate(confidence, p["calibration"])
+        elif p["calibration"] is not None:
+            calibrated = min(1.0, FRONT_CALIBRATION * confidence)
         if confidence > 0.0 and calibrated != confidence:
             out *= np.float32(calibrated / confidence)  # the row keeps its order
         confidence = calibrated
