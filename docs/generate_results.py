@@ -228,9 +228,7 @@ WHICH_METHOD_ROWS = [
     ("netvlad+cann", "`netvlad+cann`"),
     ("seqslam-20", "`seqslam` (length 20, the paper's)"),
     ("seqslam-60", "`seqslam`, length 60"),
-    ("seqslam-20 v0.75-2", "`seqslam`, speeds 0.75-2"),
     ("seqslam-60 v0.25-3", "`seqslam`, length 60, speeds 0.25-3"),
-    ("flynet+seqslam", "`flynet+seqslam`"),
     ("flynet+rnn", "`flynet+rnn`"),
     ("pixels", "`pixels` (single frames)"),
 ]
@@ -292,8 +290,8 @@ def which_method_table(data: dict, where: Path) -> str:
         "",
         f"AUC of the precision-recall curve on Nordland 64x32 "
         f"([`nordland_64x32`]({link('docs/guide/datasets.md')}) and its drifting-viewpoint "
-        "copy), summer = reference, winter = query, tolerance 20 frames (±2: 2 frames; the "
-        "random speed profile's seed is 0). Methods with a seed: "
+        "copy), summer = reference, winter = query, tolerance 20 frames (±2: 2; random "
+        "speed profile seed 0). Methods with a seed: "
         f"mean over {usual} seeds"
         + (f" ({', '.join(others)})" if others else "")
         + ", the worst seed in brackets; one value: a single run (deterministic, or run with "

@@ -95,16 +95,18 @@ def test_which_method_table_from_a_benchmark_document(gen):
         row("vp-0@20", "kenyon+cann", [0, 1], 0.9, 0.875),
         row("n64-2000@20", "pixels+cann", [0, 1], 0.6, 0.5),
         row("other@20", "flynet", [0, 1], 0.1),
+        row("r-walk@2", "flynet+cann-paper", [0, 1], 0.2, 0.1),
     ]
     data = {"conditions": [], "summary": summary, "bytes_per_place": {"kenyon+cann": 512}}
     table = gen.which_method_table(data, ROOT / "README.md")
     rows = [line for line in table.splitlines() if line.startswith("| `")]
     assert rows == [
-        "| `kenyon+cann` | - | - | - | 0.90 (0.88) | - | 512 |",
-        "| `pixels+cann` | - | - | 0.60 (0.50) | - | - | - |",
-        "| `flynet+cann` (the paper's) | 0.50 (0.30) | - | - | - | 0.40 (0.35) | - |",
-        "| `netvlad+cann` | 0.75 | - | - | - | - | - |",
-        "| `seqslam` (length 20, the paper's) | 0.25 | - | - | - | - | - |",
+        "| `kenyon+cann` | - | - | - | 0.90 (0.88) | - | - | - | 512 |",
+        "| `pixels+cann` | - | - | 0.60 (0.50) | - | - | - | - | - |",
+        "| `flynet+cann` | 0.50 (0.30) | - | - | - | 0.40 (0.35) | - | - | - |",
+        "| `flynet+cann-paper` (the paper's) | - | - | - | - | - | 0.20 (0.10) | - | - |",
+        "| `netvlad+cann` | 0.75 | - | - | - | - | - | - | - |",
+        "| `seqslam` (length 20, the paper's) | 0.25 | - | - | - | - | - | - | - |",
     ]
     assert "mean over 2 seeds, the worst seed in brackets; one value: a single run" in table
 
