@@ -1,0 +1,1153 @@
+"""The CANN filter (place-velocity layer, sequence test, fallback, confidence): its contract.
+
+Besides the behaviour on synthetic bumps (tracking, stops, jumps, shuffles, a backward
+drive), the filter is checked frame by frame against ``reference_filter`` below: the
+class's contract re-derived in float64 from its docstrings, so that a changed operator or
+constant anywhere in the filter moves a number (see CONTRIBUTING, mutation testing).
+"""
+
+import math
+import re
+
+import numpy as np
+import pytest
+
+from flyvpr._validation import InsufficientMemoryError
+from flyvpr.temporal.cann import CANN, LAYER_VELOCITIES, _kernels
+from flyvpr.temporal.cann._filter import CALIBRATION, FRONT_CALIBRATION
+
+KNOTS = np.linspace(0.0, 1.0, 11)
+TINY = float(np.finfo(np.float32).tiny)
+
+
+def bump_rows(pos, n, amp=3.0, width=1.0, noise=0.3, seed=0):
+    """Noise rows with a Gaussian bump of ``amp`` (``width`` places) centred at ``pos[t]``."""
+    rng = np.random.default_rng(seed)
+    pos = np.asarray(pos, np.float64)
+    places = np.arange(n)
+    bump = amp * np.exp(-0.5 * ((places - pos[:, None]) / width) ** 2)
+    return rng.normal(0.0, noise, (pos.size, n)) + bump
+
+
+def run(f, S, velocity=None):
+    """Step ``f`` through ``S`` from a fresh state: the rows and every frame's attributes."""
+    f.reset()
+    rows, frames = [], []
+    for t, row in enumerate(S):
+        out = f.step(row) if velocity is None else f.step(row, velocity=velocity[t])
+        rows.append(out)
+        frames.append(
+            {
+                "answer": int(np.argmax(out)),
+                "source_": f.source_,
+                "confidence_": f.confidence_,
+                "support_": f.support_,
+                "probability_": f.probability_,
+                "state_": f.state_,
+                "velocity_": f.velocity_,
+                "n_relocations_": f.n_relocations_,
+                "shape_": f.shape_,
+            }
+        )
+    return np.array(rows), frames
+
+
+@pytest.fixture(params=["plain", "compiled"])
+def kernel_mode(request, monkeypatch):
+    if request.param == "plain":
+        monkeypatch.setattr(_kernels, "USE_NUMBA", False)
+    elif not _kernels.get_kernels(table="layer")[1]:
+        pytest.skip("numba is not installed")
+    return request.param
+
+
+# -- the reference -----------------------------------------------------------------------------
+def _windows(marginal, radius):
+    return np.array(
+        [marginal[max(i - radius, 0) : i + radius + 1].sum() for i in range(marginal.size)]
+    )
+
+
+def reference_filter(S, velocity=None, **params):
+    """The CANN's contract re-derived in float64: its rows and, per frame, its attributes."""
+    q = CANN(**params).get_params()
+    vel = np.asarray(q["velocities"], np.float64)
+    vel = np.unique(np.r_[vel, -vel] if q["bidirectional"] else vel)
+    prior = np.exp(-0.5 * ((np.abs(vel) - q["speed_prior"]) / q["speed_prior_width"]) ** 2)
+    prior /= prior.sum()
+    n = S.shape[1]
+    tol, memory, outlier = q["tolerance"], q["support_memory"], q["outlier"]
+    layer = np.tile(prior[:, None] / n, (1, n))
+    mean, var = np.zeros(n), np.ones(n)
+    log_rank = [1 / 0.3, 1 / 0.5]  # the rank model's prior: exponents 0.3 and 0.5
+    support, support_mean, strength_mean = 0.5, 0.0, None
+    precision = 0.5 ** (2 + tol)
+    stride = max(1, n // 4096)
+    relocations = 0
+    rows, frames = [], []
+    for t, row in enumerate(np.asarray(S, np.float64)):
+        # input: log of probability rows, z-score, adapted per place, clipped
+        x = row.copy()
+        transform = q["input_transform"]
+        if transform == "auto":
+            transform = "log" if x.min() >= 0 and abs(x.sum() - 1.0) <= 1e-3 else "linear"
+        if transform == "log":
+            x = np.log(np.maximum(x, TINY))
+        z = (x - x.mean()) / x.std() if x.std() > 1e-6 else np.zeros(n)
+        if q["adaptation"] is not None:
+            rate = max(1 / (t + 1), 1 / q["adaptation"])
+            mean = (1 - rate) * mean + rate * z
+            z = z - mean
+            if q["adapt_variance"]:
+                rate = max(1 / (t + 2), 1 / q["adaptation"])
+                var = (1 - rate) * var + rate * z * z
+                z = z / np.sqrt(var + 0.1)
+        if q["input_clip"] is not None:
+            z = np.clip(z, -q["input_clip"], q["input_clip"])
+        predicted = -1
+        if t > 0:
+            if velocity is None:  # each row's position after t moves, rounded (halves up)
+                shifts = np.floor(t * vel + 0.5) - np.floor((t - 1) * vel + 0.5)
+                change, jump = q["velocity_change"], q["velocity_jump"]
+            else:
+                done = np.sum(velocity[1 : t + 1])
+                shifts = np.full(
+                    vel.size, np.floor(done + 0.5) - np.floor(done - velocity[t] + 0.5)
+                )
+                change = jump = 0.0
+            moved = np.zeros_like(layer)
+            for j, k in enumerate(shifts.astype(int)):
+                for i in range(n):
+                    if 0 <= i - k < n:
+                        moved[j, i] = layer[j, i - k]
+            mixed = (1 - change - jump) * moved + jump / vel.size * moved.sum(axis=0)
+            mixed[:-1] += change / 2 * moved[1:]
+            mixed[1:] += change / 2 * moved[:-1]
+            mixed[0] += change / 2 * moved[0]
+            mixed[-1] += change / 2 * moved[-1]
+            floor_rate = q["relocation"] + q["recovery"] * (1 - support)
+            layer = mixed * (1 - floor_rate) / moved.sum() + floor_rate * prior[:, None] / n
+            predicted = int(np.argmax(_windows(layer.sum(axis=0), tol)))
+            # the sequence test
+            sampled = z[::stride]
+            u = max(np.sum(sampled >= z[predicted]), 1) / sampled.size
+            w = np.mean(
+                z[max(predicted - 2 * tol - 1, 0) : predicted + 2 * tol + 2] >= z[predicted]
+            )
+            on = 1.0
+            for rank, k in ((u, 0), (w, 1)):
+                shape = min(1.0, max(0.05, 1 / log_rank[k]))
+                on *= (1 - outlier) * shape * rank ** (shape - 1) + outlier
+            before = support * (1 - q["sequence_break"]) + (1 - support) * q["sequence_start"]
+            support = before * on / (before * on + 1 - before)
+            if support >= 0.5:
+                for rank, k in ((u, 0), (w, 1)):
+                    log_rank[k] += (-math.log(rank) - log_rank[k]) / memory
+        layer = layer * np.exp(q["evidence_gain"] * z)
+        layer /= layer.sum()
+        marginal = layer.sum(axis=0)
+        box = _windows(marginal, tol)
+        best = int(np.argmax(box))
+        lo = max(best - tol, 0)
+        answer = lo + int(np.argmax(marginal[lo : best + tol + 1]))
+        probability = box[answer]
+        rate = max(1 / (t + 1), 1 / memory)
+        support_mean += rate * (support - support_mean)
+        confidence = support * probability
+        front = int(np.argmax(row))
+        strength = (row[front] - row.mean()) / row.std() if row.std() > 0 else 0.0
+        if strength_mean is None:
+            strength_mean = strength
+        else:
+            strength_mean += rate * (strength - strength_mean)
+        if confidence >= 0.5:
+            precision += (float(abs(front - answer) <= tol) - precision) / memory
+        front_confidence = precision * (1 + 1e-3 * math.tanh(strength - strength_mean))
+        if q["fallback"] and support_mean * probability < front_confidence * (1 - support_mean):
+            source, confidence, answer = "front end", front_confidence, front
+            if q["calibration"] is not None:  # its precision, calibrated
+                confidence = min(1.0, FRONT_CALIBRATION * front_confidence)
+            top = row[front] - row.mean()
+            out = (
+                np.maximum(row - row.mean(), 0) * confidence / top
+                if top > 0
+                else np.full(n, confidence)
+            )
+        else:
+            source, out = "sequence", box * support
+            if predicted >= 0 and abs(answer - predicted) > 2 * tol + 1:
+                relocations += 1
+            if q["calibration"] is not None:
+                calibrated = float(np.interp(confidence, KNOTS, q["calibration"]))
+                out = out * calibrated / confidence if confidence > 0 else out
+                confidence = calibrated
+        out = np.minimum(out, confidence)
+        out[answer] = confidence
+        rows.append(out)
+        frames.append(
+            {
+                "answer": answer,
+                "source_": source,
+                "confidence_": confidence,
+                "support_": support,
+                "probability_": probability if source == "sequence" else 0.0,
+                "state_": "localized"
+                if source == "sequence" and support * probability >= 0.5
+                else "lost",
+                "velocity_": float(layer.sum(axis=1) @ vel)
+                if velocity is None
+                else float(velocity[t]),
+                "n_relocations_": relocations,
+                "shape_": min(1.0, max(0.05, 1 / log_rank[0])),
+            }
+        )
+    return np.array(rows), frames
+
+
+def assert_matches_reference(S, velocity=None, **params):
+    expected_rows, expected = reference_filter(S, velocity, **params)
+    rows, frames = run(CANN(**params), S, velocity)
+    for t, (got, want) in enumerate(zip(frames, expected, strict=True)):
+        for key, value in want.items():
+            if isinstance(value, str) or key in ("answer", "n_relocations_"):
+                assert got[key] == value, (t, key)
+            else:
+                assert got[key] == pytest.approx(value, rel=1e-4, abs=1e-6), (t, key)
+    np.testing.assert_allclose(rows, expected_rows, rtol=1e-4, atol=1e-6)
+    return frames
+
+
+def _scenario(n=50):
+    """A bump at 1.25 places per frame, then jumped and driven back at 0.5, then shuffled."""
+    rng = np.random.default_rng(5)
+    pos = np.r_[3 + 1.25 * np.arange(20), 40 - 0.5 * np.arange(10), rng.uniform(0, n - 2, 15)]
+    return bump_rows(pos, n, width=1.5)
+
+
+WIDE = {"speed_prior_width": 0.5}  # (at 0.25 the fastest rows hold less than float32 resolves)
+REFERENCE_CASES = {
+    "defaults": WIDE,
+    "bidirectional": {
+        "bidirectional": True,
+        "speed_prior": 0.5,
+        "speed_prior_width": 1.0,
+        "velocities": (0, 0.5, 1, 1.5, 2),
+    },
+    "raw input": {
+        "adaptation": None,
+        "input_clip": None,
+        "evidence_gain": 0.3,
+        "tolerance": 0,
+        "calibration": None,
+    },
+    "mean adaptation": {
+        **WIDE,
+        "adapt_variance": False,
+        "adaptation": 5.0,
+        "relocation": 0.01,
+        "recovery": 0.2,
+        "velocity_change": 0.1,
+        "velocity_jump": 0.1,
+    },
+    "no fallback": {
+        **WIDE,
+        "fallback": False,
+        "sequence_break": 0.2,
+        "sequence_start": 0.1,
+        "outlier": 0.5,
+        "support_memory": 10.0,
+        "tolerance": 4,
+    },
+    "short memory": {
+        **WIDE,
+        "support_memory": 5.0,
+        "input_clip": 2.0,
+        "speed_prior": 1.5,
+        "calibration": (0.0, 0.2, 0.3, 0.35, 0.5, 0.6, 0.62, 0.7, 0.9, 0.95, 0.96),
+    },
+}
+
+
+@pytest.mark.parametrize("case", sorted(REFERENCE_CASES))
+def test_matches_reference(kernel_mode, case):
+    assert_matches_reference(_scenario(), **REFERENCE_CASES[case])
+
+
+@pytest.mark.parametrize("transform", ["auto", "log", "linear"])
+def test_matches_reference_on_probability_rows(transform):
+    S = _scenario()
+    P = np.exp(S) / np.exp(S).sum(axis=1, keepdims=True)  # rows sum to 1: "auto" takes the log
+    assert_matches_reference(P, input_transform=transform, **WIDE)
+    if transform == "log":  # positive scores that are not probabilities
+        assert_matches_reference(np.exp(S), input_transform=transform, **WIDE)
+
+
+def test_matches_reference_with_odometry():
+    S = _scenario()
+    velocity = np.r_[7.0, np.full(19, 1.25), np.full(10, -0.5), np.full(15, 0.75)]
+    frames = assert_matches_reference(S, velocity, **WIDE)
+    assert [f["velocity_"] for f in frames] == velocity.tolist()
+
+
+def test_matches_reference_sampling_every_other_place_on_long_routes():
+    # 8200 places: the sequence test samples every 2nd place (about 4096)
+    S = bump_rows(100 + np.arange(5.0), 8200)
+    assert_matches_reference(S, velocities=(1.0,))
+
+
+def test_reference_scenarios_cover_both_sources_and_relocations():
+    sources, states, relocations = set(), set(), set()
+    for params in REFERENCE_CASES.values():
+        _, frames = reference_filter(_scenario(), **params)
+        sources |= {f["source_"] for f in frames}
+        states |= {f["state_"] for f in frames}
+        relocations.add(frames[-1]["n_relocations_"])
+    assert sources == {"sequence", "front end"} and states == {"localized", "lost"}
+    assert max(relocations) >= 1
+
+
+# -- parameters --------------------------------------------------------------------------------
+DEFAULTS = {
+    "velocities": LAYER_VELOCITIES,
+    "bidirectional": False,
+    "speed_prior": 1.0,
+    "speed_prior_width": 0.25,
+    "velocity_change": 0.02,
+    "velocity_jump": 0.02,
+    "evidence_gain": 0.4,
+    "adaptation": 50.0,
+    "adapt_variance": True,
+    "input_transform": "auto",
+    "input_clip": 4.0,
+    "relocation": 0.001,
+    "recovery": 0.01,
+    "tolerance": 2,
+    "sequence_break": 0.05,
+    "sequence_start": 0.05,
+    "outlier": 0.3,
+    "support_memory": 100.0,
+    "fallback": True,
+    "calibration": CALIBRATION,
+}
+
+
+def test_defaults():
+    assert CANN().get_params() == DEFAULTS
+    assert list(CANN().get_params()) == list(DEFAULTS)
+    assert LAYER_VELOCITIES == tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0)
+    assert all(type(v) is float for v in LAYER_VELOCITIES)
+    assert len(CALIBRATION) == 11 and CALIBRATION[0] == 0.0 and CALIBRATION[-1] == 1.0
+    assert FRONT_CALIBRATION == 2.0
+    assert np.all(np.diff(CALIBRATION) > 0)
+    assert CANN.name == "cann"
+
+
+_BAD_CALIBRATION = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+BAD_PARAMS = [
+    (
+        {"velocities": "abc"},
+        TypeError,
+        "velocities must be a sequence of numbers; could not convert",
+    ),
+    (
+        {"velocities": [[1.0, 2.0]]},
+        ValueError,
+        "velocities must be a non-empty 1-d sequence; got shape (1, 2)",
+    ),
+    ({"velocities": []}, ValueError, "velocities must be a non-empty 1-d sequence; got shape (0,)"),
+    ({"velocities": 1.0}, ValueError, "velocities must be a non-empty 1-d sequence; got shape ()"),
+    ({"velocities": [1.0, np.inf]}, ValueError, "velocities must be finite; got [1.0, inf]"),
+    (
+        {"velocities": [1, 2, 1]},
+        ValueError,
+        "velocities must not repeat a value; got [1.0, 2.0, 1.0]",
+    ),
+    ({"bidirectional": "no"}, TypeError, "bidirectional must be True or False; got str"),
+    ({"bidirectional": 1}, TypeError, "bidirectional must be True or False; got int"),
+    ({"speed_prior": None}, TypeError, "speed_prior must be a number; got NoneType"),
+    ({"speed_prior": np.nan}, ValueError, "speed_prior must be finite; got nan"),
+    ({"speed_prior_width": 0.0}, ValueError, "speed_prior_width must be > 0.0; got 0.0"),
+    ({"speed_prior_width": -1}, ValueError, "speed_prior_width must be > 0.0; got -1.0"),
+    (
+        {"speed_prior": 40.0},
+        ValueError,
+        "speed_prior=40.0 with speed_prior_width=0.25 gives no weight to any of the velocities",
+    ),
+    ({"velocity_change": -0.01}, ValueError, "velocity_change must be >= 0.0; got -0.01"),
+    (
+        {"velocity_change": 1.01, "velocity_jump": 0.0},
+        ValueError,
+        "velocity_change must be <= 1; got 1.01",
+    ),
+    ({"velocity_change": "0.1"}, TypeError, "velocity_change must be a number; got str"),
+    ({"velocity_jump": -1.0}, ValueError, "velocity_jump must be >= 0.0; got -1.0"),
+    (
+        {"velocity_jump": 2, "velocity_change": 0.0},
+        ValueError,
+        "velocity_jump must be <= 1; got 2.0",
+    ),
+    (
+        {"velocity_change": 0.6, "velocity_jump": 0.5},
+        ValueError,
+        "velocity_change + velocity_jump must be <= 1; got 0.6 + 0.5",
+    ),
+    ({"evidence_gain": 0.0}, ValueError, "evidence_gain must be > 0.0; got 0.0"),
+    ({"evidence_gain": np.inf}, ValueError, "evidence_gain must be finite; got inf"),
+    ({"adaptation": 0.99}, ValueError, "adaptation must be >= 1.0; got 0.99"),
+    ({"adaptation": "50"}, TypeError, "adaptation must be a number; got str"),
+    ({"adapt_variance": 1}, TypeError, "adapt_variance must be True or False; got int"),
+    ({"adapt_variance": None}, TypeError, "adapt_variance must be True or False; got NoneType"),
+    (
+        {"input_transform": "exp"},
+        ValueError,
+        "input_transform must be one of ('auto', 'log', 'linear'); got 'exp'",
+    ),
+    ({"input_clip": 0.0}, ValueError, "input_clip must be > 0.0; got 0.0"),
+    ({"input_clip": -4}, ValueError, "input_clip must be > 0.0; got -4.0"),
+    ({"relocation": -0.001}, ValueError, "relocation must be >= 0.0; got -0.001"),
+    ({"relocation": 1.5}, ValueError, "relocation must be <= 1; got 1.5"),
+    ({"recovery": -0.5}, ValueError, "recovery must be >= 0.0; got -0.5"),
+    ({"recovery": 1.01, "relocation": 0.0}, ValueError, "recovery must be <= 1; got 1.01"),
+    (
+        {"relocation": 0.5, "recovery": 0.6},
+        ValueError,
+        "relocation + recovery must be <= 1; got 0.5 + 0.6",
+    ),
+    ({"tolerance": -1}, ValueError, "tolerance must be >= 0; got -1"),
+    ({"tolerance": 2.0}, TypeError, "tolerance must be an int; got float"),
+    ({"tolerance": True}, TypeError, "tolerance must be an int; got bool"),
+    ({"sequence_break": -0.05}, ValueError, "sequence_break must be >= 0.0; got -0.05"),
+    (
+        {"sequence_break": 1.2, "sequence_start": 0.0},
+        ValueError,
+        "sequence_break must be <= 1; got 1.2",
+    ),
+    ({"sequence_start": -0.05}, ValueError, "sequence_start must be >= 0.0; got -0.05"),
+    (
+        {"sequence_start": 1.2, "sequence_break": 0.0},
+        ValueError,
+        "sequence_start must be <= 1; got 1.2",
+    ),
+    (
+        {"sequence_break": 0.7, "sequence_start": 0.4},
+        ValueError,
+        "sequence_break + sequence_start must be <= 1; got 0.7 + 0.4",
+    ),
+    ({"outlier": -0.3}, ValueError, "outlier must be >= 0.0; got -0.3"),
+    ({"outlier": 1.3}, ValueError, "outlier must be <= 1; got 1.3"),
+    ({"support_memory": 0.5}, ValueError, "support_memory must be >= 1.0; got 0.5"),
+    ({"support_memory": None}, TypeError, "support_memory must be a number; got NoneType"),
+    ({"fallback": None}, TypeError, "fallback must be True or False; got NoneType"),
+    ({"fallback": "yes"}, TypeError, "fallback must be True or False; got str"),
+    (
+        {"calibration": "abc"},
+        TypeError,
+        "calibration must be None or 11 numbers (at raw confidence 0, 0.1, ..., 1); got 'abc'",
+    ),
+    (
+        {"calibration": [0.0, 1.0]},
+        ValueError,
+        "calibration must hold 11 values (at raw confidence 0, 0.1, ..., 1); got shape (2,)",
+    ),
+    (
+        {"calibration": [_BAD_CALIBRATION]},
+        ValueError,
+        "calibration must hold 11 values (at raw confidence 0, 0.1, ..., 1); got shape (1, 11)",
+    ),
+    (
+        {"calibration": (-0.1,) + _BAD_CALIBRATION[1:]},
+        ValueError,
+        "calibration values must lie in [0, 1]; got [-0.1, 0.1, 0.2",
+    ),
+    (
+        {"calibration": _BAD_CALIBRATION[:-1] + (1.1,)},
+        ValueError,
+        "calibration values must lie in [0, 1]; got [0.0, 0.1,",
+    ),
+    (
+        {"calibration": _BAD_CALIBRATION[:-1] + (np.nan,)},
+        ValueError,
+        "calibration values must lie in [0, 1]; got [0.0, 0.1,",
+    ),
+    (
+        {"calibration": (0.0, 0.1, 0.2, 0.3, 0.4, 0.4, 0.6, 0.7, 0.8, 0.9, 1.0)},
+        ValueError,
+        "calibration must increase strictly; got [0.0, 0.1, 0.2, 0.3, 0.4, 0.4, 0.6",
+    ),
+    (
+        {"calibration": (0.0, 0.1, 0.2, 0.3, 0.4, 0.35, 0.6, 0.7, 0.8, 0.9, 1.0)},
+        ValueError,
+        "calibration must increase strictly; got",
+    ),
+]
+
+
+@pytest.mark.parametrize(("params", "error", "message"), BAD_PARAMS)
+def test_invalid_parameters(params, error, message):
+    f = CANN(**params)  # __init__ only stores them
+    assert f.get_params()[next(iter(params))] is next(iter(params.values()))
+    with pytest.raises(error, match="^" + re.escape(message)):
+        f.reset()
+    with pytest.raises(error, match="^" + re.escape(message)):
+        CANN(**params).filter(np.zeros((2, 5)))
+    with pytest.raises(error, match="^" + re.escape(message)):
+        CANN(**params).step(np.zeros(5))
+    with pytest.raises(error, match="^" + re.escape(message)):
+        CANN(**params).footprint(5)
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        {"velocity_change": 1.0, "velocity_jump": 0.0},
+        {"velocity_change": 0.0, "velocity_jump": 1.0},
+        {"velocity_change": 0.5, "velocity_jump": 0.5},
+        {"relocation": 0.0, "recovery": 1.0},
+        {"relocation": 1.0, "recovery": 0.0},
+        {"relocation": 0.25, "recovery": 0.75},
+        {"sequence_break": 1.0, "sequence_start": 0.0},
+        {"sequence_break": 0.0, "sequence_start": 1.0},
+        {"sequence_break": 0.5, "sequence_start": 0.5},
+        {"outlier": 0.0},
+        {"outlier": 1.0},
+        {"adaptation": 1.0},
+        {"adaptation": None, "input_clip": None},
+        {"support_memory": 1.0},
+        {"tolerance": 0},
+        {"tolerance": np.int64(3)},
+        {"speed_prior": -1.0, "speed_prior_width": 3.0},
+        {"speed_prior": 0, "velocities": [0]},
+        {"velocities": np.array([3.0, 0.5, 1.0]), "bidirectional": np.bool_(True)},
+        {"adapt_variance": np.bool_(False), "fallback": np.bool_(False)},
+        {"input_transform": "linear"},
+        {"calibration": None},
+        {"calibration": np.linspace(0.0, 1.0, 11)},
+        {"calibration": [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95]},
+    ],
+)
+def test_boundary_parameters_are_valid(params):
+    f = CANN(**params)
+    f.reset()
+    out = f.filter(bump_rows(4 + np.arange(6.0), 20))
+    assert out.shape == (6, 20) and np.isfinite(out).all()
+    assert 0.0 <= f.confidence_ <= 1.0
+
+
+def test_set_params_and_reset():
+    S = bump_rows(4 + np.arange(12.0), 30)
+    f = CANN()
+    assert f.set_params(evidence_gain=1.5, tolerance=1) is f
+    assert f.get_params() == {**DEFAULTS, "evidence_gain": 1.5, "tolerance": 1}
+    np.testing.assert_array_equal(f.filter(S), CANN(evidence_gain=1.5, tolerance=1).filter(S))
+    with pytest.raises(
+        ValueError, match=r"^invalid parameter 'speed' for CANN; valid: \['adapt_variance'"
+    ):
+        f.set_params(speed=1.0)
+    # a running filter keeps its parameters until reset() ...
+    f = CANN()
+    plain = CANN()
+    plain.reset()
+    f.reset()
+    for row in S[:6]:
+        f.step(row)
+        plain.step(row)
+    f.set_params(evidence_gain=3.0, tolerance=0, speed_prior_width=-1.0)  # stored, not checked
+    for row in S[6:]:
+        np.testing.assert_array_equal(f.step(row), plain.step(row))
+    # ... which checks them and applies them
+    with pytest.raises(ValueError, match="^speed_prior_width must be > 0.0; got -1.0"):
+        f.reset()
+    f.set_params(speed_prior_width=0.25)
+    f.reset()
+    expected = CANN(evidence_gain=3.0, tolerance=0).filter(S)
+    np.testing.assert_array_equal(np.array([f.step(row) for row in S]), expected)
+
+
+def test_reset_forgets_everything():
+    S = bump_rows(np.r_[4 + np.arange(30.0), 60 + np.arange(10.0)], 80)
+    f = CANN()
+    first = f.filter(S)
+    assert f.n_frames_ == 40 and f.n_relocations_ >= 1 and f.state_ == "localized"
+    f.reset()
+    assert f.n_frames_ == 0 and f.n_relocations_ == 0
+    assert math.isnan(f.velocity_) and f.confidence_ == 0.0 and f.support_ == 0.5
+    assert f.state_ == "lost" and f.source_ == "sequence" and f.compiled_ is False
+    f.step(np.zeros(11))  # a new route length after reset
+    assert f.n_frames_ == 1
+    np.testing.assert_array_equal(f.filter(S), first)  # filter starts afresh
+
+
+def test_first_call_without_reset():
+    S = bump_rows(4 + np.arange(5.0), 20)
+    f = CANN()
+    out = f.step(S[0])  # step resets by itself
+    assert f.n_frames_ == 1
+    np.testing.assert_array_equal(out, CANN().filter(S[:1])[0])
+
+
+# -- filter, step, odometry ----------------------------------------------------------------------
+@pytest.mark.parametrize("odometry", [False, True])
+def test_filter_equals_step(odometry):
+    S = _scenario()
+    velocity = np.r_[0.0, np.full(44, 1.25)] if odometry else None
+    f = CANN()
+    stepped, frames = run(f, S, velocity)
+    filtered = CANN().filter(S) if velocity is None else CANN().filter(S, velocity=velocity)
+    np.testing.assert_array_equal(filtered, stepped)
+    assert filtered.dtype == np.float64  # from float64 scores
+
+
+def test_odometry_moves_every_row_by_it():
+    # With odometry every row of the bank moves alike, so a bank of speeds behaves like a
+    # single row at that speed (its own velocity unused) ...
+    pos = 4 + 1.25 * np.arange(40)
+    S = bump_rows(pos, 60)
+    bank = CANN(velocities=(0.5, 1.0, 1.5, 2.0))
+    with_odometry = bank.filter(S, velocity=np.full(40, 1.25))
+    single = CANN(velocities=(1.25,)).filter(S)
+    np.testing.assert_allclose(with_odometry, single, rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(with_odometry.argmax(axis=1), single.argmax(axis=1))
+    assert bank.velocity_ == 1.25
+    # ... and the velocities stay where the prior put them (no mixing, no redraw)
+    mass = bank._row_mass
+    prior = bank._params["prior"]
+    np.testing.assert_allclose(mass / mass.sum(), prior, rtol=1e-5)
+
+
+def test_odometry_tracks_what_the_bank_cannot():
+    pos = 4 + 2.75 * np.arange(30)  # beyond a bank of 0 and 0.5 places per frame
+    S = bump_rows(pos, 90)
+    f = CANN(velocities=(0.0, 0.5), speed_prior=0.5)
+    rows, frames = run(f, S, np.full(30, 2.75))
+    err = np.abs(rows.argmax(axis=1) - pos)
+    assert err[8:].max() <= 2.5 and all(fr["velocity_"] == 2.75 for fr in frames)
+    assert frames[-1]["state_"] == "localized"
+    without = CANN(velocities=(0.0, 0.5), speed_prior=0.5, fallback=False).filter(S)
+    assert np.abs(without.argmax(axis=1) - pos)[8:].max() > 10
+
+
+def test_odometry_of_integers():
+    S = bump_rows(4 + 2 * np.arange(10.0), 30)
+    f = CANN()
+    np.testing.assert_array_equal(
+        f.filter(S, velocity=np.full(10, 2)), CANN().filter(S, velocity=np.full(10, 2.0))
+    )
+    assert f.velocity_ == 2.0 and type(f.velocity_) is float
+
+
+def test_odometry_first_entry_is_not_used():
+    S = bump_rows(4 + np.arange(10.0), 30)
+    a = CANN().filter(S, velocity=np.r_[0.0, np.ones(9)])
+    b = CANN().filter(S, velocity=np.r_[99.0, np.ones(9)])
+    np.testing.assert_array_equal(a, b)
+
+
+def test_odometry_is_fractional_and_signed():
+    pos = 40 - 0.75 * np.arange(40)
+    S = bump_rows(pos, 50)
+    f = CANN(velocities=(0.0,), speed_prior=0.0, fallback=False)
+    out = f.filter(S, velocity=np.full(40, -0.75))
+    assert np.abs(out.argmax(axis=1) - pos)[6:].max() <= 2.0
+    assert f.velocity_ == -0.75 and f.state_ == "localized"
+
+
+def test_odometry_validation():
+    S = np.zeros((4, 6))
+    f = CANN()
+    with pytest.raises(
+        ValueError, match=re.escape("velocity must have shape (4,), one entry per query; got (5,)")
+    ):
+        f.filter(S, velocity=np.ones(5))
+    with pytest.raises(
+        ValueError,
+        match=re.escape("velocity must have shape (4,), one entry per query; got (4, 1)"),
+    ):
+        f.filter(S, velocity=np.ones((4, 1)))
+    with pytest.raises(ValueError, match="^velocity contains NaN or infinite values"):
+        f.filter(S, velocity=[0, 1, np.nan, 1])
+    with pytest.raises(ValueError, match="^velocity contains NaN or infinite values"):
+        f.filter(S, velocity=[0, 1, -np.inf, 1])
+    with pytest.raises(TypeError, match="^velocity must be a numeric array; got dtype <U1"):
+        f.filter(S, velocity=list("abcd"))
+    with pytest.raises(TypeError, match="^velocity must be a numeric array; got dtype object"):
+        f.filter(S, velocity=np.array([0, 1, None, 1], dtype=object))
+    with pytest.raises(ValueError, match="^S contains NaN or infinite values"):
+        f.filter(np.full((4, 6), np.nan), velocity=np.ones(4))
+    f.reset()
+    with pytest.raises(ValueError, match="^velocity must be finite; got nan"):
+        f.step(np.zeros(6), velocity=np.nan)
+    with pytest.raises(TypeError, match="^velocity must be a number; got str"):
+        f.step(np.zeros(6), velocity="1")
+    assert f.n_frames_ == 0  # nothing was consumed
+    f.step(np.zeros(6), velocity=np.int64(-2))
+    assert f.velocity_ == -2.0 and type(f.velocity_) is float
+
+
+# -- shapes, dtypes, input ---------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("dtype", "expected"),
+    [(np.float32, np.float32), (np.float64, np.float64), (np.int64, np.float64)],
+)
+@pytest.mark.parametrize("odometry", [False, True])
+def test_shapes_and_dtypes(dtype, expected, odometry):
+    S = (bump_rows(4 + np.arange(7.0), 25) * 10).astype(dtype)
+    before = S.copy()
+    f = CANN()
+    out = f.filter(S) if not odometry else f.filter(S, velocity=np.ones(7))
+    assert out.shape == (7, 25) and out.dtype == expected
+    np.testing.assert_array_equal(S, before)  # the input is not modified
+    f.reset()
+    row = f.step(S[0])
+    assert row.shape == (25,) and row.dtype == np.float32
+    np.testing.assert_array_equal(S, before)
+
+
+def test_invalid_input():
+    f = CANN()
+    f.reset()
+    with pytest.raises(ValueError, match="^scores_row contains NaN or infinite values"):
+        f.step(np.r_[1.0, np.nan, 0.0])
+    with pytest.raises(
+        ValueError, match=re.escape("scores_row must have shape (n_reference,); got shape (2, 3)")
+    ):
+        f.step(np.zeros((2, 3)))
+    with pytest.raises(TypeError, match="^scores_row must be a numeric array; got dtype <U1"):
+        f.step(list("abc"))
+    with pytest.raises(ValueError, match="^S contains NaN or infinite values"):
+        f.filter(np.full((2, 3), np.inf))
+    f.step(np.zeros(30))
+    with pytest.raises(
+        ValueError,
+        match=re.escape(
+            "scores_row must have shape (30,) as the previous rows; got (29,) "
+            "(call reset() before a new reference traverse)"
+        ),
+    ):
+        f.step(np.zeros(29))
+    assert f.n_frames_ == 1
+    f = CANN(input_transform="log")
+    f.reset()
+    with pytest.raises(
+        ValueError,
+        match=re.escape(
+            "scores_row must be non-negative for input_transform='log'; got minimum -0.5 "
+            "(use input_transform='linear' for such scores)"
+        ),
+    ):
+        f.step(np.r_[0.2, -0.5, 1.0])
+    f.step(np.r_[0.0, 0.5, 1.0])  # zero is fine (floored before the log)
+    assert np.isfinite(f.confidence_)
+    CANN().step(np.r_[0.2, -0.5, 1.0])  # "auto": negative scores are linear
+
+
+def test_auto_transform_takes_the_log_of_probability_rows_only():
+    S = _scenario()
+    P = np.exp(S) / np.exp(S).sum(axis=1, keepdims=True)
+    np.testing.assert_array_equal(CANN().filter(P), CANN(input_transform="log").filter(P))
+    np.testing.assert_array_equal(CANN().filter(S), CANN(input_transform="linear").filter(S))
+    assert not np.allclose(
+        CANN(input_transform="linear").filter(P), CANN(input_transform="log").filter(P)
+    )
+    # zeros in a probability row (floored before the log)
+    Z = P.copy()
+    Z[:, ::3] = 0.0
+    Z /= Z.sum(axis=1, keepdims=True)
+    np.testing.assert_array_equal(CANN().filter(Z), CANN(input_transform="log").filter(Z))
+    # within 1e-3 of a sum of 1 is a probability row, beyond it is not
+    near = P * (1 + 0.9e-3)
+    far = P * (1 + 1.1e-3)
+    np.testing.assert_array_equal(CANN().filter(near), CANN(input_transform="log").filter(near))
+    np.testing.assert_array_equal(CANN().filter(far), CANN(input_transform="linear").filter(far))
+
+
+# -- tracking ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("speed", [0.5, 1.0, 2.5])
+def test_tracks_a_moving_bump(speed):
+    pos = 4 + speed * np.arange(50)
+    f = CANN()
+    rows, frames = run(f, bump_rows(pos, int(pos[-1]) + 8))
+    err = np.abs(rows.argmax(axis=1) - pos)
+    assert err[12:].max() <= 2.5  # within the tolerance of the nearest place
+    assert f.velocity_ == pytest.approx(speed, abs=0.1)
+    assert f.state_ == "localized" and f.source_ == "sequence" and f.confidence_ > 0.95
+    assert f.n_relocations_ == frames[12]["n_relocations_"]  # none after the burn-in
+
+
+def test_tracks_a_bump_that_stops_for_30_frames():
+    pos = np.r_[4 + np.arange(20.0), np.full(30, 24.0), 24 + np.arange(1, 21.0)]
+    f = CANN()
+    rows, frames = run(f, bump_rows(pos, 50))
+    err = np.abs(rows.argmax(axis=1) - pos)
+    assert err[12:20].max() <= 2 and err[38:50].max() <= 2 and err[56:].max() <= 2
+    assert frames[49]["velocity_"] < 0.3  # stopped
+    assert frames[19]["velocity_"] == pytest.approx(1.0, abs=0.1)
+    assert frames[-1]["velocity_"] > 0.6  # moving again
+    # (standing still, the adaptation wears the place's evidence down: the support falls)
+    assert frames[-1]["state_"] == "localized" and frames[-1]["source_"] == "sequence"
+
+
+def test_backward_bump_needs_bidirectional():
+    pos = 70 - np.arange(50.0)
+    S = bump_rows(pos, 80)
+    f = CANN(bidirectional=True)
+    rows, frames = run(f, S)
+    assert np.abs(rows.argmax(axis=1) - pos)[10:].max() <= 2
+    assert all(fr["source_"] == "sequence" and fr["state_"] == "localized" for fr in frames[10:])
+    assert f.velocity_ == pytest.approx(-1.0, abs=0.1)
+    # one way only: the sequence cannot follow, the front end answers
+    rows, frames = run(CANN(), S)
+    assert all(fr["source_"] == "front end" and fr["state_"] == "lost" for fr in frames[20:])
+    np.testing.assert_array_equal(rows.argmax(axis=1)[20:], S.argmax(axis=1)[20:])
+
+
+@pytest.mark.parametrize("fallback", [True, False])
+def test_relocations_count_a_jump(fallback):
+    pos = np.r_[4 + np.arange(30.0), 80 + np.arange(20.0)]
+    f = CANN(fallback=fallback)
+    rows, frames = run(f, bump_rows(pos, 110))
+    assert f.n_relocations_ == 1
+    t = next(t for t, fr in enumerate(frames) if fr["n_relocations_"] == 1)
+    assert 30 <= t <= 40 and abs(frames[t]["answer"] - pos[t]) <= 2
+    assert np.abs(rows.argmax(axis=1) - pos)[t:].max() <= 2
+    assert frames[29]["n_relocations_"] == 0
+
+
+# -- the answer and its confidence -------------------------------------------------------------
+def _mixed_scenario():
+    """Tracking, a jump, a stop, a constant row, a shuffle, negative scores: every branch."""
+    rng = np.random.default_rng(11)
+    pos = np.r_[
+        4 + np.arange(25.0), 60 + 2 * np.arange(10.0), np.full(10, 80.0), rng.uniform(0, 90, 15)
+    ]
+    S = bump_rows(pos, 90)
+    S[40] = 0.0
+    S[45] = -1.0
+    S[52] -= 5.0
+    return S
+
+
+@pytest.mark.parametrize(
+    "params", [{}, {"calibration": None}, {"tolerance": 0}, {"bidirectional": True, "tolerance": 5}]
+)
+def test_confidence_is_the_row_max_and_the_answer_its_argmax(params):
+    f = CANN(**params)
+    f.reset()
+    for row in _mixed_scenario():
+        out = f.step(row)
+        assert out.max() == np.float32(f.confidence_)
+        answer = int(np.argmax(out))
+        assert (out[:answer] < out[answer]).all()  # the first of equals
+        assert 0.0 <= f.confidence_ <= 1.0 and out.min() >= 0.0
+        assert 0.0 <= f.support_ <= 1.0
+
+
+def test_state_follows_source_support_and_probability():
+    f = CANN()
+    _, frames = run(f, _mixed_scenario())
+    for fr in frames:
+        localized = fr["source_"] == "sequence" and fr["support_"] * fr["probability_"] >= 0.5
+        assert fr["state_"] == ("localized" if localized else "lost")
+        if fr["source_"] == "front end":
+            assert fr["probability_"] == 0.0
+    states = [fr["state_"] for fr in frames]
+    assert states[20] == "localized" and states[-1] == "lost"
+    assert {fr["source_"] for fr in frames} == {"sequence", "front end"}
+
+
+def test_sequence_confidence_is_calibrated_support_times_probability():
+    _, calibrated = run(CANN(), _mixed_scenario())
+    rows_raw, raw = run(CANN(calibration=None), _mixed_scenario())
+    table = (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+    _, custom = run(CANN(calibration=table), _mixed_scenario())
+    n_sequence = 0
+    for a, b, c in zip(calibrated, raw, custom, strict=True):
+        assert a["source_"] == b["source_"] == c["source_"] and a["answer"] == b["answer"]
+        if b["source_"] == "sequence":
+            n_sequence += 1
+            value = b["support_"] * b["probability_"]
+            assert b["confidence_"] == np.float32(value)
+            assert a["confidence_"] == np.float32(np.interp(value, KNOTS, CALIBRATION))
+            assert c["confidence_"] == np.float32(np.interp(value, KNOTS, table))
+        else:  # the front end's precision, calibrated by a factor alone
+            assert a["confidence_"] == c["confidence_"]
+            assert a["confidence_"] == pytest.approx(min(1.0, 2.0 * b["confidence_"]), rel=1e-6)
+    assert n_sequence >= 30
+    # the identity table leaves the sequence's answers as they are
+    rows_identity, _ = run(CANN(calibration=KNOTS), _mixed_scenario())
+    sequence = [fr["source_"] == "sequence" for fr in raw]
+    np.testing.assert_allclose(rows_identity[sequence], rows_raw[sequence], rtol=1e-6, atol=1e-7)
+
+
+def test_calibration_scales_the_whole_sequence_row():
+    S = bump_rows(4 + np.arange(15.0), 40)
+    raw = CANN(calibration=None).filter(S)
+    table = tuple(np.sqrt(KNOTS))
+    f = CANN(calibration=table)
+    rows, frames = run(f, S)
+    for t in range(5, 15):
+        assert frames[t]["source_"] == "sequence"
+        c = raw[t].max()
+        expected = np.minimum(raw[t] * np.float32(np.interp(c, KNOTS, table) / c), rows[t].max())
+        np.testing.assert_allclose(rows[t], expected, rtol=2e-6, atol=1e-9)
+
+
+# -- the fallback --------------------------------------------------------------------------------
+def test_shuffled_sequence_falls_back_to_the_front_end():
+    pos = np.random.default_rng(3).permutation(100)[:60].astype(float)
+    S = bump_rows(pos, 100)
+    f = CANN()
+    rows, frames = run(f, S)
+    assert all(fr["source_"] == "front end" and fr["state_"] == "lost" for fr in frames[3:])
+    np.testing.assert_array_equal(rows.argmax(axis=1)[3:], S.argmax(axis=1)[3:])
+    for t in range(3, 60):
+        # the front end's row: its scores above their mean, scaled to the confidence
+        c = frames[t]["confidence_"]
+        z = np.maximum(S[t] - S[t].mean(), 0.0)
+        np.testing.assert_allclose(rows[t], z * c / z.max(), rtol=1e-5, atol=1e-7)
+        assert frames[t]["support_"] < 0.5
+    # without the fallback the sequence answers whatever it has
+    rows, frames = run(CANN(fallback=False), S)
+    assert {fr["source_"] for fr in frames} == {"sequence"}
+    assert (rows.argmax(axis=1)[3:] != S.argmax(axis=1)[3:]).mean() > 0.5
+
+
+def test_front_end_confidence_is_its_estimated_precision():
+    # The sequence is confident and the front end agrees: its precision rises from its
+    # prior 0.5 ** (2 + tolerance) towards 1 by 1 / support_memory a frame.
+    pos = 4 + np.arange(40.0)
+    S = bump_rows(pos, 60)
+    f = CANN(support_memory=10.0, calibration=None)
+    rows, frames = run(f, S)
+    assert all(fr["source_"] == "sequence" for fr in frames[2:])
+    confident = sum(fr["support_"] * fr["probability_"] >= 0.5 for fr in frames)
+    precision = 1 - (1 - 0.5**4) * 0.9**confident
+    assert f._front_precision == pytest.approx(precision, rel=1e-12)
+    # shuffled frames now: the front end answers with about that precision
+    rng = np.random.default_rng(0)
+    tail = bump_rows(rng.uniform(0, 58, 30), 60, seed=1)
+    for row in tail:
+        out = f.step(row)
+    assert f.source_ == "front end" and out.argmax() == row.argmax()
+    # (times 1 + 1e-3 tanh of the peak's strength against its running mean: a tie-break)
+    assert f.confidence_ == pytest.approx(f._front_precision, rel=1.01e-3)
+    assert f.confidence_ != pytest.approx(f._front_precision, rel=1e-6)
+    # calibrated (the default): twice that, at most 1
+    g = CANN(support_memory=10.0)
+    run(g, np.vstack([S, tail]))
+    assert g.source_ == "front end" and g._front_precision == f._front_precision
+    assert g.confidence_ == np.float32(min(1.0, FRONT_CALIBRATION * f.confidence_))
+
+
+def test_constant_rows_tie_at_the_confidence():
+    # The first frame: a flat layer whose best window (at place 0) holds 3 / 100; the front
+    # end's prior precision 0.5 ** (2 + 2) wins (times 2, calibrated), and a constant row
+    # ties everywhere at it.
+    f = CANN()
+    out = f.step(np.full(100, 2.0))
+    assert f.source_ == "front end" and f.state_ == "lost" and f.probability_ == 0.0
+    assert f.confidence_ == 0.125
+    np.testing.assert_array_equal(out, np.full(100, np.float32(0.125)))
+    out = CANN(tolerance=0).step(np.full(100, 2.0))  # 0.5 ** 2
+    np.testing.assert_array_equal(out, np.full(100, np.float32(0.5)))
+    out = CANN(tolerance=0, calibration=None).step(np.full(100, 2.0))
+    np.testing.assert_array_equal(out, np.full(100, np.float32(0.25)))
+
+
+# -- hand-worked frames at the boundaries --------------------------------------------------------
+def test_support_and_confidence_of_exactly_one_half():
+    # Two places, one velocity (standing), no re-seeding, constant rows: the layer stays at
+    # 1/2 a place and the window (tolerance 1) holds all of it.  With outlier=1 the test
+    # says nothing (on = 1) and break = start keeps the support at exactly 1/2: the raw
+    # confidence is exactly 0.5, which counts as localized, as confident and as supported.
+    f = CANN(
+        velocities=(0.0,),
+        speed_prior=0.0,
+        relocation=0.0,
+        recovery=0.0,
+        tolerance=1,
+        outlier=1.0,
+        sequence_break=0.25,
+        sequence_start=0.25,
+    )
+    f.reset()
+    for t in range(5):
+        out = f.step(np.zeros(2))
+        assert f.source_ == "sequence" and f.state_ == "localized"
+        assert f.support_ == 0.5 and f.probability_ == 1.0
+        assert f.confidence_ == np.float32(CALIBRATION[5])
+        np.testing.assert_array_equal(out, np.full(2, np.float32(CALIBRATION[5])))
+        # the front end (place 0) agrees with each confident answer (place 0) ...
+        assert f._front_precision == pytest.approx(1 - 0.875 * 0.99 ** (t + 1), rel=1e-12)
+        # ... and the rank model learns from every supported frame after the first (ranks 1)
+        assert f.shape_ == pytest.approx(0.3 / 0.99**t, rel=1e-12)
+
+
+def test_a_tie_between_sequence_and_front_end_goes_to_the_sequence():
+    # 4 places, one velocity, a constant row: the window (tolerance 0) holds exactly 1/4 and
+    # the support's mean is 1/2; the front end's prior precision is 0.5 ** 2 = 1/4:
+    # 0.5 * 0.25 < 0.25 * (1 - 0.5) is false.
+    f = CANN(velocities=(1.0,), tolerance=0)
+    out = f.step(np.zeros(4))
+    assert f.source_ == "sequence" and f.probability_ == 0.25 and f.state_ == "lost"
+    level = np.float32(np.interp(0.125, KNOTS, CALIBRATION))
+    assert f.confidence_ == level
+    np.testing.assert_array_equal(out, np.full(4, level))
+
+
+def test_front_end_tie_break_by_peak_strength():
+    # A constant row (strength 0), then a row of ones and zeros: its peak is 1 standard
+    # deviation up, its running mean 0 + (1 - 0) / 2; the sequence has next to no evidence
+    # (gain 0.01), so the front end answers with its prior precision 0.5 ** 4, tie-broken.
+    row = np.zeros(200)
+    row[::2] = 1.0
+    for calibration, factor in ((None, 1.0), (CALIBRATION, FRONT_CALIBRATION)):
+        f = CANN(evidence_gain=0.01, calibration=calibration)
+        f.step(np.zeros(200))
+        out = f.step(row)
+        assert f.source_ == "front end" and out.argmax() == 0
+        expected = np.float32(factor * 0.0625 * (1 + 1e-3 * math.tanh(0.5)))
+        assert f.confidence_ == expected
+        np.testing.assert_array_equal(out, np.where(row > 0, expected, np.float32(0.0)))
+
+
+def test_relocations_from_the_first_place_and_not_on_the_first_frame():
+    # without adaptation the first frame's evidence already places the answer (30): no
+    # relocation (nothing was predicted) ...
+    pos = np.r_[np.full(10, 30.0), np.full(10, 0.0), np.full(10, 30.0)]
+    S = bump_rows(pos, 50)
+    params = {"velocities": (0.0,), "speed_prior": 0.0, "adaptation": None, "tolerance": 0}
+    f = CANN(fallback=False, **params)
+    rows, frames = run(f, S)
+    assert frames[0]["source_"] == "sequence" and frames[0]["answer"] == 30
+    assert frames[0]["n_relocations_"] == 0
+    # ... then 30 -> 0 and 0 -> 30 (predicted at place 0) are relocations
+    np.testing.assert_array_equal(rows.argmax(axis=1)[[9, 19, 29]], [30, 0, 30])
+    assert f.n_relocations_ == 2 and frames[19]["n_relocations_"] == 1
+
+
+def test_zero_support_answers_with_the_tables_first_value():
+    # support 0 for ever (the query never joins the route): the raw confidence is 0 and the
+    # calibration's value at 0 is the answer's; nothing else in the row
+    table = tuple(np.linspace(0.1, 1.0, 11))
+    f = CANN(sequence_break=1.0, sequence_start=0.0, fallback=False, calibration=table)
+    rows, frames = run(f, np.random.default_rng(0).normal(size=(4, 20)))
+    for t in (1, 2, 3):
+        assert frames[t]["support_"] == 0.0 and frames[t]["confidence_"] == np.float32(0.1)
+        assert np.count_nonzero(rows[t]) == 1 and rows[t].max() == np.float32(0.1)
+
+
+def test_state_arrays_and_the_memory_check(monkeypatch):
+    f = CANN()
+    f.step(np.zeros(1000))
+    for name in ("_p", "_spare"):
+        assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (21, 1000)
+    for name in ("_marginal", "_predicted", "_weight", "_mean", "_var", "_x"):
+        assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (1000,)
+    state = sum(v.nbytes for v in vars(f).values() if isinstance(v, np.ndarray) and v.size >= 1000)
+    assert state == 8 * 21 * 1000 + 32 * 1000  # float32 layer (twice) and per-place buffers
+    # the memory check asks for the layer and its per-place buffers before allocating them
+    monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(state))
+    CANN().step(np.zeros(1000))
+    monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(8 * 21 * 1000 + 16 * 1000))
+    with pytest.raises(
+        InsufficientMemoryError,
+        match=re.escape("n_reference=1000 places x 21 velocities (velocities, bidirectional)"),
+    ):
+        CANN().step(np.zeros(1000))
+
+
+# -- footprint ---------------------------------------------------------------------------------
+def test_footprint_by_hand():
+    assert CANN(velocities=(0.0, 1.0, 2.0)).footprint(10) == {
+        "layers": 1,
+        # shifted input, velocity neighbours, redraw, evidence, to and from the normaliser
+        "params": 30 + 40 + 30 + 30 + 60,
+        "neurons": 31,
+        "distinct_weights": 6,
+        "state_variables": 30 + 20 + 6,
+    }
+    # bidirectional: 0 is not doubled, so (0, 1) gives -1, 0, 1
+    assert CANN(velocities=(0.0, 1.0), bidirectional=True).footprint(10) == CANN(
+        velocities=(-1.0, 0.0, 1.0)
+    ).footprint(10)
+    default = CANN().footprint(1000)
+    assert default == {
+        "layers": 1,
+        "params": 21000 * 5 + 2 * 20 * 1000,
+        "neurons": 21001,
+        "distinct_weights": 24,
+        "state_variables": 23006,
+    }
+    assert CANN(velocities=(1.0,)).footprint(1)["params"] == 5  # no velocity neighbours
+    with pytest.raises(ValueError, match="^n_reference must be >= 1; got 0"):
+        CANN().footprint(0)
+    with pytest.raises(TypeError, match="^n_reference must be an int; got float"):
+        CANN().footprint(10.0)
+
+
+# -- compiled and plain kernels -----------------------------------------------------------------
+def test_compiled_and_plain_agree(monkeypatch):
+    if not _kernels.get_kernels(table="layer")[1]:
+        pytest.skip("numba is not installed")
+    S = _mixed_scenario()
+    compiled = CANN()
+    a, frames_a = run(compiled, S)
+    assert compiled.compiled_ is True
+    monkeypatch.setattr(_kernels, "USE_NUMBA", False)
+    plain = CANN()
+    b, frames_b = run(plain, S)
+    assert plain.compiled_ is False
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    for fa, fb in zip(frames_a, frames_b, strict=True):
+        assert fa["answer"] == fb["answer"] and fa["source_"] == fb["source_"]
+        assert fa["state_"] == fb["state_"]
+        assert fa["support_"] == pytest.approx(fb["support_"], rel=1e-5)
+
+
+# -- known bugs ----------------------------------------------------------------------------------
+@pytest.mark.xfail(
+    strict=True,
+    raises=ZeroDivisionError,
+    reason="support_memory=1 (allowed) makes the rank model's running mean exactly -log(1) = 0 "
+    "on a supported frame whose predicted place has the least evidence; the next frame "
+    "divides by it (_support: 1.0 / self._log_rank[k])",
+)
+def test_support_memory_one_survives_a_frame_against_the_sequence():
+    S = bump_rows(10 + np.arange(42.0), 100, width=1.5)
+    S[40] = -S[40]  # the predicted place has the least evidence of all
+    out = CANN(support_memory=1.0).filter(S)
+    assert np.isfinite(out).all()
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="with calibration=None the front end's confidence precision * (1 + 1e-3 tanh(...)) "
+    "is not capped at 1: with its precision near 1 (short support_memory) confidence_ "
+    "reaches 1.0004",
+)
+def test_front_end_confidence_stays_at_most_one():
+    rng = np.random.default_rng(0)
+    n, n_frames = 60, 60
+    pos = rng.uniform(0, n) + np.cumsum(rng.choice([0.0, 0.5, 1.0, 2.0], n_frames))
+    jumps = rng.random(n_frames) < 0.1
+    pos = (pos + np.cumsum(jumps * rng.uniform(0, n, n_frames))) % n
+    amp = rng.uniform(0, 8, n_frames)
+    bump = amp[:, None] * np.exp(-0.5 * ((np.arange(n) - pos[:, None]) / 1.5) ** 2)
+    S = rng.normal(0, 0.3, (n_frames, n)) + bump
+    f = CANN(support_memory=1.5, tolerance=5, sequence_break=0.3, calibration=None)
+    out = f.filter(S)
+    assert out.max() <= 1.0
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="with relocation=recovery=0 and unclipped strong evidence every unit holding mass can "
+    "underflow to a weight of 0: advance divides by a zero normaliser (ZeroDivisionError "
+    "in plain Python, NaN rows compiled)",
+)
+def test_evidence_that_underflows_everywhere_the_layer_is():
+    pos = np.r_[np.full(6, 10.0), np.full(4, 80.0)]
+    S = bump_rows(pos, 100, noise=0.05, width=1.5)
+    f = CANN(relocation=0.0, recovery=0.0, input_clip=None, evidence_gain=50.0, adaptation=None)
+    out = f.filter(S)
+    assert np.isfinite(out).all()

@@ -1,0 +1,473 @@
+"""The place-velocity layer's kernels (``cann/_layer.py``) against slow, obviously right references.
+
+Each kernel runs both ways (plain Python and, where numba is importable, compiled) and is
+checked against a loop or NumPy reference written here from its docstring, plus tiny cases
+worked by hand.  Written to kill mutants (see CONTRIBUTING, mutation testing): each test pins
+a number that a small change of the code would move.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from flyvpr.temporal.cann import CANN, _kernels
+
+
+@pytest.fixture(params=["plain", "compiled"])
+def kernels(request, monkeypatch):
+    if request.param == "plain":
+        monkeypatch.setattr(_kernels, "USE_NUMBA", False)
+        found, compiled = _kernels.get_kernels(table="layer")
+        assert not compiled
+        return found
+    found, compiled = _kernels.get_kernels(table="layer")
+    if not compiled:
+        pytest.skip("numba is not installed")
+    return found
+
+
+# -- references ------------------------------------------------------------------------------
+def ref_propagate(p, shifts, stay, neighbour, jump, redraw, prior, floor_rate):
+    """The docstring of ``propagate`` as float64 loops: (new activity, mass left after the move)."""
+    n_v, n = p.shape
+    moved = np.zeros((n_v, n))
+    for j in range(n_v):
+        for i in range(n):
+            if 0 <= i - shifts[j] < n:
+                moved[j, i] = p[j, i - shifts[j]]
+    total = moved.sum()
+    if total == 0.0:
+        return np.tile(np.asarray(prior, np.float64)[:, None] / n, (1, n)), 0.0
+    mixed = np.zeros((n_v, n))
+    for j in range(n_v):
+        mixed[j] += stay * moved[j]
+        for to in (j - 1, j + 1):  # half of the change to each side; the ends keep theirs
+            mixed[to if 0 <= to < n_v else j] += neighbour / 2 * moved[j]
+        mixed[j] += jump * redraw[j] * moved.sum(axis=0)
+    out = mixed * (1.0 - floor_rate) / total
+    out += floor_rate * np.asarray(prior, np.float64)[:, None] / n
+    return out, total
+
+
+def ref_observe(p, x, gain):
+    """(new activity, place marginal, log of the normaliser), float64."""
+    q = p.astype(np.float64) * np.exp(gain * x.astype(np.float64))
+    z = q.sum()
+    return q / z, (q / z).sum(axis=0), math.log(z)
+
+
+def ref_window_sums(marginal, radius):
+    n = marginal.size
+    out = np.array(
+        [marginal[max(i - radius, 0) : i + radius + 1].sum(dtype=np.float64) for i in range(n)]
+    )
+    return out, int(np.argmax(out))  # np.argmax: the first of equals
+
+
+def ref_exceedance(x, place, stride):
+    sampled = x[::stride]
+    return max(int(np.sum(sampled >= x[place])), 1) / sampled.size
+
+
+def _run_propagate(kernels, p, shifts, stay, neighbour, jump, redraw, prior, floor_rate):
+    p = np.array(p, np.float32)
+    spare = np.full_like(p, np.nan)
+    total = kernels["propagate"](
+        p,
+        spare,
+        np.asarray(shifts, np.int64),
+        stay,
+        neighbour,
+        jump,
+        np.asarray(redraw, np.float64),
+        np.asarray(prior, np.float64),
+        floor_rate,
+    )
+    return p, total
+
+
+# -- propagate -------------------------------------------------------------------------------
+@pytest.mark.parametrize("floor_rate", [0.0, 0.05])
+def test_propagate_against_reference(kernels, floor_rate):
+    rng = np.random.default_rng(0)
+    n = 9
+    shifts = [0, 1, 2, -1, -3, 8, 9, 12, -9, -11]  # zero, forward, backward, beyond the route
+    n_v = len(shifts)
+    p = rng.random((n_v, n))
+    p /= p.sum()
+    redraw = rng.random(n_v)
+    redraw /= redraw.sum()
+    prior = rng.random(n_v)
+    prior /= prior.sum()
+    args = (shifts, 0.7, 0.2, 0.1, redraw, prior, floor_rate)
+    got, total = _run_propagate(kernels, p, *args)
+    expected, expected_total = ref_propagate(p.astype(np.float32), *args)
+    np.testing.assert_allclose(got, expected, rtol=2e-6, atol=1e-9)
+    assert total == pytest.approx(expected_total, rel=1e-6)
+    assert got.sum(dtype=np.float64) == pytest.approx(1.0, abs=1e-6)  # mass conserved
+
+
+@pytest.mark.parametrize(
+    ("shift", "expected", "total"),
+    [
+        (1, [0.0, 0.1, 0.2, 0.3], 0.6),  # what enters at the open end is 0; 0.4 leaves
+        (0, [0.1, 0.2, 0.3, 0.4], 1.0),
+        (-1, [0.2, 0.3, 0.4, 0.0], 0.9),
+        (2, [0.0, 0.0, 0.1, 0.2], 0.3),
+        (-3, [0.4, 0.0, 0.0, 0.0], 0.4),
+    ],
+)
+def test_propagate_one_row_by_hand(kernels, shift, expected, total):
+    row = [[0.1, 0.2, 0.3, 0.4]]
+    p, got_total = _run_propagate(kernels, row, [shift], 1.0, 0.0, 0.0, [1.0], [1.0], 0.0)
+    np.testing.assert_allclose(p[0], np.array(expected) / total, rtol=1e-6)
+    assert got_total == pytest.approx(total, rel=1e-6)
+    # with a floor: normalised to 1 - 0.2, then 0.2 / 4 places added everywhere
+    p, _ = _run_propagate(kernels, row, [shift], 1.0, 0.0, 0.0, [1.0], [1.0], 0.2)
+    np.testing.assert_allclose(p[0], 0.8 * np.array(expected) / total + 0.05, rtol=1e-6)
+
+
+@pytest.mark.parametrize("shift", [4, 5, -4, -7])
+@pytest.mark.parametrize("floor_rate", [0.0, 0.3])
+def test_propagate_beyond_the_route_resets_to_the_prior(kernels, shift, floor_rate):
+    # Everything leaves: the layer starts again from the prior (whatever the floor).
+    p = [[0.1, 0.2, 0.3, 0.4], [0.0] * 4]
+    mixing = (0.5, 0.25, 0.25, [0.5, 0.5], [0.25, 0.75])
+    p, total = _run_propagate(kernels, p, [shift, 0], *mixing, floor_rate)
+    assert total == 0.0
+    np.testing.assert_allclose(p, [[0.0625] * 4, [0.1875] * 4], rtol=1e-6)
+
+
+def test_propagate_velocity_mixing_keeps_the_share_at_the_bank_ends(kernels):
+    # One place, three velocities: 0.8 stays, 0.1 to each neighbouring velocity, and the
+    # ends keep the 0.1 that would leave the bank.
+    third = [1 / 3] * 3
+    p, total = _run_propagate(
+        kernels, [[0.5], [0.3], [0.2]], [0] * 3, 0.8, 0.2, 0.0, third, third, 0.0
+    )
+    np.testing.assert_allclose(p[:, 0], [0.48, 0.31, 0.21], rtol=1e-6)
+    assert total == pytest.approx(1.0)
+    # a single velocity: the neighbours are the row itself, nothing is lost
+    p, _ = _run_propagate(kernels, [[0.25, 0.75]], [0], 0.6, 0.4, 0.0, [1.0], [1.0], 0.0)
+    np.testing.assert_allclose(p, [[0.25, 0.75]], rtol=1e-6)
+
+
+def test_propagate_jump_redraws_the_velocity_from_the_place_total(kernels):
+    # marginal [0.4, 0.6]; half stays, half is redrawn as velocity 0 (1/4) or 1 (3/4)
+    p, total = _run_propagate(
+        kernels, [[0.4, 0.0], [0.0, 0.6]], [0, 0], 0.5, 0.0, 0.5, [0.25, 0.75], [0.5, 0.5], 0.0
+    )
+    np.testing.assert_allclose(p, [[0.25, 0.075], [0.15, 0.525]], rtol=1e-6)
+    assert total == pytest.approx(1.0)
+
+
+def test_propagate_floor_reseeds_by_the_prior(kernels):
+    # the case above with a floor of 0.1: 0.9 of it plus 0.1 * prior[j] / 2 places
+    p, _ = _run_propagate(
+        kernels, [[0.4, 0.0], [0.0, 0.6]], [0, 0], 0.5, 0.0, 0.5, [0.25, 0.75], [0.2, 0.8], 0.1
+    )
+    expected = 0.9 * np.array([[0.25, 0.075], [0.15, 0.525]]) + np.array([[0.01], [0.04]])
+    np.testing.assert_allclose(p, expected, rtol=1e-6)
+    assert p.sum(dtype=np.float64) == pytest.approx(1.0)
+
+
+def test_propagate_normalises_what_is_left(kernels):
+    # total 2 (not a probability yet), shifted by 1 -> 1.5 left, normalised to 1 - 0.4
+    p, total = _run_propagate(kernels, [[0.5, 1.0, 0.5]], [1], 1.0, 0.0, 0.0, [1.0], [1.0], 0.4)
+    assert total == pytest.approx(1.5)
+    np.testing.assert_allclose(p[0], 0.6 * np.array([0.0, 0.5, 1.0]) / 1.5 + 0.4 / 3, rtol=1e-6)
+
+
+# -- advance: propagate and observe in one -----------------------------------------------------
+def ref_advance(p, shifts, stay, neighbour, jump, redraw, prior, floor_rate, weight):
+    """(out, predicted, marginal, row_mass, z): the moved layer weighed by the evidence."""
+    moved, _ = ref_propagate(p, shifts, stay, neighbour, jump, redraw, prior, floor_rate)
+    out = moved * weight.astype(np.float64)
+    z = out.sum()
+    return out, moved.sum(axis=0), out.sum(axis=0) / z, out.sum(axis=1) / z, z
+
+
+def _run_advance(kernels, p, shifts, stay, neighbour, jump, redraw, prior, floor_rate, weight):
+    p = np.array(p, np.float32)
+    n_v, n = p.shape
+    out = np.full_like(p, np.nan)
+    predicted = np.full(n, np.nan, np.float32)
+    marginal = np.full(n, np.nan, np.float32)
+    row_mass = np.full(n_v, np.nan)
+    before = p.copy()
+    z = kernels["advance"](
+        p,
+        out,
+        np.asarray(shifts, np.int64),
+        stay,
+        neighbour,
+        jump,
+        np.asarray(redraw, np.float64),
+        np.asarray(prior, np.float64),
+        floor_rate,
+        np.asarray(weight, np.float32),
+        predicted,
+        marginal,
+        row_mass,
+    )
+    np.testing.assert_array_equal(p, before)  # the old activity is only read
+    return out, predicted, marginal, row_mass, z
+
+
+@pytest.mark.parametrize(
+    "shifts",
+    [
+        [0, 1, 2, -1, -3, 8, 9, 12, -9, -11],  # zero, forward, backward, beyond the route
+        [3, 3, 3, 3, 3, 3, 3, 3, 3, 3],  # odometry: all alike
+        [0, 0, 1, 1, 1, 1, 2, 2, 3, 3],  # the default bank's pattern
+        [-2, -2, -1, -1, 0, 0, 1, 1, 2, 2],  # bidirectional
+    ],
+)
+@pytest.mark.parametrize("floor_rate", [0.0, 0.05])
+def test_advance_against_reference(kernels, shifts, floor_rate):
+    rng = np.random.default_rng(4)
+    n = 9
+    n_v = len(shifts)
+    p = rng.random((n_v, n)) * 3.0  # any positive scale
+    redraw = rng.random(n_v)
+    redraw /= redraw.sum()
+    prior = rng.random(n_v)
+    prior /= prior.sum()
+    weight = np.exp(rng.normal(size=n))
+    args = (shifts, 0.7, 0.2, 0.1, redraw, prior, floor_rate, weight)
+    got = _run_advance(kernels, p, *args)
+    expected = ref_advance(p.astype(np.float32), *args)
+    names = ["out", "predicted", "marginal", "row_mass"]
+    for name, g, e in zip(names, got[:4], expected[:4], strict=True):
+        np.testing.assert_allclose(g, e, rtol=3e-6, atol=1e-12, err_msg=name)
+    assert got[4] == pytest.approx(expected[4], rel=2e-6)
+    assert got[2].sum(dtype=np.float64) == pytest.approx(1.0, abs=1e-6)
+    assert got[3].sum() == pytest.approx(1.0, abs=1e-12)
+    assert got[1].sum(dtype=np.float64) == pytest.approx(1.0, abs=1e-6)  # the prior: mass kept
+
+
+def test_advance_by_hand(kernels):
+    # one row moved by 1 (0.4 leaves), normalised to 1 - 0.2 plus 0.05 a place, then weighed
+    out, predicted, marginal, row_mass, z = _run_advance(
+        kernels, [[0.1, 0.2, 0.3, 0.4]], [1], 1.0, 0.0, 0.0, [1.0], [1.0], 0.2, [1.0, 2.0, 0.5, 1.0]
+    )
+    moved = 0.8 * np.array([0.0, 0.1, 0.2, 0.3]) / 0.6 + 0.05
+    np.testing.assert_allclose(predicted, moved, rtol=1e-6)
+    np.testing.assert_allclose(out[0], moved * [1.0, 2.0, 0.5, 1.0], rtol=1e-6)
+    assert z == pytest.approx((moved * [1.0, 2.0, 0.5, 1.0]).sum(), rel=1e-6)
+    np.testing.assert_allclose(marginal, out[0] / z, rtol=1e-6)
+    np.testing.assert_allclose(row_mass, [1.0], rtol=1e-12)
+
+
+def test_advance_mixing_and_jump_by_hand(kernels):
+    # the cases of propagate above, weighed by 1 and by [1, 3]
+    third = [1 / 3] * 3
+    out, predicted, marginal, row_mass, z = _run_advance(
+        kernels, [[0.5], [0.3], [0.2]], [0] * 3, 0.8, 0.2, 0.0, third, third, 0.0, [1.0]
+    )
+    np.testing.assert_allclose(out[:, 0], [0.48, 0.31, 0.21], rtol=1e-6)
+    np.testing.assert_allclose(row_mass, [0.48, 0.31, 0.21], rtol=1e-6)
+    assert z == pytest.approx(1.0, rel=1e-6)
+    mixing = (0.5, 0.0, 0.5, [0.25, 0.75], [0.2, 0.8])
+    out, predicted, marginal, row_mass, z = _run_advance(
+        kernels, [[0.4, 0.0], [0.0, 0.6]], [0, 0], *mixing, 0.1, [1.0, 3.0]
+    )
+    moved = 0.9 * np.array([[0.25, 0.075], [0.15, 0.525]]) + np.array([[0.01], [0.04]])
+    np.testing.assert_allclose(out, moved * [1.0, 3.0], rtol=1e-6)
+    np.testing.assert_allclose(predicted, moved.sum(axis=0), rtol=1e-6)
+    assert z == pytest.approx((moved * [1.0, 3.0]).sum(), rel=1e-6)
+    np.testing.assert_allclose(row_mass, (moved * [1.0, 3.0]).sum(axis=1) / z, rtol=1e-6)
+
+
+@pytest.mark.parametrize("shift", [-4, -9, 4, 6])
+def test_advance_restarts_from_the_prior_when_nothing_is_left(kernels, shift):
+    mixing = (0.5, 0.25, 0.25, [0.5, 0.5], [0.25, 0.75], 0.3, [1.0, 1.0, 2.0, 1.0])
+    p = [[0.1, 0.2, 0.3, 0.4], [0.5, 0.5, 0.5, 0.5]]
+    out, predicted, marginal, row_mass, z = _run_advance(kernels, p, [shift, shift], *mixing)
+    moved = np.array([[0.0625] * 4, [0.1875] * 4])
+    np.testing.assert_allclose(out, moved * [1.0, 1.0, 2.0, 1.0], rtol=1e-6)
+    np.testing.assert_allclose(predicted, [0.25] * 4, rtol=1e-6)
+    assert z == pytest.approx(1.25, rel=1e-6)
+    np.testing.assert_allclose(marginal, [0.2, 0.2, 0.4, 0.2], rtol=1e-6)
+    np.testing.assert_allclose(row_mass, [0.25, 0.75], rtol=1e-6)
+    # every unit at 0: the same
+    got = _run_advance(kernels, np.zeros((2, 4)), [0, 0], *mixing)
+    np.testing.assert_allclose(got[0], moved * [1.0, 1.0, 2.0, 1.0], rtol=1e-6)
+
+
+def test_advance_is_scale_free(kernels):
+    rng = np.random.default_rng(5)
+    p = rng.random((3, 7))
+    weight = np.exp(rng.normal(size=7))
+    args = ([0, 1, 2], 0.6, 0.3, 0.1, [0.2, 0.3, 0.5], [0.3, 0.3, 0.4], 0.02, weight)
+    one = _run_advance(kernels, p, *args)
+    many = _run_advance(kernels, p * 1000.0, *args)
+    for a, b in zip(one, many, strict=True):
+        np.testing.assert_allclose(a, b, rtol=2e-6)
+
+
+# -- observe ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("gain", [0.4, 1.0, 3.0])
+def test_observe_against_reference(kernels, gain):
+    rng = np.random.default_rng(1)
+    p = rng.random((4, 11)).astype(np.float32)
+    p /= p.sum()
+    x = rng.normal(size=11).astype(np.float32) * 2.0
+    expected_p, expected_m, expected_log = ref_observe(p, x, gain)
+    marginal = np.full(11, np.nan, np.float32)
+    got = kernels["observe"](p, x, gain, marginal)
+    np.testing.assert_allclose(p, expected_p, rtol=2e-6)
+    np.testing.assert_allclose(marginal, expected_m, rtol=2e-6)
+    assert got == pytest.approx(expected_log, rel=1e-6, abs=1e-6)
+
+
+def test_observe_by_hand(kernels):
+    p = np.full((2, 2), 0.25, np.float32)
+    marginal = np.empty(2, np.float32)
+    got = kernels["observe"](p, np.array([0.0, math.log(3.0)], np.float32), 1.0, marginal)
+    np.testing.assert_allclose(p, [[0.125, 0.375], [0.125, 0.375]], rtol=1e-6)
+    np.testing.assert_allclose(marginal, [0.25, 0.75], rtol=1e-6)
+    assert got == pytest.approx(math.log(2.0), rel=1e-6)  # 0.5 * 1 + 0.5 * 3
+
+
+def test_observe_subtracts_the_largest_input_first(kernels):
+    # exp(5 * 150) overflows; relative to the largest input (not at an end) it does not
+    p = np.array([[0.1, 0.2, 0.3, 0.4]], np.float32)
+    x = np.array([-50.0, -60.0, 150.0, 149.0], np.float32)
+    marginal = np.empty(4, np.float32)
+    got = kernels["observe"](p, x, 5.0, marginal)
+    w = np.exp(5.0 * (x.astype(np.float64) - 150.0)) * [0.1, 0.2, 0.3, 0.4]
+    np.testing.assert_allclose(p[0], w / w.sum(), rtol=1e-6, atol=1e-30)
+    np.testing.assert_allclose(marginal, w / w.sum(), rtol=1e-6, atol=1e-30)
+    assert got == pytest.approx(math.log(w.sum()) + 750.0, rel=1e-9)
+
+
+def test_observe_one_place(kernels):
+    p = np.array([[0.25], [0.5]], np.float32)
+    marginal = np.empty(1, np.float32)
+    got = kernels["observe"](p, np.array([3.0], np.float32), 2.0, marginal)
+    np.testing.assert_allclose(p, [[1 / 3], [2 / 3]], rtol=1e-6)
+    assert marginal[0] == pytest.approx(1.0, rel=1e-6)
+    assert got == pytest.approx(math.log(0.75) + 6.0, rel=1e-6)
+
+
+# -- window_sums -----------------------------------------------------------------------------
+@pytest.mark.parametrize("radius", [0, 1, 2, 5, 11, 14])
+def test_window_sums_against_reference(kernels, radius):
+    marginal = np.random.default_rng(2).random(11).astype(np.float32)
+    out = np.full(11, np.nan)
+    best = kernels["window_sums"](marginal, radius, out)
+    expected, expected_best = ref_window_sums(marginal, radius)
+    np.testing.assert_allclose(out, expected, rtol=1e-12)
+    assert best == expected_best
+
+
+@pytest.mark.parametrize(
+    ("marginal", "radius", "expected", "best"),
+    [
+        ([1, 2, 3, 4], 0, [1, 2, 3, 4], 3),
+        ([1, 2, 3, 4], 1, [3, 6, 9, 7], 2),  # clipped at both ends
+        ([1, 2, 3, 4], 2, [6, 10, 10, 9], 1),  # a tie: the first of equals
+        ([1, 2, 3, 4], 3, [10, 10, 10, 10], 0),
+        ([1, 2, 3, 4], 9, [10, 10, 10, 10], 0),  # radius beyond the route
+        ([1, 0, 1, 0], 0, [1, 0, 1, 0], 0),
+        ([0, 1, 0, 1], 0, [0, 1, 0, 1], 1),
+        ([1, 1, 1, 1, 1], 1, [2, 3, 3, 3, 2], 1),
+        ([0, 0, 0], 1, [0, 0, 0], 0),  # nothing anywhere: place 0
+        ([5], 0, [5], 0),
+    ],
+)
+def test_window_sums_by_hand(kernels, marginal, radius, expected, best):
+    out = np.full(len(marginal), np.nan)
+    assert kernels["window_sums"](np.array(marginal, np.float32), radius, out) == best
+    np.testing.assert_array_equal(out, expected)
+
+
+def test_window_sums_never_negative(kernels):
+    # the running sum loses 0.3 and 0.1 beside 1e17 and would end at -0.2
+    out = np.empty(4)
+    best = kernels["window_sums"](np.array([0.1, 1e17, 0.3, 0.1], np.float32), 0, out)
+    assert best == 1
+    assert out[0] == pytest.approx(0.1) and out[1] == pytest.approx(1e17)
+    assert out[3] == 0.0 and (out >= 0.0).all()
+
+
+# -- exceedance ------------------------------------------------------------------------------
+@pytest.mark.parametrize("stride", [1, 2, 3, 7])
+def test_exceedance_against_reference(kernels, stride):
+    x = np.round(np.random.default_rng(3).normal(size=23), 1).astype(np.float32)  # with ties
+    for place in range(23):
+        assert kernels["exceedance"](x, place, stride) == ref_exceedance(x, place, stride)
+
+
+@pytest.mark.parametrize(
+    ("place", "stride", "expected"),
+    [
+        (0, 1, 1 / 5),  # the best: only itself
+        (2, 1, 3 / 5),  # ties count
+        (3, 1, 3 / 5),
+        (1, 1, 4 / 5),
+        (4, 1, 5 / 5),  # the worst: every place
+        (0, 2, 1 / 3),  # places 0, 2, 4 are sampled: 3, 2, 0
+        (3, 2, 2 / 3),  # place 3 is not sampled; its level 2 is reached by 3 and 2
+        (1, 2, 2 / 3),
+        (4, 2, 3 / 3),
+        (0, 3, 1 / 2),  # places 0, 3: 3, 2
+        (2, 3, 2 / 2),
+        (4, 5, 1 / 1),
+    ],
+)
+def test_exceedance_by_hand(kernels, place, stride, expected):
+    x = np.array([3.0, 1.0, 2.0, 2.0, 0.0], np.float32)
+    assert kernels["exceedance"](x, place, stride) == expected
+
+
+def test_exceedance_counts_at_least_one(kernels):
+    # place 1 is not sampled and beats every sampled place: count 0 -> 1 of 2
+    x = np.array([0.0, 5.0, 0.0, 0.0], np.float32)
+    assert kernels["exceedance"](x, 1, 2) == 0.5
+    assert kernels["exceedance"](x, 1, 1) == 0.25
+
+
+# -- shifts: fractions accumulate --------------------------------------------------------------
+def test_shifts_accumulate_fractions():
+    vel = (0.0, 0.125, 0.5, 1.0, 2.25, 2.5, 3.0)
+    f = CANN(velocities=vel, bidirectional=True)
+    f.step(np.zeros(12))  # allocates the state
+    rows = f._params["velocities"]
+    np.testing.assert_array_equal(rows, sorted({*vel, *(-v for v in vel)}))
+    moved = np.zeros(rows.size, np.int64)
+    odometry = 0
+    for t in range(1, 33):
+        k = f._shifts(None)
+        assert k.dtype == np.int64 and k.shape == rows.shape
+        moved += k
+        # position after t frames: t * v rounded, halves up (binary fractions: exact)
+        np.testing.assert_array_equal(moved, np.floor(t * rows + 0.5))
+        # odometry accumulates on its own, and leaves the bank's offsets alone
+        k = f._shifts(0.75)
+        assert k.dtype == np.int64
+        np.testing.assert_array_equal(k, np.full(rows.size, k[0]))
+        odometry += int(k[0])
+        assert odometry == math.floor(0.75 * t + 0.5)
+
+
+@pytest.mark.parametrize(
+    ("velocity", "expected"),
+    [
+        (0.5, [1, 0, 1, 0, 1, 0]),
+        (-0.5, [0, -1, 0, -1, 0, -1]),
+        (0.25, [0, 1, 0, 0, 0, 1]),
+        (1.5, [2, 1, 2, 1, 2, 1]),
+        (0.0, [0, 0, 0, 0, 0, 0]),
+        (-2.75, [-3, -2, -3, -3, -3, -2]),
+    ],
+)
+def test_shifts_by_hand(velocity, expected):
+    f = CANN(velocities=(velocity,))
+    f.step(np.zeros(5))
+    assert [int(f._shifts(None)[0]) for _ in expected] == expected
+    f = CANN(velocities=(1.0,))
+    f.step(np.zeros(5))
+    assert [int(f._shifts(velocity)[0]) for _ in expected] == expected
