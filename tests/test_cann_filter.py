@@ -1104,14 +1104,7 @@ def test_compiled_and_plain_agree(monkeypatch):
         assert fa["support_"] == pytest.approx(fb["support_"], rel=1e-5)
 
 
-# -- known bugs ----------------------------------------------------------------------------------
-@pytest.mark.xfail(
-    strict=True,
-    raises=ZeroDivisionError,
-    reason="support_memory=1 (allowed) makes the rank model's running mean exactly -log(1) = 0 "
-    "on a supported frame whose predicted place has the least evidence; the next frame "
-    "divides by it (_support: 1.0 / self._log_rank[k])",
-)
+# -- bugs found by these tests, fixed ------------------------------------------------------------
 def test_support_memory_one_survives_a_frame_against_the_sequence():
     S = bump_rows(10 + np.arange(42.0), 100, width=1.5)
     S[40] = -S[40]  # the predicted place has the least evidence of all
@@ -1119,12 +1112,6 @@ def test_support_memory_one_survives_a_frame_against_the_sequence():
     assert np.isfinite(out).all()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="with calibration=None the front end's confidence precision * (1 + 1e-3 tanh(...)) "
-    "is not capped at 1: with its precision near 1 (short support_memory) confidence_ "
-    "reaches 1.0004",
-)
 def test_front_end_confidence_stays_at_most_one():
     rng = np.random.default_rng(0)
     n, n_frames = 60, 60
@@ -1139,12 +1126,6 @@ def test_front_end_confidence_stays_at_most_one():
     assert out.max() <= 1.0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="with relocation=recovery=0 and unclipped strong evidence every unit holding mass can "
-    "underflow to a weight of 0: advance divides by a zero normaliser (ZeroDivisionError "
-    "in plain Python, NaN rows compiled)",
-)
 def test_evidence_that_underflows_everywhere_the_layer_is():
     pos = np.r_[np.full(6, 10.0), np.full(4, 80.0)]
     S = bump_rows(pos, 100, noise=0.05, width=1.5)

@@ -38,6 +38,15 @@ _KNOTS = np.linspace(0.0, 1.0, 11)
 _LEARN_ABOVE = 0.5
 
 
+def _shape(log_rank: float) -> float:
+    """The rank model's exponent from the running mean of ``-log(rank)``: its inverse,
+    within ``_SHAPE_RANGE`` (a mean of 0, every rank 1, gives the flat model, 1)."""
+    low, high = _SHAPE_RANGE
+    if log_rank * high <= 1.0:
+        return high
+    return max(low, 1.0 / log_rank)
+
+
 def _calibrate(raw: float, table) -> float:
     """``raw`` mapped through the calibration ``table`` (values at raw = 0, 0.1, ..., 1,
     linearly between them); ``None``: ``raw`` itself."""
@@ -122,7 +131,8 @@ class CANN(OnlineFilter):
     confidence_ : float
         Probability, in [0, 1], that the last answer is right (within ``tolerance``).
     state_ : str
-        ``"localized"`` when the answer comes from the sequence with confidence >= 0.5,
+        ``"localized"`` when the answer comes from the sequence and the support times the
+        window's probability (the raw confidence, before calibration) is at least 0.5,
         ``"lost"`` otherwise (the place is then a hint).
     support_ : float
         Probability that the query is following the route.
@@ -327,7 +337,7 @@ class CANN(OnlineFilter):
         p = self._params
         n_v = p["velocities"].size
         check_memory(
-            8 * n_v * n + 24 * n,
+            8 * n_v * n + 32 * n,
             f"n_reference={n} places x {n_v} velocities (velocities, bidirectional)",
         )
         self._n = n
@@ -358,7 +368,7 @@ class CANN(OnlineFilter):
     @property
     def shape_(self) -> float:
         """Exponent of the sequence test's learned rank model (see :meth:`_support`)."""
-        return min(_SHAPE_RANGE[1], max(_SHAPE_RANGE[0], 1.0 / self._log_rank[0]))
+        return _shape(self._log_rank[0])
 
     def step(self, scores_row, velocity=None) -> np.ndarray:
         """Feed one query frame's scores and return its row of answer probabilities.
@@ -493,7 +503,7 @@ class CANN(OnlineFilter):
         w = float(np.count_nonzero(near >= x[predicted])) / near.size
         on = 1.0
         for rank, k in ((u, 0), (w, 1)):
-            shape = min(_SHAPE_RANGE[1], max(_SHAPE_RANGE[0], 1.0 / self._log_rank[k]))
+            shape = _shape(self._log_rank[k])
             on *= (1.0 - p["outlier"]) * shape * rank ** (shape - 1.0) + p["outlier"]
         s = self.support_
         before = s * (1.0 - p["sequence_break"]) + (1.0 - s) * p["sequence_start"]
@@ -577,8 +587,8 @@ class CANN(OnlineFilter):
             agree = float(abs(front - answer) <= radius)
             self._front_precision += (agree - self._front_precision) / memory
         # The front end's precision, with a tie-break that keeps its own order of answers.
-        front_confidence = self._front_precision * (
-            1.0 + 1e-3 * math.tanh(strength - self._front_strength)
+        front_confidence = min(
+            1.0, self._front_precision * (1.0 + 1e-3 * math.tanh(strength - self._front_strength))
         )
         out = np.empty(n, np.float32)
         if p["fallback"] and self._support_mean * probability < front_confidence * (

@@ -221,6 +221,23 @@ def advance(p, out, shifts, stay, neighbour, jump, redraw, prior, floor_rate, we
                 mass += float(w)
         row_mass[j] = mass
         z += mass
+    if not z > 0.0:
+        # The evidence underflowed wherever the layer holds mass: start again from the prior,
+        # weighed by the evidence alone.
+        z = 0.0
+        for i in range(n):
+            marginal[i] = 0.0
+        for j in range(n_v):
+            row = out[j]
+            fresh = np.float32(prior[j] / n)
+            mass = 0.0
+            for i in range(n):
+                w = fresh * weight[i]
+                row[i] = w
+                marginal[i] += w
+                mass += float(w)
+            row_mass[j] = mass
+            z += mass
     prior_scale = np.float32(scale)  # stay + neighbour + jump = 1: the mixing keeps the mass
     prior_base = np.float32(rate / n)
     for i in range(n):
