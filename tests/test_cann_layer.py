@@ -2,8 +2,11 @@
 
 Each kernel runs both ways (plain Python and, where numba is importable, compiled) and is
 checked against a loop or NumPy reference written here from its docstring, plus tiny cases
-worked by hand.  Written to kill mutants (see CONTRIBUTING, mutation testing): each test pins
-a number that a small change of the code would move.
+worked by hand.  ``advance`` is checked in parts as well as whole: its move alone (the
+evidence all ones) against ``ref_propagate``, and its evidence alone (no move, no mixing, no
+floor: the prior is the activity as given) against ``ref_observe``.  Written to kill mutants
+(see CONTRIBUTING, mutation testing): each test pins a number that a small change of the code
+would move.
 """
 
 import math
@@ -29,7 +32,8 @@ def kernels(request, monkeypatch):
 
 # -- references ------------------------------------------------------------------------------
 def ref_propagate(p, shifts, stay, neighbour, jump, redraw, prior, floor_rate):
-    """The docstring of ``propagate`` as float64 loops: (new activity, mass left after the move)."""
+    """The prior of ``advance`` (the move, velocity mixing, redraw and re-seed, before the
+    evidence) as float64 loops: (the new activity, the mass left after the move)."""
     n_v, n = p.shape
     moved = np.zeros((n_v, n))
     for j in range(n_v):
@@ -51,10 +55,24 @@ def ref_propagate(p, shifts, stay, neighbour, jump, redraw, prior, floor_rate):
 
 
 def ref_observe(p, x, gain):
-    """(new activity, place marginal, log of the normaliser), float64."""
+    """The evidence step of ``advance``: the activity weighed by ``exp(gain * x)`` and
+    normalised.  (new activity, place marginal, log of the normaliser), float64."""
     q = p.astype(np.float64) * np.exp(gain * x.astype(np.float64))
     z = q.sum()
     return q / z, (q / z).sum(axis=0), math.log(z)
+
+
+def ref_advance(p, shifts, stay, neighbour, jump, redraw, prior, floor_rate, weight):
+    """(out, predicted, marginal, row_mass, z): the moved layer weighed by the evidence; where
+    that leaves nothing, the prior ``prior[j] / n`` weighed by the evidence alone."""
+    moved, _ = ref_propagate(p, shifts, stay, neighbour, jump, redraw, prior, floor_rate)
+    out = moved * weight.astype(np.float64)
+    z = out.sum()
+    if z == 0.0:
+        n = p.shape[1]
+        out = np.asarray(prior, np.float64)[:, None] / n * weight.astype(np.float64)
+        z = out.sum()
+    return out, moved.sum(axis=0), out.sum(axis=0) / z, out.sum(axis=1) / z, z
 
 
 def ref_window_sums(marginal, radius):
@@ -70,124 +88,7 @@ def ref_exceedance(x, place, stride):
     return max(int(np.sum(sampled >= x[place])), 1) / sampled.size
 
 
-def _run_propagate(kernels, p, shifts, stay, neighbour, jump, redraw, prior, floor_rate):
-    p = np.array(p, np.float32)
-    spare = np.full_like(p, np.nan)
-    total = kernels["propagate"](
-        p,
-        spare,
-        np.asarray(shifts, np.int64),
-        stay,
-        neighbour,
-        jump,
-        np.asarray(redraw, np.float64),
-        np.asarray(prior, np.float64),
-        floor_rate,
-    )
-    return p, total
-
-
-# -- propagate -------------------------------------------------------------------------------
-@pytest.mark.parametrize("floor_rate", [0.0, 0.05])
-def test_propagate_against_reference(kernels, floor_rate):
-    rng = np.random.default_rng(0)
-    n = 9
-    shifts = [0, 1, 2, -1, -3, 8, 9, 12, -9, -11]  # zero, forward, backward, beyond the route
-    n_v = len(shifts)
-    p = rng.random((n_v, n))
-    p /= p.sum()
-    redraw = rng.random(n_v)
-    redraw /= redraw.sum()
-    prior = rng.random(n_v)
-    prior /= prior.sum()
-    args = (shifts, 0.7, 0.2, 0.1, redraw, prior, floor_rate)
-    got, total = _run_propagate(kernels, p, *args)
-    expected, expected_total = ref_propagate(p.astype(np.float32), *args)
-    np.testing.assert_allclose(got, expected, rtol=2e-6, atol=1e-9)
-    assert total == pytest.approx(expected_total, rel=1e-6)
-    assert got.sum(dtype=np.float64) == pytest.approx(1.0, abs=1e-6)  # mass conserved
-
-
-@pytest.mark.parametrize(
-    ("shift", "expected", "total"),
-    [
-        (1, [0.0, 0.1, 0.2, 0.3], 0.6),  # what enters at the open end is 0; 0.4 leaves
-        (0, [0.1, 0.2, 0.3, 0.4], 1.0),
-        (-1, [0.2, 0.3, 0.4, 0.0], 0.9),
-        (2, [0.0, 0.0, 0.1, 0.2], 0.3),
-        (-3, [0.4, 0.0, 0.0, 0.0], 0.4),
-    ],
-)
-def test_propagate_one_row_by_hand(kernels, shift, expected, total):
-    row = [[0.1, 0.2, 0.3, 0.4]]
-    p, got_total = _run_propagate(kernels, row, [shift], 1.0, 0.0, 0.0, [1.0], [1.0], 0.0)
-    np.testing.assert_allclose(p[0], np.array(expected) / total, rtol=1e-6)
-    assert got_total == pytest.approx(total, rel=1e-6)
-    # with a floor: normalised to 1 - 0.2, then 0.2 / 4 places added everywhere
-    p, _ = _run_propagate(kernels, row, [shift], 1.0, 0.0, 0.0, [1.0], [1.0], 0.2)
-    np.testing.assert_allclose(p[0], 0.8 * np.array(expected) / total + 0.05, rtol=1e-6)
-
-
-@pytest.mark.parametrize("shift", [4, 5, -4, -7])
-@pytest.mark.parametrize("floor_rate", [0.0, 0.3])
-def test_propagate_beyond_the_route_resets_to_the_prior(kernels, shift, floor_rate):
-    # Everything leaves: the layer starts again from the prior (whatever the floor).
-    p = [[0.1, 0.2, 0.3, 0.4], [0.0] * 4]
-    mixing = (0.5, 0.25, 0.25, [0.5, 0.5], [0.25, 0.75])
-    p, total = _run_propagate(kernels, p, [shift, 0], *mixing, floor_rate)
-    assert total == 0.0
-    np.testing.assert_allclose(p, [[0.0625] * 4, [0.1875] * 4], rtol=1e-6)
-
-
-def test_propagate_velocity_mixing_keeps_the_share_at_the_bank_ends(kernels):
-    # One place, three velocities: 0.8 stays, 0.1 to each neighbouring velocity, and the
-    # ends keep the 0.1 that would leave the bank.
-    third = [1 / 3] * 3
-    p, total = _run_propagate(
-        kernels, [[0.5], [0.3], [0.2]], [0] * 3, 0.8, 0.2, 0.0, third, third, 0.0
-    )
-    np.testing.assert_allclose(p[:, 0], [0.48, 0.31, 0.21], rtol=1e-6)
-    assert total == pytest.approx(1.0)
-    # a single velocity: the neighbours are the row itself, nothing is lost
-    p, _ = _run_propagate(kernels, [[0.25, 0.75]], [0], 0.6, 0.4, 0.0, [1.0], [1.0], 0.0)
-    np.testing.assert_allclose(p, [[0.25, 0.75]], rtol=1e-6)
-
-
-def test_propagate_jump_redraws_the_velocity_from_the_place_total(kernels):
-    # marginal [0.4, 0.6]; half stays, half is redrawn as velocity 0 (1/4) or 1 (3/4)
-    p, total = _run_propagate(
-        kernels, [[0.4, 0.0], [0.0, 0.6]], [0, 0], 0.5, 0.0, 0.5, [0.25, 0.75], [0.5, 0.5], 0.0
-    )
-    np.testing.assert_allclose(p, [[0.25, 0.075], [0.15, 0.525]], rtol=1e-6)
-    assert total == pytest.approx(1.0)
-
-
-def test_propagate_floor_reseeds_by_the_prior(kernels):
-    # the case above with a floor of 0.1: 0.9 of it plus 0.1 * prior[j] / 2 places
-    p, _ = _run_propagate(
-        kernels, [[0.4, 0.0], [0.0, 0.6]], [0, 0], 0.5, 0.0, 0.5, [0.25, 0.75], [0.2, 0.8], 0.1
-    )
-    expected = 0.9 * np.array([[0.25, 0.075], [0.15, 0.525]]) + np.array([[0.01], [0.04]])
-    np.testing.assert_allclose(p, expected, rtol=1e-6)
-    assert p.sum(dtype=np.float64) == pytest.approx(1.0)
-
-
-def test_propagate_normalises_what_is_left(kernels):
-    # total 2 (not a probability yet), shifted by 1 -> 1.5 left, normalised to 1 - 0.4
-    p, total = _run_propagate(kernels, [[0.5, 1.0, 0.5]], [1], 1.0, 0.0, 0.0, [1.0], [1.0], 0.4)
-    assert total == pytest.approx(1.5)
-    np.testing.assert_allclose(p[0], 0.6 * np.array([0.0, 0.5, 1.0]) / 1.5 + 0.4 / 3, rtol=1e-6)
-
-
-# -- advance: propagate and observe in one -----------------------------------------------------
-def ref_advance(p, shifts, stay, neighbour, jump, redraw, prior, floor_rate, weight):
-    """(out, predicted, marginal, row_mass, z): the moved layer weighed by the evidence."""
-    moved, _ = ref_propagate(p, shifts, stay, neighbour, jump, redraw, prior, floor_rate)
-    out = moved * weight.astype(np.float64)
-    z = out.sum()
-    return out, moved.sum(axis=0), out.sum(axis=0) / z, out.sum(axis=1) / z, z
-
-
+# -- running advance -------------------------------------------------------------------------
 def _run_advance(kernels, p, shifts, stay, neighbour, jump, redraw, prior, floor_rate, weight):
     p = np.array(p, np.float32)
     n_v, n = p.shape
@@ -215,6 +116,196 @@ def _run_advance(kernels, p, shifts, stay, neighbour, jump, redraw, prior, floor
     return out, predicted, marginal, row_mass, z
 
 
+def _move(kernels, p, shifts, stay, neighbour, jump, redraw, prior, floor_rate):
+    """``advance`` with the evidence all ones: (out normalised, predicted, row_mass, z).
+    ``out`` is then the prior itself, and ``marginal`` equals ``predicted``."""
+    n = np.shape(p)[1]
+    args = (shifts, stay, neighbour, jump, redraw, prior, floor_rate, np.ones(n))
+    out, predicted, marginal, row_mass, z = _run_advance(kernels, p, *args)
+    np.testing.assert_allclose(marginal, predicted, rtol=2e-6, atol=1e-12)
+    return out / z, predicted, row_mass, z
+
+
+def _weight(x, gain):
+    """The evidence as the filter passes it: ``exp(gain * (x - max x))`` in float32."""
+    x = np.asarray(x, np.float32)
+    return np.exp(np.float32(gain) * (x - x.max()))
+
+
+def _observe(kernels, p, weight):
+    """``advance`` with no move, no mixing and no floor (the prior is ``p`` as given,
+    normalised), weighed by ``weight``: (out normalised, marginal, row_mass, z)."""
+    p = np.asarray(p, np.float32)
+    n_v, n = p.shape
+    third = np.full(n_v, 1.0 / n_v)  # the velocity prior: unused without a floor
+    args = (np.zeros(n_v, np.int64), 1.0, 0.0, 0.0, third, third, 0.0, weight)
+    out, predicted, marginal, row_mass, z = _run_advance(kernels, p, *args)
+    # the prior's marginal: the activity's, normalised
+    np.testing.assert_allclose(predicted, p.sum(axis=0) / p.sum(dtype=np.float64), rtol=2e-6)
+    return out / z, marginal, row_mass, z
+
+
+# -- advance: the move (the evidence all ones) ------------------------------------------------
+@pytest.mark.parametrize("floor_rate", [0.0, 0.05])
+def test_move_against_reference(kernels, floor_rate):
+    rng = np.random.default_rng(0)
+    n = 9
+    shifts = [0, 1, 2, -1, -3, 8, 9, 12, -9, -11]  # zero, forward, backward, beyond the route
+    n_v = len(shifts)
+    p = rng.random((n_v, n))
+    p /= p.sum()
+    redraw = rng.random(n_v)
+    redraw /= redraw.sum()
+    prior = rng.random(n_v)
+    prior /= prior.sum()
+    args = (shifts, 0.7, 0.2, 0.1, redraw, prior, floor_rate)
+    got, predicted, row_mass, z = _move(kernels, p, *args)
+    expected, _ = ref_propagate(p.astype(np.float32), *args)
+    np.testing.assert_allclose(got, expected, rtol=2e-6, atol=1e-9)
+    np.testing.assert_allclose(predicted, expected.sum(axis=0), rtol=2e-6)
+    np.testing.assert_allclose(row_mass, expected.sum(axis=1), rtol=2e-6)
+    assert z == pytest.approx(1.0, abs=1e-6)  # mass conserved
+
+
+@pytest.mark.parametrize(
+    ("shift", "expected", "total"),
+    [
+        (1, [0.0, 0.1, 0.2, 0.3], 0.6),  # what enters at the open end is 0; 0.4 leaves
+        (0, [0.1, 0.2, 0.3, 0.4], 1.0),
+        (-1, [0.2, 0.3, 0.4, 0.0], 0.9),
+        (2, [0.0, 0.0, 0.1, 0.2], 0.3),
+        (-3, [0.4, 0.0, 0.0, 0.0], 0.4),
+    ],
+)
+def test_move_one_row_by_hand(kernels, shift, expected, total):
+    row = [[0.1, 0.2, 0.3, 0.4]]
+    p, predicted, row_mass, z = _move(kernels, row, [shift], 1.0, 0.0, 0.0, [1.0], [1.0], 0.0)
+    np.testing.assert_allclose(p[0], np.array(expected) / total, rtol=1e-6)
+    np.testing.assert_allclose(predicted, np.array(expected) / total, rtol=1e-6)
+    assert z == pytest.approx(1.0, rel=1e-6)
+    assert row_mass[0] == pytest.approx(1.0, rel=1e-12)
+    # with a floor: normalised to 1 - 0.2, then 0.2 / 4 places added everywhere
+    p, predicted, _, z = _move(kernels, row, [shift], 1.0, 0.0, 0.0, [1.0], [1.0], 0.2)
+    np.testing.assert_allclose(p[0], 0.8 * np.array(expected) / total + 0.05, rtol=1e-6)
+    np.testing.assert_allclose(predicted, 0.8 * np.array(expected) / total + 0.05, rtol=1e-6)
+    assert z == pytest.approx(1.0, rel=1e-6)
+
+
+@pytest.mark.parametrize("shift", [4, 5, -4, -7])
+@pytest.mark.parametrize("floor_rate", [0.0, 0.3])
+def test_move_beyond_the_route_restarts_from_the_prior(kernels, shift, floor_rate):
+    # Everything leaves: the layer starts again from the prior (whatever the floor).
+    p = [[0.1, 0.2, 0.3, 0.4], [0.0] * 4]
+    mixing = (0.5, 0.25, 0.25, [0.5, 0.5], [0.25, 0.75])
+    p, predicted, row_mass, z = _move(kernels, p, [shift, 0], *mixing, floor_rate)
+    np.testing.assert_allclose(p, [[0.0625] * 4, [0.1875] * 4], rtol=1e-6)
+    np.testing.assert_allclose(predicted, [0.25] * 4, rtol=1e-6)
+    np.testing.assert_allclose(row_mass, [0.25, 0.75], rtol=1e-6)
+    assert z == pytest.approx(1.0, rel=1e-6)
+
+
+def test_move_velocity_mixing_keeps_the_share_at_the_bank_ends(kernels):
+    # One place, three velocities: 0.8 stays, 0.1 to each neighbouring velocity, and the
+    # ends keep the 0.1 that would leave the bank.
+    third = [1 / 3] * 3
+    p, predicted, row_mass, z = _move(
+        kernels, [[0.5], [0.3], [0.2]], [0] * 3, 0.8, 0.2, 0.0, third, third, 0.0
+    )
+    np.testing.assert_allclose(p[:, 0], [0.48, 0.31, 0.21], rtol=1e-6)
+    np.testing.assert_allclose(row_mass, [0.48, 0.31, 0.21], rtol=1e-6)
+    assert predicted[0] == pytest.approx(1.0, rel=1e-6)
+    assert z == pytest.approx(1.0, rel=1e-6)
+    # a single velocity: the neighbours are the row itself, nothing is lost
+    p, predicted, _, z = _move(kernels, [[0.25, 0.75]], [0], 0.6, 0.4, 0.0, [1.0], [1.0], 0.0)
+    np.testing.assert_allclose(p, [[0.25, 0.75]], rtol=1e-6)
+    np.testing.assert_allclose(predicted, [0.25, 0.75], rtol=1e-6)
+    assert z == pytest.approx(1.0, rel=1e-6)
+
+
+def test_move_jump_redraws_the_velocity_from_the_place_total(kernels):
+    # marginal [0.4, 0.6]; half stays, half is redrawn as velocity 0 (1/4) or 1 (3/4)
+    p, predicted, row_mass, z = _move(
+        kernels, [[0.4, 0.0], [0.0, 0.6]], [0, 0], 0.5, 0.0, 0.5, [0.25, 0.75], [0.5, 0.5], 0.0
+    )
+    np.testing.assert_allclose(p, [[0.25, 0.075], [0.15, 0.525]], rtol=1e-6)
+    np.testing.assert_allclose(predicted, [0.4, 0.6], rtol=1e-6)
+    np.testing.assert_allclose(row_mass, [0.325, 0.675], rtol=1e-6)
+    assert z == pytest.approx(1.0, rel=1e-6)
+
+
+def test_move_floor_reseeds_by_the_prior(kernels):
+    # the case above with a floor of 0.1: 0.9 of it plus 0.1 * prior[j] / 2 places
+    p, predicted, row_mass, z = _move(
+        kernels, [[0.4, 0.0], [0.0, 0.6]], [0, 0], 0.5, 0.0, 0.5, [0.25, 0.75], [0.2, 0.8], 0.1
+    )
+    expected = 0.9 * np.array([[0.25, 0.075], [0.15, 0.525]]) + np.array([[0.01], [0.04]])
+    np.testing.assert_allclose(p, expected, rtol=1e-6)
+    np.testing.assert_allclose(predicted, expected.sum(axis=0), rtol=1e-6)
+    np.testing.assert_allclose(row_mass, expected.sum(axis=1), rtol=1e-6)
+    assert z == pytest.approx(1.0, rel=1e-6)
+
+
+def test_move_normalises_what_is_left(kernels):
+    # total 2 (not a probability yet), shifted by 1 -> 1.5 left, normalised to 1 - 0.4
+    p, predicted, _, z = _move(kernels, [[0.5, 1.0, 0.5]], [1], 1.0, 0.0, 0.0, [1.0], [1.0], 0.4)
+    expected = 0.6 * np.array([0.0, 0.5, 1.0]) / 1.5 + 0.4 / 3
+    np.testing.assert_allclose(p[0], expected, rtol=1e-6)
+    np.testing.assert_allclose(predicted, expected, rtol=1e-6)
+    assert z == pytest.approx(1.0, rel=1e-6)
+
+
+# -- advance: the evidence (no move, no mixing, no floor) ------------------------------------
+@pytest.mark.parametrize("gain", [0.4, 1.0, 3.0])
+def test_evidence_against_reference(kernels, gain):
+    rng = np.random.default_rng(1)
+    p = rng.random((4, 11)).astype(np.float32)
+    p /= p.sum()
+    x = rng.normal(size=11).astype(np.float32) * 2.0
+    expected_p, expected_m, expected_log = ref_observe(p, x, gain)
+    got, marginal, row_mass, z = _observe(kernels, p, _weight(x, gain))
+    np.testing.assert_allclose(got, expected_p, rtol=2e-6)
+    np.testing.assert_allclose(marginal, expected_m, rtol=2e-6)
+    np.testing.assert_allclose(row_mass, expected_p.sum(axis=1), rtol=2e-6)
+    # the normaliser of exp(gain * x) is z times exp(gain * max x)
+    assert math.log(z) + gain * float(x.max()) == pytest.approx(expected_log, rel=1e-6, abs=1e-6)
+
+
+def test_evidence_by_hand(kernels):
+    p = np.full((2, 2), 0.25, np.float32)
+    got, marginal, row_mass, z = _observe(kernels, p, [1.0, 3.0])
+    np.testing.assert_allclose(got, [[0.125, 0.375], [0.125, 0.375]], rtol=1e-6)
+    np.testing.assert_allclose(marginal, [0.25, 0.75], rtol=1e-6)
+    np.testing.assert_allclose(row_mass, [0.5, 0.5], rtol=1e-6)
+    assert z == pytest.approx(2.0, rel=1e-6)  # 0.5 * 1 + 0.5 * 3
+
+
+def test_evidence_relative_to_the_largest_input(kernels):
+    # exp(5 * 150) overflows; relative to the largest input (not at an end) it does not, and
+    # the two smallest weigh exactly 0 (underflow) where the layer has mass
+    p = np.array([[0.1, 0.2, 0.3, 0.4]], np.float32)
+    x = np.array([-50.0, -60.0, 150.0, 149.0], np.float32)
+    weight = _weight(x, 5.0)
+    assert weight[0] == 0.0 and weight[1] == 0.0 and weight[2] == 1.0
+    got, marginal, row_mass, z = _observe(kernels, p, weight)
+    w = np.exp(5.0 * (x.astype(np.float64) - 150.0)) * [0.1, 0.2, 0.3, 0.4]
+    np.testing.assert_allclose(got[0], w / w.sum(), rtol=1e-6, atol=1e-30)
+    np.testing.assert_allclose(marginal, w / w.sum(), rtol=1e-6, atol=1e-30)
+    assert row_mass[0] == pytest.approx(1.0, rel=1e-12)
+    assert z == pytest.approx(w.sum(), rel=1e-6)  # the normaliser over exp(5 * 150)
+
+
+def test_evidence_one_place(kernels):
+    p = np.array([[0.25], [0.5]], np.float32)
+    got, marginal, row_mass, z = _observe(kernels, p, _weight([3.0], 2.0))
+    np.testing.assert_allclose(got, [[1 / 3], [2 / 3]], rtol=1e-6)
+    assert marginal[0] == pytest.approx(1.0, rel=1e-6)
+    np.testing.assert_allclose(row_mass, [1 / 3, 2 / 3], rtol=1e-6)
+    # the prior is normalised first: z is the old normaliser exp(6) * 0.75 over 0.75 and exp(6)
+    assert z == pytest.approx(1.0, rel=1e-6)
+    assert math.log(z * 0.75) + 6.0 == pytest.approx(ref_observe(p, np.float32([3.0]), 2.0)[2])
+
+
+# -- advance: the whole frame ----------------------------------------------------------------
 @pytest.mark.parametrize(
     "shifts",
     [
@@ -261,14 +352,7 @@ def test_advance_by_hand(kernels):
 
 
 def test_advance_mixing_and_jump_by_hand(kernels):
-    # the cases of propagate above, weighed by 1 and by [1, 3]
-    third = [1 / 3] * 3
-    out, predicted, marginal, row_mass, z = _run_advance(
-        kernels, [[0.5], [0.3], [0.2]], [0] * 3, 0.8, 0.2, 0.0, third, third, 0.0, [1.0]
-    )
-    np.testing.assert_allclose(out[:, 0], [0.48, 0.31, 0.21], rtol=1e-6)
-    np.testing.assert_allclose(row_mass, [0.48, 0.31, 0.21], rtol=1e-6)
-    assert z == pytest.approx(1.0, rel=1e-6)
+    # the jump and floor case of the move above, weighed by [1, 3]
     mixing = (0.5, 0.0, 0.5, [0.25, 0.75], [0.2, 0.8])
     out, predicted, marginal, row_mass, z = _run_advance(
         kernels, [[0.4, 0.0], [0.0, 0.6]], [0, 0], *mixing, 0.1, [1.0, 3.0]
@@ -277,6 +361,7 @@ def test_advance_mixing_and_jump_by_hand(kernels):
     np.testing.assert_allclose(out, moved * [1.0, 3.0], rtol=1e-6)
     np.testing.assert_allclose(predicted, moved.sum(axis=0), rtol=1e-6)
     assert z == pytest.approx((moved * [1.0, 3.0]).sum(), rel=1e-6)
+    np.testing.assert_allclose(marginal, (moved * [1.0, 3.0]).sum(axis=0) / z, rtol=1e-6)
     np.testing.assert_allclose(row_mass, (moved * [1.0, 3.0]).sum(axis=1) / z, rtol=1e-6)
 
 
@@ -296,6 +381,45 @@ def test_advance_restarts_from_the_prior_when_nothing_is_left(kernels, shift):
     np.testing.assert_allclose(got[0], moved * [1.0, 1.0, 2.0, 1.0], rtol=1e-6)
 
 
+@pytest.mark.parametrize(
+    ("p", "shifts", "mixing", "weight", "moved"),
+    [
+        # mass only at place 0, no move and no mixing (the evidence tests' setting)
+        (
+            [[0.3, 0.0, 0.0, 0.0], [0.7, 0.0, 0.0, 0.0]],
+            [0, 0],
+            (1.0, 0.0, 0.0),
+            [0.0, 1.0, 1.0, 1.0],
+            [1.0, 0.0, 0.0, 0.0],
+        ),
+        # mass moved to places 0 and 1 and mixed; the evidence is 0 at both
+        (
+            [[0.0, 0.5, 0.0, 0.0], [0.0, 0.0, 0.0, 0.5]],
+            [-1, -2],
+            (0.5, 0.25, 0.25),
+            [0.0, 0.0, 0.5, 1.0],
+            [0.5, 0.5, 0.0, 0.0],
+        ),
+    ],
+)
+def test_advance_restarts_from_the_prior_when_the_evidence_underflows(
+    kernels, p, shifts, mixing, weight, moved
+):
+    # the evidence is 0 wherever the prior (floor 0) holds mass: the layer starts again from
+    # prior[j] / n weighed by the evidence alone; predicted keeps the prior before that
+    weight = np.array(weight, np.float32)
+    args = (shifts, *mixing, [0.5, 0.5], [0.25, 0.75], 0.0, weight)
+    out, predicted, marginal, row_mass, z = _run_advance(kernels, p, *args)
+    np.testing.assert_allclose(out, np.array([[0.25], [0.75]]) / 4 * weight, rtol=1e-6)
+    assert z == pytest.approx(weight.sum() / 4, rel=1e-6)
+    np.testing.assert_allclose(marginal, weight / weight.sum(), rtol=1e-6)
+    np.testing.assert_allclose(row_mass, [0.25, 0.75], rtol=1e-6)
+    np.testing.assert_allclose(predicted, moved, rtol=1e-6)
+    expected = ref_advance(np.array(p, np.float32), *args)
+    for g, e in zip((out, predicted, marginal, row_mass, z), expected, strict=True):
+        np.testing.assert_allclose(g, e, rtol=1e-6)
+
+
 def test_advance_is_scale_free(kernels):
     rng = np.random.default_rng(5)
     p = rng.random((3, 7))
@@ -305,51 +429,6 @@ def test_advance_is_scale_free(kernels):
     many = _run_advance(kernels, p * 1000.0, *args)
     for a, b in zip(one, many, strict=True):
         np.testing.assert_allclose(a, b, rtol=2e-6)
-
-
-# -- observe ---------------------------------------------------------------------------------
-@pytest.mark.parametrize("gain", [0.4, 1.0, 3.0])
-def test_observe_against_reference(kernels, gain):
-    rng = np.random.default_rng(1)
-    p = rng.random((4, 11)).astype(np.float32)
-    p /= p.sum()
-    x = rng.normal(size=11).astype(np.float32) * 2.0
-    expected_p, expected_m, expected_log = ref_observe(p, x, gain)
-    marginal = np.full(11, np.nan, np.float32)
-    got = kernels["observe"](p, x, gain, marginal)
-    np.testing.assert_allclose(p, expected_p, rtol=2e-6)
-    np.testing.assert_allclose(marginal, expected_m, rtol=2e-6)
-    assert got == pytest.approx(expected_log, rel=1e-6, abs=1e-6)
-
-
-def test_observe_by_hand(kernels):
-    p = np.full((2, 2), 0.25, np.float32)
-    marginal = np.empty(2, np.float32)
-    got = kernels["observe"](p, np.array([0.0, math.log(3.0)], np.float32), 1.0, marginal)
-    np.testing.assert_allclose(p, [[0.125, 0.375], [0.125, 0.375]], rtol=1e-6)
-    np.testing.assert_allclose(marginal, [0.25, 0.75], rtol=1e-6)
-    assert got == pytest.approx(math.log(2.0), rel=1e-6)  # 0.5 * 1 + 0.5 * 3
-
-
-def test_observe_subtracts_the_largest_input_first(kernels):
-    # exp(5 * 150) overflows; relative to the largest input (not at an end) it does not
-    p = np.array([[0.1, 0.2, 0.3, 0.4]], np.float32)
-    x = np.array([-50.0, -60.0, 150.0, 149.0], np.float32)
-    marginal = np.empty(4, np.float32)
-    got = kernels["observe"](p, x, 5.0, marginal)
-    w = np.exp(5.0 * (x.astype(np.float64) - 150.0)) * [0.1, 0.2, 0.3, 0.4]
-    np.testing.assert_allclose(p[0], w / w.sum(), rtol=1e-6, atol=1e-30)
-    np.testing.assert_allclose(marginal, w / w.sum(), rtol=1e-6, atol=1e-30)
-    assert got == pytest.approx(math.log(w.sum()) + 750.0, rel=1e-9)
-
-
-def test_observe_one_place(kernels):
-    p = np.array([[0.25], [0.5]], np.float32)
-    marginal = np.empty(1, np.float32)
-    got = kernels["observe"](p, np.array([3.0], np.float32), 2.0, marginal)
-    np.testing.assert_allclose(p, [[1 / 3], [2 / 3]], rtol=1e-6)
-    assert marginal[0] == pytest.approx(1.0, rel=1e-6)
-    assert got == pytest.approx(math.log(0.75) + 6.0, rel=1e-6)
 
 
 # -- window_sums -----------------------------------------------------------------------------

@@ -2,101 +2,16 @@
 
 The layer holds one unit per (velocity, place) pair; its activity ``P[j, i]`` is the
 probability that the robot is at place ``i`` moving ``velocities[j]`` places per frame
-(see "The place-velocity layer" on the user guide's CANN page).  Each function is written
-once, as explicit loops over places, and runs compiled or as plain Python (``_kernels``).
+(see "The place-velocity layer" on the user guide's CANN page).  :func:`advance` moves it
+by one frame and weighs it by the evidence; :func:`window_sums` finds the window of places
+that holds the most probability, and :func:`exceedance` ranks the evidence at one place
+among all.  Each function is written once, as explicit loops over places, and runs compiled
+or as plain Python (``_kernels``).
 """
 
 from __future__ import annotations
 
 import numpy as np
-
-
-def propagate(p, spare, shifts, stay, neighbour, jump, redraw, prior, floor_rate):
-    """Move every velocity row of ``p`` along the route, mix velocities, re-seed; in place.
-
-    Row ``j`` moves by ``shifts[j]`` places (what enters at the open end is 0; what leaves
-    is lost).  Then each unit keeps ``stay`` of its activity, gives ``neighbour / 2`` to each
-    neighbouring velocity (the rows at the ends keep the share that would leave the bank),
-    and every row receives ``jump * redraw[j]`` of the place's total over velocities (a
-    velocity drawn afresh from ``redraw``: a stop or a start).  Finally the layer is normalised to
-    ``1 - floor_rate`` and ``floor_rate * prior[j] / n`` is added to every unit (the robot may
-    be anywhere: relocation).  ``spare`` is scratch of ``p``'s shape.  Returns the mass that
-    was left after the move (before normalising).
-    """
-    n_v, n = p.shape
-    for j in range(n_v):
-        k = shifts[j]
-        dst = spare[j]
-        src = p[j]
-        lo = min(max(k, 0), n)
-        hi = max(min(n + k, n), lo)
-        for i in range(lo):
-            dst[i] = 0.0
-        mid = dst[lo:hi]
-        part = src[lo - k : hi - k]
-        for i in range(hi - lo):
-            mid[i] = part[i]
-        for i in range(hi, n):
-            dst[i] = 0.0
-    total = 0.0
-    for j in range(n_v):
-        row = spare[j]
-        for i in range(n):
-            total += float(row[i])
-    marginal = np.zeros(n, np.float32)
-    for j in range(n_v):
-        row = spare[j]
-        for i in range(n):
-            marginal[i] += row[i]
-    scale = (1.0 - floor_rate) / total if total > 0.0 else 0.0
-    half = 0.5 * neighbour
-    for j in range(n_v):
-        lower = spare[max(j - 1, 0)]
-        upper = spare[min(j + 1, n_v - 1)]
-        own = spare[j]
-        out = p[j]
-        drawn = np.float32(jump * redraw[j])
-        base = np.float32(floor_rate * prior[j] / n if total > 0.0 else prior[j] / n)
-        a = np.float32(stay * scale)
-        b = np.float32(half * scale)
-        c = np.float32(scale) * drawn
-        for i in range(n):
-            out[i] = a * own[i] + b * (lower[i] + upper[i]) + c * marginal[i] + base
-    return total
-
-
-def observe(p, x, gain, marginal):
-    """Weigh every unit by ``exp(gain * (x[i] - max(x)))``, normalise, and write the place
-    marginal (the sum over velocities) into ``marginal``.  Returns the normaliser's log:
-    ``log(sum_ij p[j, i] exp(gain * x[i]))`` of the activity before the update.
-    """
-    n_v, n = p.shape
-    top = x[0]
-    for i in range(n):
-        if x[i] > top:
-            top = x[i]
-    weight = np.empty(n, np.float32)
-    for i in range(n):
-        weight[i] = np.exp(np.float32(gain) * (x[i] - top))
-    for i in range(n):
-        marginal[i] = 0.0
-    for j in range(n_v):
-        row = p[j]
-        for i in range(n):
-            v = row[i] * weight[i]
-            row[i] = v
-            marginal[i] += v
-    total = 0.0
-    for i in range(n):
-        total += float(marginal[i])
-    inv = np.float32(1.0 / total)
-    for j in range(n_v):
-        row = p[j]
-        for i in range(n):
-            row[i] *= inv
-    for i in range(n):
-        marginal[i] *= inv
-    return np.log(total) + gain * float(top)
 
 
 def window_sums(marginal, radius, out):
@@ -142,15 +57,29 @@ def exceedance(x, place, stride):
 
 def advance(p, out, shifts, stay, neighbour, jump, redraw, prior, floor_rate, weight,
             predicted, marginal, row_mass):  # fmt: skip
-    """One frame of the layer in two passes: :func:`propagate` then :func:`observe` fused.
+    """One frame of the layer: the move, the mixing of velocities, the redraw, the re-seed,
+    then the evidence.  ``p`` is only read; the new activity goes to ``out``.
 
-    ``p`` holds the activity (any positive scale: it is normalised here); ``out`` receives the
-    new activity, weighted by the evidence ``weight`` (``exp(gain * (x - max x))``) but not
-    normalised.  Writes the prior's place marginal (after the move, before the evidence) into
-    ``predicted``, the posterior's (normalised) into ``marginal`` and the posterior mass of
-    every velocity row (normalised) into ``row_mass``.  With ``shifts`` all equal to a
-    negative of at least ``n``, or every unit at 0, the layer starts again from
-    ``prior / n``.  Returns the posterior's normaliser (the sum of ``out``).
+    Row ``j`` of ``p`` (the activity, at any positive scale) moves by ``shifts[j]`` places
+    (what enters at the open end is 0; what leaves is lost), and what is left is normalised
+    to ``1 - floor_rate``.  Then each unit keeps ``stay`` of its activity, gives
+    ``neighbour / 2`` to each neighbouring velocity (the rows at the ends keep the share that
+    would leave the bank), every row receives ``jump * redraw[j]`` of the place's total over
+    velocities (a velocity drawn afresh from ``redraw``: a stop or a start), and
+    ``floor_rate * prior[j] / n`` is added to every unit (the robot may be anywhere:
+    relocation).  If nothing is left after the move (every row moved off the route, or every
+    unit at 0), this prior is ``prior[j] / n`` instead, whatever ``floor_rate``.  Its place
+    marginal goes to ``predicted``: computed as the moved marginal times the normalisation
+    plus ``floor_rate / n`` (``1 / n`` after a restart), which is the marginal when
+    ``stay + neighbour + jump = 1`` and ``redraw`` and ``prior`` each sum to 1.
+
+    Each unit of the prior is then weighed by the evidence ``weight[i]`` (the filter passes
+    ``exp(gain * (x[i] - max(x)))``, at most 1) and written to ``out``, not normalised.  If
+    the weighed layer holds nothing (the evidence underflowed wherever the prior holds mass),
+    the layer starts again from the prior alone: ``out[j, i] = prior[j] / n * weight[i]``
+    (``predicted`` keeps the prior before this restart).  The posterior's place marginal
+    (normalised) goes to ``marginal`` and the posterior mass of every velocity row
+    (normalised) to ``row_mass``.  Returns the posterior's normaliser (the sum of ``out``).
     """
     n_v, n = p.shape
     # Pass 1: the place marginal after the move (what enters at the open end is 0).
@@ -252,8 +181,6 @@ def advance(p, out, shifts, stay, neighbour, jump, redraw, prior, floor_rate, we
 
 PLAIN = {
     "advance": advance,
-    "propagate": propagate,
-    "observe": observe,
     "window_sums": window_sums,
     "exceedance": exceedance,
 }
