@@ -16,25 +16,26 @@ import numpy as np
 
 def window_sums(marginal, radius, out):
     """``out[i]`` = the sum of ``marginal`` over places ``i - radius .. i + radius`` (clipped
-    at the route's ends), in float64 running sums.  Returns the index of the largest (the
-    first of equals)."""
+    at the route's ends), each a float64 sum of its ``2 radius + 1`` terms (no running sum:
+    independent sums are SIMD loops).  Returns the index of the largest (the first of
+    equals)."""
     n = marginal.shape[0]
-    total = 0.0
-    for i in range(min(radius, n)):
-        total += float(marginal[i])
-    best = 0
-    top = -1.0
     for i in range(n):
-        enter = i + radius
-        if enter < n:
-            total += float(marginal[enter])
-        leave = i - radius - 1
-        if leave >= 0:
-            total -= float(marginal[leave])
-        value = max(total, 0.0)
-        out[i] = value
-        if value > top:
-            top = value
+        out[i] = 0.0
+    for d in range(-radius, radius + 1):
+        lo = max(-d, 0)
+        hi = min(n - d, n)
+        if hi <= lo:
+            continue
+        src = marginal[lo + d : hi + d]
+        dst = out[lo:hi]
+        for i in range(hi - lo):
+            dst[i] += float(src[i])
+    best = 0
+    top = out[0]
+    for i in range(1, n):
+        if out[i] > top:
+            top = out[i]
             best = i
     return best
 
