@@ -168,8 +168,101 @@ def test_model_file_with_inconsistent_codes_refused(route, tmp_path):
     meta = json.loads(arrays.pop("__meta__").tobytes())
     arrays["frontend/reference_codes_"][0, 0] ^= 0xFF  # 8 more or fewer active bits
     out = _write_archive(tmp_path / "bad.npz", meta, arrays)
-    with pytest.raises(ModelFileError, match="n_active_ active bits"):
+    with pytest.raises(ModelFileError, match=r"\(every reference code must have n_active_ active"):
         load_method(out)
+
+
+def _tampered(path, out, edit):
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays.pop("__meta__").tobytes())
+    edit(meta["frontend"]["state"], {k[len("frontend/") :]: k for k in arrays}, arrays)
+    return _write_archive(out, meta, arrays)
+
+
+def _set(name, value):
+    def edit(state, keys, arrays):
+        arrays[keys[name]] = value(arrays[keys[name]])
+
+    return edit
+
+
+def _set_scalar(name, value):
+    def edit(state, keys, arrays):
+        state[name]["value"] = value
+
+    return edit
+
+
+def _repeat_feature(c):
+    c = c.copy()
+    c[3, 1] = c[3, 0]
+    return c
+
+
+def _index(value):
+    def edit(c):
+        c = c.copy()
+        c[0, 0] = value
+        return np.sort(c, axis=1)
+
+    return edit
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (_set("connections_", lambda c: c[:, :9]), "connections_"),
+        (_set("connections_", lambda c: c.astype(np.int64)), "connections_"),
+        (_set("feature_mean_", lambda m: m[:500]), "feature_mean_"),
+        (_set("feature_mean_", lambda m: m.astype(np.float64)), "feature_mean_"),
+        (_set("reference_codes_", lambda r: r[:, :500]), "reference_codes_"),
+        (_set("reference_codes_", lambda r: r.astype(np.uint16)), "reference_codes_"),
+        (_set("connections_", _index(512)), r"\(connections_ must index the 512 features\)"),
+        (_set("connections_", _index(-1)), r"\(connections_ must index the 512 features\)"),
+        (
+            _set("connections_", _repeat_feature),
+            r"\(connections_ repeats a feature within a Kenyon cell\)",
+        ),
+        (_set_scalar("n_active_", 4097), r"\(n_active_ must be <= n_kenyon = 4096\)"),
+    ],
+)
+def test_model_file_with_a_bad_state_is_refused(route, tmp_path, edit, match):
+    path = save_method(make_method("kenyon", 0).fit(route[0]), tmp_path / "k.npz")
+    with pytest.raises(ModelFileError, match=match):
+        load_method(_tampered(path, tmp_path / "bad.npz", edit))
+
+
+def test_model_file_with_bad_parameters_is_refused(route, tmp_path):
+    path = save_method(make_method("kenyon", 0).fit(route[0]), tmp_path / "k.npz")
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays.pop("__meta__").tobytes())
+    meta["frontend"]["params"]["n_inputs"] = 0
+    out = _write_archive(tmp_path / "bad.npz", meta, arrays)
+    with pytest.raises(ModelFileError, match=r"parameters \(n_inputs must be >= 1; got 0\)"):
+        load_method(out)
+
+
+def test_model_file_with_every_kenyon_cell_active_loads(route, tmp_path):
+    # n_active_ may equal n_kenyon: every code all ones
+    path = save_method(make_method("kenyon", 0).fit(route[0]), tmp_path / "k.npz")
+
+    def edit(state, keys, arrays):
+        state["n_active_"]["value"] = 4096
+        arrays[keys["reference_codes_"]][:] = 0xFF
+
+    again = load_method(_tampered(path, tmp_path / "all.npz", edit))
+    assert again.frontend.n_active_ == 4096
+    np.testing.assert_array_equal(again.score(route[1][:2]), 1.0)
+
+
+def test_an_encoder_rebuilds_a_dropped_optic_lobe(route):
+    ref, qry = route
+    enc = KenyonEncoder(random_state=0).fit(ref)
+    codes = enc.encode(qry)
+    del enc._optic_lobe, enc._valid  # as a copy of the public state only would have
+    np.testing.assert_array_equal(enc.encode(qry), codes)
 
 
 @pytest.mark.parametrize(
@@ -177,9 +270,10 @@ def test_model_file_with_inconsistent_codes_refused(route, tmp_path):
     [
         ({"n_kenyon": 1004}, ValueError, "multiple of 8"),
         ({"n_kenyon": 4096, "n_projections": 3}, ValueError, "multiple of 8 and of n_proj"),
-        ({"active_ratio": 0.0}, ValueError, "active_ratio"),
-        ({"active_ratio": "5%"}, TypeError, "active_ratio"),
-        ({"n_inputs": 10_000}, ValueError, "n_inputs"),
+        ({"active_ratio": 0.0}, ValueError, r"^active_ratio must be in \(0.0, 1.0\]; got 0.0"),
+        ({"active_ratio": "5%"}, TypeError, "^active_ratio must be a number; got str"),
+        ({"n_inputs": 0}, ValueError, "^n_inputs must be >= 1; got 0"),
+        ({"n_inputs": 10_000}, ValueError, r"^n_inputs must be <= .* features \(512 of 512 see"),
         ({"n_kenyon": 8 * 10**12}, ValueError, "n_kenyon=8000000000000 .* would need"),
         ({"pool_size": 5}, ValueError, "pool_size must divide"),
         ({"lcn_sigma": -1.0}, ValueError, "lcn_sigma"),

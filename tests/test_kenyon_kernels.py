@@ -27,6 +27,34 @@ def _scipy_lcn(x, sigma, eps):
     return (centred / np.sqrt(var + np.float32(eps * eps))).astype(np.float32)
 
 
+def _scipy_lcn_masked(x, valid, sigma, eps):
+    """Normalised convolution over the valid pixels, as NumPy/SciPy compute it; 0 elsewhere."""
+    m = valid.astype(np.float32)
+    gm = ndimage.gaussian_filter(m, sigma, mode="reflect")
+    num = ndimage.gaussian_filter(x * m, (0, sigma, sigma), mode="reflect")
+    with np.errstate(divide="ignore", invalid="ignore"):  # invalid pixels far from valid ones
+        centred = np.where(valid, x - num / gm, np.float32(0.0))
+        var = ndimage.gaussian_filter(centred * centred, (0, sigma, sigma), mode="reflect") / gm
+        out = np.where(valid, centred / np.sqrt(var + np.float32(eps * eps)), np.float32(0.0))
+    return out.astype(np.float32)
+
+
+def _disc(h, w):
+    y, x = np.mgrid[0:h, 0:w]
+    return ((y - (h - 1) / 2) / (h / 2)) ** 2 + ((x - (w - 1) / 2) / (0.2625 * w)) ** 2 <= 1
+
+
+def _masks(shape, seed):
+    """A random mask, a disc, one valid pixel, and a block far from the corners."""
+    h, w = shape
+    rng = np.random.default_rng(seed)
+    one = np.zeros(shape, bool)
+    one[h // 2, w // 3] = True
+    block = np.zeros(shape, bool)
+    block[h // 4 : h // 2 + 1, w // 4 : w // 2 + 1] = True
+    return [rng.random(shape) < 0.7, _disc(h, w), one, block]
+
+
 def _numpy_zscore(f):
     f = f.copy()
     mean = f.mean(axis=1, keepdims=True)
@@ -73,6 +101,18 @@ def test_lcn_equals_scipy_gaussian_filter_bit_for_bit(shape, sigma):
         np.testing.assert_array_equal(_bits(got), _bits(_scipy_lcn(x, sigma, eps)))
 
 
+@pytest.mark.parametrize("shape", [(3, 32, 64), (2, 3, 7), (2, 17, 40)])
+@pytest.mark.parametrize("sigma", [1.0, 4.0])
+def test_masked_lcn_equals_scipy_normalised_convolution_bit_for_bit(shape, sigma):
+    x = np.random.default_rng(shape[1]).random(shape, dtype=np.float32)
+    for valid in _masks(shape[1:], int(sigma)):
+        for eps in (0.05, 1e-6):
+            got = local_contrast_normalize(x, sigma=sigma, eps=eps, valid_pixels=valid)
+            expected = _scipy_lcn_masked(x, valid, sigma, eps)
+            np.testing.assert_array_equal(_bits(got), _bits(expected))
+            assert np.all(got[:, ~valid] == 0) and np.isfinite(got).all()
+
+
 @pytest.mark.parametrize("d", [5, 8, 100, 129, 512, 1000, 4099])
 def test_zscore_equals_numpy_mean_and_std_bit_for_bit(d):
     rng = np.random.default_rng(d)
@@ -114,6 +154,29 @@ def test_direct_gabor_equals_the_fft_convolution(shape, gabor, pool):
     kernel -= kernel.real.sum(axis=(1, 2), keepdims=True) / envelope.sum() * envelope
     kernel /= np.abs(kernel).sum(axis=(1, 2), keepdims=True)
     np.testing.assert_allclose(lobe.bank, kernel, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    ("shape", "gabor", "pool"),
+    [
+        ((3, 32, 64), (4, 6.0, 11), 4),  # the defaults
+        ((2, 8, 12), (6, 4.0, 7), 2),
+        ((2, 6, 6), (1, 3.0, 3), 3),
+        ((2, 8, 12), (8, 4.0, 3), 2),  # more orientations than taps
+    ],
+)
+def test_masked_optic_lobe_equals_the_numpy_pipeline(shape, gabor, pool):
+    # Masked LCN, FFT Gabor energy, max pooling, square root; the features that are not 0 in
+    # every image, z-scored over these only: to float32 rounding.
+    n, h, w = shape
+    x = np.random.default_rng(sum(shape)).random(shape, dtype=np.float32)
+    lobe = OpticLobe(4.0, 0.05, *gabor, pool)
+    for valid in _masks((h, w), pool):
+        energy = gabor_energy(_scipy_lcn_masked(x, valid, 4.0, 0.05), lobe.bank)
+        pooled = energy.reshape(n, gabor[0], h // pool, pool, w // pool, pool).max(axis=(3, 5))
+        pooled = np.sqrt(pooled).reshape(n, -1)
+        expected = _numpy_zscore(pooled[:, lobe.kept_features(valid)])
+        np.testing.assert_allclose(lobe(x, valid), expected, rtol=0, atol=2e-5)
 
 
 @pytest.mark.parametrize(("n_kenyon", "n_proj", "k"), [(4096, 1, 205), (48, 3, 5), (24, 6, 1)])
@@ -201,3 +264,23 @@ def test_single_frame_path_equals_batch_bit_for_bit(nordland):
     loc = Localizer(make_method("kenyon", 0)).fit(ref)
     streamed = np.stack([loc.scores(img) for img in qry])
     np.testing.assert_array_equal(_bits(streamed), _bits(S))
+
+
+def test_fisheye_codes_on_nordland_equal_the_numpy_pipeline_and_ignore_the_border(nordland):
+    ref, qry = nordland
+    disc = _disc(32, 64)
+    enc = KenyonEncoder(random_state=0).fit(np.where(disc, ref, np.float32(0.05)))
+    np.testing.assert_array_equal(enc.valid_pixels_, disc)
+    dark, grey = (np.where(disc, qry, np.float32(v)) for v in (0.05, 0.5))
+    features = enc._lobe(dark)
+    np.testing.assert_array_equal(_bits(enc._lobe(grey)), _bits(features))
+    kept = enc._optic_lobe.kept_features(disc)
+    energy = gabor_energy(_scipy_lcn_masked(dark, disc, 4.0, 0.05), enc._optic_lobe.bank)
+    pooled = energy.reshape(len(qry), 4, 8, 4, 16, 4).max(axis=(3, 5))
+    expected = _numpy_zscore(np.sqrt(pooled).reshape(len(qry), -1)[:, kept])
+    np.testing.assert_allclose(features, expected, rtol=0, atol=2e-5)
+    codes = _numpy_codes(features, enc.feature_mean_, enc.connections_, 1, enc.n_active_)
+    np.testing.assert_array_equal(enc.encode(dark), codes)
+    np.testing.assert_array_equal(enc.encode(grey), codes)
+    one_by_one = np.concatenate([enc.encode(grey[i : i + 1]) for i in range(len(qry))])
+    np.testing.assert_array_equal(one_by_one, codes)

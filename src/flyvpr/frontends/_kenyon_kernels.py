@@ -13,6 +13,9 @@ makes that possible:
   float64 and stored as float32 after each axis.
 * Sums of float32 rows as NumPy's ``add.reduce`` does them (pairwise summation with eight
   accumulators in blocks of at most 128), means and variances divided in float64.
+* The contrast normalisation under a mask of valid pixels (:func:`lcn_masked`): the same
+  Gaussian filter of ``m x`` and of ``m (x - mean)^2``, each divided by ``G m`` in float32,
+  as NumPy divides the filtered arrays.
 * The Kenyon-cell sums accumulated in float32 in the order of the (sorted) connections, as
   ``scipy.sparse`` does for a CSR matrix times a dense one.
 * Every other step is exact (maximum, comparisons) or one correctly rounded float32 operation
@@ -37,7 +40,9 @@ __all__ = [
     "gaussian_taps",
     "reflect_index",
     "lcn",
+    "lcn_masked",
     "optic_lobe",
+    "optic_lobe_masked",
     "zscore_rows",
     "kenyon_activity",
     "kenyon_codes",
@@ -133,6 +138,31 @@ def _lcn_image(img, taps, index_h, index_w, eps2, o, pad, acc, tmp, mean, centre
 
 
 @_jit
+def _lcn_masked_image(img, valid, gm, taps, index_h, index_w, eps2, o, pad, acc, tmp, mean, c):
+    # as _lcn_image, with the Gaussian windows restricted to the valid pixels (normalised
+    # convolution): the local mean is G (m x) / G m and the variance G (m (x - mean)^2) / G m
+    # (``gm`` = G m, with m the 0/1 mask ``valid``); invalid pixels give 0.  Their values never
+    # enter: ``m x`` is exactly 0 there.
+    h, w = img.shape
+    for i in range(h):
+        for j in range(w):
+            o[i, j] = img[i, j] if valid[i, j] else np.float32(0.0)
+    _gaussian(o, taps, index_h, index_w, pad, acc, tmp, mean)  # ``mean``: G (m x)
+    for i in range(h):
+        for j in range(w):
+            d = img[i, j] - mean[i, j] / gm[i, j] if valid[i, j] else np.float32(0.0)
+            c[i, j] = d
+            o[i, j] = d * d
+    _gaussian(o, taps, index_h, index_w, pad, acc, tmp, mean)  # ``mean``: G (m (x - mean)^2)
+    for i in range(h):
+        for j in range(w):
+            if valid[i, j]:
+                o[i, j] = c[i, j] / np.sqrt(mean[i, j] / gm[i, j] + eps2)
+            else:
+                o[i, j] = 0.0
+
+
+@_jit
 def _lcn_scratch(h, w, r):
     pad = np.empty(max((h + 2 * r) * w, (w + 2 * r) * h), dtype=np.float64)
     acc = np.empty(h * w, dtype=np.float64)
@@ -153,6 +183,22 @@ def lcn(x, taps, index_h, index_w, eps2, out):
     pad, acc, tmp, mean, centred = _lcn_scratch(h, w, taps.shape[0] - 1)
     for m in range(n):
         _lcn_image(x[m], taps, index_h, index_w, eps2, out[m], pad, acc, tmp, mean, centred)
+    return out
+
+
+@_jit
+def lcn_masked(x, valid, gm, taps, index_h, index_w, eps2, out):
+    """:func:`lcn` over the pixels where ``valid`` (bool (H, W)) is True; 0 elsewhere.
+
+    The local mean is ``G (m x) / gm`` and the local variance ``G (m (x - mean)^2) / gm``,
+    with ``m`` the mask as 0/1 and ``gm = G m`` (float32, as ``gaussian_filter`` computes it).
+    """
+    n, h, w = x.shape
+    pad, acc, tmp, mean, centred = _lcn_scratch(h, w, taps.shape[0] - 1)
+    for m in range(n):
+        _lcn_masked_image(
+            x[m], valid, gm, taps, index_h, index_w, eps2, out[m], pad, acc, tmp, mean, centred
+        )
     return out
 
 
@@ -239,6 +285,19 @@ def _gabor_pool(img, g, ar, ai, br, bi, dc, inv_z, pool, out, xpad, hp, hg, vr, 
 
 
 @_jit
+def _gabor_scratch(h, w, r, n_kernels):
+    # the buffers of _gabor_pool for images of (h, w) and kernels of radius r
+    w2 = w + 2 * r
+    xpad = np.empty(h * w2 + 4 * r, dtype=np.float32)
+    hp = np.zeros((n_kernels, 2, (h + 2 * r) * w2), dtype=np.float32)
+    hg = np.zeros((h + 2 * r) * w2, dtype=np.float32)
+    vr = np.empty(h * w2, dtype=np.float32)
+    vi = np.empty(h * w2, dtype=np.float32)
+    vg = np.empty(h * w2, dtype=np.float32)
+    return xpad, hp, hg, vr, vi, vg
+
+
+@_jit
 def optic_lobe(x, taps, index_h, index_w, eps2, g, ar, ai, br, bi, dc, inv_z, pool, out):
     """Optic-lobe features of float32 images (N, H, W) into ``out`` (N, K * H/pool * W/pool).
 
@@ -250,21 +309,41 @@ def optic_lobe(x, taps, index_h, index_w, eps2, g, ar, ai, br, bi, dc, inv_z, po
     :func:`zscore_rows` does it.
     """
     n, h, w = x.shape
-    r = g.shape[0] // 2
-    w2 = w + 2 * r
     pad, acc, tmp, mean, centred = _lcn_scratch(h, w, taps.shape[0] - 1)
     normalised = np.empty((h, w), dtype=np.float32)
-    xpad = np.empty(h * w2 + 4 * r, dtype=np.float32)
-    hp = np.zeros((ar.shape[0], 2, (h + 2 * r) * w2), dtype=np.float32)
-    hg = np.zeros((h + 2 * r) * w2, dtype=np.float32)
-    vr = np.empty(h * w2, dtype=np.float32)
-    vi = np.empty(h * w2, dtype=np.float32)
-    vg = np.empty(h * w2, dtype=np.float32)
+    xpad, hp, hg, vr, vi, vg = _gabor_scratch(h, w, g.shape[0] // 2, ar.shape[0])
     for m in range(n):
         _lcn_image(x[m], taps, index_h, index_w, eps2, normalised, pad, acc, tmp, mean, centred)
         _gabor_pool(
             normalised, g, ar, ai, br, bi, dc, inv_z, pool, out[m], xpad, hp, hg, vr, vi, vg
         )
+    return zscore_rows(out, np.float32(1e-12))
+
+
+@_jit
+def optic_lobe_masked(
+    x, valid, gm, taps, index_h, index_w, eps2, g, ar, ai, br, bi, dc, inv_z, pool, keep, out
+):
+    """:func:`optic_lobe` of the pixels where ``valid`` is True, keeping the features ``keep``.
+
+    Per image: the contrast normalisation of :func:`lcn_masked` (0 outside the valid pixels,
+    whose values never enter); the Gabor energies and pooling of :func:`optic_lobe`; of the
+    pooled features those at the indices ``keep`` (uint32, ascending), in that order, into
+    ``out`` (N, len(keep)); then every row z-scored over these features only.
+    """
+    n, h, w = x.shape
+    pad, acc, tmp, mean, centred = _lcn_scratch(h, w, taps.shape[0] - 1)
+    normalised = np.empty((h, w), dtype=np.float32)
+    xpad, hp, hg, vr, vi, vg = _gabor_scratch(h, w, g.shape[0] // 2, ar.shape[0])
+    full = np.empty(ar.shape[0] * (h // pool) * (w // pool), dtype=np.float32)
+    for m in range(n):
+        _lcn_masked_image(
+            x[m], valid, gm, taps, index_h, index_w, eps2, normalised, pad, acc, tmp, mean, centred
+        )
+        _gabor_pool(normalised, g, ar, ai, br, bi, dc, inv_z, pool, full, xpad, hp, hg, vr, vi, vg)
+        row = out[m]
+        for f in range(keep.shape[0]):
+            row[f] = full[keep[f]]
     return zscore_rows(out, np.float32(1e-12))
 
 

@@ -3,9 +3,16 @@
 A fly-inspired front end that carries more of the place signal than the paper's FlyNet, built
 from fixed parts only (nothing is trained):
 
+0. **Static pixels**: ``fit`` marks the pixels that do not vary along the reference traverse
+   (``flyvpr.frontends.optic_lobe.varying_pixels``: the black surround of a fisheye lens, the
+   robot's chassis, a burnt-in overlay).  They carry no information about the place, but
+   their edges with the scene would weigh in every code.  The optic lobe then normalises over
+   the varying pixels only (the static ones' values never enter) and drops the features that
+   are 0 in every image under the mask.  On frames without static pixels (every pixel varies)
+   nothing changes: the codes are bit-identical to those without the mask.
 1. **Optic lobe** (``flyvpr.frontends.optic_lobe.optic_lobe``): local contrast
    normalisation, Gabor energy at 4 orientations, 4x4 max pooling, per-image z-score: 512
-   features at 32x64.
+   features at 32x64 (fewer under a mask of static pixels).
 2. **Centring**: the mean feature vector of the reference traverse is subtracted (the one
    statistic ``fit`` takes).  Features that are high in every frame (a logo burnt into the
    video, the horizon) would otherwise win the competition below in every frame and carry no
@@ -52,7 +59,7 @@ from .._validation import (
     check_random_state,
 )
 from .base import Encoder
-from .optic_lobe import OpticLobe
+from .optic_lobe import OpticLobe, varying_pixels
 
 __all__ = ["KenyonEncoder", "balanced_connections", "code_overlap"]
 
@@ -197,14 +204,24 @@ class KenyonEncoder(Encoder):
 
     Attributes
     ----------
+    valid_pixels_ : ndarray of bool, shape image_shape_
+        Pixels that vary along the reference traverse (all True for ordinary frames); the
+        optic lobe looks at these only.
     connections_ : ndarray of int32, shape (n_kenyon, n_inputs)
         Features summed by each Kenyon cell.
     feature_mean_ : ndarray of float32, shape (n_features_,)
         Mean optic-lobe features of the reference traverse.
     n_features_, n_active_ : int
-        Optic-lobe features per image; active Kenyon cells per code.
+        Optic-lobe features per image that the Kenyon cells read (those that can vary under
+        ``valid_pixels_``, see ``OpticLobe.kept_features``); active Kenyon cells per code.
     reference_codes_ : ndarray of uint8, shape (n_reference, n_kenyon // 8)
         Bit-packed codes of the reference places (the map).
+
+    Raises
+    ------
+    ValueError
+        From ``fit``, for a parameter out of range, or where the varying pixels leave fewer
+        than ``n_inputs`` optic-lobe features.
 
     Examples
     --------
@@ -215,6 +232,19 @@ class KenyonEncoder(Encoder):
     ((5, 512), 512.0)
     >>> [int(i) for i in enc.score(ref).argmax(axis=1)]
     [0, 1, 2, 3, 4]
+
+    A static border of 12 black columns on each side: the outermost column of cells on each
+    side has no varying pixel within reach of the Gabor kernels (5 pixels), so its features
+    (2 x 8 cells x 4 orientations) are dropped; the border's value no longer matters.
+
+    >>> ref[:, :, :12] = ref[:, :, -12:] = 0.0
+    >>> enc = KenyonEncoder(random_state=0).fit(ref)
+    >>> int(enc.valid_pixels_.sum()), enc.n_features_
+    (1280, 448)
+    >>> grey = ref.copy()
+    >>> grey[:, :, :12] = grey[:, :, -12:] = 0.5
+    >>> bool((enc.encode(grey) == enc.encode(ref)).all())
+    True
     """
 
     name = "kenyon"
@@ -269,7 +299,8 @@ class KenyonEncoder(Encoder):
     def _lobe(self, images: np.ndarray) -> np.ndarray:
         if getattr(self, "_optic_lobe", None) is None:
             self._optic_lobe = self._make_lobe()
-        return self._optic_lobe(images)
+            self._set_valid()
+        return self._optic_lobe(images, self._valid)
 
     def _fit(self, images: np.ndarray) -> None:
         n_kenyon, n_proj = self._check_layout()
@@ -283,6 +314,15 @@ class KenyonEncoder(Encoder):
             f"n_kenyon={n_kenyon} with n_inputs={n_in}",
         )
         self._optic_lobe = self._make_lobe()
+        self.valid_pixels_ = varying_pixels(images)
+        self._set_valid()
+        n_kept = self._n_kept()
+        if n_in > n_kept:
+            raise ValueError(
+                f"n_inputs must be <= the number of optic-lobe features ({n_kept} of "
+                f"{self._optic_lobe.n_features(*self.image_shape_)} see pixels that vary along "
+                f"the reference traverse); got {n_in}"
+            )
         features = self._lobe(images)
         self.n_features_ = int(features.shape[1])
         self.n_active_ = max(n_proj, int(round(ratio * n_kenyon / n_proj)) * n_proj)
@@ -293,6 +333,18 @@ class KenyonEncoder(Encoder):
         self._prepare()
         self.reference_codes_ = self._codes(features)
         self._index()
+
+    def _set_valid(self) -> None:
+        """The mask as the optic lobe takes it: None where every pixel is valid (the unmasked
+        computation, bit for bit), else C-ordered."""
+        valid = self.valid_pixels_
+        self._valid = None if valid.all() else np.ascontiguousarray(valid)
+
+    def _n_kept(self) -> int:
+        """Optic-lobe features the Kenyon cells read under the mask."""
+        if self._valid is None:
+            return self._optic_lobe.n_features(*self.image_shape_)
+        return len(self._optic_lobe.kept_features(self._valid))
 
     def _prepare(self) -> None:
         """The connections as the compiled kernels read them: C-ordered uint32 (unsigned
@@ -346,6 +398,7 @@ class KenyonEncoder(Encoder):
     _state_names = (
         "n_features_",
         "n_active_",
+        "valid_pixels_",
         "connections_",
         "feature_mean_",
         "reference_codes_",
@@ -362,12 +415,18 @@ class KenyonEncoder(Encoder):
         if scalars["n_active_"] > n_kenyon:
             raise ValueError(f"n_active_ must be <= n_kenyon = {n_kenyon}")
         return {
+            # optional (a name ending in * need not be in the file): model files written
+            # before the mask existed have none, and load as fitted, with every pixel valid
+            "valid_pixels_*": ArraySpec("bool", tuple(scalars["image_shape_"])),
             "connections_": ArraySpec("int32", (n_kenyon, n_in)),
             "feature_mean_": ArraySpec("float32", (scalars["n_features_"],)),
             "reference_codes_": ArraySpec("uint8", (scalars["n_reference_"], n_kenyon // 8)),
         }
 
     def _set_state(self, state: dict) -> None:
+        state = dict(state)
+        shape = tuple(state["image_shape_"])
+        state.setdefault("valid_pixels_", np.ones(shape, dtype=bool))
         super()._set_state(state)
         c = self.connections_
         if c.min() < 0 or c.max() >= self.n_features_:
@@ -375,9 +434,14 @@ class KenyonEncoder(Encoder):
         if (np.diff(np.sort(c, axis=1), axis=1) == 0).any():
             raise ValueError("connections_ repeats a feature within a Kenyon cell")
         self._optic_lobe = self._make_lobe()
-        expected = self._optic_lobe.n_features(*self.image_shape_)
+        self._optic_lobe.n_features(*shape)  # pool_size divides the image size
+        self._set_valid()
+        expected = self._n_kept()
         if self.n_features_ != expected:
-            raise ValueError(f"n_features_ must be {expected} for images of {self.image_shape_}")
+            raise ValueError(
+                f"n_features_ must be {expected} for images of {shape} with "
+                f"{int(self.valid_pixels_.sum())} valid pixels"
+            )
         active = self._unpack(self.reference_codes_).sum(axis=1)
         if not np.all(active == self.n_active_):
             raise ValueError("every reference code must have n_active_ active bits")

@@ -19,19 +19,101 @@ local light level (lamina) and the medulla responds to oriented edges:
 
 :func:`optic_lobe` chains the three; at 32x64 with the defaults it gives
 ``4 orientations x 8 x 16 cells = 512`` features per image.
+
+Static pixels (the black surround of a fisheye lens, the robot's own chassis, an overlay burnt
+into the video) carry no information about the place, but their edges with the scene would
+weigh in every stage.  :func:`varying_pixels` finds them in a traverse; given that mask
+(``valid_pixels``), the contrast normalisation averages over the valid pixels only and is 0
+elsewhere, so the static pixels' values never enter; the features that are then 0 in every
+image (no valid pixel within reach of their cell's Gabor kernels) are dropped, and the z-score
+takes the others only.  With every pixel valid nothing changes.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import fft as sfft
+from scipy import ndimage
 
 from .._validation import check_images, check_memory, check_positive_int
 
-__all__ = ["local_contrast_normalize", "gabor_bank", "gabor_energy", "optic_lobe"]
+__all__ = [
+    "varying_pixels",
+    "local_contrast_normalize",
+    "gabor_bank",
+    "gabor_energy",
+    "optic_lobe",
+]
 
 #: images per block: bounds the FFT temporaries (about 0.5 MB per image at 32x64)
 _BLOCK = 256
+
+#: A pixel varies along a traverse if its standard deviation over the frames exceeds this
+#: share of the 90th percentile of the pixels' standard deviations.  Relative, so it does not
+#: depend on the camera's gain or the data set: a pixel that sees the scene spreads by 0.1-0.3
+#: gray levels over a route (the 90th percentile says how much; a median would fail where more
+#: than half the frame is static, as behind a fisheye lens), while sensor noise and compression
+#: in a black surround or on a fixed overlay move it by a few levels of 256 (about 0.01), well
+#: under 5% of that.
+_MIN_RELATIVE_SPREAD = 0.05
+_SPREAD_PERCENTILE = 90
+
+
+def varying_pixels(images) -> np.ndarray:
+    """Pixels whose value varies along a traverse; False marks the static ones.
+
+    A pixel is static if the standard deviation of its value over the frames is at most 5% of
+    the 90th percentile of all pixels' standard deviations: the black surround of a fisheye
+    lens, a robot's own chassis in view, an overlay burnt into the video.  Where no pixel varies
+    (one frame, or identical frames) there is nothing to tell apart and every pixel counts as
+    varying.
+
+    Parameters
+    ----------
+    images : array-like, shape (N, H, W)
+        The frames of one traverse, gray in [0, 1].
+
+    Returns
+    -------
+    ndarray of bool, shape (H, W)
+
+    Examples
+    --------
+    >>> x = np.random.default_rng(0).random((10, 4, 8))
+    >>> x[:, :, 0] = 0.05  # a static first column
+    >>> varying_pixels(x).sum(axis=0)
+    array([0, 4, 4, 4, 4, 4, 4, 4])
+    """
+    x = check_images(images, "images")
+    spread = _pixel_std(x)
+    varying = spread > _MIN_RELATIVE_SPREAD * np.percentile(spread, _SPREAD_PERCENTILE)
+    return varying if varying.any() else np.ones_like(varying)
+
+
+def _pixel_std(x: np.ndarray) -> np.ndarray:
+    """Per-pixel standard deviation over the frames (float64, two passes, blocks of frames:
+    no float64 copy of the whole stack)."""
+    n = len(x)
+    total = np.zeros(x.shape[1:])
+    for start in range(0, n, _BLOCK):
+        total += x[start : start + _BLOCK].sum(axis=0, dtype=np.float64)
+    mean = total / n
+    squares = np.zeros(x.shape[1:])
+    for start in range(0, n, _BLOCK):
+        squares += np.square(x[start : start + _BLOCK] - mean).sum(axis=0)
+    return np.sqrt(squares / n)
+
+
+def _check_valid_pixels(valid_pixels, h: int, w: int):
+    """``valid_pixels`` as a C-ordered bool array of shape (h, w), or None where all are valid."""
+    if valid_pixels is None:
+        return None
+    valid = np.asarray(valid_pixels)
+    if valid.dtype != np.bool_:
+        raise TypeError(f"valid_pixels must be a bool array; got dtype {valid.dtype}")
+    if valid.shape != (h, w):
+        raise ValueError(f"valid_pixels must have the image size {(h, w)}; got shape {valid.shape}")
+    return None if valid.all() else np.ascontiguousarray(valid)
 
 
 def _check_positive_real(value, name: str) -> float:
@@ -43,12 +125,18 @@ def _check_positive_real(value, name: str) -> float:
     return value
 
 
-def local_contrast_normalize(images, sigma: float = 4.0, eps: float = 0.05) -> np.ndarray:
+def local_contrast_normalize(
+    images, sigma: float = 4.0, eps: float = 0.05, *, valid_pixels=None
+) -> np.ndarray:
     """Subtract the local mean and divide by the local standard deviation (Gaussian windows).
 
     ``out = (x - G * x) / sqrt(G * (x - G * x)^2 + eps^2)`` with ``G`` a Gaussian of standard
     deviation ``sigma`` pixels (reflecting borders), per image.  ``eps`` keeps flat regions
     (sky, snow) from blowing noise up to full contrast.
+
+    With a mask ``valid_pixels`` (``m``, 1 where valid) the windows cover the valid pixels only
+    (normalised convolution): the local mean is ``G * (m x) / G * m`` and the local variance
+    ``G * (m (x - mean)^2) / G * m``; invalid pixels give 0, and their values never enter.
 
     Parameters
     ----------
@@ -58,10 +146,17 @@ def local_contrast_normalize(images, sigma: float = 4.0, eps: float = 0.05) -> n
         Width of the neighbourhood in pixels.
     eps : float, default 0.05
         Contrast floor, in gray levels.
+    valid_pixels : ndarray of bool, shape (H, W), optional
+        E.g. from :func:`varying_pixels`; None or all True: every pixel is valid.
 
     Returns
     -------
     ndarray of float32, shape (N, H, W)
+
+    Raises
+    ------
+    ValueError, TypeError
+        For a parameter out of range or a mask of another shape or dtype.
 
     Examples
     --------
@@ -72,7 +167,21 @@ def local_contrast_normalize(images, sigma: float = 4.0, eps: float = 0.05) -> n
     0.0
     """
     x = check_images(images, "images")
-    return _lcn(x, _check_positive_real(sigma, "sigma"), _check_positive_real(eps, "eps"))
+    sigma = _check_positive_real(sigma, "sigma")
+    eps = _check_positive_real(eps, "eps")
+    valid = _check_valid_pixels(valid_pixels, *x.shape[1:])
+    if valid is None:
+        return _lcn(x, sigma, eps)
+    n, h, w = x.shape
+    taps, index_h, index_w, eps2 = _lcn_plan(sigma, eps, h, w)
+    out = np.empty((n, h, w), dtype=np.float32)
+    gm = _window_weight(valid, sigma)
+    return _kernels().lcn_masked(x, valid, gm, taps, index_h, index_w, eps2, out)
+
+
+def _window_weight(valid: np.ndarray, sigma: float) -> np.ndarray:
+    """``G * m``: the weight of the valid pixels in each pixel's Gaussian window, float32."""
+    return ndimage.gaussian_filter(valid.astype(np.float32), sigma, mode="reflect")
 
 
 def _kernels():
@@ -194,6 +303,7 @@ def optic_lobe(
     wavelength: float = 6.0,
     kernel_size: int = 11,
     pool_size: int = 4,
+    valid_pixels=None,
 ) -> np.ndarray:
     """Fixed optic-lobe features: contrast normalisation, Gabor energy, max pooling, z-score.
 
@@ -207,16 +317,25 @@ def optic_lobe(
         See :func:`gabor_bank`.
     pool_size : int, default 4
         Side of the max-pooling cells.
+    valid_pixels : ndarray of bool, shape (H, W), optional
+        Pixels to look at (e.g. from :func:`varying_pixels`): the contrast normalisation
+        averages over them only and is 0 elsewhere, and only the features that can differ from
+        0 are kept (in the same order): those of the cells with a valid pixel within
+        ``kernel_size // 2`` pixels.  None or all True: every pixel and every feature.
 
     Returns
     -------
-    ndarray of float32, shape (N, n_orientations * (H // pool_size) * (W // pool_size))
+    ndarray of float32, shape (N, n_kept)
+        ``n_kept`` is ``n_orientations * (H // pool_size) * (W // pool_size)`` without a mask.
         Each row has mean 0 and standard deviation 1 (all zeros for a blank image).
 
     Raises
     ------
     ValueError
-        If ``pool_size`` does not divide the image size, or a parameter is out of range.
+        If ``pool_size`` does not divide the image size, a parameter is out of range, or
+        ``valid_pixels`` has another shape or no valid pixel.
+    TypeError
+        If ``valid_pixels`` is not a bool array.
 
     Examples
     --------
@@ -226,14 +345,15 @@ def optic_lobe(
     """
     x = check_images(images, "images")
     lobe = OpticLobe(lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size)
-    return lobe(x)
+    return lobe(x, _check_valid_pixels(valid_pixels, *x.shape[1:]))
 
 
 class OpticLobe:
     """:func:`optic_lobe` with its settings checked once and the kernels' factors cached.
 
-    Calling it on a validated float32 stack (N, H, W) returns the features; used by the
-    ``kenyon`` encoder, which encodes one frame at a time when streaming.
+    Calling it on a validated float32 stack (N, H, W), optionally with a checked mask
+    ``valid_pixels`` (C-ordered bool (H, W); None: all valid), returns the features; used by
+    the ``kenyon`` encoder, which encodes one frame at a time when streaming.
     """
 
     def __init__(self, lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size):
@@ -250,6 +370,7 @@ class OpticLobe:
         )
         self.pool = check_positive_int(pool_size, "pool_size")
         self._cache: dict = {}
+        self._mask: tuple = (None, None)
 
     def n_features(self, h: int, w: int) -> int:
         """Features per image of size (h, w); ValueError if ``pool_size`` does not divide it."""
@@ -260,21 +381,53 @@ class OpticLobe:
             )
         return self.bank.shape[0] * (h // pool) * (w // pool)
 
+    def kept_features(self, valid_pixels: np.ndarray) -> np.ndarray:
+        """Indices (uint32, ascending) of the features :meth:`__call__` returns with this mask.
+
+        The contrast normalisation is 0 at invalid pixels, so a pixel's Gabor energies are 0
+        unless a valid pixel lies within the kernels' reach (``kernel_size // 2`` along both
+        axes), and a cell's features are 0 in every image unless one of its pixels is in
+        reach.  Those are dropped; they would only weigh in the z-score.  No threshold: every
+        feature that can vary is kept.
+        """
+        h, w = valid_pixels.shape
+        self.n_features(h, w)
+        p, size = self.pool, self.bank.shape[1]
+        reached = ndimage.binary_dilation(valid_pixels, np.ones((size, size), bool))
+        kept = reached.reshape(h // p, p, w // p, p).any(axis=(1, 3)).ravel()
+        return np.flatnonzero(np.tile(kept, self.bank.shape[0])).astype(np.uint32)
+
     def _plan(self, h: int, w: int) -> tuple:
         """The LCN set-up for images of (h, w), made once."""
         if (h, w) not in self._cache:
             self._cache[(h, w)] = _lcn_plan(self.lcn_sigma, self.lcn_eps, h, w)
         return self._cache[(h, w)]
 
-    def __call__(self, x: np.ndarray) -> np.ndarray:
+    def _masked(self, valid: np.ndarray) -> tuple:
+        """The set-up of one mask (the last one used is kept): the window weights ``G * m``
+        and the kept features."""
+        key = (valid.shape, valid.tobytes())
+        if self._mask[0] != key:
+            if not valid.any():
+                raise ValueError("valid_pixels must mark at least one valid pixel; got none")
+            self._mask = (key, (_window_weight(valid, self.lcn_sigma), self.kept_features(valid)))
+        return self._mask[1]
+
+    def __call__(self, x: np.ndarray, valid_pixels: np.ndarray | None = None) -> np.ndarray:
         n, h, w = x.shape
         n_features = self.n_features(h, w)
+        if valid_pixels is not None:
+            gm, kept = self._masked(valid_pixels)
+            n_features = len(kept)
         if n > 64:  # small batches (a streamed frame) need no check of /proc/meminfo
             check_memory(n * n_features * 4, f"optic_lobe on {n} images of {h}x{w}")
         features = np.empty((n, n_features), dtype=np.float32)
+        x = np.ascontiguousarray(x)
         # LCN, Gabor energy, max pooling, square root and the per-image z-score (a blank
         # image has no edges: every feature is equal and the row stays all zeros), compiled,
         # one image at a time
-        return _kernels().optic_lobe(
-            np.ascontiguousarray(x), *self._plan(h, w), *self._factors, self.pool, features
+        if valid_pixels is None:
+            return _kernels().optic_lobe(x, *self._plan(h, w), *self._factors, self.pool, features)
+        return _kernels().optic_lobe_masked(
+            x, valid_pixels, gm, *self._plan(h, w), *self._factors, self.pool, kept, features
         )
