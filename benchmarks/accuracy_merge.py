@@ -77,9 +77,7 @@ def merge_runs(old: dict, new: dict, order_methods: list[str], order_conditions:
     rows += new["rows"]
     rows.sort(key=lambda r: (crank.get(r["condition"], len(crank)), mrank[r["method"]], r["seed"]))
     kidnap = [k for k in old.get("kidnap", []) if not replaced(_base(k["method"]), k["view"])]
-    reliability = [
-        x for x in old.get("reliability", []) if not replaced(x["method"], x["view"])
-    ]
+    reliability = [x for x in old.get("reliability", []) if not replaced(x["method"], x["view"])]
     fresh = {(e["view"], e["frontend"]) for e in new.get("evidence", [])}
     evidence = [e for e in old.get("evidence", []) if (e["view"], e["frontend"]) not in fresh]
     merged = dict(new)

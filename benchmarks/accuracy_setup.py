@@ -407,14 +407,20 @@ ROBOT_VIEWS: list[View] = [
     _motion("r-stop100", "n64-0", "0-999, one 100-frame stop", "stop100"),
     _motion("r-2.5x", "n64-0", "0-999 at 2.5x", "2.5x"),
     _motion("r-2.5x-odo", "n64-0", "0-999 at 2.5x, odometry", "2.5x", odometry=True),
-    View("r-detour", "n64-0", "0-999, detour off the map (400-699)", "robot", _ROBOT, gap=(0.4, 0.7)),
+    View(
+        "r-detour", "n64-0", "0-999, detour off the map (400-699)", "robot", _ROBOT, gap=(0.4, 0.7)
+    ),
     View("r-fisheye", "n64-0-fish", "0-999 through a fisheye disc", "robot", _ROBOT),
     View("r-shuffled", "n64-0", "0-999, queries shuffled", "robot", _ROBOT, "shuffle"),
     _motion("r-reversed", "n64-0", "0-999 driven backwards", "reversed"),
     _motion("r-walk-2000", "n64-2000", "2000-2399 held out, random 0.4-1.6x", "walk"),
     _motion("r-stopgo-2000", "n64-2000", "2000-2399 held out, stop-and-go", "stopgo"),
     View(
-        "r-detour-2000", "n64-2000", "2000-2399 held out, detour (160-279)", "robot", _ROBOT,
+        "r-detour-2000",
+        "n64-2000",
+        "2000-2399 held out, detour (160-279)",
+        "robot",
+        _ROBOT,
         gap=(0.4, 0.7),
     ),  # fmt: skip
 ]

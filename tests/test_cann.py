@@ -1,4 +1,4 @@
-"""The paper's attractor CANN (AttractorCANN, filter cann-paper): attractor properties, online contract, movement, errors."""
+"""The paper's attractor CANN (AttractorCANN, filter cann-paper): attractor, contract, errors."""
 
 import numpy as np
 import pytest

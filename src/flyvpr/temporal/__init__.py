@@ -8,8 +8,17 @@ from .cann import CANN, AttractorCANN
 from .rnn import RNNFilter
 from .seqslam import SeqSLAM
 
-__all__ = ["TemporalFilter", "OnlineFilter", "SeqSLAM", "CANN", "AttractorCANN", "RNNFilter", "FILTERS"]
+__all__ = [
+    "TemporalFilter",
+    "OnlineFilter",
+    "SeqSLAM",
+    "CANN",
+    "AttractorCANN",
+    "RNNFilter",
+    "FILTERS",
+]
 
 #: name -> filter class
-FILTERS: dict[str, type[TemporalFilter]] = {cls.name: cls for cls in (SeqSLAM, CANN, AttractorCANN, RNNFilter)
+FILTERS: dict[str, type[TemporalFilter]] = {
+    cls.name: cls for cls in (SeqSLAM, CANN, AttractorCANN, RNNFilter)
 }

@@ -19,7 +19,9 @@ from ._params import TRANSFORMS, check_real
 
 #: candidate velocities, places per frame: standing still to 2 in steps of 1/8, then to 3 in
 #: steps of 1/4
-LAYER_VELOCITIES = tuple(float(v) for v in np.r_[np.arange(0.0, 2.0, 0.125), np.arange(2.0, 3.01, 0.25)])
+LAYER_VELOCITIES = tuple(
+    float(v) for v in np.r_[np.arange(0.0, 2.0, 0.125), np.arange(2.0, 3.01, 0.25)]
+)
 #: the calibration table (see the class's docstring)
 CALIBRATION = (0.0, 0.753, 0.754, 0.8, 0.877, 0.901, 0.949, 0.968, 0.991, 0.999, 1.0)
 #: the front end's answers: its estimated precision times this (fitted with CALIBRATION)
