@@ -386,7 +386,7 @@ class CANN(OnlineFilter):
         Returns
         -------
         ndarray of float32, shape (n_reference,)
-            Its argmax is the answer and its maximum the confidence (:attr:`confidence_`);
+            Its argmax is the answer and its maximum the confidence (``confidence_``);
             from the sequence, entry ``i`` is the support times the probability of being
             within ``tolerance`` places of ``i``.
 
