@@ -13,14 +13,12 @@ import numpy as np
 from ..._validation import check_memory, check_positive_int, check_scores
 from ..base import OnlineFilter
 from . import _kernels, _readout
-from ._kernels import VAR_FLOOR, excitation_kernel
+from ._input import TINY as _TINY
+from ._input import filter_with_odometry, normalised_input
+from ._kernels import excitation_kernel
 from ._params import DEFAULT_VELOCITIES, check_params, check_real
 from ._speed import SpeedBank
 
-#: smallest positive float32, the floor before the log of a probability row
-_TINY = np.float32(np.finfo(np.float32).tiny)
-#: rows are treated as probability vectors when they sum to 1 within this tolerance
-_PROBABILITY_ATOL = 1e-3
 #: about this many places estimate the evidence's mean and spread
 _STATS_SAMPLES = 4096
 
@@ -404,66 +402,11 @@ class AttractorCANN(OnlineFilter):
         """
         if velocity is None:
             return super().filter(S)
-        arr = check_scores(S, "S")
-        vel = np.asarray(velocity)
-        if vel.dtype == object or not np.issubdtype(vel.dtype, np.number):
-            raise TypeError(f"velocity must be a numeric array; got dtype {vel.dtype}")
-        if vel.shape != (arr.shape[0],):
-            raise ValueError(
-                f"velocity must have shape ({arr.shape[0]},), one entry per query; got {vel.shape}"
-            )
-        if not np.isfinite(vel).all():
-            raise ValueError("velocity contains NaN or infinite values")
-        self.reset()
-        out = np.empty(arr.shape, dtype=np.float32 if arr.dtype == np.float32 else np.float64)
-        for t in range(arr.shape[0]):
-            out[t] = self._step(arr[t], float(vel[t]))
-        return out
+        return filter_with_odometry(self, S, velocity)
 
     def _input(self, row: np.ndarray) -> np.ndarray:
         """This frame's input: the row normalised, adapted, clipped and scaled (see "Input")."""
-        p = self._params
-        t = self.n_frames_
-        transform = p["input_transform"]
-        lowest = float(row.min())
-        if transform == "auto":
-            # (A float32 row's pairwise float32 sum: within 1e-6 of its float64 sum, far
-            # below the tolerance.)
-            probability = lowest >= 0 and abs(float(row.sum()) - 1.0) <= _PROBABILITY_ATOL
-            transform = "log" if probability else "linear"
-        if transform == "log" and lowest < 0:
-            raise ValueError(
-                "scores_row must be non-negative for input_transform='log'; got minimum "
-                f"{lowest:g} (use input_transform='linear' for such scores)"
-            )
-        # Running mean (and variance) of each place's input: the mean of the frames so far at
-        # first, then an exponential average over ``adaptation`` frames.  The variance starts
-        # from a prior of 1 (the z-scored row's) worth one frame.
-        adapt = p["adaptation"] is not None
-        rate = max(1.0 / (t + 1), 1.0 / p["adaptation"]) if adapt else 0.0
-        var_rate = max(1.0 / (t + 2), 1.0 / p["adaptation"]) if adapt else 0.0
-        x = self._x
-        x[:] = row
-        if transform == "log":
-            # numpy's log, compiled or not: numba's rounds differently in the last bit, which
-            # the input gain would carry into the potentials.
-            np.maximum(x, _TINY, out=x)
-            np.log(x, out=x)
-        self._kernels["normalise"](
-            x,
-            self._mean,
-            self._var,
-            False,
-            _TINY,
-            rate,
-            var_rate,
-            adapt,
-            p["adapt_variance"],
-            VAR_FLOOR,
-            np.inf if p["input_clip"] is None else p["input_clip"],
-            p["input_gain"],
-        )
-        return x
+        return normalised_input(self, row, self._params["input_gain"])
 
     def _step(self, row: np.ndarray, velocity: float | None = None) -> np.ndarray:
         if getattr(self, "_params", None) is None:

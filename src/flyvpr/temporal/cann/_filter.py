@@ -14,8 +14,8 @@ import numpy as np
 from ..._validation import check_memory, check_positive_int, check_scores
 from ..base import OnlineFilter
 from . import _kernels
-from ._kernels import VAR_FLOOR
-from ._params import TRANSFORMS, check_real
+from ._input import filter_with_odometry, normalised_input
+from ._params import TRANSFORMS, _check_velocities, check_real
 
 #: candidate velocities, places per frame: standing still to 2 in steps of 1/8, then to 3 in
 #: steps of 1/4
@@ -26,10 +26,6 @@ LAYER_VELOCITIES = tuple(
 CALIBRATION = (0.0, 0.753, 0.754, 0.8, 0.877, 0.901, 0.949, 0.968, 0.991, 0.999, 1.0)
 #: the front end's answers: its estimated precision times this (fitted with CALIBRATION)
 FRONT_CALIBRATION = 2.0
-#: smallest positive float32, the floor before the log of a probability row
-_TINY = np.float32(np.finfo(np.float32).tiny)
-#: rows are treated as probability vectors when they sum to 1 within this tolerance
-_PROBABILITY_ATOL = 1e-3
 #: about this many places are sampled by the sequence test
 _SAMPLES = 4096
 #: bounds of the learned exponent of the sequence test's rank model (see _support)
@@ -274,20 +270,8 @@ class CANN(OnlineFilter):
             if (np.diff(table) <= 0).any():
                 raise ValueError(f"calibration must increase strictly; got {table.tolist()}")
             p["calibration"] = table
-        try:
-            vel = np.asarray(self.velocities, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise TypeError(f"velocities must be a sequence of numbers; {exc}") from exc
-        if vel.ndim != 1 or vel.size == 0:
-            raise ValueError(f"velocities must be a non-empty 1-d sequence; got shape {vel.shape}")
-        if not np.isfinite(vel).all():
-            raise ValueError(f"velocities must be finite; got {vel.tolist()}")
-        if np.unique(vel).size != vel.size:
-            raise ValueError(f"velocities must not repeat a value; got {vel.tolist()}")
-        if p["bidirectional"]:
-            vel = np.concatenate([vel, -vel])
         # Sorted, so that neighbouring rows are neighbouring speeds.
-        vel = np.unique(vel)
+        vel = np.unique(_check_velocities(self.velocities, p["bidirectional"]))
         p["velocities"] = vel
         prior = np.exp(-0.5 * ((np.abs(vel) - p["speed_prior"]) / p["speed_prior_width"]) ** 2)
         if not prior.sum() > 0.0:
@@ -419,59 +403,11 @@ class CANN(OnlineFilter):
         """
         if velocity is None:
             return super().filter(S)
-        arr = check_scores(S, "S")
-        vel = np.asarray(velocity)
-        if vel.dtype == object or not np.issubdtype(vel.dtype, np.number):
-            raise TypeError(f"velocity must be a numeric array; got dtype {vel.dtype}")
-        if vel.shape != (arr.shape[0],):
-            raise ValueError(
-                f"velocity must have shape ({arr.shape[0]},), one entry per query; got {vel.shape}"
-            )
-        if not np.isfinite(vel).all():
-            raise ValueError("velocity contains NaN or infinite values")
-        self.reset()
-        out = np.empty(arr.shape, dtype=np.float32 if arr.dtype == np.float32 else np.float64)
-        for t in range(arr.shape[0]):
-            out[t] = self._step(arr[t], float(vel[t]))
-        return out
+        return filter_with_odometry(self, S, velocity)
 
     def _input(self, row: np.ndarray) -> np.ndarray:
         """The row as z-scores, adapted per place and clipped (see "Input" on the guide)."""
-        p = self._params
-        t = self.n_frames_
-        transform = p["input_transform"]
-        lowest = float(row.min())
-        if transform == "auto":
-            probability = lowest >= 0 and abs(float(row.sum()) - 1.0) <= _PROBABILITY_ATOL
-            transform = "log" if probability else "linear"
-        if transform == "log" and lowest < 0:
-            raise ValueError(
-                "scores_row must be non-negative for input_transform='log'; got minimum "
-                f"{lowest:g} (use input_transform='linear' for such scores)"
-            )
-        adapt = p["adaptation"] is not None
-        rate = max(1.0 / (t + 1), 1.0 / p["adaptation"]) if adapt else 0.0
-        var_rate = max(1.0 / (t + 2), 1.0 / p["adaptation"]) if adapt else 0.0
-        x = self._x
-        x[:] = row
-        if transform == "log":
-            np.maximum(x, _TINY, out=x)
-            np.log(x, out=x)
-        self._kernels["normalise"](
-            x,
-            self._mean,
-            self._var,
-            False,
-            _TINY,
-            rate,
-            var_rate,
-            adapt,
-            p["adapt_variance"],
-            VAR_FLOOR,
-            np.inf if p["input_clip"] is None else p["input_clip"],
-            1.0,
-        )
-        return x
+        return normalised_input(self, row, 1.0)
 
     def _shifts(self, velocity: float | None) -> np.ndarray:
         """Whole places each row moves this frame (fractions accumulate, halves round up)."""

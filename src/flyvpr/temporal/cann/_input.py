@@ -1,0 +1,85 @@
+"""What both CANNs share: the input normalisation of a score row, and filtering with odometry."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..._validation import check_scores
+from ._kernels import VAR_FLOOR
+
+#: smallest positive float32, the floor before the log of a probability row
+TINY = np.float32(np.finfo(np.float32).tiny)
+#: rows are treated as probability vectors when they sum to 1 within this tolerance
+PROBABILITY_ATOL = 1e-3
+
+
+def normalised_input(filt, row: np.ndarray, gain: float) -> np.ndarray:
+    """Frame ``filt.n_frames_``'s input: ``row`` as z-scores, adapted per place, clipped, times
+    ``gain`` (see "Input" on the user guide's CANN page).
+
+    Uses ``filt``'s validated parameters (``input_transform``, ``adaptation``,
+    ``adapt_variance``, ``input_clip``), its buffers ``_x``, ``_mean`` and ``_var`` and its
+    ``normalise`` kernel; returns ``filt._x``.
+    """
+    p = filt._params
+    t = filt.n_frames_
+    transform = p["input_transform"]
+    lowest = float(row.min())
+    if transform == "auto":
+        # (A float32 row's pairwise float32 sum: within 1e-6 of its float64 sum, far below
+        # the tolerance.)
+        probability = lowest >= 0 and abs(float(row.sum()) - 1.0) <= PROBABILITY_ATOL
+        transform = "log" if probability else "linear"
+    if transform == "log" and lowest < 0:
+        raise ValueError(
+            "scores_row must be non-negative for input_transform='log'; got minimum "
+            f"{lowest:g} (use input_transform='linear' for such scores)"
+        )
+    # Running mean (and variance) of each place's input: the mean of the frames so far at
+    # first, then an exponential average over ``adaptation`` frames.  The variance starts from
+    # a prior of 1 (the z-scored row's) worth one frame.
+    adapt = p["adaptation"] is not None
+    rate = max(1.0 / (t + 1), 1.0 / p["adaptation"]) if adapt else 0.0
+    var_rate = max(1.0 / (t + 2), 1.0 / p["adaptation"]) if adapt else 0.0
+    x = filt._x
+    x[:] = row
+    if transform == "log":
+        # numpy's log, compiled or not: numba's rounds differently in the last bit, which the
+        # gain would carry on.
+        np.maximum(x, TINY, out=x)
+        np.log(x, out=x)
+    filt._kernels["normalise"](
+        x,
+        filt._mean,
+        filt._var,
+        False,
+        TINY,
+        rate,
+        var_rate,
+        adapt,
+        p["adapt_variance"],
+        VAR_FLOOR,
+        np.inf if p["input_clip"] is None else p["input_clip"],
+        gain,
+    )
+    return x
+
+
+def filter_with_odometry(filt, S, velocity) -> np.ndarray:
+    """``filt.filter(S, velocity)`` for a CANN: from a fresh state, every row stepped with the
+    places moved before it (the first entry is not used: there is nothing to move yet)."""
+    arr = check_scores(S, "S")
+    vel = np.asarray(velocity)
+    if vel.dtype == object or not np.issubdtype(vel.dtype, np.number):
+        raise TypeError(f"velocity must be a numeric array; got dtype {vel.dtype}")
+    if vel.shape != (arr.shape[0],):
+        raise ValueError(
+            f"velocity must have shape ({arr.shape[0]},), one entry per query; got {vel.shape}"
+        )
+    if not np.isfinite(vel).all():
+        raise ValueError("velocity contains NaN or infinite values")
+    filt.reset()
+    out = np.empty(arr.shape, dtype=np.float32 if arr.dtype == np.float32 else np.float64)
+    for t in range(arr.shape[0]):
+        out[t] = filt._step(arr[t], float(vel[t]))
+    return out
