@@ -14,7 +14,7 @@ from ..._validation import check_memory, check_positive_int, check_scores
 from ..base import OnlineFilter
 from . import _kernels, _readout
 from ._input import TINY as _TINY
-from ._input import filter_with_odometry, normalised_input
+from ._input import begin_frame, filter_with_odometry, normalised_input
 from ._kernels import excitation_kernel
 from ._params import DEFAULT_VELOCITIES, check_params, check_real
 from ._speed import SpeedBank
@@ -409,17 +409,8 @@ class AttractorCANN(OnlineFilter):
         return normalised_input(self, row, self._params["input_gain"])
 
     def _step(self, row: np.ndarray, velocity: float | None = None) -> np.ndarray:
-        if getattr(self, "_params", None) is None:
-            self.reset()
+        begin_frame(self, row)
         p = self._params
-        n = row.shape[0]
-        if self._n is None:
-            self._allocate(n)
-        elif n != self._n:
-            raise ValueError(
-                f"scores_row must have shape ({self._n},) as the previous rows; got {row.shape} "
-                "(call reset() before a new reference traverse)"
-            )
         kernels = self._kernels
         t = self.n_frames_
         x = self._input(row)

@@ -14,7 +14,7 @@ import numpy as np
 from ..._validation import check_memory, check_positive_int, check_scores
 from ..base import OnlineFilter
 from . import _kernels
-from ._input import filter_with_odometry, normalised_input
+from ._input import begin_frame, filter_with_odometry, normalised_input
 from ._params import TRANSFORMS, _check_velocities, check_real
 
 #: candidate velocities, places per frame: standing still to 2 in steps of 1/8, then to 3 in
@@ -451,17 +451,9 @@ class CANN(OnlineFilter):
             self._log_rank[1] += (-math.log(w) - self._log_rank[1]) / p["support_memory"]
 
     def _step(self, row: np.ndarray, velocity: float | None = None) -> np.ndarray:
-        if getattr(self, "_params", None) is None:
-            self.reset()
+        begin_frame(self, row)
         p = self._params
         n = row.shape[0]
-        if self._n is None:
-            self._allocate(n)
-        elif n != self._n:
-            raise ValueError(
-                f"scores_row must have shape ({self._n},) as the previous rows; got {row.shape} "
-                "(call reset() before a new reference traverse)"
-            )
         kernels = self._kernels
         t = self.n_frames_
         radius = p["tolerance"]

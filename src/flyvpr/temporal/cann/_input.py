@@ -13,6 +13,22 @@ TINY = np.float32(np.finfo(np.float32).tiny)
 PROBABILITY_ATOL = 1e-3
 
 
+def begin_frame(filt, row: np.ndarray) -> None:
+    """Before a CANN's step: its parameters checked (the first step after construction
+    resets), its state allocated for this many places, or the row's length checked against
+    the previous rows'."""
+    if getattr(filt, "_params", None) is None:
+        filt.reset()
+    n = row.shape[0]
+    if filt._n is None:
+        filt._allocate(n)
+    elif n != filt._n:
+        raise ValueError(
+            f"scores_row must have shape ({filt._n},) as the previous rows; got {row.shape} "
+            "(call reset() before a new reference traverse)"
+        )
+
+
 def normalised_input(filt, row: np.ndarray, gain: float) -> np.ndarray:
     """Frame ``filt.n_frames_``'s input: ``row`` as z-scores, adapted per place, clipped, times
     ``gain`` (see "Input" on the user guide's CANN page).
