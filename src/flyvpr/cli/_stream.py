@@ -5,47 +5,17 @@ Nothing outside :mod:`flyvpr.cli` imports this module.
 
 from __future__ import annotations
 
-import csv
-import json
-import math
 import sys
 import time
 from contextlib import ExitStack
 
 import numpy as np
 
-from .._io import OutputPathError, atomic_open, check_output_path
+from .._io import OutputPathError, check_output_path
 from .._validation import check_memory
 from ._common import UsageError, check_outputs
+from ._records import open_records
 from .map import recording_inputs
-
-
-def _fmt(value) -> str:
-    return (
-        "" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.6g}"
-    )
-
-
-class _Records:
-    """One record per frame to CSV or JSON Lines (``.jsonl``), written atomically."""
-
-    def __init__(self, fh, columns, jsonl: bool):
-        self.fh, self.columns, self.jsonl = fh, columns, jsonl
-        if not jsonl:
-            self.writer = csv.writer(fh, lineterminator="\n")
-            self.writer.writerow(columns)
-
-    def write(self, row: dict) -> None:
-        if self.jsonl:
-            clean = {
-                k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                for k, v in row.items()
-            }
-            self.fh.write(json.dumps(clean) + "\n")
-        else:
-            self.writer.writerow(
-                [_fmt(row[c]) if isinstance(row[c], float) else row[c] for c in self.columns]
-            )
 
 
 def _ground_truth(args, m, step, gt_positions):
@@ -134,8 +104,7 @@ def cmd_localize_recording(args) -> int:
     with ExitStack() as stack:
         out = None
         if args.out is not None:
-            fh = stack.enter_context(atomic_open(args.out, "w", newline="", encoding="utf-8"))
-            out = _Records(fh, columns, args.out.suffix.lower() == ".jsonl")
+            out = stack.enter_context(open_records(args.out, columns))
         tracers = [stack.enter_context(_tracer(path, m)) for path in renders]
         bar = stack.enter_context(tqdm(desc="localizing", unit="frame", disable=not show))
         for step in track(loc, source, every=args.every, positions=positions,
