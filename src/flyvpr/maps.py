@@ -26,7 +26,15 @@ from ._validation import ArraySpec, check_memory
 from .images import DEFAULT_SIZE
 from .methods import DEFAULT_METHOD, Method, make_method
 from .modelio import _load, save_method
-from .sources import Positions, RecordingError, Source, open_source, parse_every, read_positions
+from .sources import (
+    Batch,
+    Positions,
+    RecordingError,
+    Source,
+    open_source,
+    parse_every,
+    read_positions,
+)
 from .temporal.base import OnlineFilter
 
 __all__ = ["Map", "MAP_VERSION", "MapFileError"]
@@ -129,6 +137,7 @@ class Map:
         random_state=0,
         frontend_params=None,
         filter_params=None,
+        progress: bool = False,
     ) -> Map:
         """Fit ``method`` on the kept frames of a recording.
 
@@ -147,6 +156,8 @@ class Map:
             A ``timestamp,x,y`` or ``frame,x,y`` CSV.
         position_topic : str, optional
             A NavSatFix or Odometry topic of the same bag.
+        progress : bool
+            Show a progress bar (on stderr) of the frames read.
 
         Raises
         ------
@@ -168,7 +179,7 @@ class Map:
         if pos is None:
             bag = src.path if src.kind == "bag" else None
             pos = read_positions(positions, bag=bag, topic=position_topic)
-        frames = src.read_all(size, every=every, positions=pos)
+        frames = _read_frames(src, size, every, pos, progress)
         n = len(frames)
         if n < 2:
             raise RecordingError(f"{src.describe()}: a map needs at least 2 places; got {n}")
@@ -227,6 +238,26 @@ class Map:
             section.get("thumbnails"),
             {k: section[k] for k in ("source", "source_kind", "topic", "every", "positions_from")},
         )
+
+
+def _read_frames(src: Source, size, every, positions, progress: bool):
+    """Every kept frame of ``src`` in one batch, with a progress bar when asked."""
+    if not progress:
+        return src.read_all(size, every=every, positions=positions)
+    from tqdm.auto import tqdm
+
+    parts = []
+    with tqdm(desc="reading frames", unit="frame") as bar:
+        for b in src.batches(size, every=every, positions=positions):
+            parts.append(b)
+            bar.update(len(b))
+    if not parts:
+        raise RecordingError(f"{src.describe()}: --every {every} keeps no frame")
+    return Batch(
+        np.concatenate([b.images for b in parts]),
+        np.concatenate([b.timestamps for b in parts]),
+        np.concatenate([b.indices for b in parts]),
+    )
 
 
 def _read_section(r, section: dict) -> dict:

@@ -25,15 +25,34 @@ import os
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
+
 from .._io import atomic_open, resolve_output
 
-__all__ = ["RECORD_FORMATS", "Records", "open_records", "record_format"]
+__all__ = ["RECORD_FORMATS", "Records", "csv_cell", "json_value", "open_records", "record_format"]
 
 
-def _fmt(value) -> str:
-    return (
-        "" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.6g}"
-    )
+def csv_cell(value):
+    """A record's value as a CSV cell, exactly: the shortest text that reads back to it.
+
+    Floats are written as ``repr`` writes them (the shortest decimal that round-trips to
+    the same float64, e.g. ``1700000000.123456`` or ``1000000.25``), never rounded to a few
+    significant digits; NaN and ``None`` become an empty cell; integers (also numpy's) stay
+    integers.
+
+    Examples
+    --------
+    >>> csv_cell(1700000000.1234567), csv_cell(1e6 + 1 / 3), csv_cell(float("nan")), csv_cell(7)
+    ('1700000000.1234567', '1000000.3333333334', '', 7)
+    """
+    if value is None:
+        return ""
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return "" if math.isnan(value) else repr(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
 
 
 class Records:
@@ -94,18 +113,28 @@ class CsvRecords(Records):
 
     def _write_row(self, row: dict) -> None:
         self.writer.writerow(
-            [_fmt(row[c]) if isinstance(row[c], float) else row[c] for c in self.columns]
+            [csv_cell(row[c]) for c in self.columns]
         )
 
 
+def json_value(value):
+    """A record's value for JSON: exact floats, ``null`` for NaN and infinities, plain ints."""
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
 class JsonlRecords(Records):
-    """Records as JSON Lines: one JSON object per line; NaN and infinities become ``null``."""
+    """Records as JSON Lines: one JSON object per line.
+
+    Floats are exact (as ``repr`` writes them); NaN and infinities become ``null``.
+    """
 
     def _write_row(self, row: dict) -> None:
-        clean = {
-            k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-            for k, v in row.items()
-        }
+        clean = {k: json_value(v) for k, v in row.items()}
         self.fh.write(json.dumps(clean) + "\n")
 
 

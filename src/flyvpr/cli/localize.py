@@ -28,6 +28,7 @@ from ._common import (
     print_protocol,
     split_params,
 )
+from ._records import csv_cell
 from .map import add_recording_args
 
 
@@ -100,7 +101,7 @@ def _cmd_benchmark(args) -> int:
         ok = bool(gt[i, place])
         correct += ok
         n_localized += state == LOCALIZED
-        writer.writerow([i, int(keep[i]), place, f"{conf:.6g}", state, int(ok)])
+        writer.writerow([i, int(keep[i]), place, csv_cell(conf), state, int(ok)])
     elapsed = time.perf_counter() - t0
     if args.out is not None:
         write_text_atomic(args.out, buf.getvalue())

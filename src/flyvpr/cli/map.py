@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -74,6 +75,7 @@ def cmd_map(args) -> int:
         random_state=args.seed,
         frontend_params=front_params,
         filter_params=filt_params,
+        progress=not args.quiet and sys.stderr.isatty(),
     )
     m.save(args.out)
     where = "with positions" if m.has_positions else "without positions"
@@ -109,5 +111,8 @@ def register(sub) -> None:
         default=DEFAULT_SIZE,
         metavar="HxW",
         help="image size after the gray conversion and area-averaging resize (default 32x64)",
+    )
+    p.add_argument(
+        "--quiet", "-q", action="store_true", help="no progress bar (shown only on a terminal)"
     )
     p.set_defaults(func=cmd_map)
