@@ -18,14 +18,18 @@ from ._input import begin_frame, filter_with_odometry, normalised_input
 from ._params import TRANSFORMS, _check_velocities, check_real
 
 #: candidate velocities, places per frame: standing still to 2 in steps of 1/8, then to 3 in
-#: steps of 1/4
+#: steps of 1/4; backwards, a coarse bank of 1/2 to 2 in steps of 1/2 (a robot that turns
+#: round or reverses along its map)
 LAYER_VELOCITIES = tuple(
-    float(v) for v in np.r_[np.arange(0.0, 2.0, 0.125), np.arange(2.0, 3.01, 0.25)]
+    float(v)
+    for v in np.r_[
+        -np.arange(2.0, 0.25, -0.5), np.arange(0.0, 2.0, 0.125), np.arange(2.0, 3.01, 0.25)
+    ]
 )
-#: the calibration table (see the class's docstring)
-CALIBRATION = (0.0, 0.753, 0.754, 0.8, 0.877, 0.901, 0.949, 0.968, 0.991, 0.999, 1.0)
-#: the front end's answers: its estimated precision times this (fitted with CALIBRATION)
-FRONT_CALIBRATION = 2.0
+#: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
+CALIBRATION = (0.507, 0.838, 0.839, 0.844, 0.916, 0.917, 0.943, 0.956, 0.985, 0.999, 1.0)
+#: learning rate of the front end's logistic model (per confident sequence answer)
+_FRONT_RATE = 0.05
 #: about this many places are sampled by the sequence test
 _SAMPLES = 4096
 #: bounds of the learned exponent of the sequence test's rank model (see _support)
@@ -43,6 +47,26 @@ def _shape(log_rank: float) -> float:
     if log_rank * high <= 1.0:
         return high
     return max(low, 1.0 / log_rank)
+
+
+def _split(weights: np.ndarray, backward: np.ndarray, share: float) -> np.ndarray:
+    """``weights`` normalised so that the ``backward`` ones sum to ``share`` and the others to
+    ``1 - share``; with velocities of one sign only, normalised to sum to 1."""
+    out = weights.astype(np.float64)
+    if backward.any() and not backward.all():
+        for part, mass in ((backward, share), (~backward, 1.0 - share)):
+            total = out[part].sum()
+            out[part] *= mass / total if total > 0 else 0.0
+        if out.sum() > 0:
+            return out
+    return out / out.sum()
+
+
+def _sigmoid(x: float) -> float:
+    if x >= 0:
+        return 1.0 / (1.0 + math.exp(-x))
+    e = math.exp(x)
+    return e / (1.0 + e)
 
 
 def _calibrate(raw: float, table) -> float:
@@ -76,10 +100,14 @@ class CANN(OnlineFilter):
 
     Parameters
     ----------
-    velocities : sequence of float, default 0, 1/8, ..., 2, 2.25, ..., 3
-        Candidate movements, places per frame (each row of the layer moves by one of them).
+    velocities : sequence of float, default -2, -1.5, -1, -0.5, 0, 1/8, ..., 2, 2.25, ..., 3
+        Candidate movements, places per frame (each row of the layer moves by one of them;
+        negative: backwards along the route).
     bidirectional : bool, default False
-        Also the negative of every velocity: a query driven the other way along the route.
+        Also the negative of every velocity: the full bank backwards as well as forwards.
+    reverse_weight : float, default 0.1
+        Share of the prior (and of a redrawn velocity) on the negative velocities, when the
+        bank has both signs: driving backwards along the map is possible but rarer.
     speed_prior : float, default 1.0
         Most likely speed, places per frame, before the evidence (the map's own pace).
     speed_prior_width : float, default 0.25
@@ -118,11 +146,19 @@ class CANN(OnlineFilter):
         Share of frames on the route whose evidence at the true place is no better than
         anywhere else (the sequence test's robustness).
     support_memory : float, default 100.0
-        Frames over which the support, the test's rank model and the front end's precision
-        are averaged.
+        Frames over which the support, the test's rank model and the statistics of the
+        front end's peaks are averaged.
     fallback : bool, default True
-        Answer with the front end's best place when the front end's estimated precision beats
-        the sequence's (see "Output" on the guide page).
+        Answer with the front end's best place when the front end's estimated probability of
+        being right beats the sequence's (see "Output" on the guide page).  The front end's
+        probability is a logistic model of the strength of its peak (its z-score), learned
+        at run time from whether it agrees with the sequence's confident answers; before
+        any, ``0.5 ** (1 + tolerance)``.
+    calibration : sequence of 11 float or None, default CALIBRATION
+        The sequence's confidence at raw confidence (support times the window's
+        probability) 0, 0.1, ..., 1, linearly between (strictly increasing, in [0, 1]);
+        fitted on kenyon+cann's answers on the dev robot conditions (Nordland 0-999, seeds
+        0-2, tolerance 2).  ``None``: the raw confidence.
 
     Attributes
     ----------
@@ -162,6 +198,7 @@ class CANN(OnlineFilter):
         self,
         velocities=LAYER_VELOCITIES,
         bidirectional=False,
+        reverse_weight=0.1,
         speed_prior=1.0,
         speed_prior_width=0.25,
         velocity_change=0.02,
@@ -183,6 +220,7 @@ class CANN(OnlineFilter):
     ):
         self.velocities = velocities
         self.bidirectional = bidirectional
+        self.reverse_weight = reverse_weight
         self.speed_prior = speed_prior
         self.speed_prior_width = speed_prior_width
         self.velocity_change = velocity_change
@@ -207,6 +245,7 @@ class CANN(OnlineFilter):
         p = {
             "speed_prior": check_real(self.speed_prior, "speed_prior", low=None),
             "speed_prior_width": check_real(self.speed_prior_width, "speed_prior_width"),
+            "reverse_weight": _probability(self.reverse_weight, "reverse_weight"),
             "velocity_change": _probability(self.velocity_change, "velocity_change"),
             "velocity_jump": _probability(self.velocity_jump, "velocity_jump"),
             "evidence_gain": check_real(self.evidence_gain, "evidence_gain"),
@@ -279,7 +318,10 @@ class CANN(OnlineFilter):
                 f"speed_prior={p['speed_prior']} with speed_prior_width="
                 f"{p['speed_prior_width']} gives no weight to any of the velocities"
             )
-        p["prior"] = prior / prior.sum()
+        p["prior"] = _split(prior, vel < 0, p["reverse_weight"])
+        # A velocity drawn afresh may be any of them (a robot stops or starts at any speed),
+        # backwards with probability reverse_weight.
+        p["redraw"] = _split(np.ones(vel.size), vel < 0, p["reverse_weight"])
         return p
 
     def footprint(self, n_reference: int) -> dict:
@@ -331,8 +373,7 @@ class CANN(OnlineFilter):
         prior = p["prior"].astype(np.float32)
         self._p = np.repeat(prior[:, None] / np.float32(n), n, axis=1)
         self._spare = np.empty_like(self._p)
-        # A velocity drawn afresh may be any of them: a robot stops or starts at any speed.
-        self._redraw = np.full(n_v, 1.0 / n_v)
+        self._redraw = p["redraw"]
         self._marginal = np.empty(n, np.float32)  # the posterior over places
         self._predicted = np.empty(n, np.float32)  # the prior over places, before the evidence
         self._weight = np.empty(n, np.float32)  # the evidence exp(gain * (x - max x))
@@ -348,8 +389,13 @@ class CANN(OnlineFilter):
         # predicted one has density shape * u**(shape - 1) on the route (learned), 1 off it.
         self._log_rank = [1.0 / 0.3, 1.0 / 0.5]  # running means of -log(rank), supported frames
         self._support_mean = 0.0  # the support averaged over support_memory frames
-        self._front_strength = None  # running mean of the front end's best z-score
-        self._front_precision = 0.5 ** (2 + p["tolerance"])  # prior: a weak front end
+        # The front end's model: running mean and variance of its peak's z-score and of its
+        # best raw score, and the logistic weights (prior: a weak front end, right with
+        # probability 0.5 ** (2 + tolerance) whatever its peak).
+        self._front_stats = None
+        self._front_raw_z = 0.0
+        prior = 0.5 ** (1 + p["tolerance"])
+        self._front_model = [math.log(prior / (1.0 - prior)), 0.0]
 
     @property
     def shape_(self) -> float:
@@ -408,6 +454,23 @@ class CANN(OnlineFilter):
     def _input(self, row: np.ndarray) -> np.ndarray:
         """The row as z-scores, adapted per place and clipped (see "Input" on the guide)."""
         return normalised_input(self, row, 1.0)
+
+    def _front_feature(self, strength: float, raw: float, rate: float) -> float:
+        """The front end's peak z-score, standardised by its running mean and spread (within
+        +-4); also sets ``_front_raw_z``, the same for its best raw score."""
+        if self._front_stats is None:
+            self._front_stats = [strength, 1.0, raw, 1.0]
+        stats = self._front_stats
+        out = []
+        for k, value in ((0, strength), (2, raw)):
+            mean, var = stats[k], stats[k + 1]
+            sd = math.sqrt(var) if var > 0 else 1.0
+            out.append(max(-4.0, min(4.0, (value - mean) / sd)) if var > 0 else 0.0)
+            delta = value - mean
+            stats[k] = mean + rate * delta
+            stats[k + 1] = (1.0 - rate) * (var + rate * delta * delta)
+        self._front_raw_z = out[1]
+        return out[0]
 
     def _shifts(self, velocity: float | None) -> np.ndarray:
         """Whole places each row moves this frame (fractions accumulate, halves round up)."""
@@ -503,23 +566,23 @@ class CANN(OnlineFilter):
         self._support_mean += rate * (self.support_ - self._support_mean)
         # The window's probability times the support (calibrated below).
         confidence = self.support_ * probability
-        # The front end's own answer and an estimate of how often it is right: how often it
-        # agrees with the sequence's confident answers.  (Not scaled by the strength of its
-        # peak: on the dev windows the strongest peaks are places that resemble every frame.)
+        # The front end's own answer and the probability that it is right: a logistic model
+        # of the strength of its peak (its z-score, standardised by its running mean and
+        # spread), learned from whether it agrees with the sequence's confident answers.
         front = int(np.argmax(row))
         spread = float(row.std())
         strength = (float(row[front]) - float(row.mean())) / spread if spread > 0 else 0.0
-        if self._front_strength is None:
-            self._front_strength = strength
-        else:
-            self._front_strength += rate * (strength - self._front_strength)
+        feature = self._front_feature(strength, float(row[front]), rate)
+        front_confidence = _sigmoid(self._front_model[0] + self._front_model[1] * feature)
         if confidence >= 0.5:
             agree = float(abs(front - answer) <= radius)
-            self._front_precision += (agree - self._front_precision) / memory
-        # The front end's precision, with a tie-break that keeps its own order of answers.
-        front_confidence = min(
-            1.0, self._front_precision * (1.0 + 1e-3 * math.tanh(strength - self._front_strength))
-        )
+            error = agree - front_confidence
+            self._front_model[0] += _FRONT_RATE * error
+            self._front_model[1] += _FRONT_RATE * error * feature
+        # A tie-break that keeps the front end's own order of answers (its raw best score)
+        # where the model does not separate them (no confident answers to learn from yet).
+        front_confidence *= 1.0 + 1e-3 * math.tanh(self._front_raw_z)
+        front_confidence = min(1.0, front_confidence)
         out = np.empty(n, np.float32)
         if p["fallback"] and self._support_mean * probability < front_confidence * (
             1.0 - self._support_mean
@@ -542,13 +605,11 @@ class CANN(OnlineFilter):
                 self.n_relocations_ += 1
         self.probability_ = probability if self.source_ == "sequence" else 0.0
         # The sequence's raw confidence mapped through the calibration table (strictly
-        # increasing: the order of its answers stays); the front end's estimated precision
-        # times FRONT_CALIBRATION.
+        # increasing: the order of its answers stays); the front end's is its model's
+        # probability already.
         calibrated = confidence
         if self.source_ == "sequence":
             calibrated = _calibrate(confidence, p["calibration"])
-        elif p["calibration"] is not None:
-            calibrated = min(1.0, FRONT_CALIBRATION * confidence)
         if confidence > 0.0 and calibrated != confidence:
             out *= np.float32(calibrated / confidence)  # the row keeps its order
         confidence = calibrated
