@@ -1,7 +1,20 @@
 """ROS 1 ``.bag`` and ROS 2 bags (``.db3`` / ``.mcap``) read with the pure-Python ``rosbags``.
 
 Images come from one topic of type ``sensor_msgs/Image`` (encodings :data:`IMAGE_ENCODINGS`)
-or ``sensor_msgs/CompressedImage`` (JPEG or PNG, decoded with Pillow).  A frame's timestamp is
+or ``sensor_msgs/CompressedImage`` (JPEG or PNG, decoded with Pillow).  Raw camera encodings
+are read without demosaicing or colour conversion, since a 32x64 gray frame needs neither:
+
+* Bayer mosaics (``bayer_rggb8``, ``bayer_bggr8``, ``bayer_gbrg8``, ``bayer_grbg8`` and their
+  16-bit forms ``bayer_*16``): each 2x2 cell becomes one gray value, the BT.601 luma of its
+  colours, ``0.299 R + 0.587 (G1 + G2) / 2 + 0.114 B`` (the weights of
+  :func:`flyvpr.images.to_gray`), so the frame is gray at half the resolution.  The height and
+  width must be even (whole cells).
+* YUV 4:2:2 (``yuv422`` = UYVY and ``yuv422_yuy2`` = YUYV; also their newer ROS 2 names
+  ``uyvy`` and ``yuyv``): the Y (luma) samples are the gray frame, at full resolution and as
+  the camera sent them (no range expansion); the width must be even (pixel pairs share U, V).
+
+Every raw image honours ``step`` (bytes per row, padding included) and, for 16 bits,
+``is_bigendian``.  A frame's timestamp is
 its header stamp, or the time the bag recorded it when the stamp is zero.  Positions come from a
 ``sensor_msgs/NavSatFix`` topic (latitude/longitude to local metres, equirectangular about the
 first fix) or a ``nav_msgs/Odometry`` topic (pose position x, y).
@@ -16,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from ..images import resize_area, to_gray
+from ..images import _LUMA, resize_area, to_gray
 from .base import RecordingError, Source, _reason, require_extra
 
 __all__ = ["BagSource", "IMAGE_ENCODINGS", "BAG_EXTENSIONS", "read_bag_positions"]
@@ -27,7 +40,11 @@ _IMAGE = ("sensor_msgs/msg/Image", "sensor_msgs/Image")
 _COMPRESSED = ("sensor_msgs/msg/CompressedImage", "sensor_msgs/CompressedImage")
 _NAVSAT = ("sensor_msgs/msg/NavSatFix", "sensor_msgs/NavSatFix")
 _ODOMETRY = ("nav_msgs/msg/Odometry", "nav_msgs/Odometry")
-#: raw encodings read: name -> (numpy dtype, channels, channel order)
+#: the 2x2 cells of the Bayer encodings, read row by row
+_BAYER_CELLS = ("rggb", "bggr", "gbrg", "grbg")
+#: raw encodings read: name (lower case) -> (numpy dtype of a sample, samples per pixel,
+#: layout): the channel order of colour images, the 2x2 cell of a Bayer mosaic row by row
+#: (``"rggb"``: R G over G B), or the byte order of a YUV 4:2:2 pixel pair
 IMAGE_ENCODINGS = {
     "mono8": ("u1", 1, None),
     "8uc1": ("u1", 1, None),
@@ -38,6 +55,15 @@ IMAGE_ENCODINGS = {
     "bgra8": ("u1", 4, "bgr"),
     "rgb16": ("u2", 3, "rgb"),
     "bgr16": ("u2", 3, "bgr"),
+    **{
+        f"bayer_{cell}{bits}": (dtype, 1, cell)
+        for bits, dtype in (("8", "u1"), ("16", "u2"))
+        for cell in _BAYER_CELLS
+    },
+    "yuv422": ("u1", 2, "uyvy"),
+    "uyvy": ("u1", 2, "uyvy"),
+    "yuv422_yuy2": ("u1", 2, "yuyv"),
+    "yuyv": ("u1", 2, "yuyv"),
 }
 #: mean Earth radius (m) for the equirectangular projection of NavSatFix positions
 EARTH_RADIUS_M = 6_371_000.0
@@ -185,27 +211,75 @@ def _raw_gray(msg, where: str) -> np.ndarray:
             f"{where}: unsupported image encoding {msg.encoding!r} (flyvpr reads "
             f"{', '.join(IMAGE_ENCODINGS)}; depth and float images are not camera frames)"
         )
-    kind, channels, order = IMAGE_ENCODINGS[enc]
+    kind, channels, layout = IMAGE_ENCODINGS[enc]
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     itemsize = int(kind[1])
-    data = np.asarray(msg.data, dtype=np.uint8)
-    if h < 1 or w < 1 or step < w * channels * itemsize or data.size < h * step:
+    row_bytes = w * channels * itemsize
+    data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
+    if h < 1 or w < 1:
+        raise RecordingError(f"{where}: {enc} image of {h}x{w} pixels holds no pixel")
+    if step < row_bytes:
         raise RecordingError(
-            f"{where}: {h}x{w} {enc} image with step {step} does not fit its {data.size} bytes"
+            f"{where}: {h}x{w} {enc} image with step {step}: a row needs at least "
+            f"{row_bytes} bytes ({w} pixels x {channels * itemsize} bytes)"
         )
-    rows = data[: h * step].reshape(h, step)[:, : w * channels * itemsize]
+    if data.size < h * step:
+        raise RecordingError(
+            f"{where}: {h}x{w} {enc} image with step {step} needs {h * step} bytes of data; "
+            f"got {data.size} (truncated)"
+        )
+    if layout in _BAYER_CELLS and (h % 2 or w % 2):
+        raise RecordingError(
+            f"{where}: a {enc} image needs an even height and width (whole 2x2 Bayer "
+            f"cells); got {h}x{w}"
+        )
+    if layout in ("uyvy", "yuyv") and w % 2:
+        raise RecordingError(
+            f"{where}: a {enc} image needs an even width (pixel pairs share U and V); "
+            f"got {h}x{w}"
+        )
+    rows = data[: h * step].reshape(h, step)[:, :row_bytes]
     dtype = np.dtype(kind).newbyteorder(">" if msg.is_bigendian else "<")
     pixels = (
         rows.copy().view(dtype).reshape(h, w, channels)
         if itemsize > 1
         else rows.reshape(h, w, channels)
     )
-    if order == "bgr":
+    pixels = pixels.astype(pixels.dtype.newbyteorder("="), copy=False)
+    if layout in _BAYER_CELLS:
+        return _bayer_gray(pixels[:, :, 0], layout)
+    if layout == "uyvy":  # U Y0 V Y1: each pixel is (chroma, luma)
+        return to_gray(pixels[:, :, 1])
+    if layout == "yuyv":  # Y0 U Y1 V: each pixel is (luma, chroma)
+        return to_gray(pixels[:, :, 0])
+    if layout == "bgr":
         pixels = pixels[:, :, 2::-1]
     elif channels == 4:
         pixels = pixels[:, :, :3]
-    pixels = pixels.astype(pixels.dtype.newbyteorder("="), copy=False)
     return to_gray(pixels[:, :, 0] if channels == 1 else pixels)
+
+
+def _bayer_gray(mosaic: np.ndarray, cell: str) -> np.ndarray:
+    """One gray value per 2x2 cell of a Bayer mosaic (even H, W): half-resolution luma.
+
+    Parameters
+    ----------
+    mosaic : ndarray, shape (H, W), uint8 or uint16
+    cell : {'rggb', 'bggr', 'gbrg', 'grbg'}
+        The cell's colours row by row (``'rggb'``: R G over G B).
+
+    Returns
+    -------
+    ndarray, shape (H // 2, W // 2), float32 in [0, 1]
+        ``0.299 R + 0.587 (G1 + G2) / 2 + 0.114 B`` of each cell.
+    """
+    m = to_gray(mosaic)
+    quarters = [m[0::2, 0::2], m[0::2, 1::2], m[1::2, 0::2], m[1::2, 1::2]]
+    greens = [q for q, colour in zip(quarters, cell, strict=True) if colour == "g"]
+    red, blue = quarters[cell.index("r")], quarters[cell.index("b")]
+    gray = _LUMA[0] * red + _LUMA[1] * (0.5 * (greens[0] + greens[1])) + _LUMA[2] * blue
+    # the weights sum to 1: a weighted mean in [0, 1] but for rounding
+    return np.clip(gray, 0.0, 1.0).astype(np.float32, copy=False)
 
 
 def _compressed_gray(msg, where: str) -> np.ndarray:

@@ -102,7 +102,75 @@ def _header(ts, ros1: bool, t: float, frame_id: str = "camera"):
     return Header(stamp=stamp, frame_id=frame_id)
 
 
-def _image_message(ts, header, frame: np.ndarray, encoding: str, compressed: str | None):
+#: BT.601 full-range (JPEG) RGB -> Y, U, V, as 8-bit cameras and ``yuvj`` formats use it
+_YUV = np.array(
+    [[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]]
+)
+
+
+def _bayer_mosaic(rgb: np.ndarray, cell: str) -> np.ndarray:
+    """What a Bayer sensor records of ``rgb`` (H, W, 3): each photosite keeps one colour."""
+    mosaic = np.empty(rgb.shape[:2], rgb.dtype)
+    for k, (dy, dx) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+        mosaic[dy::2, dx::2] = rgb[dy::2, dx::2, "rgb".index(cell[k])]
+    return mosaic
+
+
+def _yuv422(frame: np.ndarray, layout: str) -> np.ndarray:
+    """Pixel pairs of ``frame`` (even width) as UYVY or YUYV bytes, shape (H, W, 2).
+
+    A gray frame is its own Y with neutral chroma (128); an RGB frame gets BT.601 full-range
+    Y, and U, V averaged over each pixel pair.
+    """
+    h, w = frame.shape[:2]
+    if w % 2:
+        raise ValueError(f"{layout} frames need an even width (pixel pairs); got {h}x{w}")
+    if frame.ndim == 2:
+        y = frame
+        u = v = np.full((h, w // 2), 128, np.uint8)
+    else:
+        yuv = frame.astype(np.float64) @ _YUV.T + [0.0, 128.0, 128.0]
+        y = np.clip(np.rint(yuv[:, :, 0]), 0, 255).astype(np.uint8)
+        pairs = yuv[:, :, 1:].reshape(h, w // 2, 2, 2).mean(axis=2)
+        u, v = np.clip(np.rint(pairs), 0, 255).astype(np.uint8).transpose(2, 0, 1)
+    out = np.empty((h, w, 2), np.uint8)
+    luma, chroma = (1, 0) if layout == "uyvy" else (0, 1)
+    out[:, :, luma] = y
+    out[:, 0::2, chroma] = u
+    out[:, 1::2, chroma] = v
+    return out
+
+
+def _raw_pixels(frame: np.ndarray, encoding: str, bigendian: bool) -> np.ndarray:
+    """The pixel array of one raw ``sensor_msgs/Image`` (any shape; rows first)."""
+    from .rosbag import IMAGE_ENCODINGS
+
+    u2 = ">u2" if bigendian else "<u2"
+    enc = encoding.lower()
+    layout = IMAGE_ENCODINGS.get(enc, (None, None, None))[2]
+    if enc.startswith("bayer_"):
+        rgb = frame if frame.ndim == 3 else np.repeat(frame[:, :, None], 3, axis=2)
+        mosaic = _bayer_mosaic(rgb, layout)
+        return mosaic.astype(u2) * np.uint16(257) if enc.endswith("16") else mosaic
+    if layout in ("uyvy", "yuyv"):
+        return _yuv422(frame, layout)
+    if enc in ("mono16", "16uc1"):
+        return frame.astype(u2) * np.uint16(257)
+    if enc in ("rgb16", "bgr16"):
+        rgb = frame if enc == "rgb16" else frame[:, :, ::-1]
+        return rgb.astype(u2) * np.uint16(257)
+    if enc == "bgr8":
+        return frame[:, :, ::-1]
+    if enc in ("rgba8", "bgra8"):
+        rgb = frame if enc == "rgba8" else frame[:, :, ::-1]
+        return np.concatenate([rgb, np.full(frame.shape[:2] + (1,), 255, np.uint8)], axis=2)
+    return frame
+
+
+def _image_message(
+    ts, header, frame: np.ndarray, encoding: str, compressed: str | None,
+    bigendian: bool = False, padding: int = 0,
+):  # fmt: skip
     if compressed is not None:
         buf = io.BytesIO()
         Image.fromarray(frame).save(buf, format={"jpeg": "JPEG", "png": "PNG"}[compressed])
@@ -110,21 +178,15 @@ def _image_message(ts, header, frame: np.ndarray, encoding: str, compressed: str
         return "sensor_msgs/msg/CompressedImage", ts.types["sensor_msgs/msg/CompressedImage"](
             header=header, format=compressed, data=data
         )
-    if encoding in ("mono16", "16UC1"):
-        pix = frame.astype("<u2") * np.uint16(257)
-    elif encoding == "bgr8":
-        pix = frame[:, :, ::-1]
-    elif encoding in ("rgba8", "bgra8"):
-        rgb = frame if encoding == "rgba8" else frame[:, :, ::-1]
-        pix = np.concatenate([rgb, np.full(frame.shape[:2] + (1,), 255, np.uint8)], axis=2)
-    else:
-        pix = frame
-    pix = np.ascontiguousarray(pix)
+    pix = np.ascontiguousarray(_raw_pixels(frame, encoding, bigendian))
     h, w = frame.shape[:2]
-    data = pix.view(np.uint8).reshape(-1)
+    rows = pix.view(np.uint8).reshape(h, -1)
+    if padding:  # bytes past each row's pixels, as drivers add for alignment: never pixels
+        rows = np.concatenate([rows, np.full((h, padding), 0xA5, np.uint8)], axis=1)
+    data = rows.reshape(-1)
     return "sensor_msgs/msg/Image", ts.types["sensor_msgs/msg/Image"](
-        header=header, height=h, width=w, encoding=encoding, is_bigendian=0,
-        step=data.size // h, data=data,
+        header=header, height=h, width=w, encoding=encoding, is_bigendian=int(bigendian),
+        step=rows.shape[1], data=data,
     )  # fmt: skip
 
 
@@ -158,6 +220,8 @@ def write_bag(
     start: float = 1000.0,
     positions=None,
     position_topic: str = "/odom",
+    bigendian: bool = False,
+    padding: int = 0,
 ):
     """Write frames as image messages of a ROS 1 ``.bag`` or a ROS 2 bag folder.
 
@@ -170,12 +234,21 @@ def write_bag(
     storage : {'sqlite3', 'mcap'}
         ROS 2 storage: a ``.db3`` or an ``.mcap`` file in the bag folder.
     encoding : str
-        Raw encoding (``mono8``, ``mono16``, ``rgb8``, ``bgr8``, ``rgba8``, ``bgra8``; ``16UC1``
-        writes a depth-like image) unless ``compressed`` is ``'jpeg'`` or ``'png'``.
+        Raw encoding unless ``compressed`` is ``'jpeg'`` or ``'png'``: ``mono8``, ``mono16``,
+        ``rgb8``, ``bgr8``, ``rgba8``, ``bgra8``, ``rgb16``, ``bgr16``; ``16UC1`` writes a
+        depth-like image; a camera's raw forms ``bayer_rggb8``, ``bayer_bggr8``,
+        ``bayer_gbrg8``, ``bayer_grbg8`` (and ``bayer_*16``) write the mosaic a Bayer sensor
+        records of the frame (each pixel keeps the one colour of its photosite), ``yuv422``
+        (UYVY) and ``yuv422_yuy2`` (YUYV) its BT.601 full-range Y (a gray frame is its own Y)
+        with U, V shared by each pixel pair.  16-bit samples are the 8-bit ones times 257.
     fps, start : float
         Frame ``i`` is stamped ``start + i / fps`` seconds.
     positions : array-like, shape (n, 2), optional
         Also write ``nav_msgs/Odometry`` on ``position_topic`` with these x, y (metres).
+    bigendian : bool
+        Write 16-bit samples big-endian (``is_bigendian`` 1).
+    padding : int
+        Bytes added after each row of a raw image (``step`` is then larger than the pixels).
     """
     typesys = require_extra("rosbags.typesys")
     a = _uint8(frames)
@@ -200,7 +273,9 @@ def write_bag(
             for i in range(a.shape[0]):
                 t = start + i / fps
                 stamp_ns = int(round(t * 1e9))
-                msgtype, msg = _image_message(ts, _header(ts, ros1, t), a[i], encoding, compressed)
+                msgtype, msg = _image_message(
+                    ts, _header(ts, ros1, t), a[i], encoding, compressed, bigendian, padding
+                )
                 if topic not in conns:
                     conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
                 writer.write(conns[topic], stamp_ns, serialize(msg, msgtype))
