@@ -51,13 +51,14 @@ def _shape(log_rank: float) -> float:
 
 def _split(weights: np.ndarray, backward: np.ndarray, share: float) -> np.ndarray:
     """``weights`` normalised so that the ``backward`` ones sum to ``share`` and the others to
-    ``1 - share``; with velocities of one sign only, normalised to sum to 1."""
+    ``1 - share``; with velocities of one sign only, or where the weights leave one sign
+    nothing to share it out over, normalised to sum to 1."""
     out = weights.astype(np.float64)
     if backward.any() and not backward.all():
-        for part, mass in ((backward, share), (~backward, 1.0 - share)):
-            total = out[part].sum()
-            out[part] *= mass / total if total > 0 else 0.0
-        if out.sum() > 0:
+        totals = out[backward].sum(), out[~backward].sum()
+        if totals[0] > 0 and totals[1] > 0:
+            out[backward] *= share / totals[0]
+            out[~backward] *= (1.0 - share) / totals[1]
             return out
     return out / out.sum()
 
@@ -391,7 +392,7 @@ class CANN(OnlineFilter):
         self._support_mean = 0.0  # the support averaged over support_memory frames
         # The front end's model: running mean and variance of its peak's z-score and of its
         # best raw score, and the logistic weights (prior: a weak front end, right with
-        # probability 0.5 ** (2 + tolerance) whatever its peak).
+        # probability 0.5 ** (1 + tolerance) whatever its peak).
         self._front_stats = None
         self._front_raw_z = 0.0
         prior = 0.5 ** (1 + p["tolerance"])
