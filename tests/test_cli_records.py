@@ -242,3 +242,202 @@ def test_localize_dataset_confidence_is_exact(tmp_path):
     assert all(repr(float(c)) == c for c in conf)
     # a six-digit rounding would show no cell with more than six significant digits
     assert any(len(c.lstrip("0.").replace(".", "")) > 6 for c in conf)
+
+
+# -- MCAP ------------------------------------------------------------------------------------
+def _mcap(path):
+    """(schemas by topic, messages as (topic, log_time, publish_time, decoded JSON)), metadata."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        schemas = {}
+        for channel in summary.channels.values():
+            schema = summary.schemas[channel.schema_id]
+            assert (schema.encoding, channel.message_encoding) == ("jsonschema", "json")
+            schemas[channel.topic] = (schema.name, json.loads(schema.data))
+        messages = [
+            (channel.topic, message.log_time, message.publish_time, json.loads(message.data))
+            for _, channel, message in reader.iter_messages(log_time_order=False)
+        ]
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+    return schemas, messages, metadata
+
+
+def test_mcap_records_read_back_exactly(tmp_path):
+    pytest.importorskip("mcap")
+    path = tmp_path / "where.mcap"
+    columns = [*COLUMNS, "x"]
+    rows = [
+        {"frame": 0, "timestamp": EPOCH, "place": 2, "confidence": 1 / 3, "state": "lost",
+         "x": 1e6 + 0.1},
+        {"frame": 1, "timestamp": EPOCH + 1 / 30, "place": 3, "confidence": float("nan"),
+         "state": "localized", "x": float("nan")},
+    ]  # fmt: skip
+    with open_records(path, columns, metadata={"map": "route.map"}) as out:
+        for row in rows:
+            out.write(row, {"query": np.zeros((2, 3), np.uint8)})  # no thumbnails: ignored
+    schemas, messages, metadata = _mcap(path)
+    name, schema = schemas["/flyvpr/localization"]
+    assert list(schemas) == ["/flyvpr/localization"]
+    assert name == "flyvpr.Localization" and schema["required"] == columns
+    assert schema["properties"]["timestamp"]["type"] == ["number", "null"]
+    assert [m[3] for m in messages] == [
+        {**rows[0]},
+        {**rows[1], "confidence": None, "x": None},
+    ]
+    for (_, log_time, publish_time, record), row in zip(messages, rows, strict=True):
+        assert log_time == publish_time == round(row["timestamp"] * 1e9)
+        assert record["timestamp"] == row["timestamp"]  # the float itself, every digit
+    assert metadata == {"flyvpr": {"map": "route.map"}}
+
+
+def test_mcap_without_timestamps_uses_the_wall_clock(tmp_path):
+    pytest.importorskip("mcap")
+    import time
+
+    path = tmp_path / "where.mcap"
+    before = time.time_ns()
+    with open_records(path, ["frame", "timestamp"]) as out:
+        out.write({"frame": 0, "timestamp": float("nan")})
+    (message,) = _mcap(path)[1]
+    assert before <= message[1] <= time.time_ns()
+    assert message[3] == {"frame": 0, "timestamp": None}
+
+
+def test_mcap_thumbnails_are_foxglove_compressed_images(tmp_path):
+    pytest.importorskip("mcap")
+    import base64
+    import io
+
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    query, match = (rng.integers(0, 256, (4, 8), dtype=np.uint8) for _ in range(2))
+    path = tmp_path / "where.mcap"
+    with open_records(path, ["frame", "timestamp"], thumbnails=True) as out:
+        out.write({"frame": 0, "timestamp": 12.5}, {"query": query, "match": match})
+    schemas, messages, _ = _mcap(path)
+    assert schemas["/flyvpr/query"][0] == schemas["/flyvpr/match"][0] == "foxglove.CompressedImage"
+    images = {topic: msg for topic, _, _, msg in messages if topic != "/flyvpr/localization"}
+    for topic, expected in (("/flyvpr/query", query), ("/flyvpr/match", match)):
+        msg = images[topic]
+        assert msg["timestamp"] == {"sec": 12, "nsec": 500_000_000}
+        assert msg["format"] == "png" and msg["frame_id"] == topic.rsplit("/", 1)[1]
+        png = Image.open(io.BytesIO(base64.b64decode(msg["data"])))
+        np.testing.assert_array_equal(np.asarray(png), expected)
+    assert {m[1] for m in messages} == {12_500_000_000}
+
+
+@pytest.mark.parametrize("name", ["where.csv", "where.jsonl"])
+def test_thumbnails_need_mcap(tmp_path, name):
+    with pytest.raises(ValueError, match=rf"{name}: a \.\w+ records file holds no thumbnails"):
+        with open_records(tmp_path / name, COLUMNS, thumbnails=True):
+            pass
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_mcap_interrupted_leaves_nothing_or_keeps_a_valid_file(tmp_path):
+    pytest.importorskip("mcap")
+    path = tmp_path / "where.mcap"
+    with pytest.raises(KeyboardInterrupt), open_records(path, COLUMNS) as out:
+        out.write(_rows(1)[0])
+        raise KeyboardInterrupt
+    assert list(tmp_path.iterdir()) == []
+    for mode in ({"keep_partial": True}, {"flush": True}):
+        with pytest.raises(RuntimeError), open_records(path, COLUMNS, **mode) as out:
+            for row in _rows(3):
+                out.write(row)
+            raise RuntimeError("the stream went away")
+        assert [m[3]["frame"] for m in _mcap(path)[1]] == [0, 1, 2]
+        assert [p.name for p in tmp_path.iterdir()] == ["where.mcap"]
+
+
+def test_mcap_flush_puts_each_message_on_disk(tmp_path):
+    pytest.importorskip("mcap")
+    path = tmp_path / "where.mcap"
+    sizes = []
+    with open_records(path, COLUMNS, flush=True) as out:
+        for row in _rows(3):
+            out.write(row)
+            sizes.append(path.stat().st_size)
+    assert sizes[0] < sizes[1] < sizes[2] < path.stat().st_size
+    assert len(_mcap(path)[1]) == 3
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_localize_mcap_matches_jsonl_record_for_record(epoch_bags, tmp_path, version):
+    pytest.importorskip("mcap")
+    import base64
+    import io
+
+    from PIL import Image
+
+    from flyvpr.cli import main
+    from flyvpr.maps import Map
+
+    ref, qry = epoch_bags[version, "summer"], epoch_bags[version, "winter"]
+    route_map = tmp_path / "route.map"
+    assert main(["map", str(ref), "--position-topic", "/odom", "--out", str(route_map),
+                 "-q"]) == 0  # fmt: skip
+    for name, extra in (("where.jsonl", []), ("where.mcap", ["--mcap-thumbnails"])):
+        assert main(["localize", "--map", str(route_map), str(qry), "--out",
+                     str(tmp_path / name), "-q", *extra]) == 0  # fmt: skip
+    expected = _read(tmp_path / "where.jsonl")
+    schemas, messages, metadata = _mcap(tmp_path / "where.mcap")
+    records = [m for m in messages if m[0] == "/flyvpr/localization"]
+    assert [m[3] for m in records] == expected  # place, confidence, state, stamps: exact
+    assert [m[1] for m in records] == [round(r["timestamp"] * 1e9) for r in expected]
+    assert schemas["/flyvpr/localization"][1]["required"] == list(expected[0])
+    assert metadata["flyvpr"]["map"] == str(route_map)
+    assert metadata["flyvpr"]["method"] == Map.load(route_map).method.name
+    m = Map.load(route_map)
+    matches = [msg for topic, _, _, msg in messages if topic == "/flyvpr/match"]
+    queries = [msg for topic, _, _, msg in messages if topic == "/flyvpr/query"]
+    assert len(matches) == len(queries) == len(expected)
+    for record, match, query in zip(expected, matches, queries, strict=True):
+        png = np.asarray(Image.open(io.BytesIO(base64.b64decode(match["data"]))))
+        np.testing.assert_array_equal(png, m.thumbnails[record["place"]])
+        assert np.asarray(Image.open(io.BytesIO(base64.b64decode(query["data"])))).shape == (
+            m.thumbnails.shape[1:]
+        )
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--out", "{tmp}/w.csv", "--mcap-thumbnails"], "--mcap-thumbnails needs --out FILE.mcap"),
+        (["--mcap-thumbnails"], "--mcap-thumbnails needs --out FILE.mcap"),
+    ],
+)
+def test_localize_mcap_usage_errors(epoch_bags, tmp_path, capsys, argv, message):
+    from flyvpr.cli import main
+
+    route_map = tmp_path / "route.map"
+    assert main(["map", str(epoch_bags[1, "summer"]), "--out", str(route_map), "-q"]) == 0
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    assert main(["localize", "--map", str(route_map), str(epoch_bags[1, "winter"]), *argv]) == 2
+    assert message in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["route.map"]
+
+
+@pytest.mark.parametrize("name", ["s.mcap", "s.jsonl"])
+def test_localize_dataset_refuses_mcap_and_jsonl(tmp_path, capsys, name):
+    from flyvpr.cli import main
+
+    code = main(["localize", "--dataset", "generic", "--root", str(tmp_path), "--reference", "a",
+                 "--query", "b", "--out", str(tmp_path / name)])  # fmt: skip
+    assert code == 2
+    assert f"--out {tmp_path / name}: with --dataset the records are CSV" in capsys.readouterr().err
+
+
+def test_mcap_without_its_package_names_the_extra(tmp_path, monkeypatch):
+    import sys
+
+    for name in ("mcap", "mcap.writer"):
+        monkeypatch.setitem(sys.modules, name, None)
+    with pytest.raises(ImportError, match=r"pip install 'flyvpr\[recordings\]'"):
+        with open_records(tmp_path / "where.mcap", COLUMNS, flush=True):
+            pass
+    assert list(tmp_path.iterdir()) == []

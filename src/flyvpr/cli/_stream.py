@@ -66,6 +66,8 @@ def cmd_localize_recording(args) -> int:
         raise UsageError("--ground-truth CSV needs --radius (metres)")
     if args.ground_truth == "frames" and args.tolerance is None:
         raise UsageError("--ground-truth frames needs --tolerance (frames)")
+    if args.mcap_thumbnails and (args.out is None or args.out.suffix.lower() != ".mcap"):
+        raise UsageError("--mcap-thumbnails needs --out FILE.mcap (the thumbnails go in it)")
     renders = args.render or []
     for path in renders:
         if path.suffix.lower() not in (".mp4", ".mkv", ".html", ".htm"):
@@ -104,7 +106,14 @@ def cmd_localize_recording(args) -> int:
     with ExitStack() as stack:
         out = None
         if args.out is not None:
-            out = stack.enter_context(open_records(args.out, columns))
+            out = stack.enter_context(
+                open_records(
+                    args.out,
+                    columns,
+                    thumbnails=args.mcap_thumbnails,
+                    metadata=_run_metadata(args, m, source),
+                )
+            )
         tracers = [stack.enter_context(_tracer(path, m)) for path in renders]
         bar = stack.enter_context(tqdm(desc="localizing", unit="frame", disable=not show))
         for step in track(loc, source, every=args.every, positions=positions,
@@ -133,7 +142,12 @@ def cmd_localize_recording(args) -> int:
                 if gt is not None:
                     row["correct"] = int(gt[i, step.places[i]])
                 if out is not None:
-                    out.write(row)
+                    images = None
+                    if args.mcap_thumbnails:
+                        images = {"query": np.rint(b.images[i] * 255.0).astype(np.uint8)}
+                        if m.thumbnails is not None:
+                            images["match"] = m.thumbnails[step.places[i]]
+                    out.write(row, images)
             confidences.append(step.confidences.astype(np.float32))
             n_frames += len(b)
             n_reloc += int(step.relocated.sum())
@@ -157,6 +171,17 @@ def cmd_localize_recording(args) -> int:
         if path is not None:
             print(f"wrote {path}")
     return 0
+
+
+def _run_metadata(args, m, source) -> dict:
+    """What an MCAP records file says about its run (strings)."""
+    return {
+        "map": str(args.map),
+        "method": m.method.name,
+        "n_places": str(m.n_places),
+        "source": source.describe(),
+        "every": str(args.every or 1),
+    }
 
 
 def _tracer(path, m):

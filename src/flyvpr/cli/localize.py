@@ -38,10 +38,16 @@ def cmd_localize(args) -> int:
     if args.dataset is None:
         raise UsageError("give --map MAP SOURCE (a recording) or --dataset (a benchmark layout)")
     for option in (
-        "render", "ground_truth", "topic", "every", "positions", "position_topic", "no_odometry"
+        "render", "ground_truth", "topic", "every", "positions", "position_topic", "no_odometry",
+        "mcap_thumbnails",
     ):  # fmt: skip
         if getattr(args, option):
             raise UsageError(f"{flag(option)} needs --map MAP SOURCE")
+    if args.out is not None and args.out.suffix.lower() in (".jsonl", ".mcap"):
+        raise UsageError(
+            f"--out {args.out}: with --dataset the records are CSV; .jsonl and .mcap need "
+            "--map MAP SOURCE"
+        )
     if args.realtime:
         raise UsageError("--realtime needs --map MAP SOURCE")
     args.size = args.size or DEFAULT_SIZE
@@ -175,7 +181,17 @@ def register(sub) -> None:
         "--position-topic) to the filter; it then estimates the movement from the images",
     )
     p.add_argument(
-        "--out", type=Path, help="CSV (or with --map, .jsonl) file to write (atomically)"
+        "--out",
+        type=Path,
+        help="records file to write (atomically), the format by its suffix: .csv; with --map "
+        "also .jsonl (JSON Lines) or .mcap (JSON messages with JSON schemas, for Foxglove and "
+        "other MCAP tools); numbers are written exactly (every digit of a float64)",
+    )
+    p.add_argument(
+        "--mcap-thumbnails",
+        action="store_true",
+        help="with --out X.mcap: also write each frame's query image and its matched place's "
+        "thumbnail (PNG, foxglove.CompressedImage on /flyvpr/query and /flyvpr/match)",
     )
     add_image_args(p, size_default=None)
     p.set_defaults(func=cmd_localize)
