@@ -281,12 +281,14 @@ def test_mcap_records_read_back_exactly(tmp_path):
     schemas, messages, metadata = _mcap(path)
     name, schema = schemas["/flyvpr/localization"]
     assert list(schemas) == ["/flyvpr/localization"]
-    assert name == "flyvpr.Localization" and schema["required"] == columns
-    assert schema["properties"]["timestamp"]["type"] == ["number", "null"]
-    assert [m[3] for m in messages] == [
-        {**rows[0]},
-        {**rows[1], "confidence": None, "x": None},
-    ]
+    assert name == "flyvpr.Localization"
+    assert schema["required"] == ["frame", "place", "state"]  # the others may be unknown
+    assert {k: v["type"] for k, v in schema["properties"].items()} == {
+        "frame": "integer", "timestamp": "number", "place": "integer", "confidence": "number",
+        "state": "string", "x": "number",
+    }  # fmt: skip
+    # NaN (null in JSON Lines) is left out, as the schema allows
+    assert [m[3] for m in messages] == [rows[0], {k: rows[1][k] for k in COLUMNS[:3] + ["state"]}]
     for (_, log_time, publish_time, record), row in zip(messages, rows, strict=True):
         assert log_time == publish_time == round(row["timestamp"] * 1e9)
         assert record["timestamp"] == row["timestamp"]  # the float itself, every digit
@@ -303,7 +305,18 @@ def test_mcap_without_timestamps_uses_the_wall_clock(tmp_path):
         out.write({"frame": 0, "timestamp": float("nan")})
     (message,) = _mcap(path)[1]
     assert before <= message[1] <= time.time_ns()
-    assert message[3] == {"frame": 0, "timestamp": None}
+    assert message[3] == {"frame": 0}
+
+
+def test_mcap_schema_types_other_columns_by_their_first_value(tmp_path):
+    pytest.importorskip("mcap")
+    path = tmp_path / "where.mcap"
+    with open_records(path, ["frame", "latency_ms", "source", "dropped"]) as out:
+        out.write({"frame": 0, "latency_ms": 1.5, "source": "cam", "dropped": np.int64(2)})
+    schema = _mcap(path)[0]["/flyvpr/localization"][1]
+    assert {k: v["type"] for k, v in schema["properties"].items()} == {
+        "frame": "integer", "latency_ms": "number", "source": "string", "dropped": "integer"
+    }  # fmt: skip
 
 
 def test_mcap_thumbnails_are_foxglove_compressed_images(tmp_path):
@@ -389,7 +402,7 @@ def test_localize_mcap_matches_jsonl_record_for_record(epoch_bags, tmp_path, ver
     records = [m for m in messages if m[0] == "/flyvpr/localization"]
     assert [m[3] for m in records] == expected  # place, confidence, state, stamps: exact
     assert [m[1] for m in records] == [round(r["timestamp"] * 1e9) for r in expected]
-    assert schemas["/flyvpr/localization"][1]["required"] == list(expected[0])
+    assert list(schemas["/flyvpr/localization"][1]["properties"]) == list(expected[0])
     assert metadata["flyvpr"]["map"] == str(route_map)
     assert metadata["flyvpr"]["method"] == Map.load(route_map).method.name
     m = Map.load(route_map)

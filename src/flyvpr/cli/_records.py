@@ -195,21 +195,37 @@ class JsonlRecords(Records):
         self.fh.write(json.dumps(clean) + "\n")
 
 
-#: JSON Schema types of the known columns; any other column may hold any JSON value
+#: JSON Schema of the known columns (one type each, as Foxglove reads them); a column whose
+#: value may be unknown is left out of a message when it is (null in JSON Lines), and is not
+#: ``required``; other columns get the type of their first value
 COLUMN_SCHEMAS = {
     "frame": {"type": "integer", "description": "index of the frame in the recording"},
     "timestamp": {
-        "type": ["number", "null"],
-        "description": "seconds on the recording's clock (null when it has none)",
+        "type": "number",
+        "description": "seconds on the recording's clock (absent when it has none)",
     },
     "place": {"type": "integer", "description": "index of the matched place in the map"},
-    "confidence": {"type": ["number", "null"], "description": "the localizer's confidence"},
+    "confidence": {"type": "number", "description": "the localizer's confidence"},
     "state": {"type": "string", "description": "the localizer's state"},
     "relocated": {"type": "integer", "description": "1 when the filter jumped to a new place"},
-    "x": {"type": ["number", "null"], "description": "map x of the matched place (m)"},
-    "y": {"type": ["number", "null"], "description": "map y of the matched place (m)"},
+    "x": {"type": "number", "description": "map x of the matched place (m)"},
+    "y": {"type": "number", "description": "map y of the matched place (m)"},
     "correct": {"type": "integer", "description": "1 when the place is a true match"},
 }
+#: the known columns that may be unknown (NaN) in a record
+NULLABLE = frozenset({"timestamp", "confidence", "x", "y"})
+
+
+def _json_type(value) -> dict:
+    if isinstance(value, (bool, np.bool_)):
+        return {"type": "boolean"}
+    if isinstance(value, (int, np.integer)):
+        return {"type": "integer"}
+    if isinstance(value, (float, np.floating)):
+        return {"type": "number"}
+    if isinstance(value, str):
+        return {"type": "string"}
+    return {}
 
 #: foxglove.CompressedImage, as a JSON Schema (bytes in JSON are base64 text)
 _COMPRESSED_IMAGE_SCHEMA = {
@@ -235,11 +251,12 @@ _COMPRESSED_IMAGE_SCHEMA = {
 class McapRecords(Records):
     """Records as MCAP messages with JSON schemas, for Foxglove and other MCAP readers.
 
-    Each record is one JSON message (the same keys and exact values as JSON Lines) on the
-    topic ``/flyvpr/localization``, schema ``flyvpr.Localization`` (a JSON Schema of the
-    columns).  Its log and publish time is the frame's timestamp in nanoseconds, or the time
-    the record was written when the recording has none.  With ``thumbnails``, each image
-    given to :meth:`write` goes as a PNG in a ``foxglove.CompressedImage`` message on
+    Each record is one JSON message (the keys and exact values of JSON Lines, less those
+    that are null there) on the topic ``/flyvpr/localization``, schema
+    ``flyvpr.Localization`` (a JSON Schema of the columns, registered with the first record).
+    Its log and publish time is the frame's timestamp in nanoseconds, or the time the record
+    was written when the recording has none.  With ``thumbnails``, each image given to
+    :meth:`write` goes as a PNG in a ``foxglove.CompressedImage`` message on
     ``/flyvpr/<name>`` (``/flyvpr/query``, ``/flyvpr/match``) at the same time.  The run's
     metadata is an MCAP metadata record named ``flyvpr``.  Chunks are zstd-compressed; with
     ``flush`` the messages are written one by one, unchunked, so each is on disk at once.
@@ -270,14 +287,7 @@ class McapRecords(Records):
         else:
             self.writer = Writer(self.fh, compression=CompressionType.ZSTD)
         self.writer.start(profile="", library=f"flyvpr {__version__}")
-        schema = {
-            "title": "flyvpr.Localization",
-            "description": "One frame localized by flyvpr against a map",
-            "type": "object",
-            "properties": {c: COLUMN_SCHEMAS.get(c, {}) for c in self.columns},
-            "required": self.columns,
-        }
-        self.channel = self._channel(self.topic, "flyvpr.Localization", schema)
+        self.channel = None
         self.image_channels: dict[str, int] = {}
         self.sequence = 0
         if self.metadata:
@@ -297,9 +307,21 @@ class McapRecords(Records):
             return round(float(t) * 1e9)
         return time.time_ns()
 
+    def _schema(self, row: dict) -> dict:
+        return {
+            "title": "flyvpr.Localization",
+            "description": "One frame localized by flyvpr against a map",
+            "type": "object",
+            "properties": {c: COLUMN_SCHEMAS.get(c) or _json_type(row[c]) for c in self.columns},
+            "required": [c for c in self.columns if c not in NULLABLE],
+        }
+
     def _write_row(self, row: dict) -> None:
+        if self.channel is None:
+            self.channel = self._channel(self.topic, "flyvpr.Localization", self._schema(row))
         self.log_time = self._log_time(row)
-        data = json.dumps({k: json_value(v) for k, v in row.items()}).encode()
+        values = {k: json_value(row[k]) for k in self.columns}
+        data = json.dumps({k: v for k, v in values.items() if v is not None}).encode()
         self._message(self.channel, data)
 
     def _message(self, channel: int, data: bytes) -> None:
