@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._chunks import ChunkRunner
 from ._validation import ArraySpec, check_memory
 from .images import DEFAULT_SIZE
 from .methods import DEFAULT_METHOD, Method, make_method
@@ -138,6 +139,8 @@ class Map:
         frontend_params=None,
         filter_params=None,
         progress: bool = False,
+        n_jobs: int | None = None,
+        scheduler=None,
     ) -> Map:
         """Fit ``method`` on the kept frames of a recording.
 
@@ -157,13 +160,36 @@ class Map:
         position_topic : str, optional
             A NavSatFix or Odometry topic of the same bag.
         progress : bool
-            Show a progress bar (on stderr) of the frames read.
+            Show a progress bar (on stderr) of the frames read (and, with ``n_jobs`` or
+            ``scheduler``, of each pass over them).
+        n_jobs : int, optional
+            Encode the frames in chunks on this many local processes (-1: all cores).
+        scheduler : str or dask.distributed.Client, optional
+            Encode the chunks on a Dask cluster: its scheduler's address
+            (``tcp://host:8786``) or a connected Client.  Needs the ``dask`` extra.
+
+        Notes
+        -----
+        With ``n_jobs`` or ``scheduler`` the frames are still read in this process; what the
+        front end learns from the whole traverse (kenyon's static-pixel mask and feature mean)
+        is learned here too, and the per-frame work (kenyon's optic lobe and codes, pixels'
+        patch normalisation) goes to the workers in chunks of
+        :data:`flyvpr._chunks.CHUNK` frames.  The map is the same, byte for byte, as the
+        one-process build.  Front ends that cannot split their fit (flyhash, the trained
+        networks) fit in this process.
 
         Raises
         ------
         RecordingError
             If the recording cannot be read or ``every`` keeps fewer than 2 frames.
+        ValueError, TypeError
+            For a bad ``n_jobs`` or ``scheduler``, or both given.
+        ImportError
+            If ``scheduler`` is given and the ``dask`` extra is not installed.
+        ConnectionError
+            If the scheduler cannot be reached (checked before any frame is read).
         """
+        runner = ChunkRunner(n_jobs, scheduler, progress=progress)
         if isinstance(method, Method):
             m = method
         else:
@@ -179,12 +205,22 @@ class Map:
         if pos is None:
             bag = src.path if src.kind == "bag" else None
             pos = read_positions(positions, bag=bag, topic=position_topic)
-        frames = _read_frames(src, size, every, pos, progress)
-        n = len(frames)
-        if n < 2:
-            raise RecordingError(f"{src.describe()}: a map needs at least 2 places; got {n}")
-        check_memory(n * n * 8 * 2, f"a map of {n} places from {src.path}")
-        m.fit(frames.images)
+        with runner:
+            frames = _read_frames(src, size, every, pos, progress)
+            n = len(frames)
+            if n < 2:
+                raise RecordingError(f"{src.describe()}: a map needs at least 2 places; got {n}")
+            check_memory(n * n * 8 * 2, f"a map of {n} places from {src.path}")
+            if runner.parallel and m.frontend._fits_in_chunks:
+                logger.info("map: encoding %d frames on %s", n, runner.describe())
+                m._fit_checked(frames.images, runner)
+            else:
+                if runner.parallel:
+                    logger.warning(
+                        "map: the %s front end cannot split its fit; fitting in one process",
+                        m.frontend.name,
+                    )
+                m.fit(frames.images)
         xy = None if pos is None else pos.at(frames.indices, frames.timestamps)
         thumbs = np.rint(frames.images * 255.0).astype(np.uint8)
         info = {

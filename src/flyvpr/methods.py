@@ -164,8 +164,13 @@ class Method:
 
     def fit(self, reference_images) -> Method:
         """Fit the front end, then the filter on the reference traverse's own scores."""
+        return self._fit_checked(reference_images, None)
+
+    def _fit_checked(self, reference_images, map_chunks) -> Method:
+        """:meth:`fit`, the front end's per-image work run through ``map_chunks`` when it is
+        not None (see :meth:`flyvpr.frontends.base.Encoder._fit_chunks`)."""
         t0 = time.perf_counter()
-        self.frontend.fit(reference_images)
+        self.frontend._fit_checked(reference_images, map_chunks)
         if self.filter is not None and getattr(self.filter, "needs_reference_scores", False):
             self.filter.fit(self.frontend.score(reference_images))
         self.timing_ = {"fit_s": time.perf_counter() - t0}

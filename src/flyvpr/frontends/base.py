@@ -47,11 +47,19 @@ class Encoder(ParamsMixin):
         -------
         self
         """
+        return self._fit_checked(reference_images, None)
+
+    def _fit_checked(self, reference_images, map_chunks) -> Encoder:
+        """:meth:`fit`, with the per-image work of encoders that can split it run through
+        ``map_chunks`` (see :class:`flyvpr._chunks.ChunkRunner`) when it is not None."""
         images = check_images(reference_images, "reference_images")
         self.image_shape_ = tuple(images.shape[1:])
         self.n_reference_ = int(images.shape[0])
         self.train_accuracy_ = None
-        self._fit(images)
+        if map_chunks is None:
+            self._fit(images)
+        else:
+            self._fit_chunks(images, map_chunks)
         return self
 
     def encode(self, images) -> np.ndarray:
@@ -163,6 +171,19 @@ class Encoder(ParamsMixin):
 
     def _fit(self, images: np.ndarray) -> None:
         raise NotImplementedError
+
+    #: True where :meth:`_fit_chunks` spreads its per-image work over ``map_chunks``
+    _fits_in_chunks = False
+
+    def _fit_chunks(self, images: np.ndarray, map_chunks) -> None:
+        """:meth:`_fit` with its per-image work done by ``map_chunks(func, rows, what)``.
+
+        An encoder that sets ``_fits_in_chunks`` learns what needs the whole traverse here,
+        then hands functions of a block of images, each image computed on its own, to
+        ``map_chunks``: the result must be the bytes :meth:`_fit` gives.  The default fits in
+        this process.
+        """
+        self._fit(images)
 
     def _encode(self, images: np.ndarray) -> np.ndarray:
         raise NotImplementedError

@@ -49,6 +49,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import sparse
 
+from .._chunks import in_process
 from .._validation import (
     ArraySpec,
     ScalarSpec,
@@ -302,7 +303,14 @@ class KenyonEncoder(Encoder):
             self._set_valid()
         return self._optic_lobe(images, self._valid)
 
+    _fits_in_chunks = True
+
     def _fit(self, images: np.ndarray) -> None:
+        self._fit_chunks(images, in_process)
+
+    def _fit_chunks(self, images: np.ndarray, map_chunks) -> None:
+        # the mask and the feature mean need the whole traverse; the optic lobe and the codes
+        # are computed image by image (each image's bytes do not depend on its chunk)
         n_kenyon, n_proj = self._check_layout()
         ratio = check_fraction(self.active_ratio, "active_ratio")
         n_in = check_positive_int(self.n_inputs, "n_inputs")
@@ -323,7 +331,7 @@ class KenyonEncoder(Encoder):
                 f"{self._optic_lobe.n_features(*self.image_shape_)} see pixels that vary along "
                 f"the reference traverse); got {n_in}"
             )
-        features = self._lobe(images)
+        features = map_chunks(self._lobe, images, "optic lobe")
         self.n_features_ = int(features.shape[1])
         self.n_active_ = max(n_proj, int(round(ratio * n_kenyon / n_proj)) * n_proj)
         self.connections_ = balanced_connections(
@@ -331,7 +339,7 @@ class KenyonEncoder(Encoder):
         )
         self.feature_mean_ = features.mean(axis=0).astype(np.float32)
         self._prepare()
-        self.reference_codes_ = self._codes(features)
+        self.reference_codes_ = map_chunks(self._codes, features, "kenyon codes")
         self._index()
 
     def _set_valid(self) -> None:

@@ -278,8 +278,14 @@ class PixelsEncoder(Encoder):
         h, w = scalars["image_shape_"]
         return {"reference_codes_": ArraySpec("float32", (scalars["n_reference_"], h * w))}
 
+    _fits_in_chunks = True
+
     def _fit(self, images: np.ndarray) -> None:
         self.reference_codes_ = self._encode(images)
+
+    def _fit_chunks(self, images: np.ndarray, map_chunks) -> None:
+        # patch normalisation is image by image
+        self.reference_codes_ = map_chunks(self._encode, images, "patch normalisation")
 
     def _encode(self, images: np.ndarray) -> np.ndarray:
         normalized = patch_normalize(images, self.patch_size)
