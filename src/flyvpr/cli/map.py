@@ -61,6 +61,8 @@ def cmd_map(args) -> int:
         raise UsageError(f"--method: unknown method {args.method!r}")
     if args.positions is not None and args.position_topic is not None:
         raise UsageError("--positions and --position-topic: give one of them")
+    if args.jobs is not None and (args.jobs == 0 or args.jobs < -1):
+        raise UsageError(f"--jobs: must be >= 1 or -1 (all cores); got {args.jobs}")
     front_params, filt_params = split_params(args.method, args.param)
     check_outputs(args, recording_inputs(args), ("out",))
     t0 = time.perf_counter()
@@ -76,6 +78,8 @@ def cmd_map(args) -> int:
         frontend_params=front_params,
         filter_params=filt_params,
         progress=not args.quiet and sys.stderr.isatty(),
+        n_jobs=args.jobs,
+        scheduler=args.scheduler,
     )
     m.save(args.out)
     where = "with positions" if m.has_positions else "without positions"
@@ -111,6 +115,25 @@ def register(sub) -> None:
         default=DEFAULT_SIZE,
         metavar="HxW",
         help="image size after the gray conversion and area-averaging resize (default 32x64)",
+    )
+    g = p.add_argument_group(
+        "parallel encoding",
+        "Frames are read here; the per-frame encoding goes to the workers in chunks. The map "
+        "is the same, byte for byte, as without these options.",
+    )
+    where = g.add_mutually_exclusive_group()
+    where.add_argument(
+        "--jobs",
+        "-j",
+        type=int,
+        metavar="N",
+        help="encode on N local processes (-1: all cores; default: this process only)",
+    )
+    where.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="encode on a Dask cluster: its scheduler's address, e.g. tcp://host:8786 "
+        "(pip install 'flyvpr[dask]')",
     )
     p.add_argument(
         "--quiet", "-q", action="store_true", help="no progress bar (shown only on a terminal)"
