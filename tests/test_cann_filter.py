@@ -14,7 +14,7 @@ import pytest
 
 from flyvpr._validation import InsufficientMemoryError
 from flyvpr.temporal.cann import CANN, LAYER_VELOCITIES, _kernels
-from flyvpr.temporal.cann._filter import CALIBRATION, FRONT_CALIBRATION
+from flyvpr.temporal.cann._filter import _FRONT_RATE, CALIBRATION
 
 KNOTS = np.linspace(0.0, 1.0, 11)
 TINY = float(np.finfo(np.float32).tiny)
@@ -47,6 +47,7 @@ def run(f, S, velocity=None):
                 "velocity_": f.velocity_,
                 "n_relocations_": f.n_relocations_,
                 "shape_": f.shape_,
+                "front_model": tuple(f._front_model),
             }
         )
     return np.array(rows), frames
@@ -68,20 +69,45 @@ def _windows(marginal, radius):
     )
 
 
+def ref_velocity_weights(vel, reverse_weight, speed=None, width=None):
+    """The prior over velocities (a Gaussian in speed; ``speed=None``: flat), with
+    ``reverse_weight`` of it on the negative velocities when there are both signs."""
+    w = np.ones(vel.size) if speed is None else np.exp(-0.5 * ((abs(vel) - speed) / width) ** 2)
+    back = vel < 0
+    if 0 < back.sum() < vel.size and w[back].sum() > 0 and w[~back].sum() > 0:
+        return np.where(
+            back, reverse_weight * w / w[back].sum(), (1 - reverse_weight) * w / w[~back].sum()
+        )
+    return w / w.sum()
+
+
+def ref_standardised(value, past, weights):
+    """``value`` in standard deviations of the weighted ``past`` values, within +-4 (0 with
+    no spread)."""
+    if not past:
+        return 0.0
+    m = np.dot(weights, past)
+    sd = math.sqrt(np.dot(weights, (np.asarray(past) - m) ** 2))
+    return float(np.clip((value - m) / sd, -4, 4)) if sd > 0 else 0.0
+
+
 def reference_filter(S, velocity=None, **params):
     """The CANN's contract re-derived in float64: its rows and, per frame, its attributes."""
     q = CANN(**params).get_params()
     vel = np.asarray(q["velocities"], np.float64)
     vel = np.unique(np.r_[vel, -vel] if q["bidirectional"] else vel)
-    prior = np.exp(-0.5 * ((np.abs(vel) - q["speed_prior"]) / q["speed_prior_width"]) ** 2)
-    prior /= prior.sum()
+    prior = ref_velocity_weights(vel, q["reverse_weight"], q["speed_prior"], q["speed_prior_width"])
+    redraw = ref_velocity_weights(vel, q["reverse_weight"])
     n = S.shape[1]
     tol, memory, outlier = q["tolerance"], q["support_memory"], q["outlier"]
     layer = np.tile(prior[:, None] / n, (1, n))
     mean, var = np.zeros(n), np.ones(n)
     log_rank = [1 / 0.3, 1 / 0.5]  # the rank model's prior: exponents 0.3 and 0.5
-    support, support_mean, strength_mean = 0.5, 0.0, None
-    precision = 0.5 ** (2 + tol)
+    support, support_mean = 0.5, 0.0
+    # the front end's logistic model (prior: right with probability 0.5 ** (1 + tol)) and
+    # the past frames' peak z-scores and best raw scores, with their weights
+    a, b = math.log(0.5 ** (1 + tol) / (1 - 0.5 ** (1 + tol))), 0.0
+    strengths, raws, weights = [], [], []
     stride = max(1, n // 4096)
     relocations = 0
     rows, frames = [], []
@@ -120,7 +146,7 @@ def reference_filter(S, velocity=None, **params):
                 for i in range(n):
                     if 0 <= i - k < n:
                         moved[j, i] = layer[j, i - k]
-            mixed = (1 - change - jump) * moved + jump / vel.size * moved.sum(axis=0)
+            mixed = (1 - change - jump) * moved + jump * redraw[:, None] * moved.sum(axis=0)
             mixed[:-1] += change / 2 * moved[1:]
             mixed[1:] += change / 2 * moved[:-1]
             mixed[0] += change / 2 * moved[0]
@@ -156,17 +182,19 @@ def reference_filter(S, velocity=None, **params):
         confidence = support * probability
         front = int(np.argmax(row))
         strength = (row[front] - row.mean()) / row.std() if row.std() > 0 else 0.0
-        if strength_mean is None:
-            strength_mean = strength
-        else:
-            strength_mean += rate * (strength - strength_mean)
-        if confidence >= 0.5:
-            precision += (float(abs(front - answer) <= tol) - precision) / memory
-        front_confidence = precision * (1 + 1e-3 * math.tanh(strength - strength_mean))
+        # this frame's peak against the past frames' (weighted mean and spread), within +-4
+        feature = ref_standardised(strength, strengths, weights)
+        raw_z = ref_standardised(row[front], raws, weights)
+        weights = [w * (1 - rate) for w in weights] + [rate]
+        strengths.append(strength)
+        raws.append(row[front])
+        front_confidence = 1 / (1 + math.exp(-(a + b * feature)))
+        if confidence >= 0.5:  # a step of gradient ascent on the log-likelihood of agreeing
+            error = float(abs(front - answer) <= tol) - front_confidence
+            a, b = a + _FRONT_RATE * error, b + _FRONT_RATE * error * feature
+        front_confidence = min(1.0, front_confidence * (1 + 1e-3 * math.tanh(raw_z)))
         if q["fallback"] and support_mean * probability < front_confidence * (1 - support_mean):
             source, confidence, answer = "front end", front_confidence, front
-            if q["calibration"] is not None:  # its precision, calibrated
-                confidence = min(1.0, FRONT_CALIBRATION * front_confidence)
             top = row[front] - row.mean()
             out = (
                 np.maximum(row - row.mean(), 0) * confidence / top
@@ -199,6 +227,7 @@ def reference_filter(S, velocity=None, **params):
                 else float(velocity[t]),
                 "n_relocations_": relocations,
                 "shape_": min(1.0, max(0.05, 1 / log_rank[0])),
+                "front_model": (a, b),
             }
         )
     return np.array(rows), frames
@@ -224,9 +253,22 @@ def _scenario(n=50):
     return bump_rows(pos, n, width=1.5)
 
 
+def _front_scenario(n=60):
+    """A bump of random strength at 1 place per frame, then weaker ones at random places: the
+    front end's model learns from the first part and answers in the second."""
+    rng = np.random.default_rng(7)
+    pos = np.r_[3 + np.arange(30.0), rng.uniform(0, n - 1, 20)]
+    amp = np.r_[rng.uniform(0.5, 4.0, 30), rng.uniform(1.0, 2.5, 20)]
+    S = rng.normal(0.0, 0.5, (pos.size, n))
+    return S + amp[:, None] * np.exp(-0.5 * (np.arange(n) - pos[:, None]) ** 2)
+
+
 WIDE = {"speed_prior_width": 0.5}  # (at 0.25 the fastest rows hold less than float32 resolves)
+FORWARD = tuple(v for v in LAYER_VELOCITIES if v >= 0)
 REFERENCE_CASES = {
     "defaults": WIDE,
+    "reverse weight": {**WIDE, "reverse_weight": 0.4, "velocity_jump": 0.1},
+    "one sign": {**WIDE, "velocities": FORWARD, "reverse_weight": 0.7, "velocity_jump": 0.1},
     "bidirectional": {
         "bidirectional": True,
         "speed_prior": 0.5,
@@ -273,6 +315,20 @@ def test_matches_reference(kernel_mode, case):
     assert_matches_reference(_scenario(), **REFERENCE_CASES[case])
 
 
+@pytest.mark.parametrize("params", [WIDE, {**WIDE, "reverse_weight": 0.02}])
+def test_matches_reference_driving_backwards(params):
+    frames = assert_matches_reference(bump_rows(45 - np.arange(25.0), 50, width=1.5), **params)
+    assert frames[-1]["velocity_"] < -0.8 and frames[-1]["state_"] == "localized"
+
+
+def test_matches_reference_where_the_front_end_learned():
+    params = {**WIDE, "support_memory": 10.0, "calibration": None, "sequence_break": 0.2}
+    frames = assert_matches_reference(_front_scenario(), **params)
+    # (the front end answers after its model learned a positive slope)
+    assert [fr["source_"] for fr in frames[40:]].count("front end") >= 5
+    assert frames[40]["front_model"][1] > 0.3
+
+
 @pytest.mark.parametrize("transform", ["auto", "log", "linear"])
 def test_matches_reference_on_probability_rows(transform):
     S = _scenario()
@@ -296,20 +352,23 @@ def test_matches_reference_sampling_every_other_place_on_long_routes():
 
 
 def test_reference_scenarios_cover_both_sources_and_relocations():
-    sources, states, relocations = set(), set(), set()
+    sources, states, relocations, slopes = set(), set(), set(), []
     for params in REFERENCE_CASES.values():
         _, frames = reference_filter(_scenario(), **params)
         sources |= {f["source_"] for f in frames}
         states |= {f["state_"] for f in frames}
         relocations.add(frames[-1]["n_relocations_"])
+        slopes.append(frames[-1]["front_model"][1])
     assert sources == {"sequence", "front end"} and states == {"localized", "lost"}
     assert max(relocations) >= 1
+    assert min(slopes) < 0 < max(slopes)  # (the front end's model learned both ways)
 
 
 # -- parameters --------------------------------------------------------------------------------
 DEFAULTS = {
     "velocities": LAYER_VELOCITIES,
     "bidirectional": False,
+    "reverse_weight": 0.1,
     "speed_prior": 1.0,
     "speed_prior_width": 0.25,
     "velocity_change": 0.02,
@@ -334,11 +393,13 @@ DEFAULTS = {
 def test_defaults():
     assert CANN().get_params() == DEFAULTS
     assert list(CANN().get_params()) == list(DEFAULTS)
-    assert LAYER_VELOCITIES == tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0)
+    forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0)
+    assert LAYER_VELOCITIES == (-2.0, -1.5, -1.0, -0.5) + forward
     assert all(type(v) is float for v in LAYER_VELOCITIES)
-    assert len(CALIBRATION) == 11 and CALIBRATION[0] == 0.0 and CALIBRATION[-1] == 1.0
-    assert FRONT_CALIBRATION == 2.0
+    table = (0.507, 0.838, 0.839, 0.844, 0.916, 0.917, 0.943, 0.956, 0.985, 0.999, 1.0)
+    assert CALIBRATION == table
     assert np.all(np.diff(CALIBRATION) > 0)
+    assert _FRONT_RATE == 0.05
     assert CANN.name == "cann"
 
 
@@ -364,6 +425,11 @@ BAD_PARAMS = [
     ),
     ({"bidirectional": "no"}, TypeError, "bidirectional must be True or False; got str"),
     ({"bidirectional": 1}, TypeError, "bidirectional must be True or False; got int"),
+    ({"reverse_weight": -0.1}, ValueError, "reverse_weight must be >= 0.0; got -0.1"),
+    ({"reverse_weight": 1.5}, ValueError, "reverse_weight must be <= 1; got 1.5"),
+    ({"reverse_weight": np.nan}, ValueError, "reverse_weight must be finite; got nan"),
+    ({"reverse_weight": "0.1"}, TypeError, "reverse_weight must be a number; got str"),
+    ({"reverse_weight": None}, TypeError, "reverse_weight must be a number; got NoneType"),
     ({"speed_prior": None}, TypeError, "speed_prior must be a number; got NoneType"),
     ({"speed_prior": np.nan}, ValueError, "speed_prior must be finite; got nan"),
     ({"speed_prior_width": 0.0}, ValueError, "speed_prior_width must be > 0.0; got 0.0"),
@@ -510,6 +576,9 @@ def test_invalid_parameters(params, error, message):
         {"sequence_break": 0.5, "sequence_start": 0.5},
         {"outlier": 0.0},
         {"outlier": 1.0},
+        {"reverse_weight": 0.0},
+        {"reverse_weight": 1.0},
+        {"reverse_weight": np.float32(0.5), "bidirectional": True},
         {"adaptation": 1.0},
         {"adaptation": None, "input_clip": None},
         {"support_memory": 1.0},
@@ -583,6 +652,79 @@ def test_first_call_without_reset():
     out = f.step(S[0])  # step resets by itself
     assert f.n_frames_ == 1
     np.testing.assert_array_equal(out, CANN().filter(S[:1])[0])
+
+
+# -- the velocity prior: reverse_weight --------------------------------------------------------
+def _gauss(vel, speed=1.0, width=0.25):
+    return np.exp(-0.5 * ((np.abs(vel) - speed) / width) ** 2)
+
+
+@pytest.mark.parametrize("bidirectional", [False, True])
+@pytest.mark.parametrize("reverse_weight", [0.0, 0.1, 0.35, 1.0])
+def test_reverse_weight_is_the_backward_share_of_prior_and_redraw(reverse_weight, bidirectional):
+    f = CANN(reverse_weight=reverse_weight, bidirectional=bidirectional)
+    f.reset()
+    vel, prior, redraw = (f._params[k] for k in ("velocities", "prior", "redraw"))
+    bank = np.array(LAYER_VELOCITIES)
+    # bidirectional mirrors the whole bank (0 once): fine steps backwards too
+    np.testing.assert_array_equal(vel, np.unique(np.r_[bank, -bank]) if bidirectional else bank)
+    back = vel < 0
+    assert back.sum() == (20 if bidirectional else 4)  # (-2 .. -0.5 are mirrors already)
+    w = reverse_weight
+    assert prior[back].sum() == pytest.approx(w, abs=1e-12)
+    assert prior[~back].sum() == pytest.approx(1 - w, abs=1e-12)
+    # within each sign, the Gaussian in speed
+    gauss = _gauss(vel)
+    np.testing.assert_allclose(prior[back], w * gauss[back] / gauss[back].sum(), rtol=1e-12)
+    np.testing.assert_allclose(
+        prior[~back], (1 - w) * gauss[~back] / gauss[~back].sum(), rtol=1e-12
+    )
+    # a redrawn velocity: uniform within each sign
+    np.testing.assert_allclose(redraw[back], w / back.sum(), rtol=1e-12)
+    np.testing.assert_allclose(redraw[~back], (1 - w) / (~back).sum(), rtol=1e-12)
+
+
+@pytest.mark.parametrize("reverse_weight", [0.0, 0.25, 1.0])
+def test_the_layer_starts_from_the_prior_and_redraws_from_redraw(reverse_weight):
+    params = {"reverse_weight": reverse_weight, "relocation": 0.0, "recovery": 0.0}
+    f = CANN(**params)
+    f.step(np.zeros(50))  # no evidence: the velocities as the prior has them
+    vel, prior = f._params["velocities"], f._params["prior"]
+    np.testing.assert_allclose(f._row_mass, prior, rtol=1e-5, atol=1e-7)
+    assert f.velocity_ == pytest.approx(prior @ vel, rel=1e-5)
+    # every velocity redrawn (and nothing re-seeded): the velocities as redraw has them
+    f = CANN(velocity_change=0.0, velocity_jump=1.0, **params)
+    for _ in range(3):
+        f.step(np.zeros(50))
+    redraw = f._params["redraw"]
+    np.testing.assert_allclose(f._row_mass, redraw, rtol=1e-5, atol=1e-7)
+    assert f._row_mass[vel < 0].sum() == pytest.approx(reverse_weight, abs=1e-6)
+    assert f.velocity_ == pytest.approx(redraw @ vel, rel=1e-5, abs=1e-7)
+
+
+@pytest.mark.parametrize("velocities", [(0.5, 1.0, 2.0), (-2.0, -1.0, -0.5), (0.0,), (0.0, 1.0)])
+def test_banks_of_one_sign_ignore_reverse_weight(velocities):
+    S = bump_rows(4 + np.arange(12.0), 30)
+    rows = []
+    for reverse_weight in (0.0, 0.3, 1.0):
+        f = CANN(velocities=velocities, reverse_weight=reverse_weight, speed_prior_width=1.0)
+        rows.append(f.filter(S))
+        vel = np.array(velocities)
+        gauss = _gauss(vel, width=1.0)
+        np.testing.assert_allclose(f._params["prior"], gauss / gauss.sum(), rtol=1e-12)
+        np.testing.assert_allclose(f._params["redraw"], 1 / vel.size, rtol=1e-12)
+    np.testing.assert_array_equal(rows[0], rows[1])
+    np.testing.assert_array_equal(rows[0], rows[2])
+
+
+def test_standing_still_counts_as_forward():
+    f = CANN(velocities=(-1.0, 0.0), reverse_weight=0.25, speed_prior=0.5, speed_prior_width=1.0)
+    f.reset()
+    np.testing.assert_allclose(f._params["prior"], [0.25, 0.75], rtol=1e-12)
+    np.testing.assert_allclose(f._params["redraw"], [0.25, 0.75], rtol=1e-12)
+    f = CANN(velocities=(-1.0, 2.0), reverse_weight=0.25, speed_prior=0.0, speed_prior_width=1.0)
+    f.reset()  # the Gaussian favours -1 (e^-0.5 to e^-2), the share does not care
+    np.testing.assert_allclose(f._params["prior"], [0.25, 0.75], rtol=1e-12)
 
 
 # -- filter, step, odometry ----------------------------------------------------------------------
@@ -786,18 +928,30 @@ def test_tracks_a_bump_that_stops_for_30_frames():
     assert frames[-1]["state_"] == "localized" and frames[-1]["source_"] == "sequence"
 
 
-def test_backward_bump_needs_bidirectional():
+@pytest.mark.parametrize("params", [{}, {"bidirectional": True}, {"reverse_weight": 0.5}])
+def test_follows_a_bump_driven_backwards(params):
+    # 1 place per frame backwards: the coarse backward bank follows it (the whole bank
+    # mirrored, too), and the layer's velocity is about -1
     pos = 70 - np.arange(50.0)
     S = bump_rows(pos, 80)
-    f = CANN(bidirectional=True)
+    f = CANN(**params)
     rows, frames = run(f, S)
-    assert np.abs(rows.argmax(axis=1) - pos)[10:].max() <= 2
-    assert all(fr["source_"] == "sequence" and fr["state_"] == "localized" for fr in frames[10:])
-    assert f.velocity_ == pytest.approx(-1.0, abs=0.1)
-    # one way only: the sequence cannot follow, the front end answers
-    rows, frames = run(CANN(), S)
-    assert all(fr["source_"] == "front end" and fr["state_"] == "lost" for fr in frames[20:])
-    np.testing.assert_array_equal(rows.argmax(axis=1)[20:], S.argmax(axis=1)[20:])
+    assert np.abs(rows.argmax(axis=1) - pos)[5:].max() <= 1
+    assert all(fr["source_"] == "sequence" for fr in frames[12:])
+    assert all(fr["velocity_"] < -0.8 for fr in frames[12:])
+    assert f.velocity_ == pytest.approx(-1.0, abs=0.06)
+    assert f.confidence_ > 0.9 and f.n_relocations_ == frames[12]["n_relocations_"]
+
+
+def test_a_bank_of_one_sign_cannot_follow_backwards():
+    # forward velocities only (whatever reverse_weight): the sequence cannot follow, the
+    # front end answers
+    pos = 70 - np.arange(50.0)
+    S = bump_rows(pos, 80)
+    rows, frames = run(CANN(velocities=FORWARD, reverse_weight=0.9), S)
+    assert all(fr["source_"] == "front end" and fr["state_"] == "lost" for fr in frames[5:])
+    assert all(fr["velocity_"] >= 0 for fr in frames)
+    np.testing.assert_array_equal(rows.argmax(axis=1), S.argmax(axis=1))
 
 
 @pytest.mark.parametrize("fallback", [True, False])
@@ -868,9 +1022,8 @@ def test_sequence_confidence_is_calibrated_support_times_probability():
             assert b["confidence_"] == np.float32(value)
             assert a["confidence_"] == np.float32(np.interp(value, KNOTS, CALIBRATION))
             assert c["confidence_"] == np.float32(np.interp(value, KNOTS, table))
-        else:  # the front end's precision, calibrated by a factor alone
-            assert a["confidence_"] == c["confidence_"]
-            assert a["confidence_"] == pytest.approx(min(1.0, 2.0 * b["confidence_"]), rel=1e-6)
+        else:  # the front end's model's probability, whatever the table
+            assert a["confidence_"] == b["confidence_"] == c["confidence_"]
     assert n_sequence >= 30
     # the identity table leaves the sequence's answers as they are
     rows_identity, _ = run(CANN(calibration=KNOTS), _mixed_scenario())
@@ -911,46 +1064,242 @@ def test_shuffled_sequence_falls_back_to_the_front_end():
     assert (rows.argmax(axis=1)[3:] != S.argmax(axis=1)[3:]).mean() > 0.5
 
 
-def test_front_end_confidence_is_its_estimated_precision():
-    # The sequence is confident and the front end agrees: its precision rises from its
-    # prior 0.5 ** (2 + tolerance) towards 1 by 1 / support_memory a frame.
+# -- the front end's model ---------------------------------------------------------------------
+def _logit(p):
+    return math.log(p / (1 - p))
+
+
+def _sigmoid(x):
+    return 1 / (1 + math.exp(-x))
+
+
+def _shuffled(n_frames=40, n=100, seed=3):
+    """Bumps of random strength at random places: the sequence is never confident."""
+    rng = np.random.default_rng(seed)
+    pos = rng.permutation(n)[:n_frames].astype(float)
+    S = bump_rows(pos, n, seed=seed)
+    return S * rng.uniform(0.5, 2.0, (n_frames, 1))
+
+
+def _strength_scenario(n_frames=80, n=120, seed=0):
+    """A bump at 1 place per frame of random strength: the weaker its peak, the more often
+    the front end's best place is noise elsewhere."""
+    rng = np.random.default_rng(seed)
+    pos = 5 + np.arange(n_frames, dtype=float)
+    amp = rng.uniform(0.3, 4.0, n_frames)
+    S = rng.normal(0.0, 0.3, (n_frames, n))
+    return S + amp[:, None] * np.exp(-0.5 * (np.arange(n) - pos[:, None]) ** 2), pos
+
+
+def _spiky_scenario(share, n_frames=80, n=100, seed=0):
+    """A bump at 1 place per frame, and in ``share`` of the frames a tall one-place spike at a
+    random place: then the front end's best place is the spike's, and its peak strong."""
+    rng = np.random.default_rng(seed)
+    pos = 4 + np.arange(n_frames, dtype=float)
+    S = bump_rows(pos, n, seed=seed)
+    hit = rng.random(n_frames) < share
+    S[hit, rng.integers(0, n, n_frames)[hit]] += 8.0
+    return S, pos
+
+
+def _step_models(f, S):
+    """Step ``f`` through ``S``: per frame the model before and after, the sequence's raw
+    confidence and the front end's best place."""
+    f.reset()
+    log = []
+    for row in S:
+        before = list(f._front_model) if f.n_frames_ else None
+        f.step(row)
+        log.append((before, list(f._front_model), f.support_ * f.probability_, f.source_))
+    return log
+
+
+@pytest.mark.parametrize("tolerance", [0, 1, 2, 3])
+def test_front_end_model_prior(tolerance):
+    # Before any confident answer, the front end is right with probability 0.5 ** (1 + tol)
+    # whatever its peak (a = its logit, b = 0); a constant row (raw z-score 0) ties there.
+    f = CANN(tolerance=tolerance)
+    out = f.step(np.full(100, 2.0))
+    prior = 0.5 ** (1 + tolerance)
+    assert f._front_model[0] == pytest.approx(_logit(prior), rel=1e-14)
+    assert f._front_model[1] == 0.0
+    assert f.source_ == "front end" and f.confidence_ == np.float32(prior)
+    np.testing.assert_array_equal(out, np.full(100, np.float32(prior)))
+    # ... and, never confident, it stays so
+    for row in _shuffled():
+        f.step(row)
+        assert f.support_ * f.probability_ < 0.5
+    assert f._front_model == [pytest.approx(_logit(prior), rel=1e-14), 0.0]
+
+
+def test_agreement_with_confident_answers_raises_a():
     pos = 4 + np.arange(40.0)
     S = bump_rows(pos, 60)
-    f = CANN(support_memory=10.0, calibration=None)
+    assert (np.abs(S.argmax(axis=1) - pos) <= 2).all()  # the front end is right throughout
+    log = _step_models(CANN(), S)
+    n_confident = 0
+    for before, after, raw, source in log[1:]:
+        if source == "sequence" and raw >= 0.5:  # a confident answer it agrees with
+            n_confident += 1
+            assert after[0] > before[0]
+        elif source == "sequence":  # not confident: nothing learned
+            assert after == before
+    assert n_confident >= 30
+    assert log[-1][1][0] > _logit(0.125) + 1.0
+
+
+def test_disagreement_with_confident_answers_lowers_a():
+    # a spike elsewhere in every frame: the front end's best place is wrong, the sequence
+    # follows the bump
+    S, pos = _spiky_scenario(share=1.0)
+    f = CANN()
+    log = _step_models(f, S)
+    wrong = np.abs(S.argmax(axis=1) - pos) > 2
+    confident = [raw >= 0.5 for _, _, raw, _ in log]
+    assert sum(confident) >= 60 and f.source_ == "sequence"
+    for t in range(1, len(log)):
+        before, after, raw, source = log[t]
+        if confident[t] and wrong[t]:
+            assert after[0] < before[0]
+    assert f._front_model[0] < _logit(0.125) - 0.05
+
+
+def test_strong_peaks_that_agree_make_b_positive():
+    S, pos = _strength_scenario()
+    f = CANN()
     rows, frames = run(f, S)
-    assert all(fr["source_"] == "sequence" for fr in frames[2:])
-    confident = sum(fr["support_"] * fr["probability_"] >= 0.5 for fr in frames)
-    precision = 1 - (1 - 0.5**4) * 0.9**confident
-    assert f._front_precision == pytest.approx(precision, rel=1e-12)
-    # shuffled frames now: the front end answers with about that precision
-    rng = np.random.default_rng(0)
-    tail = bump_rows(rng.uniform(0, 58, 30), 60, seed=1)
-    for row in tail:
-        out = f.step(row)
-    assert f.source_ == "front end" and out.argmax() == row.argmax()
-    # (times 1 + 1e-3 tanh of the peak's strength against its running mean: a tie-break)
-    assert f.confidence_ == pytest.approx(f._front_precision, rel=1.01e-3)
-    assert f.confidence_ != pytest.approx(f._front_precision, rel=1e-6)
-    # calibrated (the default): twice that, at most 1
-    g = CANN(support_memory=10.0)
-    run(g, np.vstack([S, tail]))
-    assert g.source_ == "front end" and g._front_precision == f._front_precision
-    assert g.confidence_ == np.float32(min(1.0, FRONT_CALIBRATION * f.confidence_))
+    assert np.abs(rows.argmax(axis=1) - pos)[15:].max() <= 1  # the sequence follows ...
+    agree = np.abs(S.argmax(axis=1) - pos) <= 2  # ... and the front end on strong peaks
+    assert 0.7 < agree.mean() < 0.98
+    a, b = f._front_model
+    assert b > 0.2
+    # the model's probability grows with the peak's strength
+    assert _sigmoid(a + 4 * b) > _sigmoid(a) > _sigmoid(a - 4 * b)
+
+
+def test_strong_peaks_that_disagree_make_b_negative():
+    # half the frames a tall spike elsewhere: the strongest peaks are the wrong ones
+    S, pos = _spiky_scenario(share=0.5)
+    f = CANN()
+    run(f, S)
+    assert f.source_ == "sequence" and f._front_model[1] < -0.3
+
+
+def test_front_feature_by_hand():
+    # the peak's z-score and the best raw score against their running mean and variance (an
+    # exponential moving average at the given rate), within +-4
+    f = CANN()
+    f.step(np.zeros(5))
+    f._front_stats = [1.0, 4.0, 10.0, 0.25]
+    assert f._front_feature(5.0, 10.5, 0.1) == 2.0  # (5 - 1) / 2
+    assert f._front_raw_z == 1.0  # (10.5 - 10) / 0.5
+    np.testing.assert_allclose(f._front_stats, [1.4, 0.9 * 5.6, 10.05, 0.9 * 0.275], rtol=1e-14)
+    f._front_stats = [0.0, 1.0, 0.0, 1.0]
+    assert f._front_feature(100.0, -100.0, 0.5) == 4.0 and f._front_raw_z == -4.0
+    f._front_stats = [0.0, 1.0, 0.0, 1.0]
+    assert f._front_feature(-4.5, 4.5, 0.5) == -4.0 and f._front_raw_z == 4.0
+    # no spread yet: 0
+    f._front_stats = [3.0, 0.0, 2.0, 0.0]
+    assert f._front_feature(5.0, 1.0, 0.5) == 0.0 and f._front_raw_z == 0.0
+    np.testing.assert_allclose(f._front_stats, [4.0, 1.0, 1.5, 0.25], rtol=1e-14)
+    # the first frame starts the statistics at its own values: 0
+    g = CANN()
+    g.reset()
+    g._allocate(5)
+    assert g._front_feature(7.0, 3.0, 1.0) == 0.0 and g._front_raw_z == 0.0
+    assert g._front_stats == [7.0, 0.0, 3.0, 0.0]
+
+
+def test_front_end_raw_score_tie_break_by_hand():
+    # A constant row, a row of ones and zeros, a row of twos and zeros: the best raw scores 0,
+    # 1, 2; the third's against the first two (mean 0.5, sd 0.5) is 3 standard deviations up.
+    # The sequence has next to no evidence (gain 0.01): the front end answers with its prior
+    # 0.5 ** 3, times 1 + 1e-3 tanh(3).
+    row = np.zeros(200)
+    row[::2] = 1.0
+    for calibration in (None, CALIBRATION):
+        f = CANN(evidence_gain=0.01, calibration=calibration)
+        f.step(np.zeros(200))
+        f.step(row)
+        assert f.source_ == "front end" and f._front_raw_z == 0.0  # (no spread yet)
+        assert f.confidence_ == np.float32(0.125)
+        out = f.step(2 * row)
+        assert f.source_ == "front end" and out.argmax() == 0
+        assert f._front_raw_z == pytest.approx(3.0, rel=1e-14)
+        expected = np.float32(0.125 * (1 + 1e-3 * math.tanh(3.0)))
+        assert f.confidence_ == expected  # not calibrated
+        np.testing.assert_array_equal(out, np.where(row > 0, expected, np.float32(0.0)))
+
+
+def test_with_b_zero_the_front_end_keeps_its_own_order():
+    # Never confident, b stays 0: the confidence rises with the front end's raw best score
+    # (standardised), whatever the strength of its peak within the row.
+    f = CANN()
+    f.reset()
+    confidence, raw_z = [], []
+    for row in _shuffled():
+        f.step(row)
+        assert f.source_ == "front end" and f._front_model[1] == 0.0
+        expected = 0.125 * (1 + 1e-3 * math.tanh(f._front_raw_z))
+        assert f.confidence_ == pytest.approx(expected, rel=1e-6)
+        confidence.append(f.confidence_)
+        raw_z.append(f._front_raw_z)
+    order = np.argsort(raw_z, kind="stable")
+    assert np.all(np.diff(np.array(confidence)[order]) >= 0)
+    assert len(set(confidence)) > 20
+    # the same past, then a higher best score: a higher confidence ...
+    S = _shuffled()
+    last = S[-1].copy()
+    rows = [last, last + np.where(np.arange(100) == last.argmax(), 0.5, 0.0)]
+    got = []
+    for final in rows:
+        g = CANN()
+        g.filter(S[:-1])
+        g.step(final)
+        assert g.source_ == "front end"
+        got.append(g.confidence_)
+    assert got[1] > got[0]
+    # ... and the same best score with a stronger peak (a flatter row): the same confidence
+    flat = last.max() - 0.5 * (last.max() - last)
+    g = CANN()
+    g.filter(S[:-1])
+    g.step(flat)
+    assert g.source_ == "front end" and g.confidence_ == got[0]
+
+
+def test_front_end_confidence_is_capped_at_one():
+    S = _shuffled()
+    f = CANN()
+    f.filter(S[:-1])
+    f._front_model[:] = [30.0, 0.0]  # (sure of the front end: 1 - 1e-13)
+    top = S[-1] + np.where(np.arange(100) == 7, 50.0, 0.0)  # a best raw score far up
+    out = f.step(top)
+    assert f.source_ == "front end" and f._front_raw_z == 4.0
+    assert f.confidence_ == 1.0 and out.argmax() == 7 and out[7] == 1.0
+    z = np.maximum(top - top.mean(), 0.0)
+    np.testing.assert_allclose(out, z / z.max(), rtol=1e-6, atol=1e-7)
+    # a low best score: below 1 by its tie-break
+    g = CANN()
+    g.filter(S[:-1])
+    g._front_model[:] = [30.0, 0.0]
+    g.step(S[-1] * 0.01)
+    assert g.source_ == "front end" and g._front_raw_z < 0
+    expected = _sigmoid(30.0) * (1 + 1e-3 * math.tanh(g._front_raw_z))
+    assert g.confidence_ == np.float32(expected) and g.confidence_ < 1.0
 
 
 def test_constant_rows_tie_at_the_confidence():
     # The first frame: a flat layer whose best window (at place 0) holds 3 / 100; the front
-    # end's prior precision 0.5 ** (2 + 2) wins (times 2, calibrated), and a constant row
-    # ties everywhere at it.
-    f = CANN()
-    out = f.step(np.full(100, 2.0))
-    assert f.source_ == "front end" and f.state_ == "lost" and f.probability_ == 0.0
-    assert f.confidence_ == 0.125
-    np.testing.assert_array_equal(out, np.full(100, np.float32(0.125)))
-    out = CANN(tolerance=0).step(np.full(100, 2.0))  # 0.5 ** 2
-    np.testing.assert_array_equal(out, np.full(100, np.float32(0.5)))
-    out = CANN(tolerance=0, calibration=None).step(np.full(100, 2.0))
-    np.testing.assert_array_equal(out, np.full(100, np.float32(0.25)))
+    # end's prior 0.5 ** (1 + 2) wins (not calibrated), and a constant row ties everywhere
+    # at it.
+    for calibration in (CALIBRATION, None):
+        f = CANN(calibration=calibration)
+        out = f.step(np.full(100, 2.0))
+        assert f.source_ == "front end" and f.state_ == "lost" and f.probability_ == 0.0
+        assert f.confidence_ == 0.125
+        np.testing.assert_array_equal(out, np.full(100, np.float32(0.125)))
+        out = CANN(tolerance=0, calibration=calibration).step(np.full(100, 2.0))  # 0.5 ** 1
+        np.testing.assert_array_equal(out, np.full(100, np.float32(0.5)))
 
 
 # -- hand-worked frames at the boundaries --------------------------------------------------------
@@ -970,44 +1319,32 @@ def test_support_and_confidence_of_exactly_one_half():
         sequence_start=0.25,
     )
     f.reset()
+    a = _logit(0.25)
     for t in range(5):
         out = f.step(np.zeros(2))
         assert f.source_ == "sequence" and f.state_ == "localized"
         assert f.support_ == 0.5 and f.probability_ == 1.0
         assert f.confidence_ == np.float32(CALIBRATION[5])
         np.testing.assert_array_equal(out, np.full(2, np.float32(CALIBRATION[5])))
-        # the front end (place 0) agrees with each confident answer (place 0) ...
-        assert f._front_precision == pytest.approx(1 - 0.875 * 0.99 ** (t + 1), rel=1e-12)
+        # the front end (place 0) agrees with each confident answer (place 0), its peak's
+        # strength always 0: a rises by 0.05 times the model's miss, b stays 0 ...
+        a += 0.05 * (1 - _sigmoid(a))
+        assert f._front_model == [pytest.approx(a, rel=1e-14), 0.0]
         # ... and the rank model learns from every supported frame after the first (ranks 1)
         assert f.shape_ == pytest.approx(0.3 / 0.99**t, rel=1e-12)
 
 
 def test_a_tie_between_sequence_and_front_end_goes_to_the_sequence():
-    # 4 places, one velocity, a constant row: the window (tolerance 0) holds exactly 1/4 and
-    # the support's mean is 1/2; the front end's prior precision is 0.5 ** 2 = 1/4:
-    # 0.5 * 0.25 < 0.25 * (1 - 0.5) is false.
+    # 2 places, one velocity, a constant row: the window (tolerance 0) holds exactly 1/2 and
+    # the support's mean is 1/2; the front end's prior is 0.5 ** 1 = 1/2 (its raw score's
+    # z-score 0: no tie-break): 0.5 * 0.5 < 0.5 * (1 - 0.5) is false.
     f = CANN(velocities=(1.0,), tolerance=0)
-    out = f.step(np.zeros(4))
-    assert f.source_ == "sequence" and f.probability_ == 0.25 and f.state_ == "lost"
-    level = np.float32(np.interp(0.125, KNOTS, CALIBRATION))
+    out = f.step(np.zeros(2))
+    assert f._front_model == [0.0, 0.0]
+    assert f.source_ == "sequence" and f.probability_ == 0.5 and f.state_ == "lost"
+    level = np.float32(np.interp(0.25, KNOTS, CALIBRATION))
     assert f.confidence_ == level
-    np.testing.assert_array_equal(out, np.full(4, level))
-
-
-def test_front_end_tie_break_by_peak_strength():
-    # A constant row (strength 0), then a row of ones and zeros: its peak is 1 standard
-    # deviation up, its running mean 0 + (1 - 0) / 2; the sequence has next to no evidence
-    # (gain 0.01), so the front end answers with its prior precision 0.5 ** 4, tie-broken.
-    row = np.zeros(200)
-    row[::2] = 1.0
-    for calibration, factor in ((None, 1.0), (CALIBRATION, FRONT_CALIBRATION)):
-        f = CANN(evidence_gain=0.01, calibration=calibration)
-        f.step(np.zeros(200))
-        out = f.step(row)
-        assert f.source_ == "front end" and out.argmax() == 0
-        expected = np.float32(factor * 0.0625 * (1 + 1e-3 * math.tanh(0.5)))
-        assert f.confidence_ == expected
-        np.testing.assert_array_equal(out, np.where(row > 0, expected, np.float32(0.0)))
+    np.testing.assert_array_equal(out, np.full(2, level))
 
 
 def test_relocations_from_the_first_place_and_not_on_the_first_frame():
@@ -1040,18 +1377,18 @@ def test_state_arrays_and_the_memory_check(monkeypatch):
     f = CANN()
     f.step(np.zeros(1000))
     for name in ("_p", "_spare"):
-        assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (21, 1000)
+        assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (25, 1000)
     for name in ("_marginal", "_predicted", "_weight", "_mean", "_var", "_x"):
         assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (1000,)
     state = sum(v.nbytes for v in vars(f).values() if isinstance(v, np.ndarray) and v.size >= 1000)
-    assert state == 8 * 21 * 1000 + 32 * 1000  # float32 layer (twice) and per-place buffers
+    assert state == 8 * 25 * 1000 + 32 * 1000  # float32 layer (twice) and per-place buffers
     # the memory check asks for the layer and its per-place buffers before allocating them
     monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(state))
     CANN().step(np.zeros(1000))
-    monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(8 * 21 * 1000 + 16 * 1000))
+    monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(8 * 25 * 1000 + 16 * 1000))
     with pytest.raises(
         InsufficientMemoryError,
-        match=re.escape("n_reference=1000 places x 21 velocities (velocities, bidirectional)"),
+        match=re.escape("n_reference=1000 places x 25 velocities (velocities, bidirectional)"),
     ):
         CANN().step(np.zeros(1000))
 
@@ -1073,10 +1410,10 @@ def test_footprint_by_hand():
     default = CANN().footprint(1000)
     assert default == {
         "layers": 1,
-        "params": 21000 * 5 + 2 * 20 * 1000,
-        "neurons": 21001,
-        "distinct_weights": 24,
-        "state_variables": 23006,
+        "params": 25000 * 5 + 2 * 24 * 1000,
+        "neurons": 25001,
+        "distinct_weights": 28,
+        "state_variables": 27006,
     }
     assert CANN(velocities=(1.0,)).footprint(1)["params"] == 5  # no velocity neighbours
     with pytest.raises(ValueError, match="^n_reference must be >= 1; got 0"):
@@ -1132,3 +1469,30 @@ def test_evidence_that_underflows_everywhere_the_layer_is():
     f = CANN(relocation=0.0, recovery=0.0, input_clip=None, evidence_gain=50.0, adaptation=None)
     out = f.filter(S)
     assert np.isfinite(out).all()
+
+
+@pytest.mark.parametrize(
+    ("params", "prior"),
+    [
+        # every backward velocity at zero weight, all of the prior asked for backwards
+        ({"reverse_weight": 1.0, "speed_prior": 0.0, "speed_prior_width": 0.01}, None),
+        # every forward velocity at zero weight, none of the prior asked for backwards
+        (
+            {"velocities": (-1.0, 3.0), "speed_prior_width": 0.01, "reverse_weight": 0.0},
+            [1.0, 0.0],
+        ),
+        # (and with a share between: it held 1 - reverse_weight in all)
+        ({"velocities": (-1.0, 3.0), "speed_prior": 3.0, "speed_prior_width": 0.01}, [0.0, 1.0]),
+    ],
+)
+def test_a_speed_prior_that_leaves_one_sign_nothing(params, prior):
+    # The prior was 0 / 0 (NaN rows) or summed to 1 - reverse_weight: now the weights as
+    # they are, normalised.
+    f = CANN(**params)
+    f.reset()
+    vel = f._params["velocities"]
+    if prior is None:
+        prior = (vel == 0).astype(float)
+    np.testing.assert_allclose(f._params["prior"], prior, rtol=1e-12, atol=1e-30)
+    out = f.filter(bump_rows(4 + np.arange(8.0), 30))
+    assert np.isfinite(out).all() and 0.0 < f.confidence_ <= 1.0
