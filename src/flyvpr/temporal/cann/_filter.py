@@ -154,7 +154,7 @@ class CANN(OnlineFilter):
         being right beats the sequence's (see "Output" on the guide page).  The front end's
         probability is a logistic model of the strength of its peak (its z-score), learned
         at run time from whether it agrees with the sequence's confident answers; before
-        any, ``0.5 ** (1 + tolerance)``.
+        any, ``0.5 ** (2 + tolerance)``.
     calibration : sequence of 11 float or None, default CALIBRATION
         The sequence's confidence at raw confidence (support times the window's
         probability) 0, 0.1, ..., 1, linearly between (strictly increasing, in [0, 1]);
@@ -392,10 +392,10 @@ class CANN(OnlineFilter):
         self._support_mean = 0.0  # the support averaged over support_memory frames
         # The front end's model: running mean and variance of its peak's z-score and of its
         # best raw score, and the logistic weights (prior: a weak front end, right with
-        # probability 0.5 ** (1 + tolerance) whatever its peak).
+        # probability 0.5 ** (2 + tolerance) whatever its peak).
         self._front_stats = None
         self._front_raw_z = 0.0
-        prior = 0.5 ** (1 + p["tolerance"])
+        prior = 0.5 ** (2 + p["tolerance"])
         self._front_model = [math.log(prior / (1.0 - prior)), 0.0]
 
     @property
