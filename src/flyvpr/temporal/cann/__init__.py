@@ -10,7 +10,8 @@ whether the query follows the route at all; the answer comes with a calibrated c
 :class:`AttractorCANN` (filter ``cann-paper``) is the paper's 1-d continuous attractor network
 (Sec. "FlyNet+CANN"), kept for reproducing the paper (``docs/guide/cann-paper.md``).
 
-Modules: ``_filter`` (:class:`CANN`), ``_layer`` (its per-frame kernels), ``_attractor``
+Modules: ``_filter`` (:class:`CANN`), ``_layer`` (its per-frame kernels), ``_window``
+(:class:`WindowedCANN`: the layer on a window of a large map), ``_attractor``
 (:class:`AttractorCANN`) with ``_params``, ``_speed`` and ``_readout``; ``_kernels`` holds the
 attractor's kernels, the input normalisation both use, and the numba compilation of both
 tables.
@@ -20,5 +21,13 @@ from ._attractor import AttractorCANN
 from ._filter import CANN, LAYER_VELOCITIES
 from ._kernels import excitation_kernel
 from ._params import FAST_RECOVERY
+from ._window import WindowedCANN
 
-__all__ = ["CANN", "AttractorCANN", "FAST_RECOVERY", "LAYER_VELOCITIES", "excitation_kernel"]
+__all__ = [
+    "CANN",
+    "AttractorCANN",
+    "FAST_RECOVERY",
+    "LAYER_VELOCITIES",
+    "WindowedCANN",
+    "excitation_kernel",
+]

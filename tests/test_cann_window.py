@@ -1,0 +1,158 @@
+"""The CANN on a window of a large map (WindowedCANN)."""
+
+import numpy as np
+import pytest
+
+from flyvpr.temporal.cann import CANN, WindowedCANN
+from flyvpr.temporal.cann._window import _shift
+
+
+def _route(n_query=200, n_places=3000, start=500, speed=1.0, strength=3.0, seed=0):
+    """Noise scores with the true place (start + speed t) raised: a robot on the route."""
+    rng = np.random.default_rng(seed)
+    S = rng.normal(size=(n_query, n_places)).astype(np.float32)
+    truth = (start + np.floor(speed * np.arange(n_query))).astype(int)
+    S[np.arange(n_query), truth] += strength
+    return S, truth
+
+
+def _run(f, S, velocity=None):
+    places, states = [], []
+    for t, row in enumerate(S):
+        lo, hi = f.window_
+        v = None if velocity is None or t == 0 else velocity
+        p, c, s = f.step(row[lo:hi], v)
+        assert 0.0 <= c <= 1.0
+        places.append(p)
+        states.append(s)
+    return np.array(places), np.array(states)
+
+
+def test_a_map_within_the_window_is_the_cann_exactly():
+    S, _ = _route(n_query=80, n_places=300, start=20)
+    full = CANN(tolerance=2).filter(S)
+    f = WindowedCANN(300, window=512, tolerance=2)
+    assert f.width == 300 and f.window_ == (0, 300)
+    for t, row in enumerate(S):
+        place, confidence, state = f.step(row)
+        assert place == int(full[t].argmax())
+        assert confidence == pytest.approx(float(full[t].max()), rel=1e-6)
+    assert f.n_moves_ == 0
+
+
+def test_the_window_follows_a_localized_packet_along_the_map():
+    S, truth = _route(n_query=400, n_places=3000, start=500)
+    f = WindowedCANN(3000, window=256)
+    f.reseed([500])
+    places, states = _run(f, S)
+    right = np.abs(places - truth) <= 2
+    assert right[20:].mean() > 0.97
+    assert (states[20:] == "localized").mean() > 0.9
+    lo, hi = f.window_
+    assert lo <= truth[-1] < hi and hi - lo == 256
+    assert f.n_moves_ >= 400 // (256 // 8) - 2  # moved in steps of about recentre * window
+
+
+def test_on_the_places_it_covers_the_window_agrees_with_the_whole_map_filter():
+    S, truth = _route(n_query=300, n_places=2000, start=300, seed=3)
+    full = CANN().filter(S).argmax(axis=1)
+    f = WindowedCANN(2000, window=512)
+    f.reseed([300])
+    places, _ = _run(f, S)
+    assert (places[10:] == full[10:]).mean() > 0.98
+
+
+def test_odometry_moves_the_window_too():
+    S, truth = _route(n_query=300, n_places=2000, start=100, speed=0.5)
+    f = WindowedCANN(2000, window=128)
+    f.reseed([100])
+    places, _ = _run(f, S, velocity=0.5)
+    assert (np.abs(places - truth) <= 2)[10:].mean() > 0.97
+    assert f.cann_.velocity_ == 0.5
+
+
+def test_a_lost_filter_keeps_its_window_until_reseeded():
+    S, truth = _route(n_query=150, n_places=4000, start=3000)
+    f = WindowedCANN(4000, window=256)  # starts at 0..255: the robot is elsewhere
+    places, states = _run(f, S[:60])
+    assert f.window_ == (0, 256) and f.n_moves_ == 0
+    assert (states == "lost").mean() > 0.9
+    f.reseed([1200, 3059, 2000], weights=[0.2, 1.0, 0.1])
+    assert f.window_ == (3059 - 128, 3059 + 128) and f.place_ == 3059 and f.state_ == "lost"
+    places, states = _run(f, S[60:])
+    assert (np.abs(places - truth[60:]) <= 2)[10:].mean() > 0.97
+    assert states[-1] == "localized"
+
+
+def test_the_window_stops_at_the_ends_of_the_map():
+    f = WindowedCANN(1000, window=200)
+    f.reseed([990])
+    assert f.window_ == (800, 1000)
+    f.reseed([3])
+    assert f.window_ == (0, 200)
+    f._move(5000)
+    assert f.window_ == (800, 1000)
+
+
+def test_reseed_puts_the_mass_on_the_candidates():
+    f = WindowedCANN(1000, window=100)
+    f.reseed([500, 520, 900], weights=[1.0, 3.0, 5.0])  # 900 is the best: the window is there
+    assert f.window_ == (850, 950)
+    marginal = f.cann_._p.sum(axis=0)
+    assert marginal.sum() == pytest.approx(1.0, rel=1e-5)
+    assert int(np.argmax(marginal)) == 50
+    assert marginal[50] == pytest.approx(0.9 + 0.1 / 100, rel=1e-5)  # the only one inside
+    f.reseed([500, 520], weights=[1.0, 3.0])
+    marginal = f.cann_._p.sum(axis=0)
+    lo = f.window_[0]
+    assert marginal[520 - lo] == pytest.approx(3 * (marginal[500 - lo] - 0.001) + 0.001, rel=1e-4)
+    assert f.n_moves_ == 2
+
+
+def test_moving_carries_the_state_and_fills_what_enters():
+    f = WindowedCANN(1000, window=100)
+    f.reseed([50])
+    c = f.cann_
+    c._mean[:] = np.arange(100, dtype=np.float32)
+    c._var[:] = 2.0
+    before = c._p.copy()
+    f._move(f.window_[0] + 10)
+    np.testing.assert_array_equal(c._mean[:90], np.arange(10, 100, dtype=np.float32))
+    np.testing.assert_array_equal(c._mean[90:], 0.0)
+    np.testing.assert_array_equal(c._var[90:], 1.0)
+    np.testing.assert_array_equal(c._p[:, :90], before[:, 10:])
+    np.testing.assert_array_equal(c._p[:, 90:], np.repeat(before.min(axis=1)[:, None], 10, 1))
+
+
+@pytest.mark.parametrize("d", [-7, -1, 0, 1, 7, 10, 12, -12])
+def test_shift(d):
+    a = np.arange(10.0)
+    expected = np.array([a[i + d] if 0 <= i + d < 10 else -1.0 for i in range(10)])
+    _shift(a, d, -1.0)
+    np.testing.assert_array_equal(a, expected)
+
+
+def test_errors():
+    with pytest.raises(ValueError, match="n_places"):
+        WindowedCANN(0)
+    with pytest.raises(ValueError, match="window"):
+        WindowedCANN(100, window=8)
+    with pytest.raises(ValueError, match="recentre"):
+        WindowedCANN(100, recentre=0.5)
+    with pytest.raises(ValueError, match="tolerance"):
+        WindowedCANN(100, tolerance=-1)
+    f = WindowedCANN(1000, window=100)
+    with pytest.raises(ValueError, match=r"100 places of window_ \(0, 100\)"):
+        f.step(np.zeros(1000))
+    with pytest.raises(ValueError, match="NaN"):
+        f.step(np.full(100, np.nan))
+    with pytest.raises(ValueError, match=r"places must lie in \[0, 1000\)"):
+        f.reseed([1000])
+    with pytest.raises(ValueError, match="integers"):
+        f.reseed([1.5])
+    with pytest.raises(ValueError, match="integers"):
+        f.reseed([])
+    with pytest.raises(ValueError, match="weights"):
+        f.reseed([1, 2], weights=[0.0, 0.0])
+    with pytest.raises(ValueError, match="weights"):
+        f.reseed([1, 2], weights=[1.0])
