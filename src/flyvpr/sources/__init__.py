@@ -10,8 +10,12 @@ with the length of the recording:
 * a ROS 1 ``.bag`` or a ROS 2 bag (``.db3`` / ``.mcap`` or its folder), read with rosbags:
   ``sensor_msgs/Image`` and ``sensor_msgs/CompressedImage`` on one topic.
 
-Video and bags need the ``recordings`` extra (``pip install 'flyvpr[recordings]'``); it is
-imported only when such a file is opened.
+A live source, a network stream (``rtsp://``, ``http(s)://``, ``udp://``, ``tcp://`` ...) or a
+camera device (``/dev/video0``), is a :class:`~flyvpr.sources.live.LiveSource` (:func:`is_live`
+tells them apart): it hands over the newest frame whenever asked, instead of batches.
+
+Video, bags and live sources need the ``recordings`` extra (``pip install
+'flyvpr[recordings]'``); it is imported only when such a source is opened.
 """
 
 from __future__ import annotations
@@ -20,15 +24,19 @@ from pathlib import Path
 
 from .base import Batch, Every, RecordingError, Source, parse_every
 from .folder import FolderSource
+from .live import LiveFrame, LiveSource, is_live
 from .positions import Positions, read_positions
 
 __all__ = [
     "Batch",
     "Every",
     "FolderSource",
+    "LiveFrame",
+    "LiveSource",
     "Positions",
     "RecordingError",
     "Source",
+    "is_live",
     "open_source",
     "parse_every",
     "read_positions",

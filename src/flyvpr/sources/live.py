@@ -1,0 +1,437 @@
+"""Live sources: a network stream or a camera device, read as the frames come.
+
+A :class:`LiveSource` opens an ``rtsp://``, ``http(s)://`` (MJPEG ``multipart/x-mixed-replace``
+or any stream FFmpeg reads), ``udp://``, ``tcp://`` ... URL, or a V4L2 camera (``/dev/video0``),
+with PyAV, and decodes it on a reader thread that keeps only the newest frame.  The consumer
+(the localizer) takes that frame whenever it is ready, so it never falls behind the camera:
+when it is slower than the stream, the frames it had no time for are dropped and counted
+(:attr:`LiveSource.n_dropped`), and the answer it gives is always about the latest frame.
+
+Timestamps come from the stream (a frame's presentation time in seconds, the stream's own
+clock: RTSP/RTP, MPEG-TS, a camera driver's capture time) except for formats that carry none,
+such as MJPEG over HTTP or a raw H.264 elementary stream, whose frames FFmpeg numbers at an
+assumed rate: those get the wall clock (Unix seconds) of their arrival.  :attr:`LiveSource.clock`
+says which.
+
+A stream that stalls (no frame for ``stall_timeout`` seconds, or a broken connection) is
+reopened up to ``retries`` times in a row, each time with a message to ``notify``; then
+:meth:`LiveSource.frames` raises :class:`~flyvpr.sources.RecordingError`.  The end of a stream
+(the server closed it cleanly) ends :meth:`LiveSource.frames`.
+
+Needs the ``recordings`` extra (PyAV); it is imported only when a live source is opened.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import math
+import numbers
+import os
+import re
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import NamedTuple
+
+import numpy as np
+
+from ..images import DEFAULT_SIZE, _check_size
+from .base import RecordingError, _reason, require_extra
+
+__all__ = ["LiveFrame", "LiveSource", "LIVE_SCHEMES", "is_live"]
+
+logger = logging.getLogger(__name__)
+
+#: URL schemes read as live streams (FFmpeg's network protocols)
+LIVE_SCHEMES = ("rtsp", "rtsps", "rtmp", "rtmps", "http", "https", "udp", "tcp", "rtp", "srt")
+
+#: container formats whose timestamps FFmpeg makes up from an assumed frame rate (MJPEG over
+#: HTTP, raw elementary streams): their frames are stamped with the wall clock instead
+_NO_CLOCK_FORMATS = frozenset({"mpjpeg", "mjpeg", "jpeg_pipe", "image2pipe", "h264", "hevc"})
+
+_SCHEME_RE = re.compile(r"^([a-zA-Z][a-zA-Z0-9+.-]*)://")
+
+
+def is_live(source) -> bool:
+    """Whether ``source`` names a live source: a URL of :data:`LIVE_SCHEMES` or a device
+    under ``/dev/`` (a V4L2 camera such as ``/dev/video0``).
+
+    >>> is_live("rtsp://10.0.0.2:8554/cam"), is_live("/dev/video0"), is_live("drive.mp4")
+    (True, True, False)
+    """
+    text = str(source)
+    m = _SCHEME_RE.match(text)
+    if m is not None:
+        return m.group(1).lower() in LIVE_SCHEMES
+    return text.startswith("/dev/")
+
+
+def _redacted(url: str) -> str:
+    """``url`` without a password (``rtsp://user:secret@host`` -> ``rtsp://user:***@host``)."""
+    return re.sub(r"^([a-zA-Z][a-zA-Z0-9+.-]*://[^/@:]*):[^/@]*@", r"\1:***@", url)
+
+
+class _OpenFailed(Exception):
+    """Why a live source could not be opened (the caller adds the source's name)."""
+
+
+class LiveFrame(NamedTuple):
+    """One frame of a live source, as :meth:`LiveSource.frames` hands it over.
+
+    Attributes
+    ----------
+    index : int
+        Count of frames the stream delivered before this one (dropped ones included), so
+        gaps between consecutive indices are the frames dropped in between.
+    timestamp : float
+        Seconds: the stream's presentation time, or the wall clock (Unix time) at arrival
+        where the stream has no clock (:attr:`LiveSource.clock`); NaN if a frame of a
+        stream with a clock has none.
+    arrival : float
+        ``time.monotonic()`` when the frame was decoded, to measure latency.
+    image : ndarray, shape (H, W), float32 in [0, 1]
+        The frame in gray at the size asked for.
+    frame : av.VideoFrame
+        The decoded frame at full size (for a viewer).
+    """
+
+    index: int
+    timestamp: float
+    arrival: float
+    image: np.ndarray
+    frame: object
+
+
+class LiveSource:
+    """A network stream or a camera, decoded on a thread that keeps only the newest frame.
+
+    The source is opened (and the stream's first bytes read) when it is created, so a bad
+    address fails here with one message; :meth:`frames` then starts the reader thread.
+
+    Parameters
+    ----------
+    url : str
+        A URL (:data:`LIVE_SCHEMES`) or a V4L2 device path (``/dev/video0``).
+    options : dict of str to str, optional
+        FFmpeg options for the format or protocol, such as ``{"rtsp_transport": "tcp"}`` or,
+        for a camera, ``{"video_size": "640x480", "framerate": "30",
+        "input_format": "mjpeg"}``.
+    stall_timeout : float
+        Seconds without a frame after which the stream counts as stalled and is reopened.
+    open_timeout : float
+        Seconds to wait for the stream to answer when it is opened.
+    retries : int
+        Reopenings in a row (without a frame in between) before giving up.
+    notify : callable, optional
+        Called with a one-line message when the stream stalls and is reopened; default a
+        warning on this module's logger.
+
+    Attributes
+    ----------
+    kind : str
+        ``"stream"`` or ``"camera"``.
+    clock : str or None
+        ``"stream"`` (timestamps from the stream) or ``"wall"`` (arrival time), known from the
+        first frame on.
+    n_received : int
+        Frames the stream delivered so far.
+    n_dropped : int
+        Frames replaced by a newer one before the consumer took them.
+    n_corrupt : int
+        Packets that failed to decode (skipped).
+    n_reconnects : int
+        Times the stream was reopened after a stall.
+    ended : bool
+        Whether the stream ended (the server closed it).
+
+    Raises
+    ------
+    FileNotFoundError
+        For a device path that does not exist.
+    RecordingError
+        If the source cannot be opened (unreachable, refused, busy, not a video stream): the
+        message names it and says why.
+    ValueError
+        For a ``url`` that is not live, or timeouts / retries out of range.
+    ImportError
+        Naming the ``recordings`` extra, without PyAV.
+
+    Examples
+    --------
+    >>> src = LiveSource("udp://127.0.0.1:5000", stall_timeout=2)  # doctest: +SKIP
+    >>> for f in src.frames((32, 64)):  # doctest: +SKIP
+    ...     fix = localizer.update(f.image)
+    """
+
+    def __init__(
+        self,
+        url,
+        *,
+        options=None,
+        stall_timeout: float = 5.0,
+        open_timeout: float = 10.0,
+        retries: int = 3,
+        notify: Callable[[str], None] | None = None,
+    ):
+        self.url = str(url)
+        if not is_live(self.url):
+            raise ValueError(
+                f"url must be a stream URL ({', '.join(s + '://' for s in LIVE_SCHEMES)}) or a "
+                f"camera device (/dev/video0); got {self.url!r}"
+            )
+        self.kind = "stream" if _SCHEME_RE.match(self.url) else "camera"
+        self.options = {str(k): str(v) for k, v in (options or {}).items()}
+        self.stall_timeout = _positive(stall_timeout, "stall_timeout")
+        self.open_timeout = _positive(open_timeout, "open_timeout")
+        if isinstance(retries, bool) or not isinstance(retries, numbers.Integral) or retries < 0:
+            raise ValueError(f"retries must be an integer >= 0; got {retries!r}")
+        self.retries = int(retries)
+        self.notify = notify or logger.warning
+        self.clock = None
+        self.n_received = self.n_dropped = self.n_corrupt = self.n_reconnects = 0
+        self.ended = False
+        self._av = require_extra("av")
+        self._cond = threading.Condition()
+        self._slot = None  # the newest frame not yet taken: (index, timestamp, arrival, frame)
+        self._done = False
+        self._error = None
+        self._stopping = False  # a plain flag: stop() may run in a signal handler
+        self._thread = None
+        if self.kind == "camera" and not os.path.exists(self.url):
+            raise FileNotFoundError(
+                f"camera {self.url}: no such device (expected a V4L2 camera such as /dev/video0)"
+            )
+        self._container = self._open()
+
+    def describe(self) -> str:
+        """``stream URL`` (password hidden) or ``camera /dev/videoN``."""
+        return f"{self.kind} {_redacted(self.url)}"
+
+    # -- opening ----------------------------------------------------------------------------
+    def _open(self):
+        """Open the source, or raise RecordingError naming it and saying why."""
+        try:
+            return self._try_open()
+        except _OpenFailed as exc:
+            raise RecordingError(f"{self.describe()}: {exc}") from None
+
+    def _try_open(self):
+        """Open the source; every failure becomes an _OpenFailed with the reason."""
+        av = self._av
+        kwargs = {"format": "v4l2"} if self.kind == "camera" else {}
+        try:
+            container = av.open(
+                self.url,
+                options=self.options,
+                timeout=(self.open_timeout, self.stall_timeout),
+                **kwargs,
+            )
+        except av.ExitError:
+            raise _OpenFailed(
+                f"no answer within {self.open_timeout:g} s (expected a {self._expected()})"
+            ) from None
+        except av.InvalidDataError:
+            raise _OpenFailed(
+                f"sends nothing FFmpeg can read as video (expected a {self._expected()})"
+            ) from None
+        except (av.FFmpegError, OSError, UnicodeDecodeError, ValueError) as exc:
+            raise _OpenFailed(f"cannot open: {self._why(exc)}") from None
+        if not container.streams.video:
+            container.close()
+            raise _OpenFailed(f"has no video stream (expected a {self._expected()})")
+        return container
+
+    def _expected(self) -> str:
+        if self.kind == "camera":
+            return "V4L2 video capture device"
+        return "video stream such as MJPEG over HTTP, RTSP or MPEG-TS over UDP"
+
+    def _why(self, exc) -> str:
+        code = getattr(exc, "errno", None)
+        if code == errno.EBUSY:
+            return "the device is busy (another program is using it)"
+        if code in (errno.EACCES, errno.EPERM):
+            return "permission denied (is the user in the 'video' group?)"
+        reason = getattr(exc, "strerror", None) or _reason(exc)
+        return f"{reason} (expected a {self._expected()})"
+
+    # -- the reader thread ------------------------------------------------------------------
+    def _publish(self, frame, arrival: float) -> None:
+        if self.clock is None:
+            stamped = frame.time is not None
+            self.clock = (
+                "stream"
+                if stamped and self._container.format.name not in _NO_CLOCK_FORMATS
+                else "wall"
+            )
+        if self.clock == "wall":
+            t = time.time()
+        else:
+            t = math.nan if frame.time is None else float(frame.time)
+        with self._cond:
+            if self._slot is not None:
+                self.n_dropped += 1
+            self._slot = (self.n_received, t, arrival, frame)
+            self.n_received += 1
+            self._cond.notify()
+
+    def _read(self, container) -> str:
+        """Decode ``container`` until it ends, stalls or the consumer stops.
+
+        Returns ``"stop"``, ``"end"`` or the reason of a stall.
+        """
+        av = self._av
+        # no frame threading: it holds frames back (one per thread), which a live stream
+        # pays for in latency
+        stream = container.streams.video[0]
+        last = time.monotonic()
+        try:
+            for packet in container.demux(stream):
+                if self._stopping:
+                    return "stop"
+                try:
+                    frames = packet.decode()
+                except av.FFmpegError:
+                    # a damaged packet (a lost UDP datagram, a torn JPEG): skip it; a stream
+                    # that sends nothing but damage stalls below
+                    self.n_corrupt += 1
+                    frames = ()
+                for frame in frames:
+                    last = time.monotonic()
+                    self._publish(frame, last)
+                if time.monotonic() - last > self.stall_timeout:
+                    return (
+                        f"stalled: no decodable frame for {self.stall_timeout:g} s "
+                        f"({self.n_corrupt} damaged packets so far)"
+                    )
+        except av.ExitError:
+            return f"stalled: no data for {self.stall_timeout:g} s"
+        except (av.FFmpegError, OSError) as exc:
+            reason = getattr(exc, "strerror", None) or _reason(exc)
+            return f"the connection broke ({reason})"
+        return "stop" if self._stopping else "end"
+
+    def _run(self) -> None:
+        container = self._container
+        failures = 0
+        try:
+            while True:
+                before = self.n_received
+                outcome = self._read(container)
+                container.close()
+                if outcome == "stop":
+                    return
+                if outcome == "end":
+                    self.ended = True
+                    return
+                if self.n_received > before:
+                    failures = 0
+                while True:  # reopen until a stream answers or the retries are spent
+                    failures += 1
+                    if failures > self.retries:
+                        self._error = RecordingError(
+                            f"{self.describe()}: {outcome}; gave up after "
+                            f"{self.retries} reconnection attempts"
+                        )
+                        return
+                    self.notify(
+                        f"{self.describe()}: {outcome}; reconnecting ({failures}/{self.retries})"
+                    )
+                    pause = time.monotonic() + min(1.0, self.stall_timeout)
+                    while time.monotonic() < pause:
+                        if self._stopping:
+                            return
+                        time.sleep(0.05)
+                    try:
+                        container = self._container = self._try_open()
+                    except _OpenFailed as exc:
+                        outcome = f"reconnecting failed: {exc}"
+                        continue
+                    self.n_reconnects += 1
+                    break
+        except BaseException as exc:  # pragma: no cover - a bug: hand it to the consumer
+            self._error = exc
+        finally:
+            with self._cond:
+                self._done = True
+                self._cond.notify()
+
+    # -- the consumer's side ----------------------------------------------------------------
+    def _take(self):
+        """The newest frame (waits for one); None after the end of the stream."""
+        with self._cond:
+            while self._slot is None and not self._done and not self._stopping:
+                self._cond.wait(0.1)  # short waits: stop() and Ctrl-C are seen promptly
+            if self._stopping:
+                return None
+            if self._slot is not None:
+                item, self._slot = self._slot, None
+                return item
+        if self._error is not None:
+            raise self._error
+        return None
+
+    def frames(self, size=DEFAULT_SIZE) -> Iterator[LiveFrame]:
+        """Yield the newest frame each time the caller asks for the next one.
+
+        Parameters
+        ----------
+        size : (int, int)
+            (H, W) of :attr:`LiveFrame.image` (gray, area-averaged, as for video files).
+
+        Raises
+        ------
+        RecordingError
+            When the stream stalled and every reconnection failed (the message names the
+            source and the reason).
+        """
+        from .video import _decoder, area_resize
+
+        h, w = _check_size(size)
+        if self._thread is not None:
+            raise RuntimeError(f"{self.describe()}: frames() can be iterated only once")
+        # compile (or load) the resize kernels now, for contiguous and row-padded planes, so
+        # the first frames do not wait for them and pile up behind
+        plane = np.zeros((2 * h, 2 * w + 8), np.uint8)
+        area_resize(plane, h, w)
+        area_resize(plane[:, : 2 * w], h, w)
+        self._thread = threading.Thread(target=self._run, name="flyvpr-live-reader", daemon=True)
+        self._thread.start()
+        try:
+            while True:
+                item = self._take()
+                if item is None:
+                    return
+                index, t, arrival, frame = item
+                yield LiveFrame(index, t, arrival, _decoder(frame)((h, w)), frame)
+        finally:
+            self.close()
+
+    def stop(self) -> None:
+        """Ask :meth:`frames` to end (within 0.1 s); safe to call from a signal handler."""
+        self._stopping = True
+
+    def close(self) -> None:
+        """Stop the reader thread (it closes the stream when its current read returns)."""
+        self._stopping = True
+        if self._thread is None:
+            self._container.close()
+            self._thread = False  # closed before any frame was read: frames() refuses
+        elif self._thread:
+            self._thread.join(timeout=0.5)
+
+    def __enter__(self) -> LiveSource:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _positive(value, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a number of seconds; got {type(value).__name__}")
+    value = float(value)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a finite number of seconds > 0; got {value}")
+    return value

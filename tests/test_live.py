@@ -1,0 +1,209 @@
+"""Live sources: streams served on localhost from inside the tests (MJPEG over HTTP from a
+server thread, MPEG-TS over UDP muxed with PyAV), the newest-frame rule, stalls and bad input."""
+
+from __future__ import annotations
+
+import errno
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+av = pytest.importorskip("av")
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.stream_servers import (  # noqa: E402
+    MjpegServer,
+    UdpTsSender,
+    free_udp_port,
+    jpeg_bytes,
+)
+
+from flyvpr.sources import LiveSource, RecordingError, is_live  # noqa: E402
+
+#: gray level of served frame i (distinct for 40 frames, away from the ends of the range)
+LEVELS = 40 + 4 * np.arange(40)
+
+
+def _gray_jpegs(n=40, shape=(48, 64)):
+    return [jpeg_bytes(np.full(shape, LEVELS[i], np.uint8), quality=95) for i in range(n)]
+
+
+@pytest.mark.parametrize(
+    "text, live",
+    [
+        ("rtsp://10.0.0.2:8554/cam", True),
+        ("RTSP://cam/x", True),
+        ("http://127.0.0.1:8080/stream.mjpg", True),
+        ("https://cam.local/video", True),
+        ("udp://0.0.0.0:5000", True),
+        ("tcp://127.0.0.1:9000?listen", True),
+        ("srt://host:9000", True),
+        ("/dev/video0", True),
+        ("/dev/v4l/by-id/usb-cam-video-index0", True),
+        ("drive.mp4", False),
+        ("route/summer", False),
+        ("file:///tmp/x.mp4", False),
+        ("ftp://host/x.mp4", False),
+    ],
+)
+def test_is_live(text, live):
+    assert is_live(text) is live
+
+
+def test_mjpeg_over_http_wall_clock_and_pixels():
+    """The frames of an MJPEG stream arrive in order, stamped with the wall clock, with the
+    pixels that were sent."""
+    with MjpegServer(_gray_jpegs(), fps=50, n_frames=20, stall_after=5) as srv:
+        before = time.time()
+        src = LiveSource(srv.url, stall_timeout=2, retries=0)
+        assert src.describe() == f"stream {srv.url}" and src.kind == "stream"
+        got = []
+        for f in src.frames((8, 16)):
+            got.append(f)
+            if f.index == 19:
+                break
+    # the frames read while FFmpeg probed the stream come in a burst: some may be dropped
+    assert len(got) >= 10
+    assert src.clock == "wall"
+    idx = np.array([f.index for f in got])
+    assert (np.diff(idx) > 0).all()
+    t = np.array([f.timestamp for f in got])
+    assert (np.diff(t) >= 0).all() and before - 1 < t[0] < time.time()
+    for f in got:
+        assert f.image.shape == (8, 16) and f.image.dtype == np.float32
+        assert abs(float(f.image.mean()) * 255 - LEVELS[f.index]) < 2
+        assert f.frame.width == 64 and f.frame.height == 48
+
+
+def test_a_slow_consumer_gets_the_newest_frame_and_the_drops_are_counted():
+    with MjpegServer(_gray_jpegs(), fps=100, n_frames=60, stall_after=5) as srv:
+        src = LiveSource(srv.url, stall_timeout=2, retries=0)
+        got = []
+        for f in src.frames((8, 16)):
+            got.append(f.index)
+            if f.index >= 59:
+                break
+            time.sleep(0.05)  # five frames' time per frame: the localizer is slower
+    assert src.n_dropped > 20
+    assert src.n_received - len(got) >= src.n_dropped
+    assert len(got) < 40 and got[-1] == 59
+    assert max(np.diff(got)) > 1
+
+
+def test_udp_mpegts_timestamps_from_the_stream():
+    port = free_udp_port()
+    frames = np.stack([np.full((64, 128), LEVELS[i], np.uint8) for i in range(40)])
+    src = None
+    with UdpTsSender(port, frames=frames, fps=50, loop=True) as sender:
+        src = LiveSource(f"udp://127.0.0.1:{port}", stall_timeout=2, retries=0)
+        got = []
+        for f in src.frames((16, 32)):
+            got.append(f)
+            if len(got) == 30:
+                break
+    assert sender.error is None
+    assert src.clock == "stream"
+    for f in got:
+        k = round(f.timestamp * 50)  # the sender's pts: frame k at k / 50 s
+        assert f.timestamp == pytest.approx(k / 50, abs=1e-6)
+        # H.264 over limited-range YUV: a gray level comes back within a couple of steps
+        assert abs(float(f.image.mean()) * 255 - LEVELS[k % 40]) < 3
+
+
+def test_a_stall_is_retried_then_raises():
+    messages = []
+    with MjpegServer(_gray_jpegs(), fps=100, n_frames=10, stall_after=30) as srv:
+        src = LiveSource(srv.url, stall_timeout=0.5, open_timeout=1, retries=2,
+                         notify=messages.append)  # fmt: skip
+        n = 0
+        t0 = time.monotonic()
+        with pytest.raises(RecordingError, match=r"stream http://127\.0\.0\.1:\d+/stream\.mjpg: "
+                           r".*gave up after 2 reconnection attempts"):  # fmt: skip
+            for _ in src.frames((8, 16)):
+                n += 1
+    assert n >= 1 and src.n_received == 10
+    assert len(messages) == 2 and all("reconnecting" in m and srv.url in m for m in messages)
+    assert "stalled: no data for 0.5 s" in messages[0]
+    assert time.monotonic() - t0 < 15
+
+
+def test_stop_ends_the_frames_promptly():
+    with MjpegServer(_gray_jpegs(), fps=30, duration=20) as srv:
+        src = LiveSource(srv.url, stall_timeout=5, retries=0)
+        n = 0
+        t0 = time.monotonic()
+        for _ in src.frames((8, 16)):
+            n += 1
+            if n == 3:
+                src.stop()
+        assert n == 3 and time.monotonic() - t0 < 3
+
+
+def test_unreachable_url():
+    port = free_udp_port()  # nothing listens on it over TCP either
+    with pytest.raises(RecordingError, match=rf"^stream http://127\.0\.0\.1:{port}/x: cannot "
+                       r"open: Connection refused \(expected a video stream"):  # fmt: skip
+        LiveSource(f"http://127.0.0.1:{port}/x", open_timeout=2)
+
+
+def test_silent_udp_port_times_out():
+    port = free_udp_port()
+    t0 = time.monotonic()
+    with pytest.raises(RecordingError, match=rf":{port}: no answer within 0\.5 s"):
+        LiveSource(f"udp://127.0.0.1:{port}", open_timeout=0.5)
+    assert time.monotonic() - t0 < 5
+
+
+def test_garbage_is_named():
+    with MjpegServer([], garbage=True, duration=3) as srv:
+        with pytest.raises(RecordingError, match=r"sends nothing FFmpeg can read as video"):
+            LiveSource(srv.url, open_timeout=2)
+
+
+def test_missing_camera():
+    with pytest.raises(FileNotFoundError, match=r"^camera /dev/video97: no such device"):
+        LiveSource("/dev/video97")
+
+
+def test_busy_camera(monkeypatch, tmp_path):
+    """A device another program holds: FFmpeg's EBUSY becomes one line saying so."""
+
+    def busy(*args, **kwargs):
+        raise av.error.OSError(errno.EBUSY, "Device or resource busy", args[0])
+
+    device = "/dev/null"  # exists, so the open is tried
+    monkeypatch.setattr(av, "open", busy)
+    with pytest.raises(RecordingError, match=r"^camera /dev/null: cannot open: the device is busy"):
+        LiveSource(device)
+
+
+def test_password_is_not_shown():
+    port = free_udp_port()
+    with pytest.raises(RecordingError) as info:
+        LiveSource(f"rtsp://admin:hunter2@127.0.0.1:{port}/cam", open_timeout=1)
+    assert "hunter2" not in str(info.value) and "admin:***@" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"stall_timeout": 0}, "stall_timeout must be a finite number of seconds > 0; got 0.0"),
+        ({"open_timeout": float("inf")}, "open_timeout must be a finite number"),
+        ({"retries": -1}, r"retries must be an integer >= 0; got -1"),
+        ({"retries": 1.5}, r"retries must be an integer >= 0; got 1.5"),
+    ],
+)
+def test_parameters_are_checked(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        LiveSource("udp://127.0.0.1:9", **kwargs)
+
+
+def test_not_a_live_source():
+    with pytest.raises(ValueError, match=r"url must be a stream URL .* got 'drive\.mp4'"):
+        LiveSource("drive.mp4")
