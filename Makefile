@@ -20,7 +20,7 @@ $(VENV)/.core: pyproject.toml | $(BIN)/python
 	touch $@
 
 $(VENV)/.test: pyproject.toml | $(BIN)/python
-	$(PIP) -e ".[test,torch,netvlad,plot,docs,recordings,dask]"
+	$(PIP) -e ".[test,torch,netvlad,plot,docs,recordings,dask,view]"
 	touch $@ $(VENV)/.core $(VENV)/.docs
 
 $(VENV)/.docs: pyproject.toml | $(BIN)/python
