@@ -17,6 +17,13 @@ from flyvpr.temporal.cann import CANN, LAYER_VELOCITIES, _kernels
 from flyvpr.temporal.cann._filter import _FRONT_RATE, CALIBRATION
 
 KNOTS = np.linspace(0.0, 1.0, 11)
+
+
+def front_prior(tolerance):
+    """The front end's probability of being right before any confident answer."""
+    return 0.5 ** (2 + tolerance)
+
+
 TINY = float(np.finfo(np.float32).tiny)
 
 
@@ -104,9 +111,9 @@ def reference_filter(S, velocity=None, **params):
     mean, var = np.zeros(n), np.ones(n)
     log_rank = [1 / 0.3, 1 / 0.5]  # the rank model's prior: exponents 0.3 and 0.5
     support, support_mean = 0.5, 0.0
-    # the front end's logistic model (prior: right with probability 0.5 ** (1 + tol)) and
-    # the past frames' peak z-scores and best raw scores, with their weights
-    a, b = math.log(0.5 ** (1 + tol) / (1 - 0.5 ** (1 + tol))), 0.0
+    # the front end's logistic model (its prior: a = the prior's log-odds, b = 0) and the
+    # past frames' peak z-scores and best raw scores, with their weights
+    a, b = math.log(front_prior(tol) / (1 - front_prior(tol))), 0.0
     strengths, raws, weights = [], [], []
     stride = max(1, n // 4096)
     relocations = 0
@@ -254,13 +261,16 @@ def _scenario(n=50):
 
 
 def _front_scenario(n=60):
-    """A bump of random strength at 1 place per frame, then weaker ones at random places: the
-    front end's model learns from the first part and answers in the second."""
+    """A bump of random strength at 1 place per frame, then weaker ones at random places (and
+    a constant row): the front end's model learns from the first part and answers in the
+    second."""
     rng = np.random.default_rng(7)
     pos = np.r_[3 + np.arange(30.0), rng.uniform(0, n - 1, 20)]
     amp = np.r_[rng.uniform(0.5, 4.0, 30), rng.uniform(1.0, 2.5, 20)]
     S = rng.normal(0.0, 0.5, (pos.size, n))
-    return S + amp[:, None] * np.exp(-0.5 * (np.arange(n) - pos[:, None]) ** 2)
+    S += amp[:, None] * np.exp(-0.5 * (np.arange(n) - pos[:, None]) ** 2)
+    S[44] = 1.0
+    return S
 
 
 WIDE = {"speed_prior_width": 0.5}  # (at 0.25 the fastest rows hold less than float32 resolves)
@@ -322,7 +332,7 @@ def test_matches_reference_driving_backwards(params):
 
 
 def test_matches_reference_where_the_front_end_learned():
-    params = {**WIDE, "support_memory": 10.0, "calibration": None, "sequence_break": 0.2}
+    params = {**WIDE, "support_memory": 5.0, "calibration": None, "sequence_break": 0.2}
     frames = assert_matches_reference(_front_scenario(), **params)
     # (the front end answers after its model learned a positive slope)
     assert [fr["source_"] for fr in frames[40:]].count("front end") >= 5
@@ -345,7 +355,7 @@ def test_matches_reference_with_odometry():
     assert [f["velocity_"] for f in frames] == velocity.tolist()
 
 
-def test_matches_reference_sampling_every_other_place_on_long_routes():
+def test_matches_reference_sampling_every_other_place_on_long_routes(kernel_mode):
     # 8200 places: the sequence test samples every 2nd place (about 4096)
     S = bump_rows(100 + np.arange(5.0), 8200)
     assert_matches_reference(S, velocities=(1.0,))
@@ -1092,13 +1102,15 @@ def _strength_scenario(n_frames=80, n=120, seed=0):
 
 
 def _spiky_scenario(share, n_frames=80, n=100, seed=0):
-    """A bump at 1 place per frame, and in ``share`` of the frames a tall one-place spike at a
-    random place: then the front end's best place is the spike's, and its peak strong."""
+    """A bump at 1 place per frame, and in ``share`` of the frames a tall one-place spike at
+    least 10 places away: then the front end's best place is the spike's, and its peak
+    strong."""
     rng = np.random.default_rng(seed)
     pos = 4 + np.arange(n_frames, dtype=float)
     S = bump_rows(pos, n, seed=seed)
     hit = rng.random(n_frames) < share
-    S[hit, rng.integers(0, n, n_frames)[hit]] += 8.0
+    spike = (pos.astype(int) + rng.integers(10, n - 10, n_frames)) % n
+    S[hit, spike[hit]] += 8.0
     return S, pos
 
 
@@ -1116,17 +1128,18 @@ def _step_models(f, S):
 
 @pytest.mark.parametrize("tolerance", [0, 1, 2, 3])
 def test_front_end_model_prior(tolerance):
-    # Before any confident answer, the front end is right with probability 0.5 ** (1 + tol)
+    # Before any confident answer, the front end is right with probability 0.5 ** (2 + tol)
     # whatever its peak (a = its logit, b = 0); a constant row (raw z-score 0) ties there.
     f = CANN(tolerance=tolerance)
-    out = f.step(np.full(100, 2.0))
-    prior = 0.5 ** (1 + tolerance)
+    out = f.step(np.full(200, 2.0))
+    prior = front_prior(tolerance)
+    assert prior == 0.5 ** (2 + tolerance)
     assert f._front_model[0] == pytest.approx(_logit(prior), rel=1e-14)
     assert f._front_model[1] == 0.0
     assert f.source_ == "front end" and f.confidence_ == np.float32(prior)
-    np.testing.assert_array_equal(out, np.full(100, np.float32(prior)))
+    np.testing.assert_array_equal(out, np.full(200, np.float32(prior)))
     # ... and, never confident, it stays so
-    for row in _shuffled():
+    for row in _shuffled(n=200):
         f.step(row)
         assert f.support_ * f.probability_ < 0.5
     assert f._front_model == [pytest.approx(_logit(prior), rel=1e-14), 0.0]
@@ -1145,7 +1158,7 @@ def test_agreement_with_confident_answers_raises_a():
         elif source == "sequence":  # not confident: nothing learned
             assert after == before
     assert n_confident >= 30
-    assert log[-1][1][0] > _logit(0.125) + 1.0
+    assert log[-1][1][0] > _logit(front_prior(2)) + 1.0
 
 
 def test_disagreement_with_confident_answers_lowers_a():
@@ -1161,7 +1174,7 @@ def test_disagreement_with_confident_answers_lowers_a():
         before, after, raw, source = log[t]
         if confident[t] and wrong[t]:
             assert after[0] < before[0]
-    assert f._front_model[0] < _logit(0.125) - 0.05
+    assert f._front_model[0] < _logit(front_prior(2)) - 0.05
 
 
 def test_strong_peaks_that_agree_make_b_positive():
@@ -1214,7 +1227,7 @@ def test_front_end_raw_score_tie_break_by_hand():
     # A constant row, a row of ones and zeros, a row of twos and zeros: the best raw scores 0,
     # 1, 2; the third's against the first two (mean 0.5, sd 0.5) is 3 standard deviations up.
     # The sequence has next to no evidence (gain 0.01): the front end answers with its prior
-    # 0.5 ** 3, times 1 + 1e-3 tanh(3).
+    # 0.5 ** 4, times 1 + 1e-3 tanh(3).
     row = np.zeros(200)
     row[::2] = 1.0
     for calibration in (None, CALIBRATION):
@@ -1222,11 +1235,11 @@ def test_front_end_raw_score_tie_break_by_hand():
         f.step(np.zeros(200))
         f.step(row)
         assert f.source_ == "front end" and f._front_raw_z == 0.0  # (no spread yet)
-        assert f.confidence_ == np.float32(0.125)
+        assert f.confidence_ == np.float32(0.0625)
         out = f.step(2 * row)
         assert f.source_ == "front end" and out.argmax() == 0
         assert f._front_raw_z == pytest.approx(3.0, rel=1e-14)
-        expected = np.float32(0.125 * (1 + 1e-3 * math.tanh(3.0)))
+        expected = np.float32(0.0625 * (1 + 1e-3 * math.tanh(3.0)))
         assert f.confidence_ == expected  # not calibrated
         np.testing.assert_array_equal(out, np.where(row > 0, expected, np.float32(0.0)))
 
@@ -1240,7 +1253,7 @@ def test_with_b_zero_the_front_end_keeps_its_own_order():
     for row in _shuffled():
         f.step(row)
         assert f.source_ == "front end" and f._front_model[1] == 0.0
-        expected = 0.125 * (1 + 1e-3 * math.tanh(f._front_raw_z))
+        expected = 0.0625 * (1 + 1e-3 * math.tanh(f._front_raw_z))
         assert f.confidence_ == pytest.approx(expected, rel=1e-6)
         confidence.append(f.confidence_)
         raw_z.append(f._front_raw_z)
@@ -1288,18 +1301,39 @@ def test_front_end_confidence_is_capped_at_one():
     assert g.confidence_ == np.float32(expected) and g.confidence_ < 1.0
 
 
+@pytest.mark.parametrize("a", [-3.0, -0.5, 0.0, 0.5, 2.0])
+@pytest.mark.parametrize("b", [0.0, 0.3])
+def test_front_end_confidence_is_the_models_probability(a, b):
+    # set the model, then a frame the front end answers: the logistic of a + b * feature
+    # (the peak's z-score standardised: 0 for a row like the ones before it), tie-broken
+    S = _shuffled()
+    f = CANN()
+    f.filter(S[:-1])
+    stats = list(f._front_stats)
+    f._front_model[:] = [a, b]
+    row = S[-1]
+    f.step(row)
+    strength = (row.max() - row.mean()) / row.std()
+    feature = float(np.clip((strength - stats[0]) / math.sqrt(stats[1]), -4, 4))
+    raw_z = float(np.clip((row.max() - stats[2]) / math.sqrt(stats[3]), -4, 4))
+    assert f._front_raw_z == pytest.approx(raw_z, rel=1e-12)
+    assert f.source_ == "front end" and raw_z != 0.0 and feature != 0.0
+    expected = min(1.0, _sigmoid(a + b * feature) * (1 + 1e-3 * math.tanh(raw_z)))
+    assert f.confidence_ == np.float32(expected)
+
+
 def test_constant_rows_tie_at_the_confidence():
     # The first frame: a flat layer whose best window (at place 0) holds 3 / 100; the front
-    # end's prior 0.5 ** (1 + 2) wins (not calibrated), and a constant row ties everywhere
+    # end's prior 0.5 ** (2 + 2) wins (not calibrated), and a constant row ties everywhere
     # at it.
     for calibration in (CALIBRATION, None):
         f = CANN(calibration=calibration)
         out = f.step(np.full(100, 2.0))
         assert f.source_ == "front end" and f.state_ == "lost" and f.probability_ == 0.0
-        assert f.confidence_ == 0.125
-        np.testing.assert_array_equal(out, np.full(100, np.float32(0.125)))
-        out = CANN(tolerance=0, calibration=calibration).step(np.full(100, 2.0))  # 0.5 ** 1
-        np.testing.assert_array_equal(out, np.full(100, np.float32(0.5)))
+        assert f.confidence_ == 0.0625
+        np.testing.assert_array_equal(out, np.full(100, np.float32(0.0625)))
+        out = CANN(tolerance=0, calibration=calibration).step(np.full(100, 2.0))  # 0.5 ** 2
+        np.testing.assert_array_equal(out, np.full(100, np.float32(0.25)))
 
 
 # -- hand-worked frames at the boundaries --------------------------------------------------------
@@ -1319,7 +1353,7 @@ def test_support_and_confidence_of_exactly_one_half():
         sequence_start=0.25,
     )
     f.reset()
-    a = _logit(0.25)
+    a = _logit(0.125)  # (0.5 ** (2 + 1))
     for t in range(5):
         out = f.step(np.zeros(2))
         assert f.source_ == "sequence" and f.state_ == "localized"
@@ -1335,16 +1369,16 @@ def test_support_and_confidence_of_exactly_one_half():
 
 
 def test_a_tie_between_sequence_and_front_end_goes_to_the_sequence():
-    # 2 places, one velocity, a constant row: the window (tolerance 0) holds exactly 1/2 and
-    # the support's mean is 1/2; the front end's prior is 0.5 ** 1 = 1/2 (its raw score's
-    # z-score 0: no tie-break): 0.5 * 0.5 < 0.5 * (1 - 0.5) is false.
+    # 4 places, one velocity, a constant row: the window (tolerance 0) holds exactly 1/4 and
+    # the support's mean is 1/2; the front end's prior is 0.5 ** 2 = 1/4 (its raw score's
+    # z-score 0: no tie-break): 0.5 * 0.25 < 0.25 * (1 - 0.5) is false.
     f = CANN(velocities=(1.0,), tolerance=0)
-    out = f.step(np.zeros(2))
-    assert f._front_model == [0.0, 0.0]
-    assert f.source_ == "sequence" and f.probability_ == 0.5 and f.state_ == "lost"
-    level = np.float32(np.interp(0.25, KNOTS, CALIBRATION))
+    out = f.step(np.zeros(4))
+    assert f._front_model == [_logit(0.25), 0.0]
+    assert f.source_ == "sequence" and f.probability_ == 0.25 and f.state_ == "lost"
+    level = np.float32(np.interp(0.125, KNOTS, CALIBRATION))
     assert f.confidence_ == level
-    np.testing.assert_array_equal(out, np.full(2, level))
+    np.testing.assert_array_equal(out, np.full(4, level))
 
 
 def test_relocations_from_the_first_place_and_not_on_the_first_frame():
