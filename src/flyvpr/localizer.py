@@ -47,7 +47,9 @@ class Fix(NamedTuple):
         probability.
     state : str
         ``"localized"`` or ``"lost"``, as the filter decides (the CANN: ``"localized"`` when
-        the confidence is at least 0.5); always ``"localized"`` without a filter or with a
+        the answer comes from the image sequence and its raw confidence, the support times
+        the window's probability, is at least 0.5: with the default calibration, a
+        confidence of 0.92 or more); always ``"localized"`` without a filter or with a
         filter that has no state.
     """
 
