@@ -14,6 +14,7 @@ import numpy as np
 from .._io import OutputPathError, check_output_path
 from .._validation import check_memory
 from ._common import UsageError, check_outputs
+from ._live import check_view_args, open_view, print_view_summary
 from ._records import open_records
 from .map import recording_inputs
 
@@ -85,6 +86,7 @@ def cmd_localize_recording(args) -> int:
         except OutputPathError as exc:
             raise UsageError(str(exc)) from None
         taken.append(path)
+    check_view_args(args, inputs)
     loc = Localizer.from_map(args.map, size=args.size)
     m = loc.map_
     source = open_source(args.source, topic=args.topic)
@@ -115,6 +117,9 @@ def cmd_localize_recording(args) -> int:
                 )
             )
         tracers = [stack.enter_context(_tracer(path, m)) for path in renders]
+        view = open_view(args, m, background=False)
+        if view is not None:
+            stack.callback(view.close)
         bar = stack.enter_context(tqdm(desc="localizing", unit="frame", disable=not show))
         for step in track(loc, source, every=args.every, positions=positions,
                           odometry=odometry, realtime=args.realtime):  # fmt: skip
@@ -148,6 +153,12 @@ def cmd_localize_recording(args) -> int:
                         if m.thumbnails is not None:
                             images["match"] = m.thumbnails[step.places[i]]
                     out.write(row, images)
+                if view is not None:
+                    view.log(
+                        row["frame"], row["timestamp"], b.images[i], row["place"],
+                        row["confidence"], row["state"], step.scores[i],
+                        relocated=bool(row["relocated"]),
+                    )  # fmt: skip
             confidences.append(step.confidences.astype(np.float32))
             n_frames += len(b)
             n_reloc += int(step.relocated.sum())
@@ -167,7 +178,8 @@ def cmd_localize_recording(args) -> int:
         print(odometry_note)
     if args.ground_truth is not None:
         _print_scores(args, np.concatenate(scores), np.concatenate(truth))
-    for path in [args.out, *renders]:
+    print_view_summary(view)
+    for path in [args.out, *renders, args.view_save]:
         if path is not None:
             print(f"wrote {path}")
     return 0

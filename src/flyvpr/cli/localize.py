@@ -14,6 +14,7 @@ from .._io import write_text_atomic
 from ..datasets import load_benchmark
 from ..images import DEFAULT_SIZE
 from ..methods import DEFAULT_METHOD, METHODS
+from ..sources.live import is_live
 from ._common import (
     UsageError,
     add_dataset_args,
@@ -28,6 +29,7 @@ from ._common import (
     print_protocol,
     split_params,
 )
+from ._live import LIVE_OPTIONS, add_live_args, add_view_args
 from ._records import csv_cell
 from .map import add_recording_args
 
@@ -39,7 +41,7 @@ def cmd_localize(args) -> int:
         raise UsageError("give --map MAP SOURCE (a recording) or --dataset (a benchmark layout)")
     for option in (
         "render", "ground_truth", "topic", "every", "positions", "position_topic", "no_odometry",
-        "mcap_thumbnails",
+        "mcap_thumbnails", "view", "view_save", *LIVE_OPTIONS,
     ):  # fmt: skip
         if getattr(args, option):
             raise UsageError(f"{flag(option)} needs --map MAP SOURCE")
@@ -70,6 +72,14 @@ def _cmd_recording(args) -> int:
     for option in ("speed", "method", "param"):
         if getattr(args, option):
             raise UsageError(f"{flag(option)}: the map fixes the method; not with --map")
+    if is_live(args.source):
+        from ._live import cmd_localize_live
+
+        return cmd_localize_live(args)
+    for option in LIVE_OPTIONS:
+        if getattr(args, option) is not None:
+            raise UsageError(f"{flag(option)}: only for a live SOURCE (a stream URL or a camera)")
+    args.source = Path(args.source)
     return cmd_localize_recording(args)
 
 
@@ -128,9 +138,10 @@ def register(sub) -> None:
         "localize",
         help="stream a query traverse frame by frame and write one CSV line per frame",
         description=(
-            "With --map MAP SOURCE: stream a recording (image folder, video or ROS bag) through "
-            "the map's localizer and write one record per frame (frame, timestamp, place, "
-            "confidence, state, relocated, and x, y when the map has positions) as CSV or JSON "
+            "With --map MAP SOURCE: stream a recording (image folder, video or ROS bag), a live "
+            "stream or a camera through the map's localizer and write one record per frame "
+            "(frame, timestamp, place, confidence, state, relocated, and x, y when the map has "
+            "positions; latency_ms for a live source) as CSV or JSON "
             "Lines (.jsonl); with --ground-truth it also scores itself. When the recording has "
             "positions and the map too, the distance moved between frames goes to the filter "
             "as odometry (path integration). With --dataset: fit METHOD on the benchmark's "
@@ -139,7 +150,11 @@ def register(sub) -> None:
         ),
     )
     p.add_argument(
-        "source", nargs="?", type=Path, metavar="SOURCE", help="recording to localize (with --map)"
+        "source",
+        nargs="?",
+        metavar="SOURCE",
+        help="with --map: a recording (image folder, video, ROS bag), a stream URL (rtsp://, "
+        "http://, udp://, tcp:// ...) or a camera (/dev/video0)",
     )
     p.add_argument("--map", type=Path, help="map file written by `flyvpr map`")
     add_recording_args(p)
@@ -193,5 +208,7 @@ def register(sub) -> None:
         help="with --out X.mcap: also write each frame's query image and its matched place's "
         "thumbnail (PNG, foxglove.CompressedImage on /flyvpr/query and /flyvpr/match)",
     )
+    add_live_args(p)
+    add_view_args(p)
     add_image_args(p, size_default=None)
     p.set_defaults(func=cmd_localize)

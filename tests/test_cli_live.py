@@ -1,0 +1,295 @@
+"""``flyvpr localize --map MAP URL``: live streams served from inside the tests, Ctrl-C, stalls,
+bad input, and the live view saved as a Rerun recording and read back."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+av = pytest.importorskip("av")
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.stream_servers import MjpegServer, free_udp_port, jpeg_bytes  # noqa: E402
+
+from flyvpr.cli import main  # noqa: E402
+from flyvpr.maps import Map  # noqa: E402
+from flyvpr.synthetic import make_route, save_route  # noqa: E402
+
+N = 30
+
+
+@pytest.fixture(scope="module")
+def route(tmp_path_factory):
+    """A synthetic route: a ``pixels`` map of its summer frames (with positions) and the same
+    frames as JPEG at 4x the map's size, so each served frame has one right answer."""
+    root = tmp_path_factory.mktemp("live")
+    r = make_route(N, size=(32, 64), conditions=("summer",), random_state=5)
+    save_route(r, root / "png")
+    positions = root / "xy.csv"
+    positions.write_text("frame,x,y\n" + "".join(f"{i},{3.0 * i},1.5\n" for i in range(N)))
+    m = Map.build(root / "png" / "summer", "pixels", positions=positions)
+    m.save(root / "route.map")
+    big = np.repeat(np.repeat(r.images["summer"], 4, axis=1), 4, axis=2)
+    jpegs = [jpeg_bytes(np.rint(im * 255).astype(np.uint8), quality=95) for im in big]
+    return {"map": root / "route.map", "jpegs": jpegs, "png": root / "png" / "summer"}
+
+
+def _run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _records(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _check_answers(rows):
+    """Each served frame i (cycled) shows place i: pixels answers it exactly."""
+    assert rows
+    for r in rows:
+        assert int(r["place"]) == int(r["frame"]) % N
+        assert float(r["x"]) == 3.0 * int(r["place"]) and float(r["y"]) == 1.5
+
+
+def test_stall_ends_with_exit_1_and_every_record_kept(route, tmp_path, capsys):
+    out = tmp_path / "where.csv"
+    with MjpegServer(route["jpegs"], fps=60, n_frames=N, stall_after=30) as srv:
+        code, stdout, err = _run(
+            capsys, "localize", "--map", route["map"], srv.url, "--out", out,
+            "--stall-timeout", 0.5, "--retries", 1, "--open-timeout", 1,
+        )  # fmt: skip
+    assert code == 1
+    lines = err.strip().splitlines()
+    assert lines[-1].startswith(f"flyvpr localize: error: stream {srv.url}: ")
+    assert lines[-1].endswith("gave up after 1 reconnection attempts")
+    assert any("reconnecting (1/1)" in line for line in lines[:-1])
+    rows = _records(out)
+    _check_answers(rows)
+    assert [c for c in rows[0]] == [
+        "frame", "timestamp", "place", "confidence", "state", "relocated", "x", "y", "latency_ms",
+    ]  # fmt: skip
+    assert rows[-1]["frame"] == str(N - 1)  # the last frame before the stall was processed
+    # wall-clock stamps (MJPEG carries none), in order, and a latency for each
+    t = np.array([float(r["timestamp"]) for r in rows])
+    assert (np.diff(t) >= 0).all() and abs(t[-1] - time.time()) < 60
+    assert all(0 <= float(r["latency_ms"]) < 5000 for r in rows)
+    received = int(stdout.split(" frames received")[0].rsplit(" ", 1)[-1])
+    assert received == N
+    assert f"{len(rows)} localized, {N - len(rows)} dropped" in stdout
+    assert "ended: the stream stalled" in stdout and "wall clock" in stdout
+
+
+def test_ctrl_c_ends_with_exit_130_and_every_processed_frame_written(route, tmp_path, capsys):
+    out = tmp_path / "where.jsonl"
+    timer = threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT))
+    with MjpegServer(route["jpegs"], fps=30, duration=30) as srv:
+        timer.start()
+        try:
+            code, stdout, err = _run(capsys, "localize", "--map", route["map"], srv.url,
+                                     "--out", out)  # fmt: skip
+        finally:
+            timer.cancel()
+    assert code == 130
+    assert "ended by Ctrl-C" in stdout
+    text = out.read_text()
+    assert text.endswith("\n")
+    import json
+
+    rows = [json.loads(line) for line in text.splitlines()]
+    assert len(rows) >= 20  # two seconds at 30 frames/s, less the start
+    assert f"{len(rows)} localized" in stdout
+    for r in rows:
+        assert r["place"] == r["frame"] % N
+
+
+def test_records_are_flushed_as_they_are_made(route, tmp_path, capsys):
+    """While the run goes on, the file already holds the records so far (tail -f works)."""
+    out = tmp_path / "where.csv"
+    seen = []
+
+    def peek():
+        time.sleep(1.5)
+        seen.append(out.read_text() if out.exists() else "")
+        os.kill(os.getpid(), signal.SIGINT)
+
+    with MjpegServer(route["jpegs"], fps=30, duration=30) as srv:
+        t = threading.Thread(target=peek)
+        t.start()
+        code, _, _ = _run(capsys, "localize", "--map", route["map"], srv.url, "--out", out)
+        t.join()
+    assert code == 130
+    lines = seen[0].splitlines()
+    assert len(lines) > 10 and lines[0].startswith("frame,timestamp")
+    assert out.read_text().startswith(seen[0])
+
+
+@pytest.mark.parametrize(
+    "source, match",
+    [
+        ("http://127.0.0.1:{port}/cam.mjpg", "stream http://127.0.0.1:{port}/cam.mjpg: cannot open:"
+         " Connection refused"),
+        ("/dev/video97", "camera /dev/video97: no such device"),
+        ("udp://127.0.0.1:{port}", "stream udp://127.0.0.1:{port}: no answer within 0.5 s"),
+    ],
+)  # fmt: skip
+def test_bad_sources_one_line_exit_1(route, tmp_path, capsys, source, match):
+    port = free_udp_port()
+    source, match = source.format(port=port), match.format(port=port)
+    out = tmp_path / "where.csv"
+    code, stdout, err = _run(capsys, "localize", "--map", route["map"], source, "--out", out,
+                             "--open-timeout", 0.5)  # fmt: skip
+    assert code == 1
+    assert err.count("\n") == 1 and err.startswith(f"flyvpr localize: error: {match}")
+    assert not out.exists()
+
+
+def test_garbage_stream_one_line_exit_1(route, tmp_path, capsys):
+    with MjpegServer([], garbage=True, duration=3) as srv:
+        code, _, err = _run(capsys, "localize", "--map", route["map"], srv.url,
+                            "--open-timeout", 2)  # fmt: skip
+    assert code == 1 and err.count("\n") == 1
+    assert f"stream {srv.url}: sends nothing FFmpeg can read as video" in err
+
+
+@pytest.mark.parametrize(
+    "extra, match",
+    [
+        (["--every", "2"], "--every: not with a live source"),
+        (["--realtime"], "--realtime: not with a live source"),
+        (["--ground-truth", "frames", "--tolerance", "1"], "--ground-truth: not with a live"),
+        (["--render", "x.mp4"], "--render: not with a live source"),
+        (["--view-save", "x.txt"], "--view-save x.txt: expected a .rrd file"),
+        (["--view", "--view-port", "9000", "--view-data-port", "9000"], "two ports are needed"),
+    ],
+)
+def test_live_usage_errors(route, capsys, extra, match):
+    code, _, err = _run(capsys, "localize", "--map", route["map"], "udp://127.0.0.1:9", *extra)
+    assert code == 2 and match in err
+
+
+def test_live_options_need_a_live_source(route, capsys):
+    code, _, err = _run(capsys, "localize", "--map", route["map"], route["png"],
+                        "--stall-timeout", 2)  # fmt: skip
+    assert code == 2 and "--stall-timeout: only for a live SOURCE" in err
+    code, _, err = _run(capsys, "localize", "--dataset", "nordland", "--retries", 2)
+    assert code == 2 and "--retries needs --map MAP SOURCE" in err
+
+
+# -- the live view ---------------------------------------------------------------------------
+rr = pytest.importorskip("rerun")
+
+
+def _read_rrd(path) -> dict:
+    """entity path -> {component column: list of values, timeline: list}, from an .rrd."""
+    from rerun.chunk import RrdReader
+
+    out: dict = {}
+    for chunk in RrdReader(path).stream():
+        batch = chunk.to_record_batch()
+        cols = out.setdefault(chunk.entity_path, {})
+        for name in batch.schema.names:
+            if name.startswith("rerun.") or name in ("log_time", "time"):
+                continue
+            cols.setdefault(name, []).extend(batch.column(name).to_pylist())
+    return out
+
+
+def _flat(values):
+    return [v[0] if isinstance(v, list) else v for v in values]
+
+
+def test_view_save_of_a_live_run_holds_what_was_logged(route, tmp_path, capsys):
+    out, trace = tmp_path / "where.csv", tmp_path / "trace.rrd"
+    with MjpegServer(route["jpegs"], fps=30, n_frames=2 * N, stall_after=30) as srv:
+        code, stdout, _ = _run(
+            capsys, "localize", "--map", route["map"], srv.url, "--out", out,
+            "--view-save", trace, "--stall-timeout", 0.5, "--retries", 0,
+        )  # fmt: skip
+    assert code == 1
+    rows = _records(out)
+    got = _read_rrd(trace)
+    for entity in ("/query", "/query/input", "/match", "/filter/activity", "/fix/place",
+                   "/fix/confidence", "/fix/localized", "/fix/events", "/route/places",
+                   "/route/position"):  # fmt: skip
+        assert entity in got, entity
+    shown = int(stdout.split("live view: ")[1].split(" frames shown")[0])
+    assert shown >= 1
+    frames = got["/fix/place"]["frame"]
+    places = _flat(got["/fix/place"]["Scalars:scalars"])
+    assert len(places) == shown
+    by_frame = {int(r["frame"]): r for r in rows}
+    for f, p in zip(frames, places, strict=True):  # the view shows what the records say
+        assert int(p) == int(by_frame[f]["place"])
+    bars = got["/filter/activity"]
+    assert len(bars["frame"]) == shown
+    assert len(got["/route/places"]["Points2D:positions"][0]) == N
+
+
+def test_view_save_of_a_recording_has_every_frame(route, tmp_path, capsys):
+    out, trace = tmp_path / "where.csv", tmp_path / "trace.rrd"
+    code, stdout, _ = _run(capsys, "localize", "--map", route["map"], route["png"],
+                           "--out", out, "--view-save", trace)  # fmt: skip
+    assert code == 0 and f"live view: {N} frames shown, 0 skipped" in stdout
+    rows = _records(out)
+    got = _read_rrd(trace)
+    assert got["/fix/place"]["frame"] == list(range(N))
+    assert [int(p) for p in _flat(got["/fix/place"]["Scalars:scalars"])] == [
+        int(r["place"]) for r in rows
+    ]
+    conf = _flat(got["/fix/confidence"]["Scalars:scalars"])
+    assert conf == pytest.approx([float(r["confidence"]) for r in rows], rel=1e-6)
+
+
+def test_the_viewer_is_served(route, tmp_path):
+    """With serve=True the web viewer's page answers on localhost (no internet involved)."""
+    import urllib.request
+
+    from flyvpr.view import LiveView
+
+    web, data = free_udp_port(), free_udp_port()
+    view = LiveView(Map.load(route["map"]), serve=True, web_port=web, grpc_port=data)
+    try:
+        assert view.url == f"http://localhost:{web}/?url=rerun+http://localhost:{data}/proxy"
+        deadline = time.monotonic() + 10
+        while True:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=2) as r:
+                    page = r.read().decode("utf-8", "replace")
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+        assert "<html" in page.lower()
+    finally:
+        view.close()
+
+
+def test_view_needs_the_extra(route, monkeypatch):
+    import builtins
+
+    from flyvpr.view import LiveView
+
+    real = builtins.__import__
+
+    def no_rerun(name, *args, **kwargs):
+        if name == "rerun" or name.startswith("rerun."):
+            raise ImportError("No module named 'rerun'")
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_rerun)
+    with pytest.raises(ImportError, match=r"pip install 'flyvpr\[view\]'"):
+        LiveView(Map.load(route["map"]), serve=False, save="x.rrd")
