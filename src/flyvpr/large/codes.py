@@ -16,8 +16,9 @@ projections of the centred features:
 Similarity is ``1 - hamming / n_bits`` (higher = more similar, 1 for identical codes), the
 score matrix contract of the rest of the library.  On the dev windows (Nordland 64x32
 summer -> winter, frames 0-999 and 1000-1999, seeds 0-2; ``benchmarks/compact_codes.py``)
-256 PCA bits lose 0.04 of single-frame recall@1 against the 4096-cell code and nothing after
-the CANN; see ``docs/guide/large-maps.md`` for the table.
+256 PCA bits lose 0.06 of single-frame recall@1 against the 4096-cell code and 0.002-0.005
+of AUC after the CANN; 512 bits lose 0.02 and nothing after the CANN.  See
+``docs/guide/large-maps.md`` for the table.
 
 The functions :func:`hamming_similarity` and :func:`hamming_similarity_at` score one or a few
 queries against a range or a list of places of a (possibly memory-mapped) code array, without

@@ -1,0 +1,141 @@
+"""Compact codes (<= 64 bytes per place) against the full 4096-cell ``kenyon`` code.
+
+Usage::
+
+    python benchmarks/compact_codes.py --json benchmarks/compact-codes.json [--data DIR]
+
+Data: ``nordland_64x32`` summer -> winter, frames 0-999 and 1000-1999 (the dev windows),
+tolerance 2 and 20 frames, seeds 0-2.  Each code is scored by Hamming similarity
+(``1 - hamming / n_bits``; the full code by its overlap, as the front end does), then the
+CANN (defaults) filters the score matrix.  Figures: single-frame recall@1 and PR AUC, and PR
+AUC after the CANN, mean over the 2 windows x 3 seeds (min and max of the CANN's AUC).
+
+Codes compared (all from the same fitted KenyonEncoder's optic lobe and mean features):
+
+* ``pca``: :class:`flyvpr.large.CompactEncoder` (PCA-rotated signs), 256 and 512 bits;
+* ``simhash``: its ``projection="simhash"`` (Gaussian sign random projection);
+* ``kc-median``: the first 256 / 512 Kenyon cells' activity, thresholded at its median per
+  image (dense bits from the sparse projection);
+* ``kc-subset``: the first 256 / 512 bits of the Kenyon code (sparse: about 5% set);
+* ``kc-xor``: the 4096-bit code folded by XOR to 256 / 512 bits.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from flyvpr._io import write_json_atomic
+from flyvpr.datasets.nordland import load_nordland
+from flyvpr.frontends import KenyonEncoder
+from flyvpr.large import CompactEncoder, hamming_similarity
+from flyvpr.metrics import pr_auc, recall_at_k
+from flyvpr.temporal import FILTERS
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_DATA = HERE.parent.parent / "shared" / "data"
+WINDOWS = (0, 1000)
+SEEDS = (0, 1, 2)
+TOLERANCES = (2, 20)
+
+
+def _packed(bits) -> np.ndarray:
+    return np.packbits(np.asarray(bits, dtype=bool), axis=1)
+
+
+def codes_of(ken: KenyonEncoder, ref, qry, seed) -> dict:
+    """name -> (reference codes, query codes) of every compact code, bit-packed."""
+    out = {}
+    for n_bits in (256, 512):
+        for proj in ("pca", "simhash"):
+            enc = CompactEncoder.from_kenyon(
+                ken, ref, n_bits=n_bits, projection=proj, random_state=seed
+            )
+            out[f"{proj}-{n_bits}"] = (enc.reference_codes_, enc.encode(qry))
+        act_r = ken.kenyon_activity(ref)[:, :n_bits]
+        act_q = ken.kenyon_activity(qry)[:, :n_bits]
+        out[f"kc-median-{n_bits}"] = (
+            _packed(act_r > np.median(act_r, axis=1, keepdims=True)),
+            _packed(act_q > np.median(act_q, axis=1, keepdims=True)),
+        )
+        fold = 4096 // n_bits
+        full_r = np.unpackbits(ken.reference_codes_, axis=1).reshape(len(ref), n_bits, fold)
+        full_q = np.unpackbits(ken.encode(qry), axis=1).reshape(len(qry), n_bits, fold)
+        out[f"kc-subset-{n_bits}"] = (_packed(full_r[:, :, 0]), _packed(full_q[:, :, 0]))
+        out[f"kc-xor-{n_bits}"] = (
+            _packed(full_r.sum(axis=2) % 2),
+            _packed(full_q.sum(axis=2) % 2),
+        )
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    p.add_argument("--json", type=Path)
+    args = p.parse_args(argv)
+    root = args.data / "nordland_64x32"
+    if not root.is_dir():
+        print(f"data folder not found: {root}", file=sys.stderr)
+        return 1
+    runs: dict = {}
+    for first in WINDOWS:
+        bench = load_nordland(root, "summer", "winter", first=first, count=1000, tolerance=20)
+        ref = bench.reference.load_images(progress=False)
+        qry = bench.query.load_images(progress=False)
+        i = np.arange(len(ref))
+        gts = {t: np.abs(i[:, None] - i[None, :]) <= t for t in TOLERANCES}
+        for seed in SEEDS:
+            ken = KenyonEncoder(random_state=seed).fit(ref)
+            scores = {"kenyon-4096 (full, 512 bytes)": ken.score(qry)}
+            for name, (r, q) in codes_of(ken, ref, qry, seed).items():
+                scores[name] = hamming_similarity(q, r)
+            for name, S in scores.items():
+                C = FILTERS["cann"]().filter(S)
+                for t, gt in gts.items():
+                    runs.setdefault(name, {}).setdefault(str(t), []).append(
+                        {
+                            "window": f"{first}-{first + 999}",
+                            "seed": seed,
+                            "recall_at_1": recall_at_k(S, gt, 1),
+                            "auc": pr_auc(S, gt),
+                            "cann_auc": pr_auc(C, gt),
+                        }
+                    )
+            print(f"window {first} seed {seed} done", flush=True)
+    summary = {}
+    for name, by_tol in runs.items():
+        summary[name] = {}
+        for t, rs in by_tol.items():
+            cann = [r["cann_auc"] for r in rs]
+            summary[name][t] = {
+                "recall_at_1": float(np.mean([r["recall_at_1"] for r in rs])),
+                "auc": float(np.mean([r["auc"] for r in rs])),
+                "cann_auc": float(np.mean(cann)),
+                "cann_auc_min": float(np.min(cann)),
+                "cann_auc_max": float(np.max(cann)),
+            }
+            s = summary[name][t]
+            print(
+                f"{name:30s} tol {t:>2s}  R@1 {s['recall_at_1']:.3f}  AUC {s['auc']:.3f}  "
+                f"+cann AUC {s['cann_auc']:.3f} [{s['cann_auc_min']:.3f}, {s['cann_auc_max']:.3f}]"
+            )
+    if args.json:
+        write_json_atomic(
+            args.json,
+            {
+                "what": "compact codes vs the full kenyon code, Nordland 64x32 summer -> winter",
+                "windows": [f"{f}-{f + 999}" for f in WINDOWS],
+                "seeds": list(SEEDS),
+                "summary": summary,
+                "runs": runs,
+            },
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
