@@ -257,9 +257,10 @@ class LiveSource:
         return f"{reason} (expected a {self._expected()})"
 
     # -- the reader thread ------------------------------------------------------------------
-    def _publish(self, frame, arrival: float) -> None:
+    def _publish(self, item, stream_time, arrival: float) -> None:
+        """Hand ``item`` (a decoded frame, or an MJPEG packet to decode) to the consumer."""
         if self.clock is None:
-            stamped = frame.time is not None
+            stamped = stream_time is not None
             self.clock = (
                 "stream"
                 if stamped and self._container.format.name not in _NO_CLOCK_FORMATS
@@ -268,11 +269,11 @@ class LiveSource:
         if self.clock == "wall":
             t = time.time()
         else:
-            t = math.nan if frame.time is None else float(frame.time)
+            t = math.nan if stream_time is None else float(stream_time)
         with self._cond:
             if self._slot is not None:
                 self.n_dropped += 1
-            self._slot = (self.n_received, t, arrival, frame)
+            self._slot = (self.n_received, t, arrival, item)
             self.n_received += 1
             self._cond.notify()
 
@@ -285,11 +286,21 @@ class LiveSource:
         # no frame threading: it holds frames back (one per thread), which a live stream
         # pays for in latency
         stream = container.streams.video[0]
+        # every MJPEG packet is a whole picture: hand packets over and let the consumer decode
+        # the one it takes, so the frames it drops cost no decoding and the socket is drained
+        # at once (a stream faster than the decoder would otherwise queue up in TCP buffers)
+        lazy = stream.codec_context.name == "mjpeg"
         last = time.monotonic()
         try:
             for packet in container.demux(stream):
                 if self._stopping:
                     return "stop"
+                if lazy:
+                    if packet.size:
+                        last = time.monotonic()
+                        t = None if packet.pts is None else float(packet.pts * stream.time_base)
+                        self._publish(packet, t, last)
+                    continue
                 try:
                     frames = packet.decode()
                 except av.FFmpegError:
@@ -299,7 +310,7 @@ class LiveSource:
                     frames = ()
                 for frame in frames:
                     last = time.monotonic()
-                    self._publish(frame, last)
+                    self._publish(frame, frame.time, last)
                 if time.monotonic() - last > self.stall_timeout:
                     return (
                         f"stalled: no decodable frame for {self.stall_timeout:g} s "
@@ -396,17 +407,40 @@ class LiveSource:
         plane = np.zeros((2 * h, 2 * w + 8), np.uint8)
         area_resize(plane, h, w)
         area_resize(plane[:, : 2 * w], h, w)
+        jpeg = self._av.CodecContext.create("mjpeg", "r")
         self._thread = threading.Thread(target=self._run, name="flyvpr-live-reader", daemon=True)
         self._thread.start()
+        last_good = time.monotonic()
         try:
             while True:
                 item = self._take()
                 if item is None:
                     return
                 index, t, arrival, frame = item
+                if isinstance(frame, self._av.Packet):
+                    frame = self._decode_jpeg(jpeg, frame)
+                    if frame is None:
+                        if time.monotonic() - last_good > self.stall_timeout:
+                            raise RecordingError(
+                                f"{self.describe()}: no decodable frame for "
+                                f"{self.stall_timeout:g} s ({self.n_corrupt} damaged JPEG frames)"
+                            )
+                        continue
+                last_good = time.monotonic()
                 yield LiveFrame(index, t, arrival, _decoder(frame)((h, w)), frame)
         finally:
             self.close()
+
+    def _decode_jpeg(self, codec, packet):
+        """The picture of one MJPEG packet (None, counted as damaged, if it has none)."""
+        try:
+            frames = codec.decode(packet)
+        except self._av.FFmpegError:
+            frames = []
+        if not frames:
+            self.n_corrupt += 1
+            return None
+        return frames[-1]
 
     def stop(self) -> None:
         """Ask :meth:`frames` to end (within 0.1 s); safe to call from a signal handler."""
