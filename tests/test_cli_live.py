@@ -221,7 +221,7 @@ def test_view_save_of_a_live_run_holds_what_was_logged(route, tmp_path, capsys):
     assert code == 1
     rows = _records(out)
     got = _read_rrd(trace)
-    for entity in ("/query", "/query/input", "/match", "/filter/activity", "/fix/place",
+    for entity in ("/query", "/input", "/match", "/filter/activity", "/fix/place",
                    "/fix/confidence", "/fix/localized", "/fix/events", "/route/places",
                    "/route/position"):  # fmt: skip
         assert entity in got, entity

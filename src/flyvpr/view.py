@@ -9,7 +9,7 @@ source's frame index) and ``time`` (the frame's timestamp):
 =====================  ===============================================================
 ``query``              the query frame (a preview of the camera frame, or the
                        pre-processed gray frame of a recording)
-``query/input``        the frame as the localizer sees it (gray, the map's size)
+``input``              the frame as the localizer sees it (gray, the map's size)
 ``match``              the matched place's thumbnail from the map
 ``filter/activity``    the filter's score row over the places (a bar chart; maps with
                        more than ``max_bars`` places are shown as the maximum over bins)
@@ -183,9 +183,12 @@ class LiveView:
             rrb.Horizontal(
                 rrb.Vertical(
                     rrb.Spatial2DView(origin="query", name="query"),
-                    rrb.Spatial2DView(origin="match", name="matched place"),
+                    rrb.Horizontal(
+                        rrb.Spatial2DView(origin="input", name="what the localizer sees"),
+                        rrb.Spatial2DView(origin="match", name="matched place"),
+                    ),
                     rrb.TextLogView(origin="fix/events", name="events"),
-                    row_shares=[2, 2, 1],
+                    row_shares=[3, 2, 1],
                 ),
                 rrb.Vertical(*right),
             ),
@@ -271,7 +274,7 @@ class LiveView:
                 rec.set_time("time", duration=float(timestamp))
         rec.log("query", rr.Image(_preview(query)).compress(jpeg_quality=_JPEG_QUALITY))
         if model_input is not None:
-            rec.log("query/input", rr.Image(_uint8(model_input)))
+            rec.log("input", rr.Image(_uint8(model_input)))
         if self.map_.thumbnails is not None:
             rec.log("match", rr.Image(self.map_.thumbnails[int(place)]))
         row = np.asarray(scores, np.float32)

@@ -157,7 +157,7 @@ def cmd_localize_recording(args) -> int:
                     view.log(
                         row["frame"], row["timestamp"], b.images[i], row["place"],
                         row["confidence"], row["state"], step.scores[i],
-                        relocated=bool(row["relocated"]),
+                        model_input=b.images[i], relocated=bool(row["relocated"]),
                     )  # fmt: skip
             confidences.append(step.confidences.astype(np.float32))
             n_frames += len(b)
