@@ -67,12 +67,13 @@ class _Handler(http.server.BaseHTTPRequestHandler):
                     time.sleep(delay)
             data = srv.jpegs[i % len(srv.jpegs)]
             head = b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % len(data)
+            sent = time.time()  # before the write: the client may have the frame before it returns
             try:
                 self.wfile.write(head + data + b"\r\n")
                 self.wfile.flush()
             except OSError:  # the client left
                 break
-            srv.sent.append(time.time())
+            srv.sent.append(sent)
             i += 1
         if srv.stall_after:
             # keep the connection open and silent: a camera that hangs (and stays hung for
@@ -104,7 +105,7 @@ class MjpegServer:
     ----------
     url : str
     sent : list of float
-        ``time.time()`` when each frame was written to the socket.
+        ``time.time()`` just before each frame was written to the socket.
     """
 
     def __init__(
