@@ -1396,6 +1396,18 @@ def test_relocations_from_the_first_place_and_not_on_the_first_frame():
     assert f.n_relocations_ == 2 and frames[19]["n_relocations_"] == 1
 
 
+@pytest.mark.parametrize("tolerance", [1, 2, 3])
+def test_a_relocation_is_a_move_beyond_2_tolerance_plus_1(tolerance):
+    # standing at 30, then at 30 + jump: the answer moves there in one frame (15); a move
+    # of 2 * tolerance + 1 places (the width of the window) is not a relocation, one more is
+    params = {"velocities": (0.0,), "speed_prior": 0.0, "adaptation": None, "fallback": False}
+    for jump, relocations in ((2 * tolerance + 1, 0), (2 * tolerance + 2, 1)):
+        S = bump_rows(np.r_[np.full(10, 30.0), np.full(10, 30.0 + jump)], 50)
+        rows, frames = run(CANN(tolerance=tolerance, **params), S)
+        assert rows[14].argmax() == 30 and rows[15].argmax() == 30 + jump
+        assert [fr["n_relocations_"] for fr in frames[14:]] == [0] + 5 * [relocations]
+
+
 def test_zero_support_answers_with_the_tables_first_value():
     # support 0 for ever (the query never joins the route): the raw confidence is 0 and the
     # calibration's value at 0 is the answer's; nothing else in the row
