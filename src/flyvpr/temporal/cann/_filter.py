@@ -27,7 +27,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.732, 0.857, 0.858, 0.877, 0.911, 0.92, 0.939, 0.956, 0.984, 0.999, 1.0)
+CALIBRATION = (0.507, 0.838, 0.839, 0.844, 0.916, 0.917, 0.943, 0.956, 0.985, 0.999, 1.0)
 #: learning rate of the front end's logistic model (per confident sequence answer)
 _FRONT_RATE = 0.05
 #: about this many places are sampled by the sequence test
@@ -141,7 +141,7 @@ class CANN(OnlineFilter):
         confidence is that probability (times the support).
     sequence_break : float, default 0.05
         Probability per frame that the query leaves the route (the support's prior decay).
-    sequence_start : float, default 0.02
+    sequence_start : float, default 0.05
         Probability per frame that a query off the route joins it.
     outlier : float, default 0.3
         Share of frames on the route whose evidence at the true place is no better than
@@ -213,7 +213,7 @@ class CANN(OnlineFilter):
         recovery=0.01,
         tolerance=2,
         sequence_break=0.05,
-        sequence_start=0.02,
+        sequence_start=0.05,
         outlier=0.3,
         support_memory=100.0,
         fallback=True,
