@@ -43,9 +43,9 @@ DEFAULT_WEB_PORT = 9090
 DEFAULT_GRPC_PORT = 9876
 #: a timestamp above this many seconds is Unix time (drawn as a date), below it a duration
 _UNIX_AFTER = 1e8
-#: the query preview: at most this wide, JPEG at this quality (a recording's size is mostly this)
-PREVIEW_WIDTH = 320
-_JPEG_QUALITY = 75
+#: the query preview is at most this wide (RGB, uncompressed: the web viewer shows raw images
+#: at once, where it decodes a JPEG per frame; a recording's size is mostly this)
+PREVIEW_WIDTH = 240
 
 
 def _require_rerun():
@@ -67,7 +67,7 @@ def _uint8(image) -> np.ndarray:
 
 
 def _preview(query) -> np.ndarray:
-    """A PyAV frame as RGB at most :data:`PREVIEW_WIDTH` wide; an array as uint8."""
+    """A PyAV frame as RGB at most ``PREVIEW_WIDTH`` wide; an array as uint8."""
     if hasattr(query, "reformat"):
         w = min(query.width, PREVIEW_WIDTH)
         h = max(1, round(query.height * w / query.width))
@@ -103,7 +103,7 @@ class LiveView:
     background : bool
         Log on a thread of its own, so that the caller never waits for the viewer: when it
         is still busy with a frame, the next one replaces the one waiting (the view then
-        skips frames, counted in :attr:`n_skipped`; the records are unaffected).
+        skips frames, counted in ``n_skipped``; the records are unaffected).
 
     Attributes
     ----------
@@ -142,6 +142,7 @@ class LiveView:
         self.save = None if save is None else Path(save)
         self.url = None
         self.n_logged = self.n_skipped = 0
+        self._radius = 1.0  # of the route's dots, metres (set from the route's extent)
         self._state = None
         self._cond = threading.Condition()
         self._pending = None
@@ -202,8 +203,15 @@ class LiveView:
             return
         known = np.isfinite(xy).all(axis=1)
         pts = np.c_[xy[known, 0], -xy[known, 1]]
+        if len(pts) == 0:
+            return
+        # sizes in metres, from the route's extent, so that any route shows its dots
+        span = float(np.ptp(pts, axis=0).max()) if len(pts) > 1 else 1.0
+        self._radius = max(span, 1e-9) / 100.0
         self._rec.log(
-            "route/places", rr.Points2D(pts, colors=[150, 150, 150], radii=0.5), static=True
+            "route/places",
+            rr.Points2D(pts, colors=[150, 150, 150], radii=self._radius / 3),
+            static=True,
         )
 
     def log(
@@ -229,7 +237,7 @@ class LiveView:
             Seconds (NaN: not on the ``time`` timeline).
         query : ndarray, shape (H, W) or (H, W, 3), or av.VideoFrame
             The frame to show, uint8 (or float in [0, 1]); a PyAV frame is shown in colour
-            at most :data:`PREVIEW_WIDTH` pixels wide.  Shown as JPEG.
+            at most ``PREVIEW_WIDTH`` (240) pixels wide.
         place : int
         confidence : float
         state : str
@@ -272,7 +280,7 @@ class LiveView:
                 rec.set_time("time", timestamp=float(timestamp))
             else:
                 rec.set_time("time", duration=float(timestamp))
-        rec.log("query", rr.Image(_preview(query)).compress(jpeg_quality=_JPEG_QUALITY))
+        rec.log("query", rr.Image(_preview(query)))
         if model_input is not None:
             rec.log("input", rr.Image(_uint8(model_input)))
         if self.map_.thumbnails is not None:
@@ -296,7 +304,8 @@ class LiveView:
             x, y = xy[int(place)]
             rec.log(
                 "route/position",
-                rr.Points2D([[x, -y]], colors=[230, 40, 40], radii=2.0, labels=[str(place)]),
+                rr.Points2D([[x, -y]], colors=[230, 40, 40], radii=self._radius,
+                            labels=[str(place)]),  # fmt: skip
             )
 
     def close(self) -> None:
