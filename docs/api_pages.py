@@ -30,6 +30,7 @@ API_MODULES = [
     "flyvpr.maps",
     "flyvpr.tracking",
     "flyvpr.trace",
+    "flyvpr.view",
     "flyvpr.modelio",
     "flyvpr.evaluation",
     "flyvpr.experiments",
