@@ -5,12 +5,12 @@ or any stream FFmpeg reads), ``udp://``, ``tcp://`` ... URL, or a V4L2 camera (`
 with PyAV, and decodes it on a reader thread that keeps only the newest frame.  The consumer
 (the localizer) takes that frame whenever it is ready, so it never falls behind the camera:
 when it is slower than the stream, the frames it had no time for are dropped and counted
-(:attr:`LiveSource.n_dropped`), and the answer it gives is always about the latest frame.
+(``LiveSource.n_dropped``), and the answer it gives is always about the latest frame.
 
 Timestamps come from the stream (a frame's presentation time in seconds, the stream's own
 clock: RTSP/RTP, MPEG-TS, a camera driver's capture time) except for formats that carry none,
 such as MJPEG over HTTP or a raw H.264 elementary stream, whose frames FFmpeg numbers at an
-assumed rate: those get the wall clock (Unix seconds) of their arrival.  :attr:`LiveSource.clock`
+assumed rate: those get the wall clock (Unix seconds) of their arrival.  ``LiveSource.clock``
 says which.
 
 A stream that stalls (no frame for ``stall_timeout`` seconds, or a broken connection) is
@@ -86,7 +86,7 @@ class LiveFrame(NamedTuple):
         gaps between consecutive indices are the frames dropped in between.
     timestamp : float
         Seconds: the stream's presentation time, or the wall clock (Unix time) at arrival
-        where the stream has no clock (:attr:`LiveSource.clock`); NaN if a frame of a
+        where the stream has no clock (``LiveSource.clock``); NaN if a frame of a
         stream with a clock has none.
     arrival : float
         ``time.monotonic()`` when the frame was decoded, to measure latency.
