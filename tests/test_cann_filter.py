@@ -392,7 +392,7 @@ DEFAULTS = {
     "recovery": 0.01,
     "tolerance": 2,
     "sequence_break": 0.05,
-    "sequence_start": 0.02,
+    "sequence_start": 0.05,
     "outlier": 0.3,
     "support_memory": 100.0,
     "fallback": True,
@@ -406,7 +406,7 @@ def test_defaults():
     forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0)
     assert LAYER_VELOCITIES == (-2.0, -1.5, -1.0, -0.5) + forward
     assert all(type(v) is float for v in LAYER_VELOCITIES)
-    table = (0.732, 0.857, 0.858, 0.877, 0.911, 0.92, 0.939, 0.956, 0.984, 0.999, 1.0)
+    table = (0.507, 0.838, 0.839, 0.844, 0.916, 0.917, 0.943, 0.956, 0.985, 0.999, 1.0)
     assert CALIBRATION == table
     assert np.all(np.diff(CALIBRATION) > 0)
     assert _FRONT_RATE == 0.05
