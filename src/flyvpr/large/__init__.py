@@ -5,6 +5,8 @@
 * :mod:`~flyvpr.large.index`: indexes returning the top ``k`` candidate places
   (exhaustive, multi-index hashing, faiss binary IVF / HNSW) and :func:`pool_candidates`;
 * :mod:`~flyvpr.large.mapfile`: map files written in chunks and opened memory-mapped;
+* :mod:`~flyvpr.large.localizer`: :class:`LargeLocalizer`, the windowed CANN with an index
+  for relocation;
 * :mod:`~flyvpr.large.synthetic`: huge tiled maps for benchmarks.
 
 See ``docs/guide/large-maps.md``.  Importing this package imports neither numba nor faiss.
@@ -26,6 +28,7 @@ from .index import (
     MultiIndexHash,
     pool_candidates,
 )
+from .localizer import LargeLocalizer
 from .mapfile import (
     LargeMap,
     LargeMapWriter,
@@ -38,6 +41,7 @@ from .mapfile import (
 from .synthetic import tile_mask, tile_queries, write_tiled_map
 
 __all__ = [
+    "LargeLocalizer",
     "INDEXES",
     "PROJECTIONS",
     "CandidateIndex",
