@@ -220,3 +220,37 @@ def test_a_stream_of_damaged_jpegs_raises():
             for _ in src.frames((8, 16)):
                 pass
     assert src.n_corrupt > 10
+
+
+def test_the_end_of_a_stream_ends_the_frames(tmp_path):
+    """A server that sends a short MPEG-TS over TCP and closes: the frames end, no error."""
+    import socket
+    import threading
+
+    path = tmp_path / "short.ts"
+    with av.open(str(path), "w", format="mpegts") as c:
+        st = c.add_stream("mpeg2video", rate=25)
+        st.width, st.height, st.pix_fmt = 64, 48, "yuv420p"
+        for i in range(20):
+            frame = av.VideoFrame.from_ndarray(np.full((48, 64), LEVELS[i], np.uint8), "gray")
+            frame.pts = i
+            for packet in st.encode(frame):
+                c.mux(packet)
+        for packet in st.encode():
+            c.mux(packet)
+    data = path.read_bytes()
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+
+    def serve():
+        conn, _ = server.accept()
+        conn.sendall(data)
+        conn.close()
+
+    threading.Thread(target=serve, daemon=True).start()
+    src = LiveSource(f"tcp://127.0.0.1:{server.getsockname()[1]}", stall_timeout=2, retries=0)
+    got = [f.index for f in src.frames((8, 16))]
+    server.close()
+    assert src.ended and src.n_received == 20 and src.clock == "stream"
+    assert got and got[-1] == 19  # the last frame is always taken
