@@ -74,7 +74,7 @@ def test_stall_ends_with_exit_1_and_every_record_kept(route, tmp_path, capsys):
     assert code == 1
     lines = err.strip().splitlines()
     assert lines[-1].startswith(f"flyvpr localize: error: stream {srv.url}: ")
-    assert lines[-1].endswith("gave up after 1 reconnection attempts")
+    assert lines[-1].endswith("gave up after 1 reconnection attempt")
     assert any("reconnecting (1/1)" in line for line in lines[:-1])
     rows = _records(out)
     _check_answers(rows)

@@ -341,10 +341,13 @@ class LiveSource:
                 while True:  # reopen until a stream answers or the retries are spent
                     failures += 1
                     if failures > self.retries:
-                        self._error = RecordingError(
-                            f"{self.describe()}: {outcome}; gave up after "
-                            f"{self.retries} reconnection attempts"
+                        n = self.retries
+                        given_up = (
+                            f"gave up after {n} reconnection attempt{'s' * (n != 1)}"
+                            if n
+                            else "not retried (retries=0)"
                         )
+                        self._error = RecordingError(f"{self.describe()}: {outcome}; {given_up}")
                         return
                     self.notify(
                         f"{self.describe()}: {outcome}; reconnecting ({failures}/{self.retries})"
