@@ -1,14 +1,20 @@
-"""flyvpr: visual place recognition with FlyNet+CANN.
+"""flyvpr: visual place recognition for robots, with fly-inspired front ends and a CANN.
 
-FlyNet (a fly-inspired sparse binary hash and a linear classifier) scores every
-reference place for each query frame; a 1-d continuous attractor network
-(CANN) filters those scores over time (Chancán et al., IEEE RA-L 2020).
+A robot drives a route once (the map); later, in another season or at night, it says for every
+camera frame which place of the map it shows.  A front end scores every place for each frame:
+the default ``kenyon`` (a fixed optic lobe feeding 4096 Kenyon cells, nothing trained), the
+paper's FlyNet (FlyHash plus a trained linear classifier), raw pixels, or learned baselines.
+The :class:`CANN` filters those scores over time: a place-velocity layer that follows a robot
+at any speed, with or without odometry, and says whether it is localized; the paper's
+attractor network is kept as :class:`~flyvpr.temporal.cann.AttractorCANN` (Chancán et al.,
+IEEE RA-L 2020).  :class:`Localizer` streams one frame at a time.
 
 ``import flyvpr`` loads neither torch nor matplotlib.
 """
 
 from ._validation import NotFittedError
-from .frontends import FRONTENDS, FlyHash, FlyNet, PixelsEncoder
+from .frontends import FRONTENDS, FlyHash, FlyNet, KenyonEncoder, PixelsEncoder
+from .localizer import Fix, Localizer
 from .methods import METHODS, make_method
 from .temporal import CANN, FILTERS, SeqSLAM
 
@@ -17,11 +23,14 @@ __version__ = "0.1.0"
 __all__ = [
     "__version__",
     "NotFittedError",
+    "KenyonEncoder",
     "FlyHash",
     "FlyNet",
     "PixelsEncoder",
     "SeqSLAM",
     "CANN",
+    "Localizer",
+    "Fix",
     "FRONTENDS",
     "FILTERS",
     "METHODS",
