@@ -68,8 +68,9 @@ def test_mjpeg_over_http_wall_clock_and_pixels():
             got.append(f)
             if f.index == 79:
                 break
-    # the frames read while FFmpeg probed the stream come in a burst: some are dropped
-    assert len(got) >= 40
+    # the frames read while FFmpeg probed the stream come in a burst and only the newest is
+    # kept; on a loaded machine the probing takes longer (seen: the first frame was 63)
+    assert len(got) >= 5 and got[-1].index == 79
     assert src.clock == "wall"
     idx = np.array([f.index for f in got])
     assert (np.diff(idx) > 0).all()
