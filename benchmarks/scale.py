@@ -16,23 +16,33 @@ Protocol:
 * **Map** (``build_s``, in its own process, whose peak memory is ``build_peak_rss_mb``): the
   summer codes tiled to N places with :func:`flyvpr.large.write_tiled_map` (tile masks
   flip 25% of the bits, per-place noise 2%), streamed to a map file, then the multi-index
-  hashing tables (16 x 16-bit substrings) built from the memory-mapped codes and saved.
-* **Stream** (in its own process; ``peak_rss_mb`` is its VmHWM): open the map and the index
-  (``open_s``), refit the encoder on the summer frames (not timed), then ``--queries`` winter
-  frames driven along the map from a random place: frame at map place ``p`` is winter frame
-  ``p mod 2400`` seen on tile ``p // 2400`` (:func:`flyvpr.large.tile_queries`); its true
-  place is ``p``.  Each frame is encoded from its pixels, then scored against a window of
-  2,048 places around the tracker's estimate; every 250th frame the index is asked for the
-  top 100 (a relocation check, pooled over the last 10 frames).  ``frames_per_s`` counts all
-  of it.  Until the windowed CANN lands the tracker is a stand-in (:func:`track`): the
-  mean similarity along the diagonal of the last 10 frames, at one place per frame, argmax in
-  the window.  ``same_place_within_20_share``: frames whose estimate is within 20 places of
-  the true one.
-* **Kidnap** (``--kidnaps`` trials, default 20): the tracker forgets its place; every frame
-  goes to the index (top 100) and :func:`flyvpr.large.pool_candidates` pools the last
-  (up to) 10 frames; relocated at the first frame whose best pooled place lies within 20 of
-  the true one, if within 30 frames.  ``kidnap_ms_per_frame``: the relocation cost of a lost
-  frame (index + pooling).
+  hashing tables (16 x 16-bit substrings) built from the memory-mapped codes and saved.  A
+  row with ``--index exhaustive`` relocates by an exact scan, which needs no tables: its
+  ``build_s`` is the map file's alone.
+* **Localizer** (in its own process; ``peak_rss_mb`` is its VmHWM): open the map and the
+  index (``open_s``), refit the encoder on the summer frames (not timed), then
+  :class:`flyvpr.large.LargeLocalizer` on the map's memory-mapped codes (window 2,048, index
+  top 100 pooled over 10 frames while lost, a check every 250 frames, the CANN's defaults).
+  The frame at map place ``p`` is winter frame ``p mod 2400`` seen on tile ``p // 2400``
+  (:func:`flyvpr.large.tile_queries`); its true place is ``p``.  Each frame is encoded from
+  its pixels, then given to ``update_code``.
+* **Lock-on** (``lock_frames``): from a cold start at a random place, the frames driven until
+  the fix is ``localized`` and within 20 places of the truth (limit 500).
+* **Stream**: after lock-on and 100 frames more (not timed), ``--queries`` frames driven on:
+  the stream measures the localizer *while localized*.  ``frames_per_s`` counts all of it
+  (encoding included); ``same_place_within_20_share``: fixes within 20 places of the truth;
+  ``localized_share``: fixes ``localized``; ``searched_share``: frames whose code went to the
+  index (the checks' frames, and any frame while lost).  The stream's frames are also split:
+  ``tracked_frames_per_s``, the rate of the frames the window alone answered (encoding
+  included); ``searched_ms_per_frame``, the mean time of a frame that also searched the index.
+* **Kidnap** (``--kidnaps`` trials, default 50): while localized, the query jumps to a random
+  place and drives on from there; the localizer is not told.  Relocated at the first fix that
+  is ``localized`` and within 20 places of the truth, if within 30 frames
+  (``kidnap_relocated_share``, ``kidnap_frames_median`` of the relocated).  Between trials
+  the stream drives on until the fix is on the place again (``kidnap_unsettled`` counts the
+  times it was not within 500 frames).  ``kidnap_ms_per_search``: the relocation cost of a
+  lost frame, index search and pooling (``search_s_ / n_searches_`` over the trials'
+  frames); ``kidnap_ms_per_frame``: the trials' frames, all costs.
 """
 
 from __future__ import annotations
@@ -57,7 +67,10 @@ N_BITS = 256
 TILE_FLIP = 0.25
 PLACE_FLIP = 0.02
 WINDOW = 2048
-SEQ = 10
+#: untimed frames after locking on, before the timed stream
+LOCK = 100
+#: frames allowed to lock on from a cold start (and to settle between kidnaps)
+LOCK_LIMIT = 500
 CHECK_EVERY = 250
 K = 100
 POOL = 10
@@ -122,41 +135,26 @@ def build(args) -> dict:
     }
 
 
-def _diagonal_scores(history, codes, lo, hi, out):
-    """Mean similarity of the last frames along the diagonal (one place per frame) for every
-    place lo..hi-1 (``history`` oldest first)."""
-    from flyvpr.large import hamming_similarity
-
-    n = len(history)
-    out[:] = 0.0
-    for j, q in enumerate(history):
-        back = n - 1 - j  # frames ago
-        a, b = max(lo - back, 0), max(hi - back, 0)
-        s = hamming_similarity(q, codes, a, b)[0]
-        out[len(out) - len(s) :] += s
-    out /= n
-    return out
-
-
-def track(codes, history, estimate: int, buf) -> tuple[int, float]:
-    """Stand-in for the windowed filter: the best place in a window of WINDOW places
-    around ``estimate + 1`` by :func:`_diagonal_scores`.  Returns (place, score)."""
-    n = len(codes)
-    lo = min(max(estimate + 1 - WINDOW // 2, 0), n - WINDOW)
-    hi = lo + WINDOW
-    s = _diagonal_scores(history, codes, lo, hi, buf)
-    i = int(np.argmax(s))
-    return lo + i, float(s[i])
-
-
-def stream(args) -> dict:
-    """Open, stream and kidnap (run in a child process)."""
-    from flyvpr.large import load_index, open_large_map, pool_candidates, tile_queries
+def _open(args):
+    """The map, its index for relocation and the localizer (``open_s``: map and index)."""
+    from flyvpr.large import ExhaustiveIndex, LargeLocalizer, load_index, open_large_map
 
     t0 = time.perf_counter()
     m = open_large_map(args.work / f"map-{args.places}.fvmap")
-    index = load_index(args.work / f"map-{args.places}.mih", m)
+    if args.index == "mih":
+        index = load_index(args.work / f"map-{args.places}.mih", m)
+    else:
+        index = ExhaustiveIndex().build(m.codes)
     open_s = time.perf_counter() - t0
+    loc = LargeLocalizer(m.codes, index, window=WINDOW, k=K, pool=POOL, check_every=CHECK_EVERY)
+    return m, loc, open_s
+
+
+def stream(args) -> dict:
+    """Open, lock on, stream and kidnap (run in a child process)."""
+    from flyvpr.large import tile_queries
+
+    m, loc, open_s = _open(args)
     n = m.n_places
     summer, winter = load_frames(args.data)
     enc = fit_encoder(summer)
@@ -164,74 +162,125 @@ def stream(args) -> dict:
     n_base = len(winter)
     rng = np.random.default_rng(1)
 
-    def query(p: int, code=None):
-        code = enc.encode(winter[p % n_base][None]) if code is None else code
-        return tile_queries(code, p // n_base, TILE_FLIP, 0)
+    def code_at(p: int) -> np.ndarray:
+        """The winter frame of map place ``p``, encoded from its pixels, seen on its tile."""
+        return tile_queries(enc.encode(winter[p % n_base][None]), p // n_base, TILE_FLIP, 0)[0]
 
-    # warm up the compiled kernels (not timed)
-    warm = query(0)
-    index.search(warm, K)
-    buf = np.empty(WINDOW, np.float32)
-    track(m.codes, [warm], 0, buf)
+    def on_place(fix, p: int) -> bool:
+        return fix.state == "localized" and abs(fix.place - p) <= TOLERANCE
 
-    # -- localized stream -------------------------------------------------------------
-    start = int(rng.integers(0, n - args.queries))
-    history, estimate, hits = [], start - 1, 0
-    enc_s = check_s = 0.0
+    # compile the kernels (not timed), then start cold
+    loc.update_code(code_at(0))
+    loc.reset()
+
+    # -- lock on from a cold start, then LOCK frames more (not timed) -------------------------
+    start = int(rng.integers(0, n - args.queries - LOCK - LOCK_LIMIT - 1))
+    p, lock_frames = start, None
     t0 = time.perf_counter()
-    for i in range(args.queries):
-        p = start + i
-        ta = time.perf_counter()
-        q = query(p)
-        enc_s += time.perf_counter() - ta
-        history.append(q)
-        del history[:-SEQ]
-        estimate, score = track(m.codes, history, estimate, buf)
-        if i % CHECK_EVERY == CHECK_EVERY - 1:
-            tb = time.perf_counter()
-            places, dist = index.search(np.concatenate(history[-POOL:]), K)
-            best, _ = pool_candidates(places, dist, N_BITS)
-            if best.size and abs(int(best[0]) - estimate) > WINDOW // 2:
-                other, other_score = track(m.codes, history, int(best[0]) - 1, buf)
-                if other_score > score:
-                    estimate = other
-            check_s += time.perf_counter() - tb
-        hits += abs(estimate - p) <= TOLERANCE
-    stream_s = time.perf_counter() - t0
+    while p - start < LOCK_LIMIT:
+        fix = loc.update_code(code_at(p))
+        p += 1
+        if on_place(fix, p - 1):
+            lock_frames = p - start
+            break
+    lock_s = time.perf_counter() - t0
+    for _ in range(LOCK):
+        fix = loc.update_code(code_at(p))
+        p += 1
 
-    # -- kidnaps ------------------------------------------------------------------------
-    frames, lost_s, lost_frames = [], 0.0, 0
+    # -- the localized stream (timed: encoding and localizing) --------------------------------
+    searches0, search_s0 = loc.n_searches_, loc.search_s_
+    hits = localized = 0
+    tracked_s, tracked = 0.0, 0  # frames whose code did not go to the index
+    t0 = time.perf_counter()
+    for _ in range(args.queries):
+        ta, searches = time.perf_counter(), loc.n_searches_
+        fix = loc.update_code(code_at(p))
+        if loc.n_searches_ == searches:
+            tracked_s += time.perf_counter() - ta
+            tracked += 1
+        hits += abs(fix.place - p) <= TOLERANCE
+        localized += fix.state == "localized"
+        p += 1
+    stream_s = time.perf_counter() - t0
+    stream_searches = loc.n_searches_ - searches0
+    stream_search_s = loc.search_s_ - search_s0
+
+    # -- kidnaps: while localized, the query jumps; the localizer is not told ----------------
+    frames, settle_failed = [], 0
+    lost_searches, lost_s, trial_frames, trial_s = 0, 0.0, 0, 0.0
     for _ in range(args.kidnaps):
-        p0 = int(rng.integers(0, n - KIDNAP_LIMIT))
+        # drive on until the fix is on the place again (after a failed trial)
+        for _ in range(LOCK_LIMIT):
+            if on_place(fix, p - 1) and p < n - KIDNAP_LIMIT:
+                break
+            if p >= n - KIDNAP_LIMIT:
+                p = int(rng.integers(0, n - LOCK_LIMIT - KIDNAP_LIMIT))
+            fix = loc.update_code(code_at(p))
+            p += 1
+        else:
+            settle_failed += 1
+        p = int(rng.integers(0, n - LOCK_LIMIT - KIDNAP_LIMIT))
+        searches0, search_s0 = loc.n_searches_, loc.search_s_
         got = None
-        res_p, res_d = [], []
+        t0 = time.perf_counter()
         for i in range(KIDNAP_LIMIT):
-            q = query(p0 + i)
-            ta = time.perf_counter()
-            places, dist = index.search(q, K)
-            res_p.append(places[0])
-            res_d.append(dist[0])
-            best, _ = pool_candidates(np.array(res_p[-POOL:]), np.array(res_d[-POOL:]), N_BITS)
-            lost_s += time.perf_counter() - ta
-            lost_frames += 1
-            if best.size and abs(int(best[0]) - (p0 + i)) <= TOLERANCE:
+            fix = loc.update_code(code_at(p))
+            p += 1
+            if on_place(fix, p - 1):
                 got = i + 1
                 break
+        trial_s += time.perf_counter() - t0
+        trial_frames += i + 1
+        lost_searches += loc.n_searches_ - searches0
+        lost_s += loc.search_s_ - search_s0
         frames.append(got)
     relocated = [f for f in frames if f is not None]
     return {
+        "index": args.index,
         "frames_per_s": args.queries / stream_s,
         "ms_per_frame": 1e3 * stream_s / args.queries,
-        "encode_ms_per_frame": 1e3 * enc_s / args.queries,
-        "check_ms_per_check": 1e3 * check_s / max(1, args.queries // CHECK_EVERY),
+        "localized_share": localized / args.queries,
+        "searched_share": stream_searches / args.queries,
+        "tracked_frames_per_s": tracked / tracked_s if tracked else None,
+        "searched_ms_per_frame": 1e3 * (stream_s - tracked_s) / max(1, args.queries - tracked),
+        "search_ms_per_search": 1e3 * stream_search_s / max(1, stream_searches),
         "peak_rss_mb": peak_rss_mb(),
         "open_s": open_s,
+        "lock_frames": lock_frames,
+        "lock_s": lock_s,
         "same_place_within_20_share": hits / args.queries,
         "kidnap_trials": args.kidnaps,
         "kidnap_relocated_share": len(relocated) / max(1, args.kidnaps),
         "kidnap_frames_median": float(statistics.median(relocated)) if relocated else None,
         "kidnap_frames": frames,
-        "kidnap_ms_per_frame": 1e3 * lost_s / max(1, lost_frames),
+        "kidnap_unsettled": settle_failed,
+        "kidnap_searched_share": lost_searches / max(1, trial_frames),
+        "kidnap_ms_per_search": 1e3 * lost_s / max(1, lost_searches),
+        "kidnap_ms_per_frame": 1e3 * trial_s / max(1, trial_frames),
+        "reseeds": loc.n_reseeds_,
+    }
+
+
+def protocol(args, index: str) -> dict:
+    """The row's protocol, in words."""
+    name = "multi-index hashing (16 x 16-bit tables, radius 1)" if index == "mih" else "exact scan"
+    return {
+        "codes": f"CompactEncoder {N_BITS} bits (PCA-rotated signs of the kenyon optic lobe)",
+        "map": f"Nordland 64x32 summer codes tiled, tile flip {TILE_FLIP}, place flip "
+        f"{PLACE_FLIP}; relocation index: {name}",
+        "localizer": f"LargeLocalizer (windowed CANN, defaults), window {WINDOW}, index top {K} "
+        f"pooled over {POOL} frames while lost, a check every {CHECK_EVERY} frames",
+        "lock_frames": f"frames from a cold start at a random place until the fix is "
+        f"localized and within {TOLERANCE} places of the truth (limit {LOCK_LIMIT})",
+        "frames_per_s": f"after locking on and {LOCK} frames more (untimed), {args.queries} "
+        "winter frames driven on along the map, each encoded from its pixels and localized; "
+        "all of it timed",
+        "kidnap": f"{args.kidnaps} trials while localized: the query jumps to a random place "
+        "and drives on from there, the localizer not told; relocated at the first fix "
+        f"localized and within {TOLERANCE} of the truth, within {KIDNAP_LIMIT} frames; "
+        "between trials the stream drives on until the fix is on the place again",
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores",
     }
 
 
@@ -247,6 +296,8 @@ def _child(mode: str, args) -> dict:
         str(args.queries),
         "--kidnaps",
         str(args.kidnaps),
+        "--index",
+        args.index if isinstance(args.index, str) else args.index[0],
         "--data",
         str(args.data),
         "--work",
@@ -262,7 +313,15 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--places", type=int, action="append", required=True)
     p.add_argument("--queries", type=int, default=5000)
-    p.add_argument("--kidnaps", type=int, default=20)
+    p.add_argument("--kidnaps", type=int, default=50)
+    p.add_argument(
+        "--index",
+        nargs="+",
+        choices=("mih", "exhaustive"),
+        default=["mih"],
+        help="the relocation index (one row per index and map size): multi-index hashing "
+        "(radius 1) or an exact scan",
+    )
     p.add_argument("--json", type=Path, required=True)
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
     p.add_argument("--work", type=Path, help="folder for the map files (default: a temporary one)")
@@ -272,6 +331,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args._build or args._stream:
         args.places = args.places[0]
+        args.index = args.index[0]
         row = build(args) if args._build else stream(args)
         args.json.write_text(json.dumps(row))
         return 0
@@ -296,30 +356,29 @@ def main(argv=None) -> int:
         sub = argparse.Namespace(**{**vars(args), "places": n})
         built = _child("build", sub)
         print(f"{n:>10,} places: built in {built['build_s']:.1f} s", flush=True)
-        streamed = _child("stream", sub)
-        row = {"places": n, **streamed, **built}
-        row["protocol"] = {
-            "codes": f"CompactEncoder {N_BITS} bits (PCA-rotated signs of the kenyon optic lobe)",
-            "map": f"Nordland 64x32 summer codes tiled, tile flip {TILE_FLIP}, place flip "
-            f"{PLACE_FLIP}; index: multi-index hashing, 16 x 16-bit tables, radius 1",
-            "frames_per_s": f"{args.queries} winter frames, encoded one at a time, scored on a "
-            f"window of {WINDOW} places around the estimate by a stand-in tracker (mean "
-            f"similarity along the diagonal of the last {SEQ} frames, not the CANN), index "
-            f"top {K} pooled over {POOL} frames every {CHECK_EVERY} frames",
-            "kidnap": f"index top {K} per frame pooled over up to {POOL} frames; relocated when "
-            f"the best pooled place is within {TOLERANCE} of the truth, within "
-            f"{KIDNAP_LIMIT} frames",
-            "machine": f"{platform.machine()}, {os.cpu_count()} cores",
-        }
-        rows.append(row)
-        print(
-            f"{n:>10,} places: {row['frames_per_s']:,.0f} frames/s, peak {row['peak_rss_mb']:.0f} "
-            f"MB, build {row['build_s']:.1f} s, open {row['open_s']:.3f} s, same place "
-            f"{row['same_place_within_20_share']:.3f}, kidnap relocated "
-            f"{row['kidnap_relocated_share']:.2f} (median {row['kidnap_frames_median']} frames, "
-            f"{row['kidnap_ms_per_frame']:.1f} ms/frame)",
-            flush=True,
-        )
+        for index in args.index:
+            streamed = _child("stream", argparse.Namespace(**{**vars(sub), "index": index}))
+            row = {"places": n, **streamed, **built}
+            if index == "exhaustive":
+                # an exact scan needs no tables: the map file is all it builds
+                row["build_s"] = built["build_map_s"]
+                row["build_index_s"] = 0.0
+                row["index_file_mb"] = 0.0
+            row["protocol"] = protocol(args, index)
+            rows.append(row)
+            median = row["kidnap_frames_median"]
+            print(
+                f"{n:>10,} places, {index}: {row['frames_per_s']:,.0f} frames/s localized "
+                f"({row['localized_share']:.3f} localized, {row['searched_share']:.3f} searched; "
+                f"{row['tracked_frames_per_s']:,.0f} frames/s tracked, "
+                f"{row['searched_ms_per_frame']:.1f} ms per searched frame), "
+                f"peak {row['peak_rss_mb']:.0f} MB, build {row['build_s']:.1f} s, open "
+                f"{row['open_s']:.3f} s, lock-on {row['lock_frames']} frames, same place "
+                f"{row['same_place_within_20_share']:.3f}; kidnaps relocated "
+                f"{row['kidnap_relocated_share']:.2f} (median {median} frames), "
+                f"{row['kidnap_ms_per_search']:.1f} ms per search",
+                flush=True,
+            )
         if not args.keep:
             for f in args.work.glob(f"map-{n}.*"):
                 f.unlink()
