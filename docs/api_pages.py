@@ -28,6 +28,7 @@ API_MODULES = [
     "flyvpr.localizer",
     "flyvpr.sources",
     "flyvpr.maps",
+    "flyvpr.large",
     "flyvpr.tracking",
     "flyvpr.trace",
     "flyvpr.view",

@@ -1,15 +1,15 @@
 """Streaming localization on a map of millions of places: a window while tracked, an index
 when lost.
 
-:class:`LargeLocalizer` runs the place-velocity layer (:class:`~flyvpr.temporal.cann.
-WindowedCANN`) on a window of places around its packet, scoring each frame's compact code
-against those places only, so a tracked frame costs the same on a map of 10^3 or 10^7
-places.  While the layer is ``lost`` (at the start, after a kidnap, off the map) every frame's
-code also goes to an index over the map's codes; the candidates of the last ``pool`` frames
-are pooled (:func:`~flyvpr.large.pool_candidates`) and the layer re-seeds from the best every
-``pool`` lost frames.  Every ``check_every`` tracked frames the index is asked too, and a
-pooled candidate far from the window that beats the tracked place's own pooled score makes the
-layer re-seed (a kidnap the layer has not noticed yet).
+:class:`LargeLocalizer` runs the place-velocity layer
+(:class:`~flyvpr.temporal.cann.WindowedCANN`) on a window of places around its packet, scoring
+each frame's compact code against those places only, so a tracked frame costs the same on a
+map of 10^3 or 10^7 places.  While the layer is ``lost`` (at the start, after a kidnap, off
+the map) every frame's code also goes to an index over the map's codes; the candidates of the
+last ``pool`` frames are pooled (:func:`~flyvpr.large.pool_candidates`) and the layer re-seeds
+from the best every ``pool`` lost frames.  Every ``check_every`` tracked frames the index is
+asked too, and a pooled candidate far from the window that beats the tracked place's own
+pooled score makes the layer re-seed (a kidnap the layer has not noticed yet).
 """
 
 from __future__ import annotations
