@@ -58,10 +58,15 @@ def track(
     realtime=False,
     batch: int = 32,
 ) -> Iterator[Step]:
-    """Localize every kept frame of ``source`` with ``localizer`` (from :meth:`Map.localizer`).
+    """Localize every kept frame of ``source`` with ``localizer``.
 
     Parameters
     ----------
+    localizer : Localizer
+        Fitted, e.g. :meth:`flyvpr.localizer.Localizer.from_map` (its ``map_``, when it has
+        one, gives the map's positions to the steps).
+    source : Source
+        The recording (:mod:`flyvpr.sources`).
     every : str or Every, optional
         Which frames to keep (:func:`flyvpr.sources.parse_every`).
     positions : Positions, optional
