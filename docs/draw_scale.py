@@ -8,7 +8,7 @@ Usage::
 Needs matplotlib (``pip install flyvpr[plot]``).  Three panels against the map's places (log
 scale), one line per relocation index: frames per second on the localized stream (dotted: the
 frames whose code did not go to the index), peak resident memory of the localizing process, and
-the share of kidnaps relocated within 30 frames; each with the target of issue 21 as a dashed
+the share of kidnaps relocated within 30 frames; each with its target as a dashed
 line.  The figure shows the JSON's numbers and nothing else.
 """
 
@@ -62,7 +62,7 @@ def draw(rows: list[dict], out: Path) -> None:
                     color=line.get_color(),
                     label=f"{LABELS.get(name, name)}: frames not searched",
                 )
-        ax.axhline(target, color="0.4", linestyle="--", linewidth=1, label="target (issue 21)")
+        ax.axhline(target, color="0.4", linestyle="--", linewidth=1, label="target")
         ax.set_xscale("log")
         ax.set_ylim(0, top)
         ax.set_xlabel("places in the map")
