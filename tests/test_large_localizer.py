@@ -79,6 +79,8 @@ def test_errors():
         LargeLocalizer(codes[:, :5], index)
     with pytest.raises(ValueError, match="k"):
         LargeLocalizer(codes, index, k=0)
+    with pytest.raises(ValueError, match="reseed_after"):
+        LargeLocalizer(codes, index, reseed_after=0)
     loc = LargeLocalizer(codes, index, window=128)
     with pytest.raises(ValueError, match=r"code must be uint8 of shape \(32,\)"):
         loc.update_code(np.zeros(16, np.uint8))

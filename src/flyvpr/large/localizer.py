@@ -55,6 +55,9 @@ class LargeLocalizer:
         Candidates per frame from the index.
     pool : int, default 10
         Frames whose candidates are pooled; a lost layer re-seeds every ``pool`` frames.
+    reseed_after : int, default 10
+        Lost frames before the first re-seed of a lost stretch (a layer often dips below
+        ``localized`` for a few frames on the right stretch).
     check_every : int, default 250
         Tracked frames between two checks against the index (0: never).
     speed : (float, float), default (0.0, 2.0)
@@ -94,6 +97,7 @@ class LargeLocalizer:
         window: int = 2048,
         k: int = 100,
         pool: int = 10,
+        reseed_after: int = 10,
         check_every: int = 250,
         speed=(0.0, 2.0),
         **params,
@@ -117,6 +121,7 @@ class LargeLocalizer:
         self.encoder = encoder
         self.k = check_positive_int(k, "k")
         self.pool = check_positive_int(pool, "pool")
+        self.reseed_after = check_positive_int(reseed_after, "reseed_after")
         self.check_every = check_positive_int(check_every, "check_every", minimum=0)
         self.speed = tuple(float(v) for v in speed)
         self.n_bits = codes.shape[1] * 8
@@ -179,10 +184,14 @@ class LargeLocalizer:
             self._dists.clear()
         if lost:
             self._lost += 1
-            # Re-seed on the first lost frame, then every ``pool`` lost frames, each time
-            # only where the pooled candidates lie outside the window (inside it, the layer
-            # already weighs them).
-            if self.n_frames_ == 0 or self._lost % self.pool == 0:
+            # Re-seed on the very first frame, then after ``reseed_after`` lost frames and
+            # every ``pool`` lost frames after that (see _reseed for when it declines).
+            first = self.reseed_after
+            if (
+                self.n_frames_ == 0
+                or self._lost == first
+                or (self._lost > first and (self._lost - first) % self.pool == 0)
+            ):
                 self._reseed(None)
         else:
             self._lost = 0
@@ -223,13 +232,16 @@ class LargeLocalizer:
         tracks = self._track_scores(places)
         self.search_s_ += time.perf_counter() - t0
         if margin is None:
-            # Lost: the layer's own place is no evidence.  The candidates ranked by their
-            # recent tracks; where the best is near the packet, the layer already weighs it.
+            # Lost: the candidates ranked by their recent tracks.  Where the best is near the
+            # packet, the layer already weighs it; where the layer's own recent track is as
+            # good, the layer is only unsure (a dip in its support), not somewhere else.
             best = int(places[np.argmax(tracks)])
-            if self.filter_.place_ >= 0 and abs(best - self.filter_.place_) <= (
-                self.filter_.width // 4
-            ):
-                return
+            here = self.filter_.place_
+            if here >= 0:
+                if abs(best - here) <= self.filter_.width // 4:
+                    return
+                if self._track_scores(np.array([here]))[0] >= tracks.max():
+                    return
             w = np.exp((tracks - tracks.max()) * (self.n_bits / 8.0))
             self.filter_.reseed(places, w)
             self.n_reseeds_ += 1
