@@ -22,7 +22,8 @@ Protocol:
 * **Localizer** (in its own process; ``peak_rss_mb`` is its VmHWM): open the map and the
   index (``open_s``), refit the encoder on the summer frames (not timed), then
   :class:`flyvpr.large.LargeLocalizer` on the map's memory-mapped codes (window 2,048, index
-  top 100 pooled over 10 frames while lost, a check every 250 frames, the CANN's defaults).
+  top 100 for the last 10 frames at once when re-seeding (after 10 lost frames, then every
+  10) and at a check every 1000 frames, the CANN's defaults).
   The frame at map place ``p`` is winter frame ``p mod 2400`` seen on tile ``p // 2400``
   (:func:`flyvpr.large.tile_queries`); its true place is ``p``.  Each frame is encoded from
   its pixels, then given to ``update_code``.
@@ -71,7 +72,7 @@ WINDOW = 2048
 LOCK = 100
 #: frames allowed to lock on from a cold start (and to settle between kidnaps)
 LOCK_LIMIT = 500
-CHECK_EVERY = 250
+CHECK_EVERY = 1000
 K = 100
 POOL = 10
 KIDNAP_LIMIT = 30
@@ -270,7 +271,8 @@ def protocol(args, index: str) -> dict:
         "map": f"Nordland 64x32 summer codes tiled, tile flip {TILE_FLIP}, place flip "
         f"{PLACE_FLIP}; relocation index: {name}",
         "localizer": f"LargeLocalizer (windowed CANN, defaults), window {WINDOW}, index top {K} "
-        f"pooled over {POOL} frames while lost, a check every {CHECK_EVERY} frames",
+        f"for the last {POOL} frames at once when re-seeding (after {POOL} lost frames, then every "
+        f"{POOL}) and at a check every {CHECK_EVERY} frames",
         "lock_frames": f"frames from a cold start at a random place until the fix is "
         f"localized and within {TOLERANCE} places of the truth (limit {LOCK_LIMIT})",
         "frames_per_s": f"after locking on and {LOCK} frames more (untimed), {args.queries} "

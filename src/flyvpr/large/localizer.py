@@ -4,12 +4,13 @@ when lost.
 :class:`LargeLocalizer` runs the place-velocity layer
 (:class:`~flyvpr.temporal.cann.WindowedCANN`) on a window of places around its packet, scoring
 each frame's compact code against those places only, so a tracked frame costs the same on a
-map of 10^3 or 10^7 places.  While the layer is ``lost`` (at the start, after a kidnap, off
-the map) every frame's code also goes to an index over the map's codes; the candidates of the
-last ``pool`` frames are pooled (:func:`~flyvpr.large.pool_candidates`) and the layer re-seeds
-from the best every ``pool`` lost frames.  Every ``check_every`` tracked frames the index is
-asked too, and a pooled candidate far from the window that beats the tracked place's own
-pooled score makes the layer re-seed (a kidnap the layer has not noticed yet).
+map of 10^3 or 10^7 places.  When the layer has been ``lost`` for ``reseed_after`` frames (and
+every ``pool`` lost frames after that; at once on the first frame), the codes of the last
+``pool`` frames go to an index over the map's codes, their candidates are pooled
+(:func:`~flyvpr.large.pool_candidates`) and ranked by the similarity along their recent
+tracks, and the layer re-seeds around the best unless its own track is as good.  Every
+``check_every`` tracked frames the index is asked too, and a candidate outside the window
+whose track clearly beats the layer's makes it re-seed (a kidnap the layer has not noticed).
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ class LargeLocalizer:
     reseed_after : int, default 10
         Lost frames before the first re-seed of a lost stretch (a layer often dips below
         ``localized`` for a few frames on the right stretch).
-    check_every : int, default 250
+    check_every : int, default 1000
         Tracked frames between two checks against the index (0: never).
     speed : (float, float), default (0.0, 2.0)
         Speeds, places per frame, the pooling allows between frames.
@@ -98,7 +99,7 @@ class LargeLocalizer:
         k: int = 100,
         pool: int = 10,
         reseed_after: int = 10,
-        check_every: int = 250,
+        check_every: int = 1000,
         speed=(0.0, 2.0),
         **params,
     ):
@@ -173,43 +174,39 @@ class LargeLocalizer:
         f = self.filter_
         self._recent.append(q)
         del self._recent[: -self.pool]
-        lost = f.state_ != LOCALIZED
-        phase = self.n_frames_ % self.check_every if self.check_every else -1
-        # A check pools the ``pool`` frames before it: they are searched too.
-        checking = phase >= self.check_every - self.pool
-        if lost or checking:
-            self._search(q)
-        else:
-            self._places.clear()
-            self._dists.clear()
-        if lost:
+        if f.state_ != LOCALIZED:
             self._lost += 1
             # Re-seed on the very first frame, then after ``reseed_after`` lost frames and
-            # every ``pool`` lost frames after that (see _reseed for when it declines).
+            # every ``pool`` lost frames after that (see _reseed for when it declines).  The
+            # index is asked only then, for the last ``pool`` frames at once: a short dip
+            # below ``localized`` costs no search.
             first = self.reseed_after
             if (
                 self.n_frames_ == 0
                 or self._lost == first
                 or (self._lost > first and (self._lost - first) % self.pool == 0)
             ):
+                self._search_recent()
                 self._reseed(None)
         else:
             self._lost = 0
-            if phase == self.check_every - 1 and self._far_candidate_wins():
-                self._reseed(_CHECK_MARGIN)
+            check = self.check_every and self.n_frames_ % self.check_every == self.check_every - 1
+            if check:
+                self._search_recent()
+                if self._far_candidate_wins():
+                    self._reseed(_CHECK_MARGIN)
         lo, hi = f.window_
         scores = hamming_similarity(q[None], self.codes, lo, hi)[0]
         place, confidence, state = f.step(scores, velocity)
         self.n_frames_ += 1
         return Fix(int(place), float(confidence), state)
 
-    def _search(self, q: np.ndarray) -> None:
+    def _search_recent(self) -> None:
+        """The index's candidates for each of the last ``pool`` frames (one batch)."""
         t0 = time.perf_counter()
-        places, dist = self.index.search(q[None], self.k)
-        self._places.append(places[0])
-        self._dists.append(dist[0])
-        del self._places[: -self.pool], self._dists[: -self.pool]
-        self.n_searches_ += 1
+        places, dist = self.index.search(np.stack(self._recent), self.k)
+        self._places, self._dists = list(places), list(dist)
+        self.n_searches_ += len(self._recent)
         self.search_s_ += time.perf_counter() - t0
 
     def _pooled(self) -> tuple[np.ndarray, np.ndarray]:
