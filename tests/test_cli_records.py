@@ -412,8 +412,9 @@ def test_localize_mcap_matches_jsonl_record_for_record(epoch_bags, tmp_path, ver
     for record, match, query in zip(expected, matches, queries, strict=True):
         png = np.asarray(Image.open(io.BytesIO(base64.b64decode(match["data"]))))
         np.testing.assert_array_equal(png, m.thumbnails[record["place"]])
-        assert np.asarray(Image.open(io.BytesIO(base64.b64decode(query["data"])))).shape == (
-            m.thumbnails.shape[1:]
+        assert (
+            np.asarray(Image.open(io.BytesIO(base64.b64decode(query["data"])))).shape
+            == (m.thumbnails.shape[1:])
         )
 
 

@@ -304,8 +304,9 @@ class LiveView:
             x, y = xy[int(place)]
             rec.log(
                 "route/position",
-                rr.Points2D([[x, -y]], colors=[230, 40, 40], radii=self._radius,
-                            labels=[str(place)]),  # fmt: skip
+                rr.Points2D(
+                    [[x, -y]], colors=[230, 40, 40], radii=self._radius, labels=[str(place)]
+                ),  # fmt: skip
             )
 
     def close(self) -> None:

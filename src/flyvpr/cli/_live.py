@@ -69,8 +69,7 @@ def add_live_args(p) -> None:
         "--retries",
         type=nonnegative_int,
         metavar="N",
-        help="reopenings of a stalled stream in a row before the run ends with exit 1 "
-        "(default 3)",
+        help="reopenings of a stalled stream in a row before the run ends with exit 1 (default 3)",
     )
     g.add_argument(
         "--open-timeout",
@@ -341,4 +340,3 @@ def cmd_localize_live(args) -> int:
     if failure is not None:
         raise failure
     return 130 if ctrl_c["interrupted"] else 0
-

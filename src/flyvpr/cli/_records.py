@@ -167,9 +167,7 @@ class CsvRecords(Records):
         self.writer.writerow(self.columns)
 
     def _write_row(self, row: dict) -> None:
-        self.writer.writerow(
-            [csv_cell(row[c]) for c in self.columns]
-        )
+        self.writer.writerow([csv_cell(row[c]) for c in self.columns])
 
 
 def json_value(value):
@@ -226,6 +224,7 @@ def _json_type(value) -> dict:
     if isinstance(value, str):
         return {"type": "string"}
     return {}
+
 
 #: foxglove.CompressedImage, as a JSON Schema (bytes in JSON are base64 text)
 _COMPRESSED_IMAGE_SCHEMA = {

@@ -235,8 +235,7 @@ def _raw_gray(msg, where: str) -> np.ndarray:
         )
     if layout in ("uyvy", "yuyv") and w % 2:
         raise RecordingError(
-            f"{where}: a {enc} image needs an even width (pixel pairs share U and V); "
-            f"got {h}x{w}"
+            f"{where}: a {enc} image needs an even width (pixel pairs share U and V); got {h}x{w}"
         )
     rows = data[: h * step].reshape(h, step)[:, :row_bytes]
     dtype = np.dtype(kind).newbyteorder(">" if msg.is_bigendian else "<")

@@ -103,9 +103,7 @@ def _header(ts, ros1: bool, t: float, frame_id: str = "camera"):
 
 
 #: BT.601 full-range (JPEG) RGB -> Y, U, V, as 8-bit cameras and ``yuvj`` formats use it
-_YUV = np.array(
-    [[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]]
-)
+_YUV = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
 
 
 def _bayer_mosaic(rgb: np.ndarray, cell: str) -> np.ndarray:
