@@ -21,7 +21,12 @@ $(VENV)/.core: pyproject.toml | $(BIN)/python
 
 $(VENV)/.test: pyproject.toml | $(BIN)/python
 	$(PIP) -e ".[test,torch,netvlad,plot,docs,recordings,dask,view]"
-	touch $@ $(VENV)/.core $(VENV)/.docs
+	touch $@ $(VENV)/.core $(VENV)/.docs $(VENV)/.lint
+
+# Lint needs ruff alone (no torch).
+$(VENV)/.lint: pyproject.toml | $(BIN)/python
+	$(PIP) -e ".[lint]"
+	touch $@ $(VENV)/.core
 
 $(VENV)/.docs: pyproject.toml | $(BIN)/python
 	$(PIP) -e ".[docs]"
@@ -30,11 +35,11 @@ $(VENV)/.docs: pyproject.toml | $(BIN)/python
 demo: $(VENV)/.core
 	$(BIN)/flyvpr demo
 
-lint: $(VENV)/.test
+lint: $(VENV)/.lint
 	$(BIN)/ruff check src tests benchmarks docs
 	$(BIN)/ruff format --check src tests benchmarks docs
 
-test: lint docs
+test: $(VENV)/.test lint docs
 	$(BIN)/python -m pytest -q
 
 # -E: read every page afresh, so a warning in an unchanged page still fails the build.
