@@ -2,9 +2,10 @@
 
 Gray is the video's luma plane (Y), which 8-bit YUV frames (``yuv420p``, ``yuvj420p``,
 ``nv12``, ``yuv422p``, ``yuv444p`` ...) hand over without any conversion: the plane is viewed
-in place and area-averaged to the target size by two small matrix products (``Ry @ Y @ Rx.T``,
-exact area weights, as OpenCV's ``INTER_AREA``; for integer factors the same average as
-Pillow's ``BOX`` used for image files).  Limited-range ("TV", 16-235) luma is then expanded to
+in place and area-averaged to the target size (:func:`area_resize`: exact area weights, as
+OpenCV's ``INTER_AREA``; for integer factors the same average as Pillow's ``BOX`` used for
+image files), a compiled loop over the band of input rows each output row covers, then the
+same along the columns.  Limited-range ("TV", 16-235) luma is then expanded to
 full range, and the result divided by 255.  That costs a fraction of what FFmpeg's swscale
 takes for the same area resize (``frame.reformat(..., interpolation="AREA")``), which remains
 the path for every other pixel format (RGB, 10-bit, palette ...): converted to full-size gray

@@ -9,8 +9,8 @@ environment (read at import) or ``USE_NUMBA = False`` (read when the state is al
 selects the plain functions, as does numba's own ``NUMBA_DISABLE_JIT=1``.
 
 numba is a core dependency, so the compiled kernels are the normal path, at every route
-length.  Plain Python is the fallback: per frame with the defaults (shared 2-core machine)
-about 6 ms for 1000 places and 160 ms for 35,768, against 33 us and 160 us compiled.
+length.  Plain Python is the fallback, practical on short routes only (about two hundred
+times slower per frame); the measured costs are on the user guide's CANN page ("Cost").
 """
 
 from __future__ import annotations
