@@ -61,6 +61,7 @@ import numbers
 
 import numpy as np
 
+from .._torch import import_torch
 from .._validation import ArraySpec, check_positive_int, check_random_state
 from .base import Encoder
 from .flynet import softmax
@@ -71,21 +72,6 @@ logger = logging.getLogger(__name__)
 
 #: images per forward pass at inference
 _ENCODE_CHUNK = 256
-
-
-def import_torch(who: str):
-    """Import torch, or raise ImportError naming the pip extra that installs it.
-
-    Parameters
-    ----------
-    who : str
-        What needs torch, for the message (e.g. ``"FCNet (method 'fc')"``).
-    """
-    try:
-        import torch
-    except ImportError as exc:
-        raise ImportError(f"{who} needs PyTorch: pip install 'flyvpr[torch]'") from exc
-    return torch
 
 
 def torch_generator(torch, random_state):

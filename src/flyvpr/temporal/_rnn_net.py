@@ -12,6 +12,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._torch import import_torch as _import_torch
+
 #: weight blocks per cell type: a GRU has 3 (r, z, n), an LSTM 4 (i, f, g, o) (torch's layout)
 GATES = {"rnn": 1, "gru": 3, "lstm": 4}
 #: chance that a training frame's distractor place is the previous frame's
@@ -26,13 +28,7 @@ GATE_BIAS = 6.0
 
 def import_torch():
     """``import torch`` or an ImportError naming the pip extra."""
-    try:
-        import torch
-    except ImportError as exc:
-        raise ImportError(
-            "RNNFilter (method 'flynet+rnn') needs torch: pip install 'flyvpr[torch]'"
-        ) from exc
-    return torch
+    return _import_torch("RNNFilter (method 'flynet+rnn')")
 
 
 @contextlib.contextmanager

@@ -1,0 +1,20 @@
+"""The one import of torch: the optional dependency of the trained front ends and the RNN."""
+
+from __future__ import annotations
+
+__all__ = ["import_torch"]
+
+
+def import_torch(who: str):
+    """Import torch, or raise ImportError naming the pip extra that installs it.
+
+    Parameters
+    ----------
+    who : str
+        What needs torch, for the message (e.g. ``"FCNet (method 'fc')"``).
+    """
+    try:
+        import torch
+    except ImportError as exc:
+        raise ImportError(f"{who} needs PyTorch: pip install 'flyvpr[torch]'") from exc
+    return torch
