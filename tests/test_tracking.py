@@ -79,3 +79,31 @@ def test_without_odometry_the_filter_gets_none(images):
     assert loc.method.filter.velocities == [None] * N
     with pytest.raises(ValueError, match="odometry needs positions"):
         next(track(loc, Frames(images), odometry=True))
+
+
+def test_ground_truth_frames_is_the_datasets_one():
+    from flyvpr.datasets import ground_truth_from_frames
+    from flyvpr.tracking import ground_truth_frames
+
+    q, r = np.array([0, 5, 9]), np.array([0, 2, 4, 6, 8, 10])
+    np.testing.assert_array_equal(ground_truth_frames(q, r, 1), ground_truth_from_frames(q, r, 1))
+    with pytest.raises(ValueError, match="tolerance"):
+        ground_truth_frames(q, r, -1)
+
+
+def test_ground_truth_positions_skips_unknown_positions():
+    from flyvpr.tracking import ground_truth_positions
+
+    q = np.array([[0.0, 0.0], [np.nan, np.nan], [10.0, 0.0]])
+    r = np.array([[0.0, 3.0], [10.0, 4.0], [np.nan, 0.0], [0.0, 50.0]])
+    expected = np.zeros((3, 4), bool)
+    expected[0, 0] = True  # 3 m
+    expected[2, 1] = True  # 4 m
+    np.testing.assert_array_equal(ground_truth_positions(q, r, 4.0), expected)
+    expected[2, 1] = False
+    np.testing.assert_array_equal(ground_truth_positions(q, r, 3.999), expected)
+    assert not ground_truth_positions(q[1:2], r, 1e9).any()  # a frame without a position
+    with pytest.raises(ValueError, match="radius"):
+        ground_truth_positions(q, r, -1.0)
+    with pytest.raises(ValueError, match="2-d"):
+        ground_truth_positions(q[0], r, 1.0)

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .datasets import ground_truth_from_frames, ground_truth_from_positions
 from .sources import Batch, Source
 
 __all__ = ["Step", "track", "ground_truth_frames", "ground_truth_positions"]
@@ -117,16 +118,28 @@ def ground_truth_frames(query_index, reference_index, tolerance: int) -> np.ndar
     """Frame-aligned recordings: query frame ``i`` shows the place of reference frame ``i``.
 
     Returns the boolean matrix (n_query, n_places): ``|query_index - reference_index| <=
-    tolerance`` (indices in the recordings, before thinning).
+    tolerance`` (indices in the recordings, before thinning); see
+    :func:`flyvpr.datasets.ground_truth_from_frames`, which it is.
     """
-    q = np.asarray(query_index, np.int64)[:, None]
-    r = np.asarray(reference_index, np.int64)[None, :]
-    return np.abs(q - r) <= int(tolerance)
+    return ground_truth_from_frames(query_index, reference_index, tolerance)
 
 
 def ground_truth_positions(query_xy, reference_xy, radius: float) -> np.ndarray:
-    """A query frame matches every place within ``radius`` metres (NaN positions never match)."""
-    q = np.asarray(query_xy, np.float64)[:, None, :]
-    r = np.asarray(reference_xy, np.float64)[None, :, :]
-    d = np.hypot(q[..., 0] - r[..., 0], q[..., 1] - r[..., 1])
-    return np.nan_to_num(d, nan=np.inf) <= float(radius)
+    """A query frame matches every place within ``radius`` metres; a frame or a place without
+    a position (a NaN row: the positions do not cover it) matches nothing.
+
+    The distances are :func:`flyvpr.datasets.ground_truth_from_positions`' over the rows that
+    have positions.
+    """
+    q = np.asarray(query_xy, np.float64)
+    r = np.asarray(reference_xy, np.float64)
+    if q.ndim != 2 or r.ndim != 2:
+        raise ValueError(
+            f"query_xy and reference_xy must be 2-d (n, D); got shapes {q.shape} and {r.shape}"
+        )
+    out = np.zeros((q.shape[0], r.shape[0]), dtype=bool)
+    known_q = np.isfinite(q).all(axis=1)
+    known_r = np.isfinite(r).all(axis=1)
+    if known_q.any() and known_r.any():
+        out[np.ix_(known_q, known_r)] = ground_truth_from_positions(q[known_q], r[known_r], radius)
+    return out
