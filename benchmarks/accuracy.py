@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import os
 import platform
 import subprocess
 import sys
@@ -47,6 +46,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the ``benchmarks`` package importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks._common import DEFAULT_DATA, machine  # noqa: E402
 from benchmarks.accuracy_merge import load_previous, merge_runs  # noqa: E402
 from benchmarks.accuracy_report import render_markdown, render_text, summarise  # noqa: E402
 from benchmarks.accuracy_run import (  # noqa: E402
@@ -68,7 +68,6 @@ from benchmarks.accuracy_setup import (  # noqa: E402
 __all__ = ["main", "render_markdown", "build_tasks"]
 
 HERE = Path(__file__).resolve().parent
-DEFAULT_DATA = HERE.parent.parent / "shared" / "data"
 
 #: what each front end stores per place (see Encoder.bytes_per_place)
 BYTES_NOTE = {
@@ -139,15 +138,6 @@ def _versions() -> dict:
     except (OSError, subprocess.SubprocessError):
         pass
     return out
-
-
-def _machine() -> dict:
-    return {
-        "platform": platform.platform(),
-        "machine": platform.machine(),
-        "processor": platform.processor(),
-        "cpu_count": os.cpu_count(),
-    }
 
 
 def _conditions(views, protocols) -> list[dict]:
@@ -273,7 +263,7 @@ def main(argv=None) -> int:
         "benchmark": "flyvpr accuracy",
         "command": [Path(sys.argv[0]).name, *(sys.argv[1:] if argv is None else argv)],
         "quick": bool(args.quick),
-        "machine": _machine(),
+        "machine": machine(),
         "versions": _versions(),
         "seeds": list(args.seeds),
         "methods": [m.describe() for m in entries],

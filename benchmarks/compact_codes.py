@@ -35,8 +35,12 @@ from flyvpr.large import CompactEncoder, hamming_similarity
 from flyvpr.metrics import pr_auc, recall_at_k
 from flyvpr.temporal import FILTERS
 
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
+    sys.path.insert(0, str(ROOT))
+from benchmarks._common import DEFAULT_DATA  # noqa: E402
+
 HERE = Path(__file__).resolve().parent
-DEFAULT_DATA = HERE.parent.parent / "shared" / "data"
 WINDOWS = (0, 1000)
 SEEDS = (0, 1, 2)
 TOLERANCES = (2, 20)

@@ -22,7 +22,11 @@ from flyvpr.images import list_images, load_images
 from flyvpr.localizer import Localizer
 from flyvpr.methods import FILTERS, Method
 
-DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
+    sys.path.insert(0, str(ROOT))
+from benchmarks._common import DEFAULT_DATA  # noqa: E402
+
 N_PLACES = 35_768
 
 

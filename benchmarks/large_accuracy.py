@@ -36,7 +36,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from benchmarks.scale import DEFAULT_DATA, N_BITS, PLACE_FLIP, TILE_FLIP, load_frames  # noqa: E402
+from benchmarks._common import DEFAULT_DATA  # noqa: E402
+from benchmarks.scale import N_BITS, PLACE_FLIP, TILE_FLIP, load_frames  # noqa: E402
 
 N_PLACES = 35_768
 TILE = 7

@@ -52,7 +52,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -62,8 +61,12 @@ from pathlib import Path
 
 import numpy as np
 
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
+    sys.path.insert(0, str(ROOT))
+from benchmarks._common import DEFAULT_DATA, peak_rss_mb  # noqa: E402
+
 HERE = Path(__file__).resolve().parent
-DEFAULT_DATA = HERE.parent.parent / "shared" / "data"
 N_BITS = 256
 TILE_FLIP = 0.25
 PLACE_FLIP = 0.02
@@ -77,17 +80,6 @@ K = 100
 POOL = 10
 KIDNAP_LIMIT = 30
 TOLERANCE = 20
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process in MiB (VmHWM; getrusage where /proc is absent)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def load_frames(data: Path):

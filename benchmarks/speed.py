@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import resource
 import statistics
 import sys
 import time
@@ -55,8 +54,12 @@ from flyvpr.localizer import Localizer
 from flyvpr.methods import Method
 from flyvpr.temporal import FILTERS
 
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
+    sys.path.insert(0, str(ROOT))
+from benchmarks._common import DEFAULT_DATA, peak_rss_mb  # noqa: E402
+
 HERE = Path(__file__).resolve().parent
-DEFAULT_DATA = HERE.parent.parent / "shared" / "data"
 N_LINE = 35_768
 
 # Paper, Table "Processing time", Nordland 1000 queries x 1000 references.
@@ -83,22 +86,6 @@ def timed(fn, repeat):
         out = fn()
         times.append(time.perf_counter() - t0)
     return statistics.median(times), out
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process in MiB.
-
-    ``VmHWM`` of /proc/self/status belongs to the current address space: unlike getrusage's
-    ``ru_maxrss``, it does not carry over the parent's peak into a child started by
-    fork + exec.
-    """
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0  # kB
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
 def cpu_model() -> str:

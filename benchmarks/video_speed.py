@@ -33,16 +33,12 @@ from pathlib import Path
 
 import numpy as np
 
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
+    sys.path.insert(0, str(ROOT))
+from benchmarks._common import peak_rss_mb  # noqa: E402
+
 HERE = Path(__file__).resolve().parent
-
-
-def _peak_rss_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024.0
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def make_videos(folder: Path, n_places: int, lengths) -> dict:
@@ -156,7 +152,7 @@ def main(argv=None) -> int:
 
             with contextlib.redirect_stdout(io.StringIO()):
                 localize(args.rss_only[0], args.rss_only[1], Path(tmp) / "r.csv")
-        print(json.dumps({"peak_rss_mb": _peak_rss_mb()}))
+        print(json.dumps({"peak_rss_mb": peak_rss_mb()}))
         return 0
     res = run(args.places, tuple(args.lengths), args.repeat)
     if args.json:

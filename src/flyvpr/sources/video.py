@@ -2,7 +2,7 @@
 
 Gray is the video's luma plane (Y), which 8-bit YUV frames (``yuv420p``, ``yuvj420p``,
 ``nv12``, ``yuv422p``, ``yuv444p`` ...) hand over without any conversion: the plane is viewed
-in place and area-averaged to the target size (:func:`area_resize`: exact area weights, as
+in place and area-averaged to the target size (``area_resize``: exact area weights, as
 OpenCV's ``INTER_AREA``; for integer factors the same average as Pillow's ``BOX`` used for
 image files), a compiled loop over the band of input rows each output row covers, then the
 same along the columns.  Limited-range ("TV", 16-235) luma is then expanded to
