@@ -10,25 +10,28 @@ import math
 
 import numpy as np
 
-from ..._validation import check_memory, check_positive_int, check_scores
-from ..base import OnlineFilter
+from ..._validation import check_memory, check_positive_int
 from . import _kernels, _readout
 from ._input import TINY as _TINY
-from ._input import begin_frame, filter_with_odometry, normalised_input
+from ._input import OdometryFilter, begin_frame, normalised_input
 from ._kernels import excitation_kernel
-from ._params import DEFAULT_VELOCITIES, check_params, check_real
+from ._params import DEFAULT_VELOCITIES, check_params
 from ._speed import SpeedBank
 
 #: about this many places estimate the evidence's mean and spread
 _STATS_SAMPLES = 4096
 
 
-class AttractorCANN(OnlineFilter):
+class AttractorCANN(OdometryFilter):
     """The paper's 1-d continuous attractor network (FlyNet+CANN as published).
 
     The equations, the readout and how the defaults were chosen are on the user guide's CANN
     page (``docs/guide/cann-paper.md``).  All times are in frame periods, all distances in
-    reference places.
+    reference places.  A row of :meth:`step` or :meth:`filter` is the readout: higher = more
+    likely place, and its maximum the confidence (see "Output" on the guide page): 0 without
+    an answer, below 1 a tentative one, 1 to 2 the front end's while the sequence is lost,
+    2 + the packet's evidence contrast otherwise.  Odometry (``velocity``) overrides
+    ``movement`` for its frame.
 
     Parameters
     ----------
@@ -349,60 +352,6 @@ class AttractorCANN(OnlineFilter):
     def potentials_(self) -> np.ndarray:
         """The place units' potentials ``u`` after the last step (a copy)."""
         return self._u.copy()
-
-    def step(self, scores_row, velocity=None) -> np.ndarray:
-        """Feed one query frame's scores and return the readout row.
-
-        Parameters
-        ----------
-        scores_row : array-like, shape (n_reference,)
-            The front end's scores of this query frame, higher = more similar.
-        velocity : float, optional
-            Places moved since the previous frame (odometry); overrides ``movement`` for
-            this frame.
-
-        Returns
-        -------
-        ndarray of float32, shape (n_reference,)
-            Higher = more likely place; the maximum is the confidence (see "Output" on the
-            guide page): 0 without an answer, below 1 a tentative one, 1 to 2 the front
-            end's while the sequence is lost, 2 + the packet's evidence contrast otherwise.
-
-        Raises
-        ------
-        ValueError
-            For a row that is not 1-d, empty, holds NaN/inf, has another length than the
-            rows since :meth:`reset`, or negative scores with ``input_transform="log"``; for
-            a non-finite ``velocity``; for invalid parameters (naming them).
-        TypeError
-            For a non-numeric row or ``velocity``.
-        InsufficientMemoryError
-            When the state for this many places would not fit in memory (naming the
-            parameters that size it).
-        """
-        row = check_scores(scores_row, "scores_row", ndim=1)
-        if velocity is not None:
-            velocity = check_real(velocity, "velocity", low=None)
-        return self._step(row, velocity)
-
-    def filter(self, S, velocity=None) -> np.ndarray:
-        """Filter a whole traverse, from a fresh state.
-
-        Parameters
-        ----------
-        S : array-like, shape (n_query, n_reference)
-        velocity : array-like, shape (n_query,), optional
-            Places moved before each query frame (odometry; the first entry is ignored as
-            there is no packet yet); overrides ``movement``.
-
-        Returns
-        -------
-        ndarray, same shape and float dtype as S
-            Row ``t`` is what :meth:`step` returns for frame ``t``.
-        """
-        if velocity is None:
-            return super().filter(S)
-        return filter_with_odometry(self, S, velocity)
 
     def _input(self, row: np.ndarray) -> np.ndarray:
         """This frame's input: the row normalised, adapted, clipped and scaled (see "Input")."""

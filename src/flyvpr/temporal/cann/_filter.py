@@ -11,10 +11,9 @@ import math
 
 import numpy as np
 
-from ..._validation import check_memory, check_positive_int, check_scores
-from ..base import OnlineFilter
+from ..._validation import check_memory, check_positive_int
 from . import _kernels
-from ._input import begin_frame, filter_with_odometry, normalised_input
+from ._input import OdometryFilter, begin_frame, normalised_input
 from ._params import TRANSFORMS, _check_velocities, check_real
 
 #: candidate velocities, places per frame: standing still to 2 in steps of 1/8, then to 3 in
@@ -86,7 +85,7 @@ def _probability(value, name: str) -> float:
     return value
 
 
-class CANN(OnlineFilter):
+class CANN(OdometryFilter):
     """A 1-d place network with velocity: where the robot is, how fast, and whether at all.
 
     Every place of the route has one unit per candidate velocity; a unit's activity is the
@@ -98,6 +97,11 @@ class CANN(OnlineFilter):
     compares the evidence at the predicted place with the evidence at every other place; its
     outcome, the *support*, is the probability that the query is following the route.  See
     the user guide's CANN page (``docs/guide/cann.md``).
+
+    A row of :meth:`step` or :meth:`filter`: entry ``i`` is the support times the probability
+    of being within ``tolerance`` places of ``i`` (calibrated; the front end's scaled scores
+    when it answers), its argmax the answer and its maximum the confidence.  With odometry
+    (``velocity``) every row of the layer moves by it instead of by its own velocity.
 
     Parameters
     ----------
@@ -402,55 +406,6 @@ class CANN(OnlineFilter):
     def shape_(self) -> float:
         """Exponent of the sequence test's learned rank model (see :meth:`_support`)."""
         return _shape(self._log_rank[0])
-
-    def step(self, scores_row, velocity=None) -> np.ndarray:
-        """Feed one query frame's scores and return its row of answer probabilities.
-
-        Parameters
-        ----------
-        scores_row : array-like, shape (n_reference,)
-            The front end's scores of this frame, higher = more similar.
-        velocity : float, optional
-            Places moved since the previous frame (odometry): every row of the layer moves
-            by it instead of by its own velocity.
-
-        Returns
-        -------
-        ndarray of float32, shape (n_reference,)
-            Its argmax is the answer and its maximum the confidence (``confidence_``);
-            from the sequence, entry ``i`` is the support times the probability of being
-            within ``tolerance`` places of ``i``.
-
-        Raises
-        ------
-        ValueError
-            For a row that is not 1-d, empty, holds NaN/inf, changes length since
-            :meth:`reset`, or is negative with ``input_transform="log"``; a non-finite
-            ``velocity``; invalid parameters (naming them).
-        TypeError
-            For a non-numeric row or ``velocity``.
-        """
-        row = check_scores(scores_row, "scores_row", ndim=1)
-        if velocity is not None:
-            velocity = check_real(velocity, "velocity", low=None)
-        return self._step(row, velocity)
-
-    def filter(self, S, velocity=None) -> np.ndarray:
-        """Filter a whole traverse from a fresh state.
-
-        Parameters
-        ----------
-        S : array-like, shape (n_query, n_reference)
-        velocity : array-like, shape (n_query,), optional
-            Places moved before each query frame (odometry; the first entry is not used).
-
-        Returns
-        -------
-        ndarray, same shape as S (float32, or float64 for float64 scores)
-        """
-        if velocity is None:
-            return super().filter(S)
-        return filter_with_odometry(self, S, velocity)
 
     def _input(self, row: np.ndarray) -> np.ndarray:
         """The row as z-scores, adapted per place and clipped (see "Input" on the guide)."""

@@ -1,11 +1,14 @@
-"""What both CANNs share: the input normalisation of a score row, and filtering with odometry."""
+"""What both CANNs share: their public calls with odometry, the input normalisation of a score
+row, and filtering a traverse with odometry."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from ..._validation import check_scores
+from ..base import OnlineFilter
 from ._kernels import VAR_FLOOR
+from ._params import check_real
 
 #: smallest positive float32, the floor before the log of a probability row
 TINY = np.float32(np.finfo(np.float32).tiny)
@@ -99,3 +102,60 @@ def filter_with_odometry(filt, S, velocity) -> np.ndarray:
     for t in range(arr.shape[0]):
         out[t] = filt._step(arr[t], float(vel[t]))
     return out
+
+
+class OdometryFilter(OnlineFilter):
+    """An online filter that also takes odometry: the public ``step`` and ``filter`` of both
+    CANNs (each fills ``_step(row, velocity)``; the class's docstring says what a row holds)."""
+
+    def step(self, scores_row, velocity=None) -> np.ndarray:
+        """Feed one query frame's scores and return the filter's row for it.
+
+        Parameters
+        ----------
+        scores_row : array-like, shape (n_reference,)
+            The front end's scores of this frame, higher = more similar.
+        velocity : float, optional
+            Places moved since the previous frame (odometry), used instead of the filter's
+            own estimate of the motion for this frame.
+
+        Returns
+        -------
+        ndarray of float32, shape (n_reference,)
+            Its argmax is the answer and its maximum the confidence (see the class's
+            docstring for what the values mean).
+
+        Raises
+        ------
+        ValueError
+            For a row that is not 1-d, empty, holds NaN/inf, changes length since
+            :meth:`reset`, or is negative with ``input_transform="log"``; a non-finite
+            ``velocity``; invalid parameters (naming them).
+        TypeError
+            For a non-numeric row or ``velocity``.
+        InsufficientMemoryError
+            When the state for this many places would not fit in memory (naming the
+            parameters that size it).
+        """
+        row = check_scores(scores_row, "scores_row", ndim=1)
+        if velocity is not None:
+            velocity = check_real(velocity, "velocity", low=None)
+        return self._step(row, velocity)
+
+    def filter(self, S, velocity=None) -> np.ndarray:
+        """Filter a whole traverse from a fresh state.
+
+        Parameters
+        ----------
+        S : array-like, shape (n_query, n_reference)
+        velocity : array-like, shape (n_query,), optional
+            Places moved before each query frame (odometry; the first entry is not used).
+
+        Returns
+        -------
+        ndarray, same shape as S (float32, or float64 for float64 scores)
+            Row ``t`` is what :meth:`step` returns for frame ``t``.
+        """
+        if velocity is None:
+            return super().filter(S)
+        return filter_with_odometry(self, S, velocity)
