@@ -7,7 +7,8 @@ Usage::
 
 Plain SVG written by hand (no plotting library), so the figure is small, sharp at any size and
 the same on every machine.  The hash pattern and the activity packet are drawn from fixed
-numbers: they illustrate the shapes, they are not data.
+numbers: they illustrate the shapes, they are not data.  It shows the default method,
+kenyon+cann; the paper's FlyHash -> FlyNet front end fits in the same place.
 """
 
 from __future__ import annotations
@@ -23,14 +24,15 @@ BOX_W, BOX_H, TOP, GAP = 140, 140, 36, 28
 PIC_Y = TOP + 100  # top of the small picture inside each box
 INK, MUTED, ACCENT, FILL = "#1f2937", "#6b7280", "#b45309", "#f8fafc"
 
+#: the default method, kenyon+cann (the paper's FlyHash -> FlyNet front end is another choice)
 STAGES = [
     ("camera frame", ["any size, colour"]),
     ("gray 32 x 64", ["area-averaged,", "values in [0, 1]"]),
-    ("FlyHash", ["64 units each sum", "10% of the pixels;", "the top half fire"]),
-    ("FlyNet", ["a linear layer:", "one score per", "reference place"]),
-    ("CANN", ["an activity packet", "over the places,", "moved by the motion"]),
+    ("optic lobe", ["fixed filters:", "local contrast,", "oriented edges"]),
+    ("Kenyon cells", ["4096 cells, sparse", "inputs, 5% fire:", "512 bytes a place"]),
+    ("CANN", ["probability over", "places and speeds,", "moved by the motion"]),
 ]
-OUTPUT = ["place,", "confidence", "(every frame)"]
+OUTPUT = ["place,", "confidence,", "localized or lost"]
 
 
 def _text(x, y, s, size=13, color=INK, weight="normal", anchor="middle") -> str:
@@ -83,26 +85,32 @@ def _gray(x) -> list[str]:
     ]
 
 
-def _hash_row(x) -> list[str]:
-    """16 of the 64 units: a fixed on/off pattern with exactly half on."""
-    pattern = "1011001011010011"
+def _edges(x) -> list[str]:
+    """Eight small oriented edges (0, 45, 90 and 135 degrees), as the lobe's filters see."""
+    size, gap = 10, 6
+    x0 = x + (BOX_W - 4 * size - 3 * gap) / 2
+    out = []
+    for i in range(8):
+        angle = math.radians(45 * (i % 4))
+        cx = x0 + (i % 4) * (size + gap) + size / 2
+        cy = PIC_Y + 5 + (i // 4) * (size + 4)
+        dx, dy = 0.5 * size * math.cos(angle), 0.5 * size * math.sin(angle)
+        out.append(
+            f'<line x1="{cx - dx:.1f}" y1="{cy - dy:.1f}" x2="{cx + dx:.1f}" y2="{cy + dy:.1f}" '
+            f'stroke="{ACCENT if i in (1, 6) else MUTED}" stroke-width="2"/>'
+        )
+    return out
+
+
+def _kenyon(x) -> list[str]:
+    """32 of the 4096 cells in two rows: a fixed sparse pattern, two of them firing."""
+    pattern = "00000010000000000000000000010000"
     size = 6
     x0 = x + (BOX_W - 16 * (size + 1)) / 2
     return [
-        f'<rect x="{x0 + i * (size + 1):.1f}" y="{PIC_Y + 10}" width="{size}" height="{size}" '
-        f'fill="{ACCENT if bit == "1" else "#d1d5db"}"/>'
+        f'<rect x="{x0 + (i % 16) * (size + 1):.1f}" y="{PIC_Y + 4 + (i // 16) * (size + 2)}" '
+        f'width="{size}" height="{size}" fill="{ACCENT if bit == "1" else "#d1d5db"}"/>'
         for i, bit in enumerate(pattern)
-    ]
-
-
-def _scores(x) -> list[str]:
-    """Bars of one score row: most places low, a few high."""
-    heights = [3, 5, 2, 4, 3, 20, 4, 2, 3, 11, 2, 3, 5, 2, 3, 4, 2, 3, 7, 2]
-    w = (BOX_W - 30) / len(heights)
-    return [
-        f'<rect x="{x + 15 + i * w:.1f}" y="{PIC_Y + 24 - h}" width="{w - 1.5:.1f}" '
-        f'height="{h}" fill="{ACCENT}"/>'
-        for i, h in enumerate(heights)
     ]
 
 
@@ -127,9 +135,16 @@ def draw() -> str:
         f'<svg xmlns="http://www.w3.org/2000/svg" width="{WIDTH}" height="{HEIGHT}" '
         f'viewBox="0 0 {WIDTH} {HEIGHT}" font-family="Helvetica, Arial, sans-serif">',
         f'<rect width="{WIDTH}" height="{HEIGHT}" fill="white"/>',
-        _text(10, 22, "flyvpr, one frame at a time", size=13, color=MUTED, anchor="start"),
+        _text(
+            10,
+            22,
+            "flyvpr's default (kenyon+cann), one frame at a time",
+            size=13,
+            color=MUTED,
+            anchor="start",
+        ),
     ]
-    pictures = [_landscape, _gray, _hash_row, _scores, _packet]
+    pictures = [_landscape, _gray, _edges, _kenyon, _packet]
     for x, (title, lines), picture in zip(xs, STAGES, pictures, strict=True):
         parts += _box(x, title, lines)
         parts += picture(x)

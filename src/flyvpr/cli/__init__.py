@@ -41,9 +41,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="flyvpr",
         description=(
-            "Visual place recognition with FlyNet+CANN. A reference traverse is learned; every "
-            "query frame is matched to a reference place; results are scored with precision-"
-            "recall AUC and Recall@K."
+            "Visual place recognition for robots: a route is mapped once; every later frame "
+            "(a recording, a camera or a stream) is matched to a place of the map, with a "
+            "confidence and whether it is localized. The default method is kenyon+cann (a "
+            "fly-inspired front end and a CANN over places and speeds); the paper's "
+            "FlyNet+CANN, SeqSLAM and the other baselines are there too, scored with "
+            "precision-recall AUC and Recall@K."
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Run `flyvpr COMMAND --help` for the options of a command.",
