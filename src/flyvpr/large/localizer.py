@@ -140,6 +140,7 @@ class LargeLocalizer:
         self._places: list[np.ndarray] = []
         self._dists: list[np.ndarray] = []
         self._lost = 0
+        self._next_search, self._gap = self.reseed_after, self.pool
         self.n_frames_ = 0
         self.n_searches_ = 0
         self.n_reseeds_ = 0
@@ -176,20 +177,19 @@ class LargeLocalizer:
         del self._recent[: -self.pool]
         if f.state_ != LOCALIZED:
             self._lost += 1
-            # Re-seed on the very first frame, then after ``reseed_after`` lost frames and
-            # every ``pool`` lost frames after that (see _reseed for when it declines).  The
-            # index is asked only then, for the last ``pool`` frames at once: a short dip
-            # below ``localized`` costs no search.
-            first = self.reseed_after
-            if (
-                self.n_frames_ == 0
-                or self._lost == first
-                or (self._lost > first and (self._lost - first) % self.pool == 0)
-            ):
+            # Re-seed on the very first frame, then after ``reseed_after`` lost frames; the
+            # index is asked only then, for the last ``pool`` frames at once, so a short dip
+            # below ``localized`` costs no search.  Then again every ``pool`` lost frames,
+            # twice as long after each time the layer's own track won (a long dip on the
+            # right stretch backs off; a kidnapped layer keeps asking).
+            if self.n_frames_ == 0 or self._lost == self._next_search:
                 self._search_recent()
-                self._reseed(None)
+                reseeded = self._reseed(None)
+                self._gap = self.pool if reseeded or self.n_frames_ == 0 else 2 * self._gap
+                self._next_search = self._lost + self._gap
         else:
             self._lost = 0
+            self._next_search, self._gap = self.reseed_after, self.pool
             check = self.check_every and self.n_frames_ % self.check_every == self.check_every - 1
             if check:
                 self._search_recent()
@@ -217,14 +217,15 @@ class LargeLocalizer:
         self.search_s_ += time.perf_counter() - t0
         return out
 
-    def _reseed(self, margin: float | None) -> None:
+    def _reseed(self, margin: float | None) -> bool:
         """Re-seed the layer around the pooled candidates whose recent track beats the
-        layer's own by ``margin`` (mean similarity; any candidate on the first frame)."""
+        layer's own by ``margin`` (mean similarity; any candidate on the first frame).  Returns
+        whether it did."""
         places, scores = self._pooled()
         keep = places < self.n_places  # moved on past the end of the map
         places, scores = places[keep][:_COMPARED], scores[keep][:_COMPARED]
         if places.size == 0 or scores[0] <= 0:
-            return
+            return False
         t0 = time.perf_counter()
         tracks = self._track_scores(places)
         self.search_s_ += time.perf_counter() - t0
@@ -236,24 +237,25 @@ class LargeLocalizer:
             here = self.filter_.place_
             if here >= 0:
                 if abs(best - here) <= self.filter_.width // 4:
-                    return
+                    return False
                 if self._track_scores(np.array([here]))[0] >= tracks.max():
-                    return
+                    return False
             w = np.exp((tracks - tracks.max()) * (self.n_bits / 8.0))
             self.filter_.reseed(places, w)
             self.n_reseeds_ += 1
-            return
+            return True
         t0 = time.perf_counter()
         own = self._track_scores(np.array([self.filter_.place_]))[0]
         better = tracks > own + margin
         self.search_s_ += time.perf_counter() - t0
         if not better.any():
-            return
+            return False
         # The candidates' weights: how much better than the rest their tracks are, in units
         # of a few bits of similarity.
         w = np.exp((tracks[better] - tracks[better].max()) * (self.n_bits / 8.0))
         self.filter_.reseed(places[better], w)
         self.n_reseeds_ += 1
+        return True
 
     def _track_scores(self, places: np.ndarray) -> np.ndarray:
         """Mean similarity of the recent query codes along a track ending at each of
