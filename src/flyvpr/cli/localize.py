@@ -136,13 +136,14 @@ def register(sub) -> None:
     """Add ``localize`` to the subcommand parsers ``sub``."""
     p = sub.add_parser(
         "localize",
-        help="stream a query traverse frame by frame and write one CSV line per frame",
+        help="localize a recording, a camera or a stream frame by frame, one record per frame",
         description=(
             "With --map MAP SOURCE: stream a recording (image folder, video or ROS bag), a live "
             "stream or a camera through the map's localizer and write one record per frame "
             "(frame, timestamp, place, confidence, state, relocated, and x, y when the map has "
-            "positions; latency_ms for a live source) as CSV or JSON "
-            "Lines (.jsonl); with --ground-truth it also scores itself. When the recording has "
+            "positions; latency_ms for a live source) as CSV, JSON Lines (.jsonl) or MCAP "
+            "(.mcap); --view shows the run live in a browser; with --ground-truth it also "
+            "scores itself. When the recording has "
             "positions and the map too, the distance moved between frames goes to the filter "
             "as odometry (path integration). With --dataset: fit METHOD on the benchmark's "
             "reference traverse, then feed its query frames one at a time to the streaming "
