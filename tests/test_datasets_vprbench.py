@@ -133,6 +133,25 @@ def test_vprbench_rows_validated(tmp_path, rows, match):
         load_vprbench(tmp_path, trust_pickle=True)
 
 
+@pytest.mark.parametrize("writer", ["np.save", "pickle.dump"])
+def test_vprbench_pickled_dict_is_refused_naming_the_file(tmp_path, writer):
+    # Some conversions pickle {query_index: [reference indices]} instead of the rows array;
+    # that once escaped as a bare KeyError from rows[0].
+    make_folder(tmp_path)
+    table = {"q0": [0, 1], "q1": [1]}
+    path = tmp_path / "ground_truth_new.npy"
+    if writer == "np.save":
+        np.save(path, table, allow_pickle=True)
+    else:
+        with open(path, "wb") as fh:
+            pickle.dump(table, fh, protocol=2)
+    with pytest.raises(ValueError, match="ground_truth_new.npy: expected rows") as e:
+        load_vprbench(tmp_path, trust_pickle=True)
+    msg = str(e.value)
+    assert "object array of shape (n, 2)" in msg
+    assert "got a dict with 2 keys ('q0', 'q1')" in msg
+
+
 def test_parse_rows_scalar_reference_and_missing_query():
     gt = parse_vprbench_rows([[2, 3], (0, np.array([1, 2]))], 3, 4)
     np.testing.assert_array_equal(gt, [[0, 1, 1, 0], [0, 0, 0, 0], [0, 0, 0, 1]])

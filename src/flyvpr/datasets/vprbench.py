@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import pickle
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -91,6 +92,15 @@ def _check_matrix(gt, path: Path, n_query: int, n_reference: int) -> np.ndarray:
     return gt
 
 
+def _describe(obj) -> str:
+    """A short description of ``obj`` for an error message: its type, and a dict's keys."""
+    if isinstance(obj, Mapping):
+        keys = list(obj)
+        shown = ", ".join(repr(k) for k in keys[:5]) + (", ..." if len(keys) > 5 else "")
+        return f"a {type(obj).__name__} with {len(keys)} keys ({shown})"
+    return f"a {type(obj).__name__}"
+
+
 def parse_vprbench_rows(rows, n_query: int, n_reference: int, source="ground truth"):
     """Turn VPR-Bench rows ``[query_index, [reference indices]]`` into a bool matrix.
 
@@ -111,19 +121,23 @@ def parse_vprbench_rows(rows, n_query: int, n_reference: int, source="ground tru
     Raises
     ------
     ValueError
-        For a row that is not a pair, a non-integer index, an index out of
-        range or a query listed twice.
+        For rows that are not a sequence (a pickled dict, say), a row that is
+        not a pair, a non-integer index, an index out of range or a query
+        listed twice.
     """
     gt = np.zeros((n_query, n_reference), dtype=bool)
     seen = np.zeros(n_query, dtype=bool)
     if isinstance(rows, np.ndarray) and rows.ndim == 0:
         rows = rows.item()
-    try:
-        n_rows = len(rows)
-    except TypeError:
+    is_sequence = isinstance(rows, Sequence) and not isinstance(rows, (str, bytes))
+    if not (isinstance(rows, np.ndarray) or is_sequence):
+        # A dict (some conversions pickle {query: refs}) would fail on rows[0] with a bare
+        # KeyError, or worse, parse its values as rows; name what the file must hold instead.
         raise ValueError(
-            f"{source}: expected rows [query_index, [reference indices]]; got {type(rows).__name__}"
-        ) from None
+            f"{source}: expected rows [query_index, [reference indices]] (VPR-Bench's "
+            f"ground_truth_new.npy: an object array of shape (n, 2)); got {_describe(rows)}"
+        )
+    n_rows = len(rows)
     for k in range(n_rows):
         row = rows[k]
         try:
