@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import signal
@@ -484,17 +485,47 @@ def test_config_with_a_latin1_byte_names_the_file_and_line(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(
-    "damage, match",
+    "damage, reason",
     [
         (lambda p: p.write_text(p.read_text()[:100]), r"not valid JSON .*truncated or garbled"),
+        (lambda p: p.write_bytes(b""), r"not valid JSON .*truncated or garbled"),
         (lambda p: p.write_bytes(b"\xff\xfe" + p.read_bytes()), r"not UTF-8 text"),
+    ],
+    ids=["truncated", "empty", "latin1"],
+)
+def test_an_unparsable_run_file_is_run_again_with_one_warning(
+    workdir, capsys, caplog, damage, reason
+):
+    # A file cut short (a copy that stopped, a full disk) holds no run: that run is not done.
+    config = write_config(workdir, EVAL_GRID.replace("seeds = [0, 1]", "seeds = [0]"))
+    out = workdir / "out"
+    run_experiment(config, out, progress=False)
+    files = run_files(out)
+    victim = sorted(files.values())[0]
+    damage(victim)
+    others = {p: p.read_bytes() for p in files.values() if p != victim}
+    with caplog.at_level(logging.WARNING, logger="flyvpr.experiments"):
+        assert main(["experiment", str(config), "--out", str(out), "--quiet"]) == 0
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1 and "\n" not in warnings[0]
+    assert re.search(rf"^{re.escape(str(victim))}: .*{reason}.*; running it again$", warnings[0])
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err
+    assert f"{len(files) - 1} already finished, 1 ran now, 0 failed" in captured.out
+    assert json.loads(victim.read_text())["status"] == "ok"  # redone and rewritten whole
+    assert {p: p.read_bytes() for p in others} == others  # the finished runs are untouched
+
+
+@pytest.mark.parametrize(
+    "damage, match",
+    [
         (lambda p: _drop_key(p, "result"), r"with key 'result' \(a finished evaluate run\)"),
         (lambda p: _drop_key(p, "status"), r"with key 'status'"),
         (lambda p: p.write_text("[1, 2]"), r"a JSON object\); got a list"),
     ],
-    ids=["truncated", "latin1", "no-result", "no-status", "a-list"],
+    ids=["no-result", "no-status", "a-list"],
 )
-def test_a_broken_run_file_stops_a_resumed_experiment_naming_it(workdir, capsys, damage, match):
+def test_a_run_file_of_another_shape_stops_a_resumed_experiment(workdir, capsys, damage, match):
     config = write_config(workdir, EVAL_GRID.replace("seeds = [0, 1]", "seeds = [0]"))
     out = workdir / "out"
     run_experiment(config, out, progress=False)

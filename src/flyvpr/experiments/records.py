@@ -13,7 +13,16 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-__all__ = ["read_text", "read_json", "read_experiment", "read_run"]
+__all__ = ["read_text", "read_json", "read_experiment", "read_run", "MalformedJSONError"]
+
+
+class MalformedJSONError(ValueError):
+    """A file that should hold JSON cannot be parsed at all: not UTF-8, or not JSON.
+
+    Kept apart from a parsed file that lacks a key, because a resumed experiment treats a
+    run file cut short as a run not done, while a file of another shape stops it.
+    """
+
 
 _NUMBER = ((int, float), "a number")
 _NUMBER_OR_NULL = ((int, float, type(None)), "a number or null")
@@ -82,11 +91,13 @@ def read_text(path) -> str:
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise ValueError(
-            f"{path}: line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x}); "
-            "save the file as UTF-8"
-        ) from None
+        raise ValueError(f"{path}: {_not_utf8(data, exc)}; save the file as UTF-8") from None
+
+
+def _not_utf8(data: bytes, exc: UnicodeDecodeError) -> str:
+    """Where ``data`` stops being UTF-8: ``"line 3: not UTF-8 text (byte 0xe9)"``."""
+    line = data[: exc.start].count(b"\n") + 1
+    return f"line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x})"
 
 
 def read_json(path, what: str):
@@ -96,16 +107,25 @@ def read_json(path, what: str):
     ------
     FileNotFoundError
         If the file is missing.
-    ValueError
-        If it is not UTF-8 or not JSON (truncated, garbled); the message names
-        the file, the line and column, and what the file should be.
+    MalformedJSONError
+        A ValueError: if it is not UTF-8 or not JSON (truncated, garbled); the
+        message names the file, the line (and column), and what the file should be.
     """
-    text = read_text(path)
+    path = Path(path)
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise MalformedJSONError(
+            f"{path}: expected {what} (JSON); {_not_utf8(data, exc)}: garbled"
+        ) from None
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
-        raise ValueError(
-            f"{path}: expected {what} (JSON); it is not valid JSON ({exc.msg} at line "
+        # json's "Unterminated string starting at" expects the position to follow it
+        reason = exc.msg.removesuffix(" at")
+        raise MalformedJSONError(
+            f"{path}: expected {what} (JSON); it is not valid JSON ({reason} at line "
             f"{exc.lineno}, column {exc.colno}: truncated or garbled)"
         ) from None
 

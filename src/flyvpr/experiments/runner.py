@@ -13,7 +13,9 @@ also store ``predictions`` (best reference per query), ``confidence`` (that
 score) and ``correct`` (1 where the prediction is within tolerance).
 
 Resuming: runs whose file exists with status ``"ok"`` are skipped, so an
-interrupted experiment continues where it stopped.  A run that raises is
+interrupted experiment continues where it stopped.  A run file that is not
+JSON at all (cut short) counts as not done: a warning names it and the run
+runs again; a parsed file of the wrong shape stops the experiment.  A run that raises is
 recorded with status ``"error"`` and the exception, the other runs go on, the
 report lists the failure, and the next invocation tries that run again.
 
@@ -47,7 +49,7 @@ import numpy as np
 
 from .._io import write_json_atomic, write_text_atomic
 from .config import ExperimentConfig, load_config
-from .records import read_experiment, read_run
+from .records import MalformedJSONError, read_experiment, read_run
 from .runs import RunSpec, load_benchmark_of
 
 __all__ = ["run_experiment", "execute_run", "machine_info", "BACKENDS"]
@@ -239,8 +241,20 @@ def _train(run: RunSpec, bench) -> dict:
 
 # -- the experiment ------------------------------------------------------------------------------
 def _finished(path: Path) -> bool:
-    """True if the run file exists and records a finished run (a broken file is refused)."""
-    return path.exists() and read_run(path)["status"] == "ok"
+    """True if the run file exists and records a finished run.
+
+    A file that is not JSON at all (cut short by a full disk or a copy that stopped) holds
+    no run, so that run is not done: one warning, and it runs again.  A parsed file of
+    another shape (a missing key, another run's id) is refused, as it may hold results.
+    """
+    if not path.exists():
+        return False
+    try:
+        record = read_run(path)
+    except MalformedJSONError as exc:
+        logger.warning("%s; running it again", exc)
+        return False
+    return record["status"] == "ok"
 
 
 class Terminated(SystemExit):
