@@ -1,12 +1,15 @@
 """Model files trust nothing: every dropped key, every flipped byte, every crafted field."""
 
 import json
+import re
+import zipfile
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from flyvpr.cli import main
 from flyvpr.methods import make_method
 from flyvpr.modelio import ModelFileError, _write_archive, load_method, save_method
 
@@ -114,6 +117,28 @@ def test_compressed_entries_are_refused(tiny, tmp_path):
         dst.comment = src.comment
     with pytest.raises(ModelFileError):
         load_method(out)
+
+
+def _archive_with_meta(path, blob: bytes):
+    """An archive holding only a ``__meta__`` entry of the bytes ``blob``, as they are."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as zf:
+        with zf.open("__meta__.npy", "w") as member:
+            np.lib.format.write_array(member, np.frombuffer(blob, np.uint8), allow_pickle=False)
+    return path
+
+
+@pytest.mark.parametrize("depth", [100_000, 500_000])
+def test_deeply_nested_metadata_is_refused_naming_the_file(tmp_path, capsys, depth):
+    # Within the 1 MB metadata limit, but json.loads recurses once per "[".
+    path = _archive_with_meta(tmp_path / "deep.npz", b"[" * depth + b"]" * depth)
+    expected = rf"^model file {re.escape(str(path))}: __meta__: metadata is malformed"
+    with pytest.raises(ModelFileError, match=expected):
+        load_method(path)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    assert main(["localize", "--map", str(path), str(frames)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(path) in err and "metadata is malformed" in err
 
 
 def test_loaded_model_matches_and_filter_starts_clean(tiny):

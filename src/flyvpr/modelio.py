@@ -358,6 +358,13 @@ def _read_meta(r: _Reader) -> dict:
         meta = json.loads(raw.tobytes().decode("utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError):
         raise r.error("__meta__", "metadata is not valid JSON (file modified?)") from None
+    except RecursionError:
+        # json recurses once per level: "[" * 100000 fits in 1 MB but not on the stack
+        raise r.error(
+            "__meta__",
+            "metadata is malformed: JSON nested too deeply to read; a flyvpr model's "
+            "metadata is a JSON object a few levels deep (file modified?)",
+        ) from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise r.error("format", f"not a flyvpr model ({FORMAT!r} expected)")
     version = meta.get("format_version")
