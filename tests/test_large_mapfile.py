@@ -106,6 +106,17 @@ def test_truncated_data_is_refused(tmp_path, codes):
         open_large_map(tmp_path / "bad")
 
 
+def test_a_deeply_nested_header_is_refused_by_name(tmp_path):
+    # json.loads recurses once per "[": this header would escape as a RecursionError
+    header = b"[" * 100_000 + b"]" * 100_000
+    start = b"FLYVPRLM" + bytes(8)
+    bad = tmp_path / "deep.fvmap"
+    bad.write_bytes(start + header + _TRAILER.pack(len(start), len(header), b"FLYVPRLM"))
+    with pytest.raises(MapFileError, match="corrupt header") as info:
+        open_large_map(bad)
+    assert str(bad) in str(info.value)
+
+
 def test_missing_file(tmp_path):
     with pytest.raises(FileNotFoundError):
         open_large_map(tmp_path / "none.fvmap")

@@ -128,6 +128,8 @@ def _read_container(path, kind: str) -> tuple[dict, dict]:
             header = json.loads(fh.read(length).decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError):
             raise MapFileError(f"{what}: corrupt header (not JSON)") from None
+        except RecursionError:  # json recurses once per level of nesting
+            raise MapFileError(f"{what}: corrupt header (JSON nested too deeply)") from None
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise MapFileError(f"{what}: not a {FORMAT} file")
     if header.get("version") != VERSION:
