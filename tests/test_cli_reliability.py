@@ -91,6 +91,17 @@ def test_outputs_are_checked_before_any_work(data, tmp_path, capsys):
     assert rc == 2 and csv.read_text().startswith("traverse")
 
 
+def test_out_with_a_name_of_250_characters_is_written(data, tmp_path, capsys):
+    out = tmp_path / ("r" * 245 + ".json")
+    assert main(_args(data, "--out", str(out))) == 0
+    assert [p.name for p in tmp_path.iterdir()] == [out.name]
+    assert '"auc"' in out.read_text()
+    too_long = tmp_path / ("r" * 251 + ".json")
+    assert main(_args(data, "--out", str(too_long))) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "file name too long (256 bytes" in err and err.count("\n") == 1
+
+
 def test_fit_save_onto_an_input_and_load_then_out_onto_the_model(data, tmp_path, capsys):
     fit = ["fit", "--dataset", "generic", "--root", str(data), "--method", "flyhash", "--quiet",
            "--no-cache"]  # fmt: skip

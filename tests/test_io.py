@@ -125,8 +125,22 @@ def test_output_folder_checks(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(OutputPathError, match="not a folder"):
         check_output_path(tmp_path / "file" / "a.json")
-    with pytest.raises(OutputPathError, match="too long"):
-        check_output_path(tmp_path / ("x" * 250))
+    with pytest.raises(OutputPathError, match=r"too long \(256 bytes; .* at most 255\)"):
+        check_output_path(tmp_path / ("x" * 256), what="--out")
+
+
+@pytest.mark.parametrize("name", ["r" * 245 + ".json", "r" * 255, "é" * 127])
+def test_a_name_up_to_name_max_is_written_atomically(tmp_path, monkeypatch, name):
+    # The temporary file's name once was the target's plus 14 bytes: over NAME_MAX (255).
+    seen = []
+    real_open = os.open
+    monkeypatch.setattr(_io.os, "open", lambda p, *a: seen.append(p) or real_open(p, *a))
+    assert check_output_path(tmp_path / name, what="--out") == tmp_path / name
+    write_json_atomic(tmp_path / name, {"x": 1})
+    assert [p.name for p in tmp_path.iterdir()] == [name]
+    (tmp,) = seen
+    assert tmp.parent == tmp_path and tmp.name.startswith("." + name[:32] + ".")
+    assert len(os.fsencode(tmp.name)) <= 1 + 4 * 32 + 1 + 8 + 4
 
 
 def test_read_only_folder(tmp_path):

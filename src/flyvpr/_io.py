@@ -10,8 +10,9 @@ Rules (see ``docs/guide/reliability.md``):
 * A new file gets the permissions the umask allows (``0644`` under the usual ``022``); an
   existing file keeps its mode.
 * :func:`check_output_path` tells before any work whether a path can be written: its folder
-  exists, is a folder and is writable, the temporary name is not too long, and it is not one
-  of the run's input files.
+  exists, is a folder and is writable, its name is not too long, and it is not one of the
+  run's input files.  The temporary name is short (``.`` + at most 32 characters of the name
+  + a random suffix + ``.tmp``), so any name the file system takes can be written.
 
 Kept free of any other flyvpr import so every layer can use it.
 """
@@ -37,8 +38,8 @@ __all__ = [
     "write_json_atomic",
 ]
 
-#: characters the temporary name adds to the target's name: "." + name + "." + 8 + ".tmp"
-_TMP_EXTRA = 1 + 1 + 8 + 4
+#: characters of the target's name kept in its temporary file's name (to tell whose it is)
+_TMP_STEM = 32
 _O_BINARY = getattr(os, "O_BINARY", 0)
 
 
@@ -121,10 +122,12 @@ def check_output_path(path, inputs: Iterable = (), *, what: str = "output") -> P
     ------
     OutputPathError
         If the output is an input of the run, is not a regular file, its folder is missing,
-        not a folder or not writable, or its name is too long for the temporary file beside it.
+        not a folder or not writable, or its name is too long for the file system.
     """
     path = Path(path)
     shown = f"{what} {path}"
+    # Before resolve_output: a name over the limit makes even stat fail (ENAMETOOLONG).
+    _check_name_length(path, shown)
     try:
         target = resolve_output(path)
     except OutputPathError as exc:
@@ -144,16 +147,33 @@ def check_output_path(path, inputs: Iterable = (), *, what: str = "output") -> P
         raise OutputPathError(f"{shown}: {folder} is not a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise OutputPathError(f"{shown}: folder {folder} is not writable")
-    try:
-        name_max = os.pathconf(folder, "PC_NAME_MAX")
-    except (OSError, ValueError):
-        name_max = 255
-    if len(os.fsencode(target.name)) + _TMP_EXTRA > name_max:
-        raise OutputPathError(
-            f"{shown}: file name too long ({len(os.fsencode(target.name))} bytes; at most "
-            f"{name_max - _TMP_EXTRA} here, to leave room for the temporary file)"
-        )
+    _check_name_length(target, shown)  # a symlink's target has a name of its own
     return target
+
+
+def _check_name_length(path: Path, shown: str) -> None:
+    """Refuse a file name (or its temporary file's) longer than the folder's NAME_MAX."""
+    try:
+        name_max = os.pathconf(path.parent, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = 255  # the folder is missing (checked later) or the limit unknown
+    n_bytes = len(os.fsencode(path.name))
+    n_tmp = len(os.fsencode(_temporary_name(path.name)))
+    if max(n_bytes, n_tmp) > name_max:
+        raise OutputPathError(
+            f"{shown}: file name too long ({n_bytes} bytes; the file system here takes at "
+            f"most {name_max})"
+        )
+
+
+def _temporary_name(name: str) -> str:
+    """A fresh name for the temporary file of the target ``name``, short whatever ``name``.
+
+    The target's full name plus a suffix would exceed NAME_MAX (255 bytes) for a name near
+    the limit; its first characters still tell whose a left-over file is.  At most
+    ``1 + 4 * 32 + 1 + 8 + 4`` bytes.
+    """
+    return f".{name[:_TMP_STEM]}.{secrets.token_hex(4)}.tmp"
 
 
 @contextmanager
@@ -188,7 +208,7 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
         for _ in range(100):
             # The name is set before the file exists, so a signal arriving at any point after
             # os.open still finds the name to remove; a random name is never another's file.
-            tmp = target.parent / f".{target.name}.{secrets.token_hex(4)}.tmp"
+            tmp = target.parent / _temporary_name(target.name)
             try:
                 fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | _O_BINARY, 0o666)
                 break
