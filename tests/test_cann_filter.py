@@ -19,6 +19,14 @@ from flyvpr.temporal.cann._filter import _FRONT_RATE, CALIBRATION
 KNOTS = np.linspace(0.0, 1.0, 11)
 
 
+def lost_confidence(probability, tolerance=2, trust=0.05):
+    """A front-end answer's confidence: the model's ``probability`` shrunk towards the base
+    rate 0.5 ** (1 + tolerance) by ``trust`` (the share of localized frames, at least 0.05;
+    0.05 in a filter never localized)."""
+    base = 0.5 ** (1 + tolerance)
+    return base + trust * (probability - base)
+
+
 def front_prior(tolerance):
     """The front end's probability of being right before any confident answer."""
     return 0.5 ** (2 + tolerance)
@@ -110,7 +118,7 @@ def reference_filter(S, velocity=None, **params):
     layer = np.tile(prior[:, None] / n, (1, n))
     mean, var = np.zeros(n), np.ones(n)
     log_rank = [1 / 0.3, 1 / 0.5]  # the rank model's prior: exponents 0.3 and 0.5
-    support, support_mean = 0.5, 0.0
+    support, support_mean, localized_mean = 0.5, 0.0, 0.0
     # the front end's logistic model (its prior: a = the prior's log-odds, b = 0) and the
     # past frames' peak z-scores and best raw scores, with their weights
     a, b = math.log(front_prior(tol) / (1 - front_prior(tol))), 0.0
@@ -201,7 +209,10 @@ def reference_filter(S, velocity=None, **params):
             a, b = a + _FRONT_RATE * error, b + _FRONT_RATE * error * feature
         front_confidence = min(1.0, front_confidence * (1 + 1e-3 * math.tanh(raw_z)))
         if q["fallback"] and support_mean * probability < front_confidence * (1 - support_mean):
-            source, confidence, answer = "front end", front_confidence, front
+            # shrunk towards the base rate 0.5 ** (1 + tol) by the share of localized frames
+            trust = max(localized_mean, 0.05)
+            base = 0.5 ** (1 + tol)
+            source, confidence, answer = "front end", base + trust * (front_confidence - base), front
             top = row[front] - row.mean()
             out = (
                 np.maximum(row - row.mean(), 0) * confidence / top
@@ -219,6 +230,8 @@ def reference_filter(S, velocity=None, **params):
         out = np.minimum(out, confidence)
         out[answer] = confidence
         rows.append(out)
+        localized = source == "sequence" and support * probability >= 0.5
+        localized_mean += rate * (float(localized) - localized_mean)
         frames.append(
             {
                 "answer": answer,
@@ -226,9 +239,7 @@ def reference_filter(S, velocity=None, **params):
                 "confidence_": confidence,
                 "support_": support,
                 "probability_": probability if source == "sequence" else 0.0,
-                "state_": "localized"
-                if source == "sequence" and support * probability >= 0.5
-                else "lost",
+                "state_": "localized" if localized else "lost",
                 "velocity_": float(layer.sum(axis=1) @ vel)
                 if velocity is None
                 else float(velocity[t]),
@@ -1136,8 +1147,10 @@ def test_front_end_model_prior(tolerance):
     assert prior == 0.5 ** (2 + tolerance)
     assert f._front_model[0] == pytest.approx(_logit(prior), rel=1e-14)
     assert f._front_model[1] == 0.0
-    assert f.source_ == "front end" and f.confidence_ == np.float32(prior)
-    np.testing.assert_array_equal(out, np.full(200, np.float32(prior)))
+    assert f.source_ == "front end" and f.front_probability_ == prior
+    level = np.float32(lost_confidence(prior, tolerance))
+    assert f.confidence_ == level
+    np.testing.assert_array_equal(out, np.full(200, level))
     # ... and, never confident, it stays so
     for row in _shuffled(n=200):
         f.step(row)
@@ -1235,11 +1248,13 @@ def test_front_end_raw_score_tie_break_by_hand():
         f.step(np.zeros(200))
         f.step(row)
         assert f.source_ == "front end" and f._front_raw_z == 0.0  # (no spread yet)
-        assert f.confidence_ == np.float32(0.0625)
+        assert f.front_probability_ == 0.0625
+        assert f.confidence_ == np.float32(lost_confidence(0.0625))
         out = f.step(2 * row)
         assert f.source_ == "front end" and out.argmax() == 0
         assert f._front_raw_z == pytest.approx(3.0, rel=1e-14)
-        expected = np.float32(0.0625 * (1 + 1e-3 * math.tanh(3.0)))
+        assert f.front_probability_ == 0.0625 * (1 + 1e-3 * math.tanh(3.0))
+        expected = np.float32(lost_confidence(f.front_probability_))
         assert f.confidence_ == expected  # not calibrated
         np.testing.assert_array_equal(out, np.where(row > 0, expected, np.float32(0.0)))
 
@@ -1254,7 +1269,8 @@ def test_with_b_zero_the_front_end_keeps_its_own_order():
         f.step(row)
         assert f.source_ == "front end" and f._front_model[1] == 0.0
         expected = 0.0625 * (1 + 1e-3 * math.tanh(f._front_raw_z))
-        assert f.confidence_ == pytest.approx(expected, rel=1e-6)
+        assert f.front_probability_ == pytest.approx(expected, rel=1e-12)
+        assert f.confidence_ == np.float32(lost_confidence(f.front_probability_))
         confidence.append(f.confidence_)
         raw_z.append(f._front_raw_z)
     order = np.argsort(raw_z, kind="stable")
@@ -1288,9 +1304,11 @@ def test_front_end_confidence_is_capped_at_one():
     top = S[-1] + np.where(np.arange(100) == 7, 50.0, 0.0)  # a best raw score far up
     out = f.step(top)
     assert f.source_ == "front end" and f._front_raw_z == 4.0
-    assert f.confidence_ == 1.0 and out.argmax() == 7 and out[7] == 1.0
+    assert f.front_probability_ == 1.0
+    level = np.float32(lost_confidence(1.0))
+    assert f.confidence_ == level and out.argmax() == 7 and out[7] == level
     z = np.maximum(top - top.mean(), 0.0)
-    np.testing.assert_allclose(out, z / z.max(), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(out, level * z / z.max(), rtol=1e-6, atol=1e-7)
     # a low best score: below 1 by its tie-break
     g = CANN()
     g.filter(S[:-1])
@@ -1298,7 +1316,8 @@ def test_front_end_confidence_is_capped_at_one():
     g.step(S[-1] * 0.01)
     assert g.source_ == "front end" and g._front_raw_z < 0
     expected = _sigmoid(30.0) * (1 + 1e-3 * math.tanh(g._front_raw_z))
-    assert g.confidence_ == np.float32(expected) and g.confidence_ < 1.0
+    assert g.front_probability_ == expected and g.front_probability_ < 1.0
+    assert g.confidence_ == np.float32(lost_confidence(expected))
 
 
 @pytest.mark.parametrize("a", [-3.0, -0.5, 0.0, 0.5, 2.0])
@@ -1319,7 +1338,8 @@ def test_front_end_confidence_is_the_models_probability(a, b):
     assert f._front_raw_z == pytest.approx(raw_z, rel=1e-12)
     assert f.source_ == "front end" and raw_z != 0.0 and feature != 0.0
     expected = min(1.0, _sigmoid(a + b * feature) * (1 + 1e-3 * math.tanh(raw_z)))
-    assert f.confidence_ == np.float32(expected)
+    assert f.front_probability_ == pytest.approx(expected, rel=1e-12)
+    assert f.confidence_ == np.float32(lost_confidence(f.front_probability_))
 
 
 def test_constant_rows_tie_at_the_confidence():
@@ -1330,10 +1350,12 @@ def test_constant_rows_tie_at_the_confidence():
         f = CANN(calibration=calibration)
         out = f.step(np.full(100, 2.0))
         assert f.source_ == "front end" and f.state_ == "lost" and f.probability_ == 0.0
-        assert f.confidence_ == 0.0625
-        np.testing.assert_array_equal(out, np.full(100, np.float32(0.0625)))
+        assert f.front_probability_ == 0.0625
+        level = np.float32(lost_confidence(0.0625))  # 0.125 - 0.05 * 0.0625
+        assert f.confidence_ == level
+        np.testing.assert_array_equal(out, np.full(100, level))
         out = CANN(tolerance=0, calibration=calibration).step(np.full(100, 2.0))  # 0.5 ** 2
-        np.testing.assert_array_equal(out, np.full(100, np.float32(0.25)))
+        np.testing.assert_array_equal(out, np.full(100, np.float32(lost_confidence(0.25, 0))))
 
 
 # -- hand-worked frames at the boundaries --------------------------------------------------------
@@ -1542,3 +1564,34 @@ def test_a_speed_prior_that_leaves_one_sign_nothing(params, prior):
     np.testing.assert_allclose(f._params["prior"], prior, rtol=1e-12, atol=1e-30)
     out = f.filter(bump_rows(4 + np.arange(8.0), 30))
     assert np.isfinite(out).all() and 0.0 < f.confidence_ <= 1.0
+
+
+def test_a_lost_filter_shrinks_the_front_ends_confidence_towards_the_base_rate():
+    # 80 frames followed at 1 place per frame, then 300 of bumps at random places (off the
+    # route): the front end answers, its confidence is the model's probability shrunk
+    # towards 0.5 ** 3 by the share of localized frames so far (a running mean over
+    # support_memory frames), which falls as the filter stays lost.
+    rng = np.random.default_rng(5)
+    pos = np.r_[10 + np.arange(80.0), rng.integers(0, 300, 300).astype(float)]
+    S = bump_rows(pos, 300, seed=5)
+    f = CANN()
+    f.reset()
+    share, shares, answers = 0.0, [], []
+    for t, row in enumerate(S):
+        f.step(row)
+        if f.source_ == "front end":
+            expected = lost_confidence(f.front_probability_, 2, max(share, 0.05))
+            assert f.confidence_ == np.float32(expected), t
+            answers.append((t, f.front_probability_, f.confidence_, share))
+        rate = max(1.0 / (t + 1), 1.0 / 100.0)
+        share += rate * (float(f.state_ == "localized") - share)
+        assert f._localized_mean == pytest.approx(share, rel=1e-12, abs=1e-15)
+        shares.append(share)
+    assert shares[79] > 0.6 and shares[-1] < 0.1  # localized on the route, lost after it
+    lost = [a for a in answers if a[0] >= 80]
+    assert len(lost) > 100
+    # early in the lost stretch the model's probability mostly stands; late, the base rate
+    t, model, confidence, trust = lost[0]
+    assert trust > 0.5 and abs(confidence - model) < abs(confidence - 0.125)
+    t, model, confidence, trust = lost[-1]
+    assert trust < 0.1 and abs(confidence - 0.125) < 0.1 * abs(model - 0.125)

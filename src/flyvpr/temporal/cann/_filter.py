@@ -29,6 +29,8 @@ LAYER_VELOCITIES = tuple(
 CALIBRATION = (0.507, 0.838, 0.839, 0.844, 0.916, 0.917, 0.943, 0.956, 0.985, 0.999, 1.0)
 #: learning rate of the front end's logistic model (per confident sequence answer)
 _FRONT_RATE = 0.05
+#: the least weight of the front end's model in a lost filter's answer (see _step)
+_MIN_TRUST = 0.05
 #: about this many places are sampled by the sequence test
 _SAMPLES = 4096
 #: bounds of the learned exponent of the sequence test's rank model (see _support)
@@ -158,7 +160,10 @@ class CANN(OdometryFilter):
         being right beats the sequence's (see "Output" on the guide page).  The front end's
         probability is a logistic model of the strength of its peak (its z-score), learned
         at run time from whether it agrees with the sequence's confident answers; before
-        any, ``0.5 ** (2 + tolerance)``.
+        any, ``0.5 ** (2 + tolerance)``.  The confidence of a front-end answer is that
+        probability shrunk towards ``0.5 ** (1 + tolerance)`` by the share of localized
+        frames over the last ``support_memory`` frames: a filter lost for long may be off
+        the map, where the model (learned on the route) does not hold.
     calibration : sequence of 11 float or None, default CALIBRATION
         The sequence's confidence at raw confidence (support times the window's
         probability) 0, 0.1, ..., 1, linearly between (strictly increasing, in [0, 1]);
@@ -175,6 +180,9 @@ class CANN(OdometryFilter):
         ``"lost"`` otherwise (the place is then a hint).
     support_ : float
         Probability that the query is following the route.
+    front_probability_ : float
+        The front end's model's probability that its own best place is right, this frame
+        (before the shrinking of a front-end answer's confidence).
     velocity_ : float
         Mean velocity of the layer after the last step, or the odometry given to it.
     source_ : str
@@ -363,6 +371,7 @@ class CANN(OdometryFilter):
         self.velocity_ = float("nan")
         self.confidence_ = 0.0
         self.support_ = 0.5
+        self.front_probability_ = 0.0
         self.state_ = "lost"
         self.source_ = "sequence"
 
@@ -394,6 +403,7 @@ class CANN(OdometryFilter):
         # predicted one has density shape * u**(shape - 1) on the route (learned), 1 off it.
         self._log_rank = [1.0 / 0.3, 1.0 / 0.5]  # running means of -log(rank), supported frames
         self._support_mean = 0.0  # the support averaged over support_memory frames
+        self._localized_mean = 0.0  # the share of localized frames, over as many frames
         # The front end's model: running mean and variance of its peak's z-score and of its
         # best raw score, and the logistic weights (prior: a weak front end, right with
         # probability 0.5 ** (2 + tolerance) whatever its peak).
@@ -539,12 +549,19 @@ class CANN(OdometryFilter):
         # where the model does not separate them (no confident answers to learn from yet).
         front_confidence *= 1.0 + 1e-3 * math.tanh(self._front_raw_z)
         front_confidence = min(1.0, front_confidence)
+        self.front_probability_ = front_confidence
         out = np.empty(n, np.float32)
         if p["fallback"] and self._support_mean * probability < front_confidence * (
             1.0 - self._support_mean
         ):
             self.source_ = "front end"
-            confidence = front_confidence
+            # The model learned on the route; a filter lost for long may be off the map,
+            # where the front end is never right.  Its probability is shrunk towards a base
+            # rate by the share of recent frames that were localized (a twentieth of it
+            # kept, so that the front end's own order of answers survives).
+            base = 0.5 ** (1 + p["tolerance"])
+            trust = max(self._localized_mean, _MIN_TRUST)
+            confidence = base + trust * (front_confidence - base)
             z = row.astype(np.float64) - float(row.mean())
             top = float(z[front])
             if top > 0:
@@ -579,6 +596,7 @@ class CANN(OdometryFilter):
         self.confidence_ = float(level)
         localized = self.source_ == "sequence" and self.support_ * self.probability_ >= 0.5
         self.state_ = "localized" if localized else "lost"
+        self._localized_mean += rate * (float(localized) - self._localized_mean)
         if velocity is None:
             self.velocity_ = float(self._row_mass @ p["velocities"])
         else:
