@@ -212,7 +212,8 @@ def reference_filter(S, velocity=None, **params):
             # shrunk towards the base rate 0.5 ** (1 + tol) by the share of localized frames
             trust = max(localized_mean, 0.05)
             base = 0.5 ** (1 + tol)
-            source, confidence, answer = "front end", base + trust * (front_confidence - base), front
+            confidence = base + trust * (front_confidence - base)
+            source, answer = "front end", front
             top = row[front] - row.mean()
             out = (
                 np.maximum(row - row.mean(), 0) * confidence / top
