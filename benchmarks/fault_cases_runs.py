@@ -121,12 +121,20 @@ for _id, _make, _name in (
     ("outputs/out-is-a-fifo", _fifo, "pipe.json"),
     ("outputs/out-is-a-folder", lambda p: (p.mkdir(), p)[1], "folder.json"),
     ("outputs/out-is-a-device-link", lambda p: (os.symlink("/dev/null", p), p)[1], "null.json"),
-    ("outputs/out-folder-missing", lambda p: p / "result.json", "missing"),
+    ("outputs/out-folder-under-a-file", lambda p: (p.write_text("x"), p / "r.json")[1], "file"),
     ("outputs/out-name-too-long", lambda p: p.parent / ("r" * 251 + ".json"), "r" * 20),
 ):
     case(_id, "outputs", "exit 2 naming --out, before decoding anything")(
         _special_output(_make, _name)
     )
+
+
+@case("outputs/out-folder-missing", "outputs", "exit 0; the folders made when written")
+def _missing_folders(ctx):
+    root = fx.generic_dataset(ctx.dir / "data")
+    out = ctx.dir / "a" / "b" / "result.json"
+    result = ctx.cli(evaluate_args(root, "--out", out))
+    return succeeded(ctx, result, lambda: (out.is_file() and not fx.leftovers(ctx.dir), "written"))
 
 
 @case("outputs/out-name-250-characters", "outputs", "exit 0; written, no temporary file left")

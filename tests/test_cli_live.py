@@ -253,6 +253,24 @@ def test_view_save_of_a_recording_has_every_frame(route, tmp_path, capsys):
     assert conf == pytest.approx([float(r["confidence"]) for r in rows], rel=1e-6)
 
 
+def test_outputs_in_missing_folders_are_created(route, tmp_path, capsys):
+    # A recording: --out through atomic_open, --view-save through rerun's own file sink.
+    out, trace = tmp_path / "a" / "b" / "where.csv", tmp_path / "c" / "d" / "trace.rrd"
+    code, _, _ = _run(capsys, "localize", "--map", route["map"], route["png"],
+                      "--out", out, "--view-save", trace)  # fmt: skip
+    assert code == 0 and len(_records(out)) == N
+    assert _read_rrd(trace)["/fix/place"]["frame"] == list(range(N))
+    # A live stream: the records file is written straight to its target, flushed.
+    live = tmp_path / "e" / "f" / "where.csv"
+    with MjpegServer(route["jpegs"], fps=60, n_frames=N, stall_after=10) as srv:
+        code, _, _ = _run(
+            capsys, "localize", "--map", route["map"], srv.url, "--out", live,
+            "--stall-timeout", 0.5, "--retries", 0,
+        )  # fmt: skip
+    assert code == 1  # the stall ends it; every record so far is kept
+    _check_answers(_records(live))
+
+
 def test_the_viewer_is_served(route, tmp_path):
     """With serve=True the web viewer's page answers on localhost (no internet involved)."""
     import urllib.request

@@ -83,8 +83,10 @@ def test_outputs_are_checked_before_any_work(data, tmp_path, capsys):
     assert "--out" in capsys.readouterr().err
     cache = tmp_path / "cache"
     argv = [a for a in _args(data) if a != "--no-cache"]
-    missing = tmp_path / "nowhere" / "r.json"
-    assert main([*argv, "--cache-dir", str(cache), "--out", str(missing)]) == 2
+    (tmp_path / "file").write_text("x")
+    nowhere = tmp_path / "file" / "sub" / "r.json"
+    assert main([*argv, "--cache-dir", str(cache), "--out", str(nowhere)]) == 2
+    assert "file is not a folder" in capsys.readouterr().err
     assert not cache.exists()  # refused before a single image was decoded
     csv = data / "pos.csv"
     rc = main(_args(data, "--positions-csv", "pos.csv", "--radius", "3", "--out", str(csv)))
@@ -100,6 +102,19 @@ def test_out_with_a_name_of_250_characters_is_written(data, tmp_path, capsys):
     assert main(_args(data, "--out", str(too_long))) == 2
     err = capsys.readouterr().err
     assert "--out" in err and "file name too long (256 bytes" in err and err.count("\n") == 1
+
+
+def test_out_in_missing_folders_creates_them_when_written(data, tmp_path, capsys):
+    out = tmp_path / "a" / "b" / "c" / "r.json"
+    assert main(_args(data, "--out", str(out))) == 0
+    assert '"auc"' in out.read_text()
+    # A run that fails before writing leaves no folder behind.
+    bad_model = tmp_path / "bad.npz"
+    bad_model.write_bytes(b"not a model")
+    later = tmp_path / "x" / "y" / "r.json"
+    assert main(_args(data, "--load", str(bad_model), "--out", str(later))) == 1
+    assert "bad.npz" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
 
 
 def test_fit_save_onto_an_input_and_load_then_out_onto_the_model(data, tmp_path, capsys):

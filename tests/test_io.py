@@ -1,6 +1,7 @@
 """Tests of flyvpr._io: atomic writes, where outputs may go, permissions, errors naming files."""
 
 import errno
+import json
 import os
 import stat
 
@@ -11,6 +12,8 @@ from flyvpr._io import (
     OutputPathError,
     atomic_open,
     check_output_path,
+    make_folders,
+    remove_folders,
     write_json_atomic,
     write_text_atomic,
 )
@@ -120,11 +123,13 @@ def test_output_that_is_an_input_is_refused(tmp_path):
 
 
 def test_output_folder_checks(tmp_path):
-    with pytest.raises(OutputPathError, match="does not exist"):
-        check_output_path(tmp_path / "missing" / "a.json")
     (tmp_path / "file").write_text("x")
     with pytest.raises(OutputPathError, match="not a folder"):
         check_output_path(tmp_path / "file" / "a.json")
+    with pytest.raises(OutputPathError, match=r"file is not a folder"):
+        check_output_path(tmp_path / "file" / "b" / "a.json")
+    with pytest.raises(OutputPathError, match="too long"):
+        check_output_path(tmp_path / "a" / ("b" * 256) / "a.json")
     with pytest.raises(OutputPathError, match=r"too long \(256 bytes; .* at most 255\)"):
         check_output_path(tmp_path / ("x" * 256), what="--out")
 
@@ -141,6 +146,34 @@ def test_a_name_up_to_name_max_is_written_atomically(tmp_path, monkeypatch, name
     (tmp,) = seen
     assert tmp.parent == tmp_path and tmp.name.startswith("." + name[:32] + ".")
     assert len(os.fsencode(tmp.name)) <= 1 + 4 * 32 + 1 + 8 + 4
+
+
+def test_missing_folders_are_created_only_when_the_file_is_written(tmp_path):
+    out = tmp_path / "a" / "b" / "c" / "r.json"
+    assert check_output_path(out, what="--out") == out
+    assert list(tmp_path.iterdir()) == []  # checked, not created
+    write_json_atomic(out, {"x": 1})
+    assert json.loads(out.read_text()) == {"x": 1}
+    assert sorted(p.name for p in out.parent.iterdir()) == ["r.json"]
+
+
+def test_a_failed_write_removes_the_folders_it_created(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "kept.txt").write_text("x")
+    with pytest.raises(RuntimeError, match="boom"):
+        with atomic_open(tmp_path / "a" / "b" / "c" / "r.json", "w") as fh:
+            fh.write("half")
+            raise RuntimeError("boom")
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["a", "kept.txt"]
+
+
+def test_folders_made_for_a_flushed_writer_and_removed_again(tmp_path):
+    created = make_folders(tmp_path / "a" / "b")
+    assert created == [tmp_path / "a", tmp_path / "a" / "b"]
+    assert make_folders(tmp_path / "a" / "b") == []  # nothing new: nothing to undo
+    (tmp_path / "a" / "other").write_text("x")
+    remove_folders(created)  # b goes; a holds another file and stays
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["a", "other"]
 
 
 def test_read_only_folder(tmp_path):

@@ -9,10 +9,13 @@ Rules (see ``docs/guide/reliability.md``):
   device is refused.
 * A new file gets the permissions the umask allows (``0644`` under the usual ``022``); an
   existing file keeps its mode.
+* Missing parent folders are created (as ``mkdir -p`` does) when the file is written, not
+  before: a write that fails removes the folders it created, so a failed run leaves nothing.
 * :func:`check_output_path` tells before any work whether a path can be written: its folder
-  exists, is a folder and is writable, its name is not too long, and it is not one of the
-  run's input files.  The temporary name is short (``.`` + at most 32 characters of the name
-  + a random suffix + ``.tmp``), so any name the file system takes can be written.
+  exists, or can be created in the nearest folder that does, is writable, its name is not too
+  long, and it is not one of the run's input files.  The temporary name is short (``.`` + at
+  most 32 characters of the name + a random suffix + ``.tmp``), so any name the file system
+  takes can be written.
 
 Kept free of any other flyvpr import so every layer can use it.
 """
@@ -32,6 +35,8 @@ __all__ = [
     "OutputPathError",
     "atomic_open",
     "check_output_path",
+    "make_folders",
+    "remove_folders",
     "resolve_output",
     "write_bytes_atomic",
     "write_text_atomic",
@@ -121,8 +126,9 @@ def check_output_path(path, inputs: Iterable = (), *, what: str = "output") -> P
     Raises
     ------
     OutputPathError
-        If the output is an input of the run, is not a regular file, its folder is missing,
-        not a folder or not writable, or its name is too long for the file system.
+        If the output is an input of the run, is not a regular file, its folder (or the
+        nearest existing folder above a missing one) is not a folder or not writable, or its
+        name is too long for the file system.  Missing folders are not created here.
     """
     path = Path(path)
     shown = f"{what} {path}"
@@ -140,15 +146,59 @@ def check_output_path(path, inputs: Iterable = (), *, what: str = "output") -> P
                 f"{shown} is an input of this run ({item}): refusing to overwrite it; "
                 "choose another output file"
             )
-    folder = target.parent
-    if not folder.exists():
-        raise OutputPathError(f"{shown}: folder {folder} does not exist; create it first")
+    # Missing folders are created when the file is written; here, only check that they can be.
+    missing = _missing_folders(target.parent)
+    folder = missing[0].parent if missing else target.parent
     if not folder.is_dir():
         raise OutputPathError(f"{shown}: {folder} is not a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise OutputPathError(f"{shown}: folder {folder} is not writable")
+    for sub in missing:
+        _check_name_length(sub, shown)
     _check_name_length(target, shown)  # a symlink's target has a name of its own
     return target
+
+
+def _missing_folders(folder: Path) -> list[Path]:
+    """The folders of ``folder``'s path that do not exist, outermost first."""
+    missing = []
+    while not os.path.lexists(folder) and folder.parent != folder:
+        missing.append(folder)
+        folder = folder.parent
+    return missing[::-1]
+
+
+def make_folders(folder) -> list[Path]:
+    """Create ``folder`` and any missing folders above it, as ``mkdir -p`` does.
+
+    For writers that cannot go through :func:`atomic_open` (a file flushed record by record,
+    a third-party sink): call it just before the file is opened, and pass its result to
+    :func:`remove_folders` if opening fails.
+
+    Returns
+    -------
+    list of Path
+        The folders created, outermost first (one another process made meanwhile is not ours).
+    """
+    created = []
+    for sub in _missing_folders(Path(folder)):
+        try:
+            os.mkdir(sub)
+        except FileExistsError:
+            if not sub.is_dir():
+                raise
+        else:
+            created.append(sub)
+    return created
+
+
+def remove_folders(created) -> None:
+    """Remove the folders :func:`make_folders` created, innermost first, while they are empty."""
+    for sub in reversed(created):
+        try:
+            os.rmdir(sub)
+        except OSError:
+            break  # something else was written into it meanwhile: keep it and those above
 
 
 def _check_name_length(path: Path, shown: str) -> None:
@@ -181,10 +231,10 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
     """Open a temporary file beside ``path``; on success rename it over ``path``.
 
     On any exception inside the ``with`` block (including ``KeyboardInterrupt`` and the
-    CLI's SIGTERM exit) the temporary file is removed and ``path`` is left as it was.  Parent
-    folders are created.  A symlink is followed (its target is written); a target that exists
-    and is not a regular file is refused.  A new file gets ``0666 & ~umask``; an existing one
-    keeps its mode.
+    CLI's SIGTERM exit) the temporary file is removed and ``path`` is left as it was.  Missing
+    parent folders are created, and removed again if the write fails.  A symlink is followed
+    (its target is written); a target that exists and is not a regular file is refused.  A new
+    file gets ``0666 & ~umask``; an existing one keeps its mode.
 
     Raises
     ------
@@ -199,11 +249,9 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
         keep_mode = stat.S_IMODE(os.stat(target).st_mode)
     except FileNotFoundError:
         keep_mode = None  # a new file: os.open applies the umask to 0o666
-    try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise _named(exc, path) from None
     tmp = None
+    created: list[Path] = []
+    opened = False  # until then every OSError is ours: name the file being written
     try:
         for _ in range(100):
             # The name is set before the file exists, so a signal arriving at any point after
@@ -214,18 +262,31 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
                 break
             except FileExistsError:
                 tmp = None
+            except FileNotFoundError:
+                # The folder is missing (or another writer's failure just removed a folder it
+                # had created): create it and try again.
+                tmp = None
+                made = make_folders(target.parent)
+                if not made:
+                    raise
+                created += made
         else:
             raise OSError(errno.EEXIST, "no free temporary name")
         if keep_mode is not None:
             os.fchmod(fd, keep_mode)
         with os.fdopen(fd, mode, **kwargs) as fh:
+            opened = True
             yield fh
         os.replace(tmp, target)
     except BaseException as exc:
         if tmp is not None:
             _unlink(tmp)
-        # Errors of the write itself carry no file name (ENOSPC, EFBIG, EIO): name ours.
-        if isinstance(exc, OSError) and (exc.filename is None or exc.filename == str(tmp)):
+        remove_folders(created)
+        # Errors of the write itself carry no file name (ENOSPC, EFBIG, EIO), those of the
+        # temporary file or its folders name files the user never named: name the output.
+        if isinstance(exc, OSError) and (
+            not opened or exc.filename is None or exc.filename == str(tmp)
+        ):
             raise _named(exc, path) from None
         raise
 

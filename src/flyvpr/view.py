@@ -35,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._io import make_folders, remove_folders
+
 __all__ = ["LiveView", "DEFAULT_WEB_PORT", "DEFAULT_GRPC_PORT"]
 
 #: port of the web viewer's page
@@ -93,7 +95,7 @@ class LiveView:
         lasts; both listen on every network interface, so a laptop on the robot's network
         can open ``http://ROBOT:web_port``.
     save : str or Path, optional
-        Also write the recording to this ``.rrd`` file.
+        Also write the recording to this ``.rrd`` file (missing folders are created).
     web_port, grpc_port : int
     memory_limit : str
         How much the server keeps for viewers that connect late (the oldest data goes
@@ -153,9 +155,15 @@ class LiveView:
         if serve:
             server = rr.GrpcServerSink(port=int(grpc_port), server_memory_limit=memory_limit)
             sinks.append(server)
-        if self.save is not None:
-            sinks.append(rr.FileSink(str(self.save)))
-        self._rec.set_sinks(*sinks, default_blueprint=self._blueprint())
+        # rerun's sink opens the file itself and creates no folder: make the missing ones
+        created = [] if self.save is None else make_folders(self.save.parent)
+        try:
+            if self.save is not None:
+                sinks.append(rr.FileSink(str(self.save)))
+            self._rec.set_sinks(*sinks, default_blueprint=self._blueprint())
+        except BaseException:
+            remove_folders(created)
+            raise
         if serve:
             # the server listens on every interface (0.0.0.0); a browser connects to a host
             data_url = server.uri.replace("0.0.0.0", "localhost")

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._io import atomic_open, resolve_output
+from .._io import atomic_open, make_folders, remove_folders, resolve_output
 
 __all__ = [
     "COLUMN_SCHEMAS",
@@ -425,7 +425,13 @@ def open_records(
         )
     if flush:
         target = resolve_output(path)
-        with open(target, kind.mode, **kind.open_kwargs) as fh:
+        created = make_folders(target.parent)  # here, not before: a refused run makes none
+        try:
+            fh = open(target, kind.mode, **kind.open_kwargs)
+        except BaseException:
+            remove_folders(created)
+            raise
+        with fh:
             records = kind(fh, columns, flush=True, thumbnails=thumbnails, metadata=metadata)
             try:
                 yield records
