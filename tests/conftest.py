@@ -42,3 +42,53 @@ def random_images(rng):
         return rng.random((n, h, w), dtype=np.float32)
 
     return make
+
+
+@pytest.fixture(scope="session")
+def synthetic_route():
+    """Factory: ``make_route(n_places, random_state=seed, **kwargs)``, made once per arguments
+    in the session (the routes are read, never changed, by the tests)."""
+    from flyvpr.synthetic import make_route
+
+    made = {}
+
+    def make(n_places, random_state=0, **kwargs):
+        key = (n_places, random_state, tuple(sorted(kwargs.items())))
+        if key not in made:
+            made[key] = make_route(n_places, random_state=random_state, **kwargs)
+        return made[key]
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def route_folder(tmp_path_factory, synthetic_route):
+    """Factory: a synthetic route of ``n_places`` saved as image folders (one per condition,
+    ``save_route``), written once per arguments in the session; tests only read it."""
+    from flyvpr.synthetic import save_route
+
+    saved = {}
+
+    def make(n_places, random_state=0):
+        key = (n_places, random_state)
+        if key not in saved:
+            root = tmp_path_factory.mktemp(f"route-{n_places}-{random_state}") / "route"
+            save_route(synthetic_route(n_places, random_state), root)
+            saved[key] = root
+        return saved[key]
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def sliding_world():
+    """40 places 8 pixels apart on a smooth random world (32x64 views), and a noisy, darker
+    second traverse of the same places: (reference, query), float32 in [0, 1]."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(0)
+    world = ndimage.gaussian_filter(rng.random((32, 64 + 40 * 8), dtype=np.float32), 1.5)
+    world = (world - world.min()) / (world.max() - world.min())
+    ref = np.stack([world[:, 8 * i : 8 * i + 64] for i in range(40)]).astype(np.float32)
+    qry = np.clip(0.7 * ref + 0.1 + rng.normal(0, 0.03, ref.shape), 0, 1).astype(np.float32)
+    return ref, qry

@@ -8,10 +8,8 @@ from flyvpr.synthetic import make_route, save_route
 
 
 @pytest.fixture(scope="module")
-def route_dir(tmp_path_factory):
-    root = tmp_path_factory.mktemp("route")
-    save_route(make_route(n_places=60, random_state=0), root)
-    return root
+def route_dir(route_folder):
+    return route_folder(60)
 
 
 def _eval_args(root, *extra):
@@ -307,7 +305,6 @@ def test_real_nordland_flynet(nordland_64x32, tmp_path):
 
 def test_experiment_and_report_commands(tmp_path, capsys):
     from flyvpr.cli import main
-    from flyvpr.synthetic import make_route, save_route
 
     save_route(make_route(20, random_state=0), tmp_path / "route")
     config = tmp_path / "exp.toml"

@@ -19,7 +19,6 @@ from flyvpr.cli import main
 from flyvpr.experiments import load_config, parse_config, run_experiment
 from flyvpr.experiments.config import KINDS, run_id_of
 from flyvpr.methods import METHODS
-from flyvpr.synthetic import make_route, save_route
 
 REPO = Path(__file__).resolve().parents[1]
 N_PLACES = 30
@@ -39,10 +38,8 @@ tolerance = 2
 
 
 @pytest.fixture(scope="module")
-def route_dir(tmp_path_factory) -> Path:
-    folder = tmp_path_factory.mktemp("experiment") / "route"
-    save_route(make_route(N_PLACES, random_state=0), folder)
-    return folder
+def route_dir(route_folder) -> Path:
+    return route_folder(N_PLACES)
 
 
 def write_config(folder: Path, grids: str, base: str = BASE) -> Path:

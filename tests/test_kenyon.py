@@ -20,17 +20,8 @@ from flyvpr.modelio import ModelFileError, _write_archive, load_method, save_met
 
 
 @pytest.fixture(scope="module")
-def route():
-    """A synthetic route: 40 places 8 pixels apart, and a noisy, darker second traverse."""
-    rng = np.random.default_rng(0)
-    world = rng.random((32, 64 + 40 * 8), dtype=np.float32)
-    from scipy import ndimage
-
-    world = ndimage.gaussian_filter(world, 1.5)
-    world = (world - world.min()) / (world.max() - world.min())
-    ref = np.stack([world[:, 8 * i : 8 * i + 64] for i in range(40)]).astype(np.float32)
-    qry = np.clip(0.7 * ref + 0.1 + rng.normal(0, 0.03, ref.shape), 0, 1).astype(np.float32)
-    return ref, qry
+def route(sliding_world):
+    return sliding_world
 
 
 def test_registered_and_combinable():

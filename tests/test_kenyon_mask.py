@@ -4,7 +4,6 @@ import json
 
 import numpy as np
 import pytest
-from scipy import ndimage
 from scipy.signal import convolve2d
 
 from flyvpr.frontends import _kenyon_kernels as kk
@@ -31,14 +30,8 @@ def _with_border(images, valid, value):
 
 
 @pytest.fixture(scope="module")
-def route():
-    """40 places 8 pixels apart on a smooth random world, and a noisy, darker second pass."""
-    rng = np.random.default_rng(0)
-    world = ndimage.gaussian_filter(rng.random((32, 64 + 40 * 8)), 1.5)
-    world = (world - world.min()) / (world.max() - world.min())
-    ref = np.stack([world[:, 8 * i : 8 * i + 64] for i in range(40)]).astype(np.float32)
-    qry = np.clip(0.7 * ref + 0.1 + rng.normal(0, 0.03, ref.shape), 0, 1).astype(np.float32)
-    return ref, qry
+def route(sliding_world):
+    return sliding_world
 
 
 # -- varying_pixels ---------------------------------------------------------------

@@ -7,12 +7,11 @@ from fake_filters import Scripted, Stateless
 from flyvpr.localizer import LOCALIZED, LOST, Fix, Fixes, Localizer
 from flyvpr.maps import Map
 from flyvpr.methods import Method, make_method
-from flyvpr.synthetic import make_route
 
 
 @pytest.fixture(scope="module")
-def route():
-    r = make_route(n_places=120, random_state=1)
+def route(synthetic_route):
+    r = synthetic_route(120, random_state=1)
     return r.reference_images, r.query_images
 
 
