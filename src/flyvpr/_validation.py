@@ -54,7 +54,7 @@ def check_random_state(random_state) -> np.random.Generator:
     if random_state is None or isinstance(random_state, (numbers.Integral, np.integer)):
         if random_state is not None and int(random_state) < 0:
             raise ValueError(f"random_state must be a non-negative int; got {random_state}")
-        return np.random.default_rng(random_state)
+        return np.random.default_rng(None if random_state is None else int(random_state))
     if isinstance(random_state, np.random.Generator):
         return random_state
     raise TypeError(
@@ -114,6 +114,23 @@ def check_scores(S, name: str = "S", ndim: int = 2) -> np.ndarray:
     if kind != "f":
         arr = arr.astype(np.float64)
     return arr
+
+
+def is_integer(value: object) -> bool:
+    """Whether ``value`` is an integer (Python's or numpy's), a bool excluded.
+
+    A plain bool rather than a type guard, for parameters annotated ``int`` or ``float`` that
+    are still checked at run time: to a type checker ``int`` is not a ``numbers.Integral`` (nor
+    ``float`` a ``numbers.Real``), so narrowing such a parameter with ``isinstance`` would make
+    the code after the check unreachable, and unchecked.
+    """
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def is_real(value: object) -> bool:
+    """Whether ``value`` is a real number (Python's or numpy's), a bool excluded; see
+    :func:`is_integer`."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def check_positive_int(value, name: str, minimum: int = 1) -> int:
@@ -288,6 +305,7 @@ class ScalarSpec:
             article = "an" if kind == "int" else "a"
             raise ValueError(f"{name} must be {article} {kind}; got {value!r}")
         if kind in ("int", "float"):
+            assert isinstance(value, (int, float))  # checked against `types` above
             if not math.isfinite(value):
                 raise ValueError(f"{name} must be finite; got {value!r}")
             if (self.low is not None and value < self.low) or (

@@ -62,7 +62,7 @@ import numbers
 import numpy as np
 
 from .._torch import import_torch
-from .._validation import ArraySpec, check_positive_int, check_random_state
+from .._validation import ArraySpec, check_positive_int, check_random_state, is_real
 from .base import Encoder
 from .flynet import softmax
 
@@ -152,13 +152,19 @@ class TorchClassifier(Encoder):
     """
 
     name = "torch-classifier"
-    requires = ("torch",)
+    requires: tuple[str, ...] = ("torch",)
+
+    # the training parameters every subclass's __init__ stores
+    epochs: int
+    learning_rate: float
+    batch_size: int | None
+    random_state: int | np.random.Generator | None
 
     # -- validation -----------------------------------------------------------------------
     def _check_training(self) -> tuple[int, float, int | None]:
         epochs = check_positive_int(self.epochs, "epochs")
         lr = self.learning_rate
-        if isinstance(lr, bool) or not isinstance(lr, numbers.Real):
+        if not is_real(lr):
             raise TypeError(f"learning_rate must be a number; got {type(lr).__name__}")
         if not (np.isfinite(lr) and lr > 0):
             raise ValueError(f"learning_rate must be a positive number; got {lr}")

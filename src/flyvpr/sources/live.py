@@ -32,10 +32,11 @@ import re
 import threading
 import time
 from collections.abc import Callable, Iterator
-from typing import NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
+from .._validation import is_integer
 from ..images import DEFAULT_SIZE, _check_size
 from .base import RecordingError, _reason, require_extra
 
@@ -96,7 +97,7 @@ class LiveFrame(NamedTuple):
         The decoded frame at full size (for a viewer).
     """
 
-    index: int
+    index: int  # type: ignore[assignment]  # a public field name: it hides tuple.index
     timestamp: float
     arrival: float
     image: np.ndarray
@@ -184,20 +185,22 @@ class LiveSource:
         self.options = {str(k): str(v) for k, v in (options or {}).items()}
         self.stall_timeout = _positive(stall_timeout, "stall_timeout")
         self.open_timeout = _positive(open_timeout, "open_timeout")
-        if isinstance(retries, bool) or not isinstance(retries, numbers.Integral) or retries < 0:
+        if not is_integer(retries) or retries < 0:
             raise ValueError(f"retries must be an integer >= 0; got {retries!r}")
         self.retries = int(retries)
         self.notify = notify or logger.warning
-        self.clock = None
+        self.clock: str | None = None
         self.n_received = self.n_dropped = self.n_corrupt = self.n_reconnects = 0
         self.ended = False
         self._av = require_extra("av")
         self._cond = threading.Condition()
-        self._slot = None  # the newest frame not yet taken: (index, timestamp, arrival, frame)
+        # the newest frame not yet taken: (index, timestamp, arrival, frame)
+        self._slot: tuple[int, float, float, Any] | None = None
         self._done = False
-        self._error = None
+        self._error: BaseException | None = None
         self._stopping = False  # a plain flag: stop() may run in a signal handler
-        self._thread = None
+        # None before frames(), False if closed before it
+        self._thread: threading.Thread | Literal[False] | None = None
         if self.kind == "camera" and not os.path.exists(self.url):
             raise FileNotFoundError(
                 f"camera {self.url}: no such device (expected a V4L2 camera such as /dev/video0)"

@@ -27,7 +27,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._validation import check_fraction, check_positive_int, check_random_state
+from .._validation import (
+    check_fraction,
+    check_positive_int,
+    check_random_state,
+    is_integer,
+    is_real,
+)
 from ..images import DEFAULT_SIZE
 from .conditions import CONDITIONS, Condition
 from .render import _render_condition
@@ -107,7 +113,7 @@ class SyntheticRoute:
         TypeError, ValueError
             If ``tolerance`` is not a non-negative int.
         """
-        if isinstance(tolerance, bool) or not isinstance(tolerance, numbers.Integral):
+        if not is_integer(tolerance):
             raise TypeError(f"tolerance must be an int; got {type(tolerance).__name__}")
         if tolerance < 0:
             raise ValueError(f"tolerance must be >= 0 frames; got {tolerance}")
@@ -224,7 +230,7 @@ def make_route(
     h, w = _check_size(size)
     supersample = check_positive_int(supersample, "supersample")
     step = check_fraction(step, "step", 0.0, 2.0)
-    if isinstance(viewpoint_jitter, bool) or not isinstance(viewpoint_jitter, numbers.Real):
+    if not is_real(viewpoint_jitter):
         raise TypeError(f"viewpoint_jitter must be a number; got {type(viewpoint_jitter).__name__}")
     if not np.isfinite(viewpoint_jitter) or viewpoint_jitter < 0:
         raise ValueError(f"viewpoint_jitter must be a finite number >= 0; got {viewpoint_jitter}")
@@ -242,7 +248,8 @@ def make_route(
         margin=int(np.ceil(0.25 * wr + 4 * hr / 64.0 * max(viewpoint_jitter, 1.0))),
     )
     layers = _make_world(np.random.default_rng(world_seed), geo, n_places)
-    images, rgb = {}, ({} if return_rgb else None)
+    images: dict[str, np.ndarray] = {}
+    rgb: dict[str, np.ndarray] | None = {} if return_rgb else None
     for cond in conds:
         cond_rng = np.random.default_rng([nuisance_seed, zlib.crc32(cond.name.encode())])
         gray, colour = _render_condition(

@@ -107,6 +107,7 @@ from .._validation import (
     check_positive_int,
     check_random_state,
     check_scores,
+    is_real,
 )
 from . import _rnn_net as net
 from .base import OnlineFilter
@@ -366,7 +367,7 @@ class RNNFilter(OnlineFilter):
             )
         batch = check_positive_int(self.batch_size, "batch_size")
         lr = self.learning_rate
-        if isinstance(lr, bool) or not isinstance(lr, numbers.Real):
+        if not is_real(lr):
             raise TypeError(f"learning_rate must be a number; got {type(lr).__name__}")
         if not (np.isfinite(lr) and lr > 0):
             raise ValueError(f"learning_rate must be a positive number; got {lr}")

@@ -61,13 +61,12 @@ Conventions and where they differ from OpenSeqSLAM
 
 from __future__ import annotations
 
-import numbers
 from collections import deque
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from .._validation import check_memory, check_positive_int
+from .._validation import check_memory, check_positive_int, is_real
 from .base import OnlineFilter
 
 __all__ = ["SeqSLAM", "enhance_contrast"]
@@ -225,7 +224,7 @@ class SeqSLAM(OnlineFilter):
         check_positive_int(self.enhance_window, "enhance_window", minimum=2)
         for name in ("v_min", "v_max", "v_step"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            if not is_real(value):
                 raise TypeError(f"{name} must be a number; got {type(value).__name__}")
             if not np.isfinite(value):
                 raise ValueError(f"{name} must be finite; got {value}")
@@ -297,6 +296,7 @@ class SeqSLAM(OnlineFilter):
                 if t0 < t1:
                     _add_shifted(acc[t0:t1], enhanced[t0 + j : t1 + j], int(shift))
             best = acc.copy() if best is None else np.minimum(best, acc, out=best)
+        assert best is not None  # the table has at least one line
         best *= -self._scale(S.dtype)
         return best
 
@@ -308,7 +308,7 @@ class SeqSLAM(OnlineFilter):
     def reset(self) -> None:
         """Forget all past frames (call before a new query traverse)."""
         self._check_params()
-        self._buffer = deque(maxlen=self.sequence_length)
+        self._buffer: deque[np.ndarray] = deque(maxlen=self.sequence_length)
 
     def _step(self, row: np.ndarray) -> np.ndarray:
         self._check_params()
@@ -343,5 +343,6 @@ class SeqSLAM(OnlineFilter):
             for j, shift in zip(offsets[:n_frames], line[:n_frames], strict=True):
                 _add_shifted(acc, buffer[n_frames - 1 + j], int(shift))
             best = acc.copy() if best is None else np.minimum(best, acc, out=best)
+        assert best is not None  # the table has at least one line
         best *= -self._scale(dtype)
         return best[0]
