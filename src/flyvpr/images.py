@@ -140,10 +140,10 @@ def to_gray(array: np.ndarray) -> np.ndarray:
         a = a.astype(np.float32)
         if a.size and not np.isfinite(a).all():
             raise ValueError("float pixels contain NaN or infinite values")
-        lo, hi = (float(a.min()), float(a.max())) if a.size else (0.0, 0.0)
-        if lo < 0.0 or hi > 1.0:
+        low, high = (float(a.min()), float(a.max())) if a.size else (0.0, 0.0)
+        if low < 0.0 or high > 1.0:
             raise ValueError(
-                f"float pixels must lie in [0, 1]; got range [{lo:g}, {hi:g}]: flyvpr does not "
+                f"float pixels must lie in [0, 1]; got range [{low:g}, {high:g}]: flyvpr does not "
                 "guess the white level of a float image, scale it to [0, 1] (or save 8/16-bit)"
             )
     else:
@@ -219,6 +219,7 @@ def demosaic_bilinear(raw: np.ndarray, pattern: str = "gbrg") -> np.ndarray:
 
 def _decode(path: Path, bayer: str | None) -> np.ndarray:
     """Decode one file to a float32 gray array in [0, 1] at its native size."""
+    img: Image.Image  # the opened file, then maybe a converted copy
     try:
         with Image.open(path) as img:
             _check_pixels(path, img)

@@ -139,7 +139,9 @@ class HtmlTrace:
 
     def __init__(self, fh, path: Path, the_map):
         self.fh, self.map = fh, the_map
-        self.queries, self.activity, self.rows = [], [], []
+        self.queries: list[np.ndarray] = []
+        self.activity: list[np.ndarray] = []
+        self.rows: list[list] = []  # one JSON row per frame
 
     def add(self, step) -> None:
         b = step.batch

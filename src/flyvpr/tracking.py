@@ -90,7 +90,8 @@ def track(
         raise ValueError("odometry needs positions: the recording's own (--positions CSV)")
     m = getattr(localizer, "map_", None)
     size = localizer.method.frontend.image_shape_
-    start_wall = start_t = None
+    start_wall: float | None = None  # the wall clock at the first frame with a timestamp
+    start_t = 0.0  # and its timestamp
     last_xy = np.full((1, 2), np.nan)  # the previous kept frame's position
     for b in source.batches(size, every=every, positions=positions, batch=1 if realtime else batch):
         if realtime and np.isfinite(b.timestamps[0]):

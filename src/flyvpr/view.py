@@ -147,7 +147,7 @@ class LiveView:
         self._radius = 1.0  # of the route's dots, metres (set from the route's extent)
         self._state = None
         self._cond = threading.Condition()
-        self._pending = None
+        self._pending: tuple | None = None  # the newest frame's arguments of _log, not yet drawn
         self._closing = False
         self._worker = None
         self._rec = rr.RecordingStream("flyvpr", recording_id=uuid.uuid4())

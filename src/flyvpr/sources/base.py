@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
@@ -22,6 +23,9 @@ __all__ = ["Batch", "Every", "RecordingError", "Source", "parse_every", "require
 
 #: frames per batch unless a caller asks for another number
 DEFAULT_BATCH = 32
+
+#: ``decode(size)``: one frame as float32 gray in [0, 1] at ``size`` (H, W)
+Decoder = Callable[[tuple[int, int]], np.ndarray]
 
 
 class RecordingError(ValueError):
@@ -33,7 +37,7 @@ def _reason(exc) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
-def require_extra(module: str):
+def require_extra(module: str) -> ModuleType:
     """Import an optional module of the ``recordings`` extra, or say how to install it."""
     import importlib
 
@@ -116,8 +120,8 @@ class _Thinner:
         self.every = every
         self.where = where
         self.positions = positions
-        self.last_t = None
-        self.last_xy = None
+        self.last_t: float | None = None
+        self.last_xy: np.ndarray | None = None
         if every.unit == "metres" and positions is None:
             raise ValueError(
                 f"--every {every}: keeping frames by distance needs positions "
@@ -162,7 +166,7 @@ class Source:
     def describe(self) -> str:
         return f"{self.kind} {self.path}"
 
-    def _frames(self) -> Iterator[tuple[int, float, object]]:  # pragma: no cover - abstract
+    def _frames(self) -> Iterator[tuple[int, float, Decoder]]:  # pragma: no cover - abstract
         raise NotImplementedError
 
     def batches(

@@ -8,9 +8,10 @@ luma, area averaging), so a folder gives exactly the images ``flyvpr evaluate`` 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from functools import partial
 
 from ..images import list_images, load_image
-from .base import Source
+from .base import Decoder, Source
 
 __all__ = ["FolderSource"]
 
@@ -24,6 +25,6 @@ class FolderSource(Source):
         super().__init__(path)
         self.files = list_images(self.path)
 
-    def _frames(self) -> Iterator[tuple[int, float, object]]:
+    def _frames(self) -> Iterator[tuple[int, float, Decoder]]:
         for index, path in enumerate(self.files):
-            yield index, float("nan"), (lambda size, p=path: load_image(p, size))
+            yield index, float("nan"), partial(load_image, path)

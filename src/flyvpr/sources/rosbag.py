@@ -30,7 +30,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from ..images import _LUMA, resize_area, to_gray
-from .base import RecordingError, Source, _reason, require_extra
+from .base import Decoder, RecordingError, Source, _reason, require_extra
 
 __all__ = ["BagSource", "IMAGE_ENCODINGS", "BAG_EXTENSIONS", "read_bag_positions"]
 
@@ -185,7 +185,7 @@ class BagSource(Source):
     def describe(self) -> str:
         return f"bag {self.path} topic {self.topic}"
 
-    def _frames(self) -> Iterator[tuple[int, float, object]]:
+    def _frames(self) -> Iterator[tuple[int, float, Decoder]]:
         bag = _Bag(self.path)
         try:
             conns = bag.pick(self.topic, _IMAGE + _COMPRESSED, "image", "--topic")
@@ -285,9 +285,7 @@ def _compressed_gray(msg, where: str) -> np.ndarray:
     try:
         with Image.open(io.BytesIO(np.asarray(msg.data, dtype=np.uint8).tobytes())) as img:
             img.load()
-            if img.mode not in ("L", "I;16", "RGB", "RGBA"):
-                img = img.convert("RGB")
-            arr = np.array(img)
+            arr = np.array(img if img.mode in ("L", "I;16", "RGB", "RGBA") else img.convert("RGB"))
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise RecordingError(
             f"{where}: compressed image (format {msg.format!r}) is not a readable JPEG or PNG "

@@ -14,12 +14,13 @@ first, then averaged the same way.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from functools import lru_cache
+from typing import Literal
 
 import numpy as np
 
-from .base import RecordingError, Source, _reason, require_extra
+from .base import Decoder, RecordingError, Source, _reason, require_extra
 
 __all__ = ["VideoSource", "VIDEO_EXTENSIONS"]
 
@@ -57,7 +58,7 @@ class VideoSource(Source):
                 f"video {self.path}: not a readable video file ({_reason(exc)})"
             ) from None
 
-    def _frames(self) -> Iterator[tuple[int, float, object]]:
+    def _frames(self) -> Iterator[tuple[int, float, Decoder]]:
         av = self._av
         with self._open() as container:
             stream = container.streams.video[0]
@@ -127,7 +128,7 @@ def _row_band(n_out: int, n_in: int):
     return starts, counts, weights
 
 
-_band_kernel = None
+_band_kernel: Callable[..., None] | Literal[False] | None = None
 
 
 def _get_band_kernel():

@@ -146,7 +146,7 @@ def _raw_pixels(frame: np.ndarray, encoding: str, bigendian: bool) -> np.ndarray
     u2 = ">u2" if bigendian else "<u2"
     enc = encoding.lower()
     layout = IMAGE_ENCODINGS.get(enc, (None, None, None))[2]
-    if enc.startswith("bayer_"):
+    if enc.startswith("bayer_") and layout is not None:
         rgb = frame if frame.ndim == 3 else np.repeat(frame[:, :, None], 3, axis=2)
         mosaic = _bayer_mosaic(rgb, layout)
         return mosaic.astype(u2) * np.uint16(257) if enc.endswith("16") else mosaic
