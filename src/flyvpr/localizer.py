@@ -16,14 +16,18 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Callable
 from inspect import signature
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from ._validation import NotFittedError, check_images
 from .methods import DEFAULT_METHOD, Method, make_method
 from .temporal.base import OnlineFilter
+
+if TYPE_CHECKING:
+    from .maps import Map
 
 __all__ = ["Localizer", "Fix", "Fixes", "LOCALIZED", "LOST"]
 
@@ -131,6 +135,9 @@ class Localizer:
     7
     """
 
+    #: the map of :meth:`from_map` (set there only)
+    map_: Map
+
     def __init__(
         self,
         method=DEFAULT_METHOD,
@@ -187,8 +194,14 @@ class Localizer:
     def reset(self) -> None:
         """Forget the frames seen so far (e.g. at the start of a new drive)."""
         if self.method.filter is not None:
-            self.method.filter.reset()
+            self._online_filter().reset()
         self.n_frames_ = 0
+
+    def _online_filter(self) -> OnlineFilter:
+        """The method's filter, online as ``__init__`` checked (callers check there is one)."""
+        filt = self.method.filter
+        assert isinstance(filt, OnlineFilter)
+        return filt
 
     def _check_fitted(self, call: str) -> None:
         if not hasattr(self.method.frontend, "n_reference_"):
@@ -208,10 +221,11 @@ class Localizer:
         return self._takes_velocity
 
     def _step(self, row, velocity):
-        filt = self.method.filter
+        filt = self._online_filter()
         if velocity is None or not self._takes_velocity:
             return filt.step(row)
-        return filt.step(row, velocity=velocity)
+        step: Callable[..., np.ndarray] = filt.step  # takes velocity: __init__ checked
+        return step(row, velocity=velocity)
 
     def _velocity(self, velocity, distance) -> float | None:
         """One frame's odometry in places (None: the filter estimates the movement itself)."""

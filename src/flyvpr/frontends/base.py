@@ -55,7 +55,7 @@ class Encoder(ParamsMixin):
         images = check_images(reference_images, "reference_images")
         self.image_shape_ = tuple(images.shape[1:])
         self.n_reference_ = int(images.shape[0])
-        self.train_accuracy_ = None
+        self.train_accuracy_: float | None = None
         if map_chunks is None:
             self._fit(images)
         else:

@@ -175,13 +175,13 @@ def _overlap_packed(packed, indptr, places, n_reference: int, scale: float, chun
     ``chunk`` places (:func:`_inverted_index`), float32."""
     packed = np.ascontiguousarray(packed)
     out = np.empty((len(packed), n_reference), dtype=np.float32)
-    scale = np.float32(scale)
+    scale32 = np.float32(scale)
     if len(packed) >= _PARALLEL_MIN_QUERIES:
-        return _compiled().overlap_parallel(packed, indptr, places, chunk, scale, out)
+        return _compiled().overlap_parallel(packed, indptr, places, chunk, scale32, out)
     # A few queries (a streamed frame): one at a time, without waking threads
     kernel = _compiled().overlap_counts
     for i, query in enumerate(packed):
-        kernel(query, indptr, places, chunk, scale, out[i])
+        kernel(query, indptr, places, chunk, scale32, out[i])
     return out
 
 

@@ -277,7 +277,8 @@ class AttractorCANN(OdometryFilter):
         """
         self._params = self._check_params()
         self._kernel = self._kernel_of(self._params)
-        self._n = None  # the state is allocated by the first row, which fixes n_reference
+        # the state is allocated by the first row, which fixes n_reference
+        self._n: int | None = None
         self.compiled_ = False  # chosen with the route's length (see _kernels)
         self.n_frames_ = 0
         self.n_relocations_ = 0
@@ -368,6 +369,7 @@ class AttractorCANN(OdometryFilter):
             bank.update(x, t == 0, kernels["update_traces"], kernels["evidence_stats"])
         v = velocity if velocity is not None else p["movement"]
         if v is None:
+            assert bank is not None  # movement="estimate" made one
             v = bank.estimate
         k = 0
         if t > 0:  # the first frame has nothing to move

@@ -159,3 +159,6 @@ class OdometryFilter(OnlineFilter):
         if velocity is None:
             return super().filter(S)
         return filter_with_odometry(self, S, velocity)
+
+    def _step(self, row: np.ndarray, velocity: float | None = None) -> np.ndarray:
+        raise NotImplementedError

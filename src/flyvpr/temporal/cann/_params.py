@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numbers
+from typing import Any
 
 import numpy as np
 
@@ -68,7 +69,7 @@ def check_params(est) -> dict:
     Besides the parameters, the dict holds ``currents``: (time constant, weight) of each
     synaptic current, fast first.
     """
-    p = {
+    p: dict[str, Any] = {
         "excitation_strength": check_real(est.excitation_strength, "excitation_strength"),
         "excitation_width": check_real(est.excitation_width, "excitation_width"),
         "inhibition": check_real(est.inhibition, "inhibition", inclusive=True),
