@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+from typing import Any
 
 import numpy as np
 
@@ -103,8 +104,8 @@ class ChunkRunner:
         self.n_jobs = n_jobs
         self.scheduler = scheduler
         self.progress = progress
-        self._client = None
-        self._stack = None
+        self._client: Any = None  # a dask.distributed Client while in the with block
+        self._stack: contextlib.ExitStack[bool | None] | None = None
 
     @property
     def parallel(self) -> bool:
@@ -127,6 +128,7 @@ class ChunkRunner:
         return self
 
     def __exit__(self, *exc) -> None:
+        assert self._stack is not None  # set by __enter__
         self._stack.close()
         self._client = None
 
@@ -165,7 +167,7 @@ class ChunkRunner:
         else:
             config = parallel_config(backend="loky")
             n_jobs = self.n_jobs
-        bar = contextlib.nullcontext()
+        bar: Any = contextlib.nullcontext()  # or a tqdm bar (untyped)
         if self.progress:
             from tqdm.auto import tqdm
 

@@ -198,7 +198,7 @@ def read_npz_member(zf: zipfile.ZipFile, name: str, what: str, *, dtype=None, sh
     nbytes = _nbytes(a_shape, a_dtype)
     check_memory(nbytes, f"{label} (array {a_dtype} {a_shape})")
     out = np.empty(a_shape, dtype=a_dtype, order="F" if fortran else "C")
-    view = memoryview(out.reshape(-1, order="A").view(np.uint8)) if nbytes else None
+    view = out.reshape(-1, order="A").view(np.uint8).data if nbytes else None
     try:
         with zf.open(info) as fh:
             _parse_header(fh, label)
@@ -207,6 +207,7 @@ def read_npz_member(zf: zipfile.ZipFile, name: str, what: str, *, dtype=None, sh
                 chunk = fh.read(min(_CHUNK, nbytes - done))
                 if not chunk:
                     break
+                assert view is not None  # nbytes > 0
                 view[done : done + len(chunk)] = chunk
                 done += len(chunk)
             if fh.read(1):

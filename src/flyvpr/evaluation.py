@@ -6,6 +6,8 @@ every number is produced by the same code path.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from . import metrics
@@ -34,7 +36,7 @@ RESULT_FIELDS = (
 
 
 def evaluate_method(
-    method: str,
+    method: str | Method,
     reference_images,
     query_images,
     ground_truth,
@@ -135,7 +137,7 @@ def evaluate_method(
 
 def _plain(params: dict, seed) -> dict:
     """JSON-friendly copy of estimator parameters; a Generator drawn from ``seed`` shows as it."""
-    out = {}
+    out: dict[str, Any] = {}
     for key, value in params.items():
         if isinstance(value, np.random.Generator):
             out[key] = f"from seed {seed}"

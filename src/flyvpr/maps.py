@@ -44,7 +44,7 @@ logger = logging.getLogger(__name__)
 
 #: bumped whenever the ``map`` section changes incompatibly
 MAP_VERSION = 1
-_MAP_FIELDS = {
+_MAP_FIELDS: dict[str, type | tuple[type, ...]] = {
     "map_version": int,
     "n_places": int,
     "source": str,

@@ -31,6 +31,7 @@ a true match, so every function that reports recall raises ``ValueError`` for su
 from __future__ import annotations
 
 import numbers
+from typing import Any
 
 import numpy as np
 
@@ -108,7 +109,7 @@ def _check_k(k) -> int:
 
 def _match_rows(gt: np.ndarray) -> tuple[np.ndarray, int]:
     """Which queries have a true match, and how many (recall's denominator)."""
-    has_match = gt.any(axis=1)
+    has_match = np.any(gt, axis=1)
     n = int(np.count_nonzero(has_match))
     if n == 0:
         raise ValueError(
@@ -489,7 +490,7 @@ def evaluate(S, gt, ks=(1, 5, 10)) -> dict:
     S, gt = _check_inputs(S, gt)
     has_match, n_pos = _match_rows(gt)
     precision, recall, thresholds = _curve(S, gt, n_pos)
-    result = {"auc": _auc(precision, recall)}
+    result: dict[str, Any] = {"auc": _auc(precision, recall)}
     for k, value in zip(ks, _recall_at_ks(S, gt, has_match, n_pos, ks), strict=True):
         result[f"recall_at_{k}"] = value
     result.update(

@@ -7,6 +7,8 @@ instruction on the CPUs numba compiles for.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numba
 import numpy as np
 from numba import prange, types
@@ -26,7 +28,7 @@ def _jit(fn=None, *, parallel=False):
 
 
 @intrinsic
-def _popcount(typingctx, x):
+def _ctpop(typingctx, x):
     """Number of set bits of a uint64 (LLVM ``ctpop``)."""
     sig = types.uint64(types.uint64)
 
@@ -34,6 +36,10 @@ def _popcount(typingctx, x):
         return builder.ctpop(args[0])
 
     return sig, codegen
+
+
+#: ``_popcount(x)`` in compiled code (numba passes the intrinsic's typing context itself)
+_popcount: Callable[[int], int] = _ctpop  # type: ignore[assignment]
 
 
 @_jit

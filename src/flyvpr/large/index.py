@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from typing import Any
 
 import numpy as np
 
@@ -291,6 +292,8 @@ def _faiss():
 
 
 class _FaissIndex(CandidateIndex):
+    _index: Any  # the faiss binary index, made by the subclass's _build
+
     def _search(self, q, k, places, dist):
         d, i = self._index.search(np.ascontiguousarray(q.view(np.uint8)), k)
         found = i >= 0

@@ -281,6 +281,7 @@ class LargeMapWriter:
                 "positions must be given with every chunk when n_dims is set, and never otherwise"
             )
         if positions is not None:
+            assert self.n_dims is not None and self._pos_at is not None  # checked just above
             positions = np.asarray(positions, dtype=np.float64)
             if positions.shape != (m, self.n_dims):
                 raise ValueError(

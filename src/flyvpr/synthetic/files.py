@@ -81,7 +81,8 @@ def save_route(
         for p in sub.iterdir():
             if _FILE_RE.match(p.name):
                 p.unlink()
-        frames = route.rgb[name] if rgb else route.images[name]
+        # (rgb is true only for a route with colour frames: checked above)
+        frames = route.rgb[name] if rgb and route.rgb is not None else route.images[name]
         paths = []
         for i, frame in enumerate(frames):
             path = sub / f"images-{i:05d}.png"

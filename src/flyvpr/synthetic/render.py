@@ -128,6 +128,7 @@ def _render_condition(
             flat = src_rows[:, :, None] * n_cols + cols.astype(np.int64)[:, None, :]
             g = np.take(layer.codes, flat)  # (n, Hr, Wr)
             codes = g if codes is None else np.where(g >= 0, g, codes)
+        assert codes is not None  # the sky's layer at least
 
         idx = codes.astype(np.int64) + (src_rows * row_stride)[:, :, None]
         scale = exposure[sl, None, None]
@@ -137,7 +138,7 @@ def _render_condition(
         labels = codes >> 8 if emit else None
 
         g = np.take(table_gray, idx) * scale
-        if emit:
+        if labels is not None:
             g += np.take(emission_gray, labels)
         g += noise
         np.clip(g, 0.0, 1.0, out=g)
@@ -146,7 +147,7 @@ def _render_condition(
         gray[sl] = g.reshape(n, h, s, w, s).mean(axis=(2, 4))
         if rgb_out is not None:
             img = np.take(table, idx, axis=0) * scale[..., None]
-            if emit:
+            if labels is not None:
                 img += np.take(emission, labels, axis=0)
             img += noise[..., None]
             np.clip(img, 0.0, 1.0, out=img)
