@@ -64,7 +64,7 @@ _EVALUATE_KEYS = {
     "predictions": _LIST,
     "correct": _LIST,
 }
-_TASK_KEYS = {
+_TASK_KEYS: dict[str, dict] = {
     "evaluate": _EVALUATE_KEYS,
     "timing": _EVALUATE_KEYS,
     "train": {

@@ -78,6 +78,7 @@ def machine_info() -> dict:
                     break
     except OSError:
         pass
+    usable: int | None
     try:
         usable = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
@@ -136,7 +137,7 @@ def execute_run(run: RunSpec) -> dict:
     """
     started = _now()
     t0 = time.perf_counter()
-    record = {"run_id": run.run_id, "spec": run.spec, "started": started}
+    record: dict = {"run_id": run.run_id, "spec": run.spec, "started": started}
     try:
         bench = load_benchmark_of(run)
         record["protocol"] = {

@@ -175,7 +175,8 @@ def route_params(spec, params: dict, where: str = "") -> tuple[dict, dict]:
 
     front_names = set(FRONTENDS[spec.frontend]._param_names())
     filt_names = set(FILTERS[spec.filter]._param_names()) if spec.filter else set()
-    front, filt = {}, {}
+    front: dict = {}
+    filt: dict = {}
     for key, value in params.items():
         if key.startswith("frontend."):
             bare, names, target = key[len("frontend.") :], front_names, front
@@ -221,14 +222,14 @@ def expand_grid(grid, datasets: dict, image_size, cache) -> list[dict]:
     from ..methods import METHODS
 
     items = []
-    coords = [
+    points = [
         (datasets[name], method, seed, combo)
         for name in grid.datasets
         for method in grid.methods
         for seed in grid.seeds_for(method)
         for combo in grid.param_combinations()
     ]
-    for ds, method, seed, combo in coords:
+    for ds, method, seed, combo in points:
         params = {**combo, **grid.method_params.get(method, {})}
         front, filt = full_params(METHODS[method], *route_params(METHODS[method], params))
         spec = {

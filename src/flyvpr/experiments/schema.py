@@ -108,7 +108,9 @@ def show(value, limit: int = 80) -> str:
 class Value:
     """One kind of value; ``expected`` phrases it for messages and documentation."""
 
-    expected = "a value"
+    @property
+    def expected(self) -> str:
+        return "a value"
 
     def check(self, value, ctx: Context):
         """Return ``value`` converted, or raise :class:`Invalid`."""
@@ -361,7 +363,7 @@ class Blocks(Value):
             raise Invalid(value, wrong_type=True)
         if not value:
             raise Invalid(value, wrong_type=False)
-        blocks = []
+        blocks: list[Any] = []
         for i, table in enumerate(value):
             block = build(self.cls, table, f"{ctx.source} [[{self.header}]] #{i + 1}", ctx)
             if any(b.name == block.name for b in blocks):

@@ -447,8 +447,8 @@ def _section_qualitative(doc: Document, g: GridRuns, figures: bool, order: list[
         if g.grid.queries is not None:
             queries = [q for q in g.grid.queries if q < n_query]
         else:
-            queries = np.linspace(0, n_query - 1, g.grid.examples + 2)[1:-1].round().astype(int)
-            queries = sorted(set(int(q) for q in queries))
+            spread = np.linspace(0, n_query - 1, g.grid.examples + 2)[1:-1].round().astype(int)
+            queries = sorted(set(int(q) for q in spread))
         for item in items:
             rec = item["record"]
             rows.append(
