@@ -200,7 +200,7 @@ def load_generic(
     ref_paths = _list_images_or_explain(ref_dir, LAYOUT)
     query_paths = _list_images_or_explain(query_dir, LAYOUT)
     ref_pos = query_pos = None
-    sources = ()
+    sources: tuple[Path, ...] = ()
     if positions_csv is not None:
         csv_path = _folder(root, positions_csv, "positions_csv")
         sources = (csv_path,)

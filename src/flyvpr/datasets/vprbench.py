@@ -142,7 +142,7 @@ def parse_vprbench_rows(rows, n_query: int, n_reference: int, source="ground tru
         row = rows[k]
         try:
             q_raw, refs_raw = row
-            q = np.asarray(q_raw)
+            q_arr = np.asarray(q_raw)
             refs = np.atleast_1d(np.asarray(refs_raw))
         except (TypeError, ValueError):
             raise ValueError(
@@ -150,11 +150,11 @@ def parse_vprbench_rows(rows, n_query: int, n_reference: int, source="ground tru
             ) from None
         if refs.size == 0:
             refs = refs.astype(np.int64)
-        if q.ndim != 0 or not np.issubdtype(q.dtype, np.integer):
+        if q_arr.ndim != 0 or not np.issubdtype(q_arr.dtype, np.integer):
             raise ValueError(f"{source}, row {k}: query index must be an int; got {q_raw!r}")
         if refs.ndim != 1 or not np.issubdtype(refs.dtype, np.integer):
             raise ValueError(f"{source}, row {k}: reference indices must be ints; got {refs_raw!r}")
-        q = int(q)
+        q = int(q_arr)
         if not 0 <= q < n_query:
             raise ValueError(
                 f"{source}, row {k}: query index {q} out of range [0, {n_query}) "
@@ -239,6 +239,7 @@ def load_vprbench(root, trust_pickle=False) -> Benchmark:
         except (OSError, EOFError, ValueError, pickle.UnpicklingError) as exc:
             raise ValueError(f"{path}: cannot read the pickled ground truth ({exc})") from None
         gt, source = parse_vprbench_rows(rows, n_q, n_r, source=str(path)), path
+    assert source is not None  # set with gt
 
     ids_q, ids_r = np.arange(n_q), np.arange(n_r)
     return Benchmark(
