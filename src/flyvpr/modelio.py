@@ -60,7 +60,7 @@ FORMAT_VERSION = 2
 _TRAILER = 64
 #: largest accepted ``__meta__`` entry
 _MAX_META = 1 << 20
-_META_FIELDS = {
+_META_FIELDS: dict[str, type | tuple[type, ...]] = {
     "format": str,
     "format_version": int,
     "flyvpr_version": str,
@@ -95,7 +95,7 @@ def preprocessing_settings(size=DEFAULT_SIZE) -> dict:
 # ---------------------------------------------------------------------------
 def _flatten(obj, prefix: str, arrays: dict) -> dict:
     """Split ``obj``'s saved state into JSON-able scalars and arrays (added to ``arrays``)."""
-    meta = {}
+    meta: dict = {}
     for name, value in obj._get_state().items():
         key = f"{prefix}{name}"
         if isinstance(value, np.ndarray):

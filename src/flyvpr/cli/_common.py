@@ -138,7 +138,8 @@ def split_params(method: str, params: list[tuple[str, object]]):
     spec = METHODS[method]
     front_names = set(FRONTENDS[spec.frontend]._param_names())
     filt_names = set(FILTERS[spec.filter]._param_names()) if spec.filter else set()
-    front, filt = {}, {}
+    front: dict = {}
+    filt: dict = {}
     for key, value in params:
         if key.startswith("filter.") and spec.filter:
             key = key[len("filter.") :]

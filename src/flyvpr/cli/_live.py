@@ -271,7 +271,7 @@ def cmd_localize_live(args) -> int:
             for f in source.frames(size):
                 fixes = loc.update_batch(f.image[None])
                 place = int(fixes.places[0])
-                row = {
+                row: dict = {
                     "frame": f.index,
                     "timestamp": f.timestamp,
                     "place": place,
@@ -279,7 +279,7 @@ def cmd_localize_live(args) -> int:
                     "state": str(fixes.states[0]),
                     "relocated": int(fixes.relocated[0]),
                 }
-                if m.has_positions:
+                if m.positions is not None:
                     row["x"], row["y"] = (float(v) for v in m.positions[place])
                 row["latency_ms"] = 1000.0 * (time.monotonic() - f.arrival)
                 if out is not None:
@@ -317,7 +317,10 @@ def cmd_localize_live(args) -> int:
     else:
         ending = "ended: the stream ended"
     n_dropped = source.n_received - n_frames
-    clock = {"stream": "the stream's clock", "wall": "the wall clock at arrival (Unix time)"}
+    clock: dict[str | None, str] = {
+        "stream": "the stream's clock",
+        "wall": "the wall clock at arrival (Unix time)",
+    }
     print(
         f"{m.method.name}: {source.describe()} against {m.n_places} places, {ending} after "
         f"{elapsed:.1f} s: {source.n_received} frames received, {n_frames} localized, "

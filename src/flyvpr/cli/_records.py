@@ -100,7 +100,7 @@ class Records:
 
     #: open mode and keyword arguments of the file (text by default)
     mode = "w"
-    open_kwargs = {"newline": "", "encoding": "utf-8"}
+    open_kwargs: dict = {"newline": "", "encoding": "utf-8"}
     #: the file suffix and whether the format can hold images besides the records
     suffix = ".csv"
     carries_images = False
@@ -286,7 +286,7 @@ class McapRecords(Records):
         else:
             self.writer = Writer(self.fh, compression=CompressionType.ZSTD)
         self.writer.start(profile="", library=f"flyvpr {__version__}")
-        self.channel = None
+        self.channel: int | None = None
         self.image_channels: dict[str, int] = {}
         self.sequence = 0
         if self.metadata:

@@ -142,7 +142,7 @@ def cmd_localize_recording(args) -> int:
                     "state": str(step.states[i]),
                     "relocated": int(step.relocated[i]),
                 }
-                if m.has_positions:
+                if step.positions is not None:  # the map's positions, where it has them
                     row["x"], row["y"] = (float(v) for v in step.positions[i])
                 if gt is not None:
                     row["correct"] = int(gt[i, step.places[i]])
