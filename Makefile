@@ -23,7 +23,7 @@ $(VENV)/.test: pyproject.toml | $(BIN)/python
 	$(PIP) -e ".[test,torch,netvlad,plot,docs,recordings,dask,view]"
 	touch $@ $(VENV)/.core $(VENV)/.docs $(VENV)/.lint
 
-# Lint needs ruff alone (no torch).
+# Lint needs ruff and mypy alone (no torch: mypy skips the optional extras, see pyproject.toml).
 $(VENV)/.lint: pyproject.toml | $(BIN)/python
 	$(PIP) -e ".[lint]"
 	touch $@ $(VENV)/.core
@@ -38,6 +38,7 @@ demo: $(VENV)/.core
 lint: $(VENV)/.lint
 	$(BIN)/ruff check src tests benchmarks docs
 	$(BIN)/ruff format --check src tests benchmarks docs
+	$(BIN)/mypy
 
 test: $(VENV)/.test lint docs
 	$(BIN)/python -m pytest -q
