@@ -8,6 +8,7 @@ attractor network (the ``cann-paper`` filter).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -255,7 +256,7 @@ class CANN(OdometryFilter):
 
     # -- parameters -------------------------------------------------------------
     def _check_params(self) -> dict:
-        p = {
+        p: dict[str, Any] = {
             "speed_prior": check_real(self.speed_prior, "speed_prior", low=None),
             "speed_prior_width": check_real(self.speed_prior_width, "speed_prior_width"),
             "reverse_weight": _probability(self.reverse_weight, "reverse_weight"),
@@ -364,7 +365,7 @@ class CANN(OdometryFilter):
     def reset(self) -> None:
         """Forget all past frames (parameters changed with ``set_params`` apply from here)."""
         self._params = self._check_params()
-        self._n = None
+        self._n: int | None = None
         self.compiled_ = False
         self.n_frames_ = 0
         self.n_relocations_ = 0
@@ -407,7 +408,7 @@ class CANN(OdometryFilter):
         # The front end's model: running mean and variance of its peak's z-score and of its
         # best raw score, and the logistic weights (prior: a weak front end, right with
         # probability 0.5 ** (2 + tolerance) whatever its peak).
-        self._front_stats = None
+        self._front_stats: list[float] | None = None
         self._front_raw_z = 0.0
         prior = 0.5 ** (2 + p["tolerance"])
         self._front_model = [math.log(prior / (1.0 - prior)), 0.0]
