@@ -92,3 +92,13 @@ def sliding_world():
     ref = np.stack([world[:, 8 * i : 8 * i + 64] for i in range(40)]).astype(np.float32)
     qry = np.clip(0.7 * ref + 0.1 + rng.normal(0, 0.03, ref.shape), 0, 1).astype(np.float32)
     return ref, qry
+
+
+@pytest.fixture(params=["plain", "compiled"])
+def cann_kernel_mode(request, monkeypatch):
+    """Each CANN test twice: its kernels compiled by numba, and the same functions run
+    uncompiled (``_kernels.USE_NUMBA = False``), which mutation testing also exercises."""
+    from flyvpr.temporal.cann import _kernels
+
+    monkeypatch.setattr(_kernels, "USE_NUMBA", request.param == "compiled")
+    return request.param

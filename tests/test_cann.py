@@ -550,8 +550,6 @@ def test_kidnap_recovery_on_nordland(nordland_64x32):
 def test_compiled_path_matches_numpy_path(monkeypatch, params, kind):
     from flyvpr.temporal.cann import _kernels
 
-    if not _kernels.get_kernels()[1]:
-        pytest.skip("numba is not installed")
     rng = np.random.default_rng(11)
     # A kidnap at frame 50 (relocation), constant rows at 40-42.
     S = _scores([30 + t for t in range(50)] + [300 + t for t in range(30)], n=500, seed=3, amp=1.5)

@@ -68,15 +68,6 @@ def run(f, S, velocity=None):
     return np.array(rows), frames
 
 
-@pytest.fixture(params=["plain", "compiled"])
-def kernel_mode(request, monkeypatch):
-    if request.param == "plain":
-        monkeypatch.setattr(_kernels, "USE_NUMBA", False)
-    elif not _kernels.get_kernels(table="layer")[1]:
-        pytest.skip("numba is not installed")
-    return request.param
-
-
 # -- the reference -----------------------------------------------------------------------------
 def _windows(marginal, radius):
     return np.array(
@@ -333,7 +324,7 @@ REFERENCE_CASES = {
 
 
 @pytest.mark.parametrize("case", sorted(REFERENCE_CASES))
-def test_matches_reference(kernel_mode, case):
+def test_matches_reference(cann_kernel_mode, case):
     assert_matches_reference(_scenario(), **REFERENCE_CASES[case])
 
 
@@ -367,7 +358,7 @@ def test_matches_reference_with_odometry():
     assert [f["velocity_"] for f in frames] == velocity.tolist()
 
 
-def test_matches_reference_sampling_every_other_place_on_long_routes(kernel_mode):
+def test_matches_reference_sampling_every_other_place_on_long_routes(cann_kernel_mode):
     # 8200 places: the sequence test samples every 2nd place (about 4096)
     S = bump_rows(100 + np.arange(5.0), 8200)
     assert_matches_reference(S, velocities=(1.0,))
@@ -1493,8 +1484,6 @@ def test_footprint_by_hand():
 
 # -- compiled and plain kernels -----------------------------------------------------------------
 def test_compiled_and_plain_agree(monkeypatch):
-    if not _kernels.get_kernels(table="layer")[1]:
-        pytest.skip("numba is not installed")
     S = _mixed_scenario()
     compiled = CANN()
     a, frames_a = run(compiled, S)

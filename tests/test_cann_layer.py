@@ -17,16 +17,11 @@ import pytest
 from flyvpr.temporal.cann import CANN, _kernels
 
 
-@pytest.fixture(params=["plain", "compiled"])
-def kernels(request, monkeypatch):
-    if request.param == "plain":
-        monkeypatch.setattr(_kernels, "USE_NUMBA", False)
-        found, compiled = _kernels.get_kernels(table="layer")
-        assert not compiled
-        return found
+@pytest.fixture
+def kernels(cann_kernel_mode):
+    """The layer's kernels, compiled and not (see conftest's cann_kernel_mode)."""
     found, compiled = _kernels.get_kernels(table="layer")
-    if not compiled:
-        pytest.skip("numba is not installed")
+    assert compiled == (cann_kernel_mode == "compiled")
     return found
 
 

@@ -13,14 +13,11 @@ from flyvpr.temporal.cann._kernels import excitation_kernel
 from flyvpr.temporal.cann._speed import SpeedBank, tie_winner
 
 
-@pytest.fixture(params=["plain", "compiled"])
-def kernels(request, monkeypatch):
-    if request.param == "plain":
-        monkeypatch.setattr(_kernels, "USE_NUMBA", False)
-        return _kernels.get_kernels()[0]
+@pytest.fixture
+def kernels(cann_kernel_mode):
+    """The attractor's kernels, compiled and not (see conftest's cann_kernel_mode)."""
     found, compiled = _kernels.get_kernels()
-    if not compiled:
-        pytest.skip("numba is not installed")
+    assert compiled == (cann_kernel_mode == "compiled")
     return found
 
 
@@ -317,33 +314,18 @@ def test_tie_winner_tolerance(values, winner):
     assert tie_winner(values, [2, 1, 0]) == 1  # 2 is never within reach of the highest
 
 
-def test_get_kernels_chooses_by_flag_and_numba(monkeypatch):
-    import sys
-
+def test_get_kernels_chooses_by_flag(monkeypatch):
     monkeypatch.setattr(_kernels, "USE_NUMBA", False)
     assert _kernels.get_kernels(10) == (_kernels._PLAIN, False)
     monkeypatch.setattr(_kernels, "USE_NUMBA", True)
-    longest = 35_768  # compiled at every route length
-    # Without numba: plain kernels, and the failed import is remembered.
-    import importlib.util
-
-    real = sys.modules.get("numba")
-    if real is None and importlib.util.find_spec("numba") is not None:
-        import numba as real
     monkeypatch.setattr(_kernels, "_compiled", {})
-    monkeypatch.setitem(sys.modules, "numba", None)
-    assert _kernels.get_kernels(longest) == (_kernels._PLAIN, False)
-    assert _kernels._compiled == {"attractor": False}
-    if real is None:
-        monkeypatch.delitem(sys.modules, "numba")
-    else:
-        monkeypatch.setitem(sys.modules, "numba", real)
-    monkeypatch.setattr(_kernels, "_compiled", {})
-    found, compiled = _kernels.get_kernels(longest)
-    assert compiled == (real is not None)  # numba is a dependency: compiled where importable
-    if compiled:
-        assert set(found) == set(_kernels._PLAIN) and found is not _kernels._PLAIN
-        assert _kernels.get_kernels(1)[0] is found  # compiled once, then reused
+    found, compiled = _kernels.get_kernels(35_768)  # compiled at every route length
+    assert compiled and set(found) == set(_kernels._PLAIN) and found is not _kernels._PLAIN
+    assert all(hasattr(f, "py_func") for f in found.values())  # numba's dispatchers
+    assert _kernels.get_kernels(1)[0] is found  # compiled once, then reused
+    layer, compiled = _kernels.get_kernels(table="layer")
+    assert compiled and layer is not found
+    assert layer["normalise"].py_func is found["normalise"].py_func is _kernels.normalise
 
 
 @pytest.mark.parametrize("firing", [[1, 2], [20, 21, 22], [37, 39]])

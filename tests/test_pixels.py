@@ -111,13 +111,23 @@ def test_sad_matrix_hand_worked():
     np.testing.assert_array_equal(out, [[1.0, 1.0], [4.0, 2.0]])
 
 
-def test_sad_matrix_falls_back_to_scipy_without_numba(rng, monkeypatch):
-    monkeypatch.setattr(pixels, "_numba_kernel", False)  # as if numba failed to import
-    query = rng.random((4, 10), dtype=np.float32)
+def test_sad_matrix_auto_is_the_numba_kernel(rng, monkeypatch):
+    query = rng.random((9, 10), dtype=np.float32)
     reference = rng.random((3, 10), dtype=np.float32)
-    np.testing.assert_allclose(sad_matrix(query, reference), _slow_sad(query, reference), rtol=1e-5)
-    with pytest.raises(ImportError, match="numba"):
-        sad_matrix(query, reference, backend="numba")
+    calls = []
+    kernel = pixels._kernels().sad_kernel
+
+    def spy(*args):
+        calls.append(args[2])  # the block of queries per work item
+        return kernel(*args)
+
+    monkeypatch.setattr(pixels._kernels(), "sad_kernel", spy)
+    np.testing.assert_array_equal(
+        sad_matrix(query, reference), sad_matrix(query, reference, backend="numba")
+    )
+    assert len(calls) == 2 and calls[0] >= 4
+    sad_matrix(query, reference, backend="scipy")
+    assert len(calls) == 2  # scipy's cdist, not the kernel
 
 
 @pytest.mark.parametrize(

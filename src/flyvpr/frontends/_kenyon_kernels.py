@@ -27,14 +27,16 @@ columns per orientation, in float32.  It agrees with the FFT convolution of
 :func:`flyvpr.frontends.optic_lobe.gabor_energy` to float32 rounding (relative 1e-6), not
 bit for bit: for a 32x64 frame it costs about a third of the FFTs and their calls.
 
-No kernel uses ``fastmath``: reassociating or fusing operations would change the rounding
-(and make it depend on the CPU).
+Compiled by :func:`flyvpr._numba.jit`, without ``fastmath``: reassociating or fusing
+operations would change the rounding (and make it depend on the CPU).
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
+
+from .._numba import jit
 
 __all__ = [
     "gaussian_taps",
@@ -49,16 +51,6 @@ __all__ = [
     "overlap_counts",
     "overlap_parallel",
 ]
-
-
-def _jit(fn=None, *, parallel=False):
-    """``numba.njit`` with the on-disk cache, or in memory where no cache folder is writable."""
-    if fn is None:
-        return lambda f: _jit(f, parallel=parallel)
-    try:
-        return numba.njit(cache=True, parallel=parallel)(fn)
-    except RuntimeError:
-        return numba.njit(parallel=parallel)(fn)
 
 
 def gaussian_taps(sigma: float, truncate: float = 4.0) -> np.ndarray:
@@ -81,7 +73,7 @@ def reflect_index(n: int, radius: int) -> np.ndarray:
     return np.where(p < n, p, 2 * n - 1 - p).astype(np.uint32)
 
 
-@_jit
+@jit
 def _smooth(pad, n, m, taps, acc, dst, transpose):
     # ``pad``: n + 2r lines of m float64 values (flat, lines extended by reflection); line i
     # of the result, float32, into row i of ``dst`` (or column i when ``transpose``).  The
@@ -107,7 +99,7 @@ def _smooth(pad, n, m, taps, acc, dst, transpose):
                 dst[i, j] = np.float32(acc[i * m + j])
 
 
-@_jit
+@jit
 def _gaussian(src, taps, index_h, index_w, pad, acc, tmp, dst):
     # along axis 0, then axis 1 (on the transposed float32 result), as gaussian_filter
     h, w = src.shape
@@ -121,7 +113,7 @@ def _gaussian(src, taps, index_h, index_w, pad, acc, tmp, dst):
     _smooth(pad, w, h, taps, acc, dst, True)
 
 
-@_jit
+@jit
 def _lcn_image(img, taps, index_h, index_w, eps2, o, pad, acc, tmp, mean, centred):
     # one image (H, W) into o; the other arrays are scratch (see lcn)
     h, w = img.shape
@@ -137,7 +129,7 @@ def _lcn_image(img, taps, index_h, index_w, eps2, o, pad, acc, tmp, mean, centre
             o[i, j] = centred[i, j] / np.sqrt(mean[i, j] + eps2)
 
 
-@_jit
+@jit
 def _lcn_masked_image(img, valid, gm, taps, index_h, index_w, eps2, o, pad, acc, tmp, mean, c):
     # as _lcn_image, with the Gaussian windows restricted to the valid pixels (normalised
     # convolution): the local mean is G (m x) / G m and the variance G (m (x - mean)^2) / G m
@@ -162,7 +154,7 @@ def _lcn_masked_image(img, valid, gm, taps, index_h, index_w, eps2, o, pad, acc,
                 o[i, j] = 0.0
 
 
-@_jit
+@jit
 def _lcn_scratch(h, w, r):
     pad = np.empty(max((h + 2 * r) * w, (w + 2 * r) * h), dtype=np.float64)
     acc = np.empty(h * w, dtype=np.float64)
@@ -172,7 +164,7 @@ def _lcn_scratch(h, w, r):
     return pad, acc, tmp, mean, centred
 
 
-@_jit
+@jit
 def lcn(x, taps, index_h, index_w, eps2, out):
     """Local contrast normalisation of float32 images (N, H, W) into ``out``.
 
@@ -186,7 +178,7 @@ def lcn(x, taps, index_h, index_w, eps2, out):
     return out
 
 
-@_jit
+@jit
 def lcn_masked(x, valid, gm, taps, index_h, index_w, eps2, out):
     """:func:`lcn` over the pixels where ``valid`` (bool (H, W)) is True; 0 elsewhere.
 
@@ -202,7 +194,7 @@ def lcn_masked(x, valid, gm, taps, index_h, index_w, eps2, out):
     return out
 
 
-@_jit
+@jit
 def _gabor_pool(img, g, ar, ai, br, bi, dc, inv_z, pool, out, xpad, hp, hg, vr, vi, vg):
     # The pooled Gabor energies of one image (H, W) into ``out`` (see optic_lobe).  Rows are
     # laid out flat, each widened by r zeros on both sides (width W2 = W + 2r), so that every
@@ -284,7 +276,7 @@ def _gabor_pool(img, g, ar, ai, br, bi, dc, inv_z, pool, out, xpad, hp, hg, vr, 
                 out[k * ph * pw + a * pw + b] = np.sqrt(np.sqrt(best))
 
 
-@_jit
+@jit
 def _gabor_scratch(h, w, r, n_kernels):
     # the buffers of _gabor_pool for images of (h, w) and kernels of radius r
     w2 = w + 2 * r
@@ -297,7 +289,7 @@ def _gabor_scratch(h, w, r, n_kernels):
     return xpad, hp, hg, vr, vi, vg
 
 
-@_jit
+@jit
 def optic_lobe(x, taps, index_h, index_w, eps2, g, ar, ai, br, bi, dc, inv_z, pool, out):
     """Optic-lobe features of float32 images (N, H, W) into ``out`` (N, K * H/pool * W/pool).
 
@@ -320,7 +312,7 @@ def optic_lobe(x, taps, index_h, index_w, eps2, g, ar, ai, br, bi, dc, inv_z, po
     return zscore_rows(out, np.float32(1e-12))
 
 
-@_jit
+@jit
 def optic_lobe_masked(
     x, valid, gm, taps, index_h, index_w, eps2, g, ar, ai, br, bi, dc, inv_z, pool, keep, out
 ):
@@ -347,7 +339,7 @@ def optic_lobe_masked(
     return zscore_rows(out, np.float32(1e-12))
 
 
-@_jit
+@jit
 def _block_sum(a, lo, n):
     # a leaf of NumPy's pairwise summation (``add.reduce`` of contiguous float32): a plain
     # loop below 8 values, else eight interleaved accumulators and the leftover at the end
@@ -371,7 +363,7 @@ def _block_sum(a, lo, n):
     return s
 
 
-@_jit
+@jit
 def _pairwise_sum(a, n, frames, partial):
     """NumPy's pairwise sum of ``a[:n]`` (float32): halves (cut at a multiple of 8) until at
     most 128 values, summed as left + right.  Iterative (numba cannot cache recursion):
@@ -414,7 +406,7 @@ def _pairwise_sum(a, n, frames, partial):
             top -= 1
 
 
-@_jit
+@jit
 def zscore_rows(features, min_std):
     """Per row, in place: subtract the mean, divide by the standard deviation if > ``min_std``.
 
@@ -440,7 +432,7 @@ def zscore_rows(features, min_std):
     return features
 
 
-@_jit
+@jit
 def _activity_row(features, feature_mean, connections, centred, y):
     for i in range(features.shape[0]):
         centred[i] = features[i] - feature_mean[i]
@@ -452,7 +444,7 @@ def _activity_row(features, feature_mean, connections, centred, y):
         y[c] = s
 
 
-@_jit
+@jit
 def kenyon_activity(features, feature_mean, connections, out):
     """Summed centred input of every Kenyon cell: ``out`` float32 (N, n_kenyon)."""
     centred = np.empty(features.shape[1], dtype=np.float32)
@@ -461,7 +453,7 @@ def kenyon_activity(features, feature_mean, connections, out):
     return out
 
 
-@_jit
+@jit
 def _select(a, n, kk):
     # the kk-th smallest (0-based) of a[:n], which it reorders: Wirth's quickselect with a
     # median-of-three pivot
@@ -489,7 +481,7 @@ def _select(a, n, kk):
     return a[kk]
 
 
-@_jit
+@jit
 def _kth_largest(y, k, buf):
     # The k-th largest value of y (as a multiset).  A sample of about 128 values gives a
     # threshold with about 2k values of y at or above it; the k-th largest of those is the
@@ -512,7 +504,7 @@ def _kth_largest(y, k, buf):
     return _select(buf, c, c - k)
 
 
-@_jit
+@jit
 def _winners(y, k, buf, bits):
     # bits[i] = 1 for the k largest of y, among equal values the lower index (as
     # winner_take_all does), else 0
@@ -530,7 +522,7 @@ def _winners(y, k, buf, bits):
         bits[i] = win
 
 
-@_jit
+@jit
 def kenyon_codes(features, feature_mean, connections, n_projections, k, out):
     """Bit-packed winner-take-all codes (``np.packbits`` order) of every row of ``features``.
 
@@ -555,7 +547,7 @@ def kenyon_codes(features, feature_mean, connections, n_projections, k, out):
     return out
 
 
-@_jit
+@jit
 def _count(packed, indptr, places, chunk, counts):
     # counts[place] += 1 for every active bit of the query that the place shares
     counts[:] = 0
@@ -575,7 +567,7 @@ def _count(packed, indptr, places, chunk, counts):
                         sub[places[p]] += 1
 
 
-@_jit
+@jit
 def overlap_counts(packed, indptr, places, chunk, scale, out):
     """``scale`` x the overlap of one bit-packed query with every indexed place, into ``out``.
 
@@ -605,7 +597,7 @@ def overlap_counts(packed, indptr, places, chunk, scale, out):
     return out
 
 
-@_jit(parallel=True)
+@jit(parallel=True)
 def overlap_parallel(packed, indptr, places, chunk, scale, out):
     """``scale`` x the overlap of every bit-packed query (rows of ``packed``), into ``out``.
 

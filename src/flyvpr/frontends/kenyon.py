@@ -60,7 +60,7 @@ from .._validation import (
     check_random_state,
 )
 from .base import Encoder
-from .optic_lobe import OpticLobe, varying_pixels
+from .optic_lobe import OpticLobe, _kernels, varying_pixels
 
 __all__ = ["KenyonEncoder", "balanced_connections", "code_overlap"]
 
@@ -75,13 +75,6 @@ _BLOCK = 4096
 #: their chunk, half the memory traffic of int32 (scoring one query reads its lists from main
 #: memory, so that about halves its time)
 _CHUNK = 1 << 16
-
-
-def _compiled():
-    """The compiled kernels of the front end (imports numba on first use)."""
-    from . import _kenyon_kernels
-
-    return _kenyon_kernels
 
 
 def balanced_connections(n_kenyon: int, n_features: int, n_inputs: int, random_state=None):
@@ -177,9 +170,9 @@ def _overlap_packed(packed, indptr, places, n_reference: int, scale: float, chun
     out = np.empty((len(packed), n_reference), dtype=np.float32)
     scale32 = np.float32(scale)
     if len(packed) >= _PARALLEL_MIN_QUERIES:
-        return _compiled().overlap_parallel(packed, indptr, places, chunk, scale32, out)
+        return _kernels().overlap_parallel(packed, indptr, places, chunk, scale32, out)
     # A few queries (a streamed frame): one at a time, without waking threads
-    kernel = _compiled().overlap_counts
+    kernel = _kernels().overlap_counts
     for i, query in enumerate(packed):
         kernel(query, indptr, places, chunk, scale32, out[i])
     return out
@@ -373,7 +366,7 @@ class KenyonEncoder(Encoder):
     def _activity(self, features: np.ndarray) -> np.ndarray:
         # float32 sums in the order of the sorted connections (as a CSR matrix product would)
         out = np.empty((len(features), self._connections.shape[0]), dtype=np.float32)
-        return _compiled().kenyon_activity(features, self.feature_mean_, self._connections, out)
+        return _kernels().kenyon_activity(features, self.feature_mean_, self._connections, out)
 
     def _codes(self, features: np.ndarray) -> np.ndarray:
         # activity, winner-take-all per population and bit packing in one compiled pass per
@@ -381,7 +374,7 @@ class KenyonEncoder(Encoder):
         n_kenyon = self._connections.shape[0]
         n_proj = self.n_projections
         out = np.empty((len(features), n_kenyon // 8), dtype=np.uint8)
-        return _compiled().kenyon_codes(
+        return _kernels().kenyon_codes(
             features, self.feature_mean_, self._connections, n_proj, self.n_active_ // n_proj, out
         )
 

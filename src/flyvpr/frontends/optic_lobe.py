@@ -185,7 +185,8 @@ def _window_weight(valid: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def _kernels():
-    """The compiled kernels (numba), imported on first use: ``import flyvpr`` stays light."""
+    """The compiled kernels of the optic lobe and the Kenyon cells (numba, imported on first
+    use: ``import flyvpr`` stays light)."""
     from . import _kenyon_kernels
 
     return _kenyon_kernels

@@ -6,14 +6,12 @@ and unit standard deviation (which removes local brightness and contrast changes
 images are compared by the sum of absolute differences (SAD) of their pixels.  The paper's
 SeqSLAM baseline (Sec. "Compared systems" in PAPER-NOTES) runs on these scores.
 
-:func:`sad_matrix` computes all query/reference L1 distances.  It uses a parallel numba kernel
-when numba can be imported (about 25x faster than SciPy on 1000 x 1000 codes of 2048 values) and
-falls back to :func:`scipy.spatial.distance.cdist` otherwise.
+:func:`sad_matrix` computes all query/reference L1 distances with a parallel numba kernel
+(about 25x faster than SciPy's :func:`~scipy.spatial.distance.cdist` on 1000 x 1000 codes of
+2048 values, which it also offers).
 """
 
 from __future__ import annotations
-
-import logging
 
 import numpy as np
 from scipy.spatial.distance import cdist
@@ -23,15 +21,11 @@ from .base import Encoder
 
 __all__ = ["PixelsEncoder", "patch_normalize", "sad_matrix"]
 
-logger = logging.getLogger(__name__)
-
 #: Queries per parallel work item of the numba kernel: 64 codes of 2048 float32 (512 KiB) stay
 #: in a core's L2 cache while every reference streams past them once.
 _QUERY_BLOCK = 64
-#: sad_matrix backends; "auto" picks numba when importable.
+#: sad_matrix backends ("auto": numba)
 _BACKENDS = ("auto", "numba", "scipy")
-
-_numba_kernel = None  # built on first use so that ``import flyvpr`` does not import numba
 
 
 def patch_normalize(images, patch_size: int = 8) -> np.ndarray:
@@ -103,66 +97,11 @@ def _check_codes(codes, name: str) -> np.ndarray:
     return arr
 
 
-def _get_numba_kernel():
-    """The compiled SAD kernel, or ``None`` when numba cannot be imported."""
-    global _numba_kernel
-    if _numba_kernel is None:
-        try:
-            import numba
-        except ImportError:
-            logger.info("numba is not installed; sad_matrix uses scipy's cdist (slower)")
-            _numba_kernel = False
-        else:
-            _numba_kernel = _build_numba_kernel(numba)
-    return _numba_kernel or None
+def _kernels():
+    """The compiled SAD kernel's module (imports numba on first use)."""
+    from . import _pixels_kernels
 
-
-def _build_numba_kernel(numba):
-    # fastmath lets LLVM reorder the float sums into SIMD lanes; cache=True keeps the compiled
-    # code on disk so only the first run ever pays the ~1 s compilation.  Where no cache folder
-    # is writable numba refuses cache=True with a RuntimeError: compile in memory instead.
-    try:
-        jit = numba.njit(parallel=True, fastmath=True, cache=True)
-        return jit(_make_sad_kernel(numba))
-    except RuntimeError:
-        return numba.njit(parallel=True, fastmath=True)(_make_sad_kernel(numba))
-
-
-def _make_sad_kernel(numba):
-    def sad_kernel(query, reference, block, out):
-        n_query, n_features = query.shape
-        n_reference = reference.shape[0]
-        n_blocks = (n_query + block - 1) // block
-        for b in numba.prange(n_blocks):
-            q0 = b * block
-            q1 = min(q0 + block, n_query)
-            for j in range(n_reference):
-                i = q0
-                # Four queries at a time share every load of the reference code.
-                while i + 4 <= q1:
-                    a0 = np.float32(0.0)
-                    a1 = np.float32(0.0)
-                    a2 = np.float32(0.0)
-                    a3 = np.float32(0.0)
-                    for k in range(n_features):
-                        r = reference[j, k]
-                        a0 += abs(query[i, k] - r)
-                        a1 += abs(query[i + 1, k] - r)
-                        a2 += abs(query[i + 2, k] - r)
-                        a3 += abs(query[i + 3, k] - r)
-                    out[i, j] = a0
-                    out[i + 1, j] = a1
-                    out[i + 2, j] = a2
-                    out[i + 3, j] = a3
-                    i += 4
-                while i < q1:
-                    acc = np.float32(0.0)
-                    for k in range(n_features):
-                        acc += abs(query[i, k] - reference[j, k])
-                    out[i, j] = acc
-                    i += 1
-
-    return sad_kernel
+    return _pixels_kernels
 
 
 def sad_matrix(
@@ -179,10 +118,10 @@ def sad_matrix(
         Divide by ``n_features``: the mean absolute difference, as OpenSeqSLAM's difference
         matrix, which keeps the values independent of the image size.
     backend : {"auto", "numba", "scipy"}, default "auto"
-        ``"numba"``: a parallel, cache-blocked kernel (1000 x 1000 codes of 2048 values take
-        about 0.03-0.05 s on two cores, 2400 x 2400 about 0.25 s); ``"scipy"``:
-        :func:`scipy.spatial.distance.cdist` with ``metric="cityblock"`` (about 0.7 s and 6 s);
-        ``"auto"``: numba when it can be imported, else scipy.
+        ``"numba"`` (and ``"auto"``): a parallel, cache-blocked kernel (1000 x 1000 codes of
+        2048 values take about 0.03-0.05 s on two cores, 2400 x 2400 about 0.25 s);
+        ``"scipy"``: :func:`scipy.spatial.distance.cdist` with ``metric="cityblock"`` (about
+        0.7 s and 6 s), a slower second opinion.
 
     Returns
     -------
@@ -196,8 +135,6 @@ def sad_matrix(
         ``n_features``; for an unknown ``backend``.
     TypeError
         For non-numeric arrays.
-    ImportError
-        For ``backend="numba"`` when numba is not installed.
 
     Examples
     --------
@@ -214,17 +151,13 @@ def sad_matrix(
             f"query_codes and reference_codes must have the same number of features; "
             f"got {query.shape[1]} and {reference.shape[1]}"
         )
-    kernel = None if backend == "scipy" else _get_numba_kernel()
-    if backend == "numba" and kernel is None:
-        raise ImportError("sad_matrix(backend='numba') needs numba: pip install numba")
-    if kernel is not None:
+    if backend != "scipy":
+        kernels = _kernels()
         out = np.empty((query.shape[0], reference.shape[0]), dtype=np.float32)
-        import numba  # already imported by _get_numba_kernel
-
         # Enough blocks to keep every thread busy, but no bigger than fits the L2 cache.
-        n_threads = numba.get_num_threads()
+        n_threads = kernels.numba.get_num_threads()
         block = min(_QUERY_BLOCK, max(4, -(-query.shape[0] // n_threads)))
-        kernel(query, reference, block, out)
+        kernels.sad_kernel(query, reference, block, out)
     else:
         out = cdist(query, reference, metric="cityblock").astype(np.float32)
     if normalize:

@@ -9,22 +9,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import numba
 import numpy as np
 from numba import prange, types
 from numba.extending import intrinsic
 
-
-def _jit(fn=None, *, parallel=False):
-    """``numba.njit`` with the on-disk cache, or in memory where no cache folder is writable."""
-
-    def wrap(f):
-        try:
-            return numba.njit(cache=True, parallel=parallel)(f)
-        except RuntimeError:  # pragma: no cover - read-only install without a cache folder
-            return numba.njit(parallel=parallel)(f)
-
-    return wrap if fn is None else wrap(fn)
+from .._numba import jit
 
 
 @intrinsic
@@ -42,7 +31,7 @@ def _ctpop(typingctx, x):
 _popcount: Callable[[int], int] = _ctpop  # type: ignore[assignment]
 
 
-@_jit
+@jit
 def distances_range(query, codes, lo, hi, out):
     """``out[i - lo]`` = Hamming distance of ``query`` (w,) and ``codes[i]`` (n, w), i in lo..hi."""
     w = query.shape[0]
@@ -54,7 +43,7 @@ def distances_range(query, codes, lo, hi, out):
     return out
 
 
-@_jit
+@jit
 def distances_at(query, codes, places, out):
     """``out[k]`` = Hamming distance of ``query`` and ``codes[places[k]]``."""
     w = query.shape[0]
@@ -67,7 +56,7 @@ def distances_at(query, codes, places, out):
     return out
 
 
-@_jit(parallel=True)
+@jit(parallel=True)
 def distances_batch(queries, codes, lo, hi, out):
     """``out[q, i - lo]`` for every query (parallel over the places' blocks)."""
     w = queries.shape[1]
@@ -85,7 +74,7 @@ def distances_batch(queries, codes, lo, hi, out):
     return out
 
 
-@_jit
+@jit
 def _top_k_one(query, codes, k, n_bits, dist, hist, out_places, out_dist):
     # pass 1: every distance (uint16) and their histogram
     n = codes.shape[0]
@@ -124,7 +113,7 @@ def _top_k_one(query, codes, k, n_bits, dist, hist, out_places, out_dist):
     return m
 
 
-@_jit
+@jit
 def top_k(queries, codes, k, n_bits, out_places, out_dist):
     """Exact ``k`` nearest codes of each query by Hamming distance, nearest first, ties by
     lower place; serial (one streamed query)."""
@@ -135,7 +124,7 @@ def top_k(queries, codes, k, n_bits, out_places, out_dist):
     return out_places
 
 
-@_jit(parallel=True)
+@jit(parallel=True)
 def top_k_parallel(queries, codes, k, n_bits, out_places, out_dist):
     """:func:`top_k`, parallel over the queries of a batch."""
     for q in prange(queries.shape[0]):
@@ -145,7 +134,7 @@ def top_k_parallel(queries, codes, k, n_bits, out_places, out_dist):
     return out_places
 
 
-@_jit
+@jit
 def rerank(query, codes, candidates, k, n_bits, out_places, out_dist):
     """The ``k`` nearest of ``candidates`` (distinct places) to ``query``, nearest first, ties
     by lower place; returns how many were written (fewer than ``k`` candidates: all)."""
@@ -168,7 +157,7 @@ def rerank(query, codes, candidates, k, n_bits, out_places, out_dist):
     return n_out
 
 
-@_jit
+@jit
 def mih_candidates(keys, probes, probe_radius, max_radius, starts, places, cap, out):
     """Places sharing a substring with the query within ``max_radius`` bits, closest probes
     first, at most ``cap`` (with repeats); returns how many were written to ``out``.

@@ -14,9 +14,8 @@ first, then averaged the same way.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from functools import lru_cache
-from typing import Literal
 
 import numpy as np
 
@@ -128,29 +127,11 @@ def _row_band(n_out: int, n_in: int):
     return starts, counts, weights
 
 
-_band_kernel: Callable[..., None] | Literal[False] | None = None
+def _kernels():
+    """The compiled resize kernel's module (imports numba on first use)."""
+    from . import _video_kernels
 
-
-def _get_band_kernel():
-    """The row-band kernel compiled by numba (None where numba is missing)."""
-    global _band_kernel
-    if _band_kernel is None:
-        try:
-            import numba
-        except ImportError:  # pragma: no cover - numba is a core dependency
-            _band_kernel = False
-        else:
-
-            def band(y, starts, counts, weights, out):
-                for i in range(out.shape[0]):
-                    for k in range(counts[i]):
-                        wk = weights[i, k]
-                        r = starts[i] + k
-                        for j in range(out.shape[1]):
-                            out[i, j] += wk * y[r, j]
-
-            _band_kernel = numba.njit(cache=True, nogil=True)(band)
-    return _band_kernel or None
+    return _video_kernels
 
 
 def area_resize(y: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -161,9 +142,7 @@ def area_resize(y: np.ndarray, h: int, w: int) -> np.ndarray:
     pixel, instead of the dense product's ``h`` per pixel), then the same along the columns
     of that small result.  No BLAS call: BLAS threads would compete with the video decoder's.
     """
-    kernel = _get_band_kernel()
-    if kernel is None:
-        return area_matrix(h, y.shape[0]) @ y.astype(np.float32) @ area_matrix(w, y.shape[1]).T
+    kernel = _kernels().band
     rows = np.zeros((h, y.shape[1]), np.float32)
     kernel(y, *_row_band(h, y.shape[0]), rows)
     cols = np.zeros((w, h), np.float32)

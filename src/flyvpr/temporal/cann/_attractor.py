@@ -121,8 +121,9 @@ class AttractorCANN(OdometryFilter):
     potentials_ : ndarray of float32, shape (n_reference,)
         The place units' potentials after the last step (a copy).
     compiled_ : bool
-        Whether the per-frame updates run compiled by numba (numba importable, the default)
-        or as plain Python (much slower); the results agree up to float rounding.
+        Whether the per-frame updates run compiled by numba (the default) or uncompiled
+        (``_kernels.USE_NUMBA = False``, for tests: much slower); the results agree up to
+        float rounding.
 
     Notes
     -----

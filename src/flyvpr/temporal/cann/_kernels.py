@@ -1,28 +1,23 @@
-"""The CANN's per-frame updates: one implementation, compiled with numba where it can be.
+"""The CANN's per-frame updates: one implementation, compiled with numba.
 
 Each function below is written once, as explicit loops over places (fused: each pass over
-the route does as much as it can), so that numba compiles it to SIMD loops; the same
-function also runs as plain Python.  :func:`get_kernels` returns the compiled functions when
-numba is importable and :data:`USE_NUMBA` is true, the plain ones otherwise; both give the
-same results up to the order of floating-point sums.  ``FLYVPR_CANN_NUMBA=0`` in the
-environment (read at import) or ``USE_NUMBA = False`` (read when the state is allocated)
-selects the plain functions, as does numba's own ``NUMBA_DISABLE_JIT=1``.
-
-numba is a core dependency, so the compiled kernels are the normal path, at every route
-length.  Plain Python is the fallback, practical on short routes only (about two hundred
-times slower per frame); the measured costs are on the user guide's CANN page ("Cost").
+the route does as much as it can), so that numba compiles it to SIMD loops
+(:func:`flyvpr._numba.jit`, with reassociation for the sums).  :func:`get_kernels` returns
+the compiled functions.  For tests and mutation testing the same functions also run
+uncompiled: ``FLYVPR_CANN_NUMBA=0`` in the environment (read at import) or ``USE_NUMBA =
+False`` (read when the state is allocated), as does numba's own ``NUMBA_DISABLE_JIT=1``;
+both give the same results up to the order of floating-point sums, the uncompiled ones
+about two hundred times slower per frame.  The measured costs are on the user guide's CANN
+page ("Cost").
 """
 
 from __future__ import annotations
 
-import logging
 import os
 
 import numpy as np
 
-logger = logging.getLogger(__name__)
-
-#: compile the kernels with numba when it is importable (else, or when False: plain Python)
+#: compile the kernels with numba (False: run the same functions uncompiled, for tests)
 USE_NUMBA = os.environ.get("FLYVPR_CANN_NUMBA", "1") != "0"
 
 #: kernel radius in units of the excitation width
@@ -290,17 +285,6 @@ _PLAIN = {
 _compiled: dict = {}  # compiled tables by name, on first use: ``import flyvpr`` skips numba
 
 
-def _jit(numba, func):  # pragma: no mutate block (numba's options; no-ops under mutmut)
-    # Fast-math flags allow SIMD reductions but no fused multiply-adds ("contract"), so the
-    # compiled updates round close to numpy's.  cache=True keeps the code on disk; where no
-    # cache folder is writable numba refuses it with a RuntimeError, and it compiles in memory.
-    opts = {"fastmath": {"nnan", "ninf", "nsz", "reassoc"}, "error_model": "numpy"}
-    try:
-        return numba.njit(cache=True, **opts)(func)
-    except RuntimeError:
-        return numba.njit(**opts)(func)
-
-
 def get_kernels(n_places: int = 0, table: str = "attractor") -> tuple[dict, bool]:
     """The kernels of ``table`` by name, and whether they are compiled (``n_places`` is not
     used).  Tables: ``"attractor"`` (this module's) and ``"layer"`` (the place-velocity
@@ -308,16 +292,14 @@ def get_kernels(n_places: int = 0, table: str = "attractor") -> tuple[dict, bool
     plain = _tables()[table]
     if not USE_NUMBA:
         return plain, False
-    if table not in _compiled:
-        try:
-            import numba
-        except ImportError:
-            logger.info("numba is not installed; the CANN runs as plain Python (much slower)")
-            _compiled[table] = False
-        else:
-            _compiled[table] = {name: _jit(numba, f) for name, f in plain.items()}
-    if _compiled[table] is False:
-        return plain, False
+    if table not in _compiled:  # pragma: no mutate block (numba's options)
+        from ..._numba import jit
+
+        # fastmath: SIMD sums (flyvpr._numba's policy); numpy's error model (a division by
+        # zero gives inf, as in the plain functions, instead of raising)
+        _compiled[table] = {
+            name: jit(f, fastmath=True, error_model="numpy") for name, f in plain.items()
+        }
     return _compiled[table], True
 
 

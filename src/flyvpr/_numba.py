@@ -1,0 +1,58 @@
+"""The one way flyvpr compiles a kernel: :func:`jit`, numba's ``njit`` with one policy.
+
+numba is a core dependency: every kernel is compiled, and there is no pure-Python fallback
+for a missing numba.  The kernel modules (``frontends/_kenyon_kernels.py``,
+``frontends/_pixels_kernels.py``, ``sources/_video_kernels.py``, ``large/_kernels.py`` and
+the CANN's ``temporal/cann/_kernels.py``) are imported on first use, never by ``import
+flyvpr``, so that importing the package does not import numba.  (The CANN's
+``_kernels.USE_NUMBA = False`` runs the same functions uncompiled: a switch for tests and
+mutation testing, not a fallback.)
+
+The policy:
+
+* **Cache.** Compiled code is kept on disk (``cache=True``), so only the first run on a
+  machine pays the compilation; where no cache folder is writable (a read-only install)
+  numba refuses the cache with a ``RuntimeError`` and the kernel compiles in memory.
+* **Fast math: off**, so results are bit-reproducible and do not depend on the CPU.  The
+  one exception, ``fastmath=True``, allows reassociation only (with ``nnan``, ``ninf`` and
+  ``nsz``): LLVM may then split a float sum into SIMD lanes.  It is used where the order of a
+  sum's terms is not part of the result's meaning and the tests compare to a tolerance: the
+  CANN's per-frame updates and ``pixels``' sums of absolute differences.  Never fused
+  multiply-adds (``contract``) or approximate functions (``afn``, ``arcp``): the compiled
+  results stay within float rounding of numpy's.
+"""
+
+from __future__ import annotations
+
+import numba
+
+#: the fast-math flags of ``jit(..., fastmath=True)``: reassociation, without FMA or
+#: approximations (see the module's docstring)
+REASSOCIATE = frozenset({"nnan", "ninf", "nsz", "reassoc"})
+
+
+def jit(fn=None, *, parallel: bool = False, fastmath: bool = False, **options):
+    """Compile ``fn`` with numba under flyvpr's policy (see the module's docstring).
+
+    Parameters
+    ----------
+    fn : function, optional
+        Without it, ``jit(...)`` returns a decorator.
+    parallel : bool, default False
+        numba's ``parallel`` (``numba.prange`` loops run on its threads).
+    fastmath : bool, default False
+        Allow the reassociation of float operations (:data:`REASSOCIATE`).
+    **options
+        Other ``numba.njit`` options (``nogil``, ``error_model``).
+    """
+    flags = {"parallel": parallel, **options}
+    if fastmath:
+        flags["fastmath"] = set(REASSOCIATE)
+
+    def compile_(f):
+        try:
+            return numba.njit(cache=True, **flags)(f)
+        except RuntimeError:  # pragma: no cover - a read-only install without a cache folder
+            return numba.njit(**flags)(f)
+
+    return compile_ if fn is None else compile_(fn)
