@@ -299,7 +299,7 @@ def _bom(ctx):
 @case("library/localizer-before-fit", "library", "NotFittedError naming each call")
 def _localizer(ctx):
     from flyvpr import NotFittedError
-    from flyvpr.localizer import Localizer
+    from flyvpr.localization import Localizer
 
     loc = Localizer("flyhash")
     named = []

@@ -19,7 +19,7 @@ import numpy as np
 
 from flyvpr.frontends.kenyon import KenyonEncoder
 from flyvpr.images import list_images, load_images
-from flyvpr.localizer import Localizer
+from flyvpr.localization import Localizer
 from flyvpr.methods import FILTERS, Method
 
 ROOT = Path(__file__).resolve().parents[1]

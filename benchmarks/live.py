@@ -8,7 +8,8 @@ Protocol (written into the JSON as ``protocol``):
 
 * the map: the first 400 Nordland summer frames at 64x32
   (``../shared/data/nordland_64x32/summer``, ``images-00010`` .. ``images-04000``), the default
-  method (``DEFAULT_METHOD``), seed 0, 32 x 64, built with :meth:`flyvpr.maps.Map.build`;
+  method (``DEFAULT_METHOD``), seed 0, 32 x 64, built with
+  :meth:`flyvpr.localization.maps.Map.build`;
 * ``mjpeg_30fps``: the 51 Nordland winter frames at 640x360
   (``../shared/data/nordland_summer_winter_640x360/winter``) letterboxed to 640x480 (60 black
   rows above and below), JPEG quality 85, cycled, served as ``multipart/x-mixed-replace`` over
@@ -87,7 +88,7 @@ def _vm_hwm_mb(pid: int) -> float:
 
 def build_map(folder: Path) -> Path:
     """The 400-place map of the first 400 summer frames (a folder of links to them)."""
-    from flyvpr.maps import Map
+    from flyvpr.localization.maps import Map
 
     src = DATA / "nordland_64x32" / "summer"
     links = folder / "summer400"

@@ -50,7 +50,7 @@ import flyvpr
 from flyvpr._io import write_json_atomic
 from flyvpr.frontends import FlyHash, FlyNet, KenyonEncoder, PixelsEncoder
 from flyvpr.images import list_images, load_images
-from flyvpr.localizer import Localizer
+from flyvpr.localization import Localizer
 from flyvpr.methods import Method
 from flyvpr.temporal import FILTERS
 

@@ -3,7 +3,7 @@ depend on the CANN's numbers."""
 
 from __future__ import annotations
 
-from flyvpr.localizer import LOCALIZED
+from flyvpr.localization import LOCALIZED
 from flyvpr.temporal.base import OnlineFilter
 
 

@@ -23,7 +23,7 @@ if str(ROOT) not in sys.path:
 from benchmarks.stream_servers import MjpegServer, free_udp_port, jpeg_bytes  # noqa: E402
 
 from flyvpr.cli import main  # noqa: E402
-from flyvpr.maps import Map  # noqa: E402
+from flyvpr.localization.maps import Map  # noqa: E402
 from flyvpr.synthetic import make_route, save_route  # noqa: E402
 
 N = 30

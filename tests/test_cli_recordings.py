@@ -301,7 +301,7 @@ def test_video_speed_benchmark_runs_small():
 def scripted(monkeypatch):
     """Every map loaded gets a :class:`Scripted` filter (alternately lost and localized, the
     lost first); the list holds them, to read the velocities they were given."""
-    from flyvpr.maps import Map
+    from flyvpr.localization.maps import Map
 
     load = Map.load.__func__
     made = []

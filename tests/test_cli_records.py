@@ -160,7 +160,7 @@ def _header_stamps(path) -> list[tuple[int, int]]:
 @pytest.mark.parametrize("version", [1, 2])
 def test_localize_records_epoch_stamps_and_far_positions_exactly(epoch_bags, tmp_path, version):
     from flyvpr.cli import main
-    from flyvpr.maps import Map
+    from flyvpr.localization.maps import Map
     from flyvpr.sources import open_source
 
     ref, qry = epoch_bags[version, "summer"], epoch_bags[version, "winter"]
@@ -216,7 +216,7 @@ def test_every_command_with_a_progress_bar_takes_quiet():
 
 
 def test_map_progress_bar_only_when_asked(epoch_bags, capsys):
-    from flyvpr.maps import Map
+    from flyvpr.localization.maps import Map
 
     quiet = Map.build(epoch_bags[1, "summer"], "pixels")
     assert capsys.readouterr().err == ""  # library code never prints unless asked
@@ -388,7 +388,7 @@ def test_localize_mcap_matches_jsonl_record_for_record(epoch_bags, tmp_path, ver
     from PIL import Image
 
     from flyvpr.cli import main
-    from flyvpr.maps import Map
+    from flyvpr.localization.maps import Map
 
     ref, qry = epoch_bags[version, "summer"], epoch_bags[version, "winter"]
     route_map = tmp_path / "route.map"

@@ -14,7 +14,7 @@ from flyvpr.frontends.optic_lobe import (
     local_contrast_normalize,
     optic_lobe,
 )
-from flyvpr.localizer import Localizer
+from flyvpr.localization import Localizer
 from flyvpr.methods import METHODS, make_method
 from flyvpr.modelio import ModelFileError, _write_archive, load_method, save_method
 

@@ -11,7 +11,7 @@ from flyvpr.frontends.flyhash import winner_take_all
 from flyvpr.frontends.kenyon import KenyonEncoder, _inverted_index, _overlap_packed
 from flyvpr.frontends.optic_lobe import OpticLobe, gabor_energy, local_contrast_normalize
 from flyvpr.images import list_images, load_images
-from flyvpr.localizer import Localizer
+from flyvpr.localization import Localizer
 from flyvpr.methods import make_method
 
 

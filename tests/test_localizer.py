@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from fake_filters import Scripted, Stateless
-from flyvpr.localizer import LOCALIZED, LOST, Fix, Fixes, Localizer
-from flyvpr.maps import Map
+from flyvpr.localization import LOCALIZED, LOST, Fix, Fixes, Localizer
+from flyvpr.localization.maps import Map
 from flyvpr.methods import Method, make_method
 
 

@@ -11,7 +11,7 @@ import pytest
 import flyvpr._chunks
 from flyvpr._chunks import ChunkRunner, check_parallel
 from flyvpr.cli import main
-from flyvpr.maps import Map
+from flyvpr.localization.maps import Map
 
 N_FRAMES = 120
 
@@ -68,7 +68,7 @@ def test_dask_cluster_writes_the_one_process_map_byte_for_byte(
 
 def test_front_end_that_cannot_split_fits_in_one_process(frames, tmp_path, caplog):
     one = _build(frames, tmp_path / "one.map", "flyhash")
-    with caplog.at_level("WARNING", logger="flyvpr.maps"):
+    with caplog.at_level("WARNING", logger="flyvpr.localization.maps"):
         assert _build(frames, tmp_path / "j2.map", "flyhash", "--jobs", "2") == one
     assert "cannot split its fit" in caplog.text
 

@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from flyvpr.maps import Map
+from flyvpr.localization.maps import Map
 
 
 def _map(positions):

@@ -9,8 +9,8 @@ pytest.importorskip("av")
 pytest.importorskip("rosbags")
 
 from flyvpr.images import load_image, resize_area  # noqa: E402
-from flyvpr.localizer import Localizer  # noqa: E402
-from flyvpr.maps import Map  # noqa: E402
+from flyvpr.localization import Localizer  # noqa: E402
+from flyvpr.localization.maps import Map  # noqa: E402
 from flyvpr.modelio import ModelFileError, load_method  # noqa: E402
 from flyvpr.sources import (  # noqa: E402
     Every,
@@ -249,7 +249,7 @@ def test_map_round_trip_and_from_map(route, tmp_path):
 
 
 def test_map_of_another_version_is_refused(route, tmp_path, monkeypatch):
-    import flyvpr.maps as maps
+    import flyvpr.localization.maps as maps
 
     bag = write_bag(tmp_path / "m.bag", route.images["summer"], version=1)
     monkeypatch.setattr(maps, "MAP_VERSION", 99)

@@ -7,9 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from flyvpr.localization.trace import HTML_BINS, _bars, _binned, _normalised, _upscale, open_trace
+from flyvpr.localization.tracking import Step
 from flyvpr.sources.base import Batch
-from flyvpr.trace import HTML_BINS, _bars, _binned, _normalised, _upscale, open_trace
-from flyvpr.tracking import Step
 
 N_PLACES = 40
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from fake_filters import Scripted
-from flyvpr.localizer import LOCALIZED, LOST, Localizer
+from flyvpr.localization import LOCALIZED, LOST, Localizer
+from flyvpr.localization.tracking import track
 from flyvpr.methods import Method, make_method
 from flyvpr.sources import Positions, Source
-from flyvpr.tracking import track
 
 N = 6
 
@@ -83,7 +83,7 @@ def test_without_odometry_the_filter_gets_none(images):
 
 def test_ground_truth_frames_is_the_datasets_one():
     from flyvpr.datasets import ground_truth_from_frames
-    from flyvpr.tracking import ground_truth_frames
+    from flyvpr.localization.tracking import ground_truth_frames
 
     q, r = np.array([0, 5, 9]), np.array([0, 2, 4, 6, 8, 10])
     np.testing.assert_array_equal(ground_truth_frames(q, r, 1), ground_truth_from_frames(q, r, 1))
@@ -92,7 +92,7 @@ def test_ground_truth_frames_is_the_datasets_one():
 
 
 def test_ground_truth_positions_skips_unknown_positions():
-    from flyvpr.tracking import ground_truth_positions
+    from flyvpr.localization.tracking import ground_truth_positions
 
     q = np.array([[0.0, 0.0], [np.nan, np.nan], [10.0, 0.0]])
     r = np.array([[0.0, 3.0], [10.0, 4.0], [np.nan, 0.0], [0.0, 50.0]])

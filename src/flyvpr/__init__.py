@@ -13,12 +13,11 @@ IEEE RA-L 2020).  :class:`Localizer` streams one frame at a time.
 """
 
 from ._validation import NotFittedError
+from ._version import __version__
 from .frontends import FRONTENDS, FlyHash, FlyNet, KenyonEncoder, PixelsEncoder
-from .localizer import Fix, Localizer
+from .localization import Fix, Localizer
 from .methods import METHODS, make_method
 from .temporal import CANN, FILTERS, SeqSLAM
-
-__version__ = "0.1.0"
 
 __all__ = [
     "__version__",

@@ -30,7 +30,7 @@ __all__ = [
 ]
 
 #: the method ``flyvpr map``, ``flyvpr localize``, ``flyvpr demo`` and
-#: :class:`flyvpr.localizer.Localizer` use unless told otherwise: the fly-inspired front end
+#: :class:`flyvpr.localization.Localizer` use unless told otherwise: the fly-inspired front end
 #: (fixed optic lobe + Kenyon-cell expansion, 512 bytes per place) with the CANN, the best
 #: measured fly-inspired hybrid (docs/results/accuracy.md)
 DEFAULT_METHOD = "kenyon+cann"

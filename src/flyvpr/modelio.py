@@ -34,10 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
 from ._io import atomic_open
 from ._npy import ArrayFileError, npz_member_header, read_npz_member
 from ._validation import ArraySpec, PartSpec, check_memory
+from ._version import __version__
 from .frontends import FRONTENDS
 from .images import DEFAULT_SIZE
 from .methods import METHODS, Method
@@ -70,7 +70,7 @@ _META_FIELDS: dict[str, type | tuple[type, ...]] = {
     "filter": (dict, type(None)),
     "checksum": str,
 }
-#: optional sections that extend a model file (a map adds ``map``, read by flyvpr.maps)
+#: optional sections that extend a model file (a map adds ``map``, read by flyvpr.localization.maps)
 _SECTIONS = ("map",)
 
 
@@ -171,7 +171,7 @@ def save_method(method: Method, path, *, size=DEFAULT_SIZE, sections=None) -> Pa
         The (H, W) the images were pre-processed to.
     sections : dict, optional
         Extra sections, name -> (JSON-able dict, arrays named ``<name>/...``); a map file's
-        ``map`` section (see :mod:`flyvpr.maps`).
+        ``map`` section (see :mod:`flyvpr.localization.maps`).
 
     Returns
     -------

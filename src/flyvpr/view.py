@@ -88,7 +88,7 @@ class LiveView:
 
     Parameters
     ----------
-    map_ : flyvpr.maps.Map
+    map_ : flyvpr.localization.maps.Map
         The map the run localizes against (its thumbnails and positions are shown).
     serve : bool
         Serve the web viewer (``web_port``) and the data (``grpc_port``) while the run

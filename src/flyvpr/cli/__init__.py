@@ -17,7 +17,7 @@ import sys
 import threading
 from contextlib import contextmanager
 
-from .. import __version__
+from .._version import __version__
 from . import demo, evaluate, experiment, info, localize, map
 from ._common import UsageError
 

@@ -208,7 +208,7 @@ def _first_ctrl_c_stops(source):
 def cmd_localize_live(args) -> int:
     from tqdm.auto import tqdm
 
-    from ..localizer import LOCALIZED, Localizer
+    from ..localization import LOCALIZED, Localizer
     from ..sources import LiveSource, RecordingError
 
     for option in (

@@ -279,7 +279,7 @@ class McapRecords(Records):
     def _begin(self) -> None:
         from mcap.writer import CompressionType, Writer
 
-        from .. import __version__
+        from .._version import __version__
 
         if self.flush:
             self.writer = Writer(self.fh, use_chunking=False, compression=CompressionType.NONE)

@@ -20,7 +20,7 @@ from .map import recording_inputs
 
 
 def _ground_truth(args, m, step, gt_positions):
-    from ..tracking import ground_truth_frames, ground_truth_positions
+    from ..localization.tracking import ground_truth_frames, ground_truth_positions
 
     b = step.batch
     if args.ground_truth == "frames":
@@ -59,9 +59,9 @@ def _odometry(args, loc, positions) -> tuple[bool, str | None]:
 def cmd_localize_recording(args) -> int:
     from tqdm.auto import tqdm
 
-    from ..localizer import LOCALIZED, Localizer
+    from ..localization import LOCALIZED, Localizer
+    from ..localization.tracking import track
     from ..sources import RecordingError, open_source, read_positions
-    from ..tracking import track
 
     if args.ground_truth is not None and args.ground_truth != "frames" and args.radius is None:
         raise UsageError("--ground-truth CSV needs --radius (metres)")
@@ -197,7 +197,7 @@ def _run_metadata(args, m, source) -> dict:
 
 
 def _tracer(path, m):
-    from ..trace import open_trace
+    from ..localization.trace import open_trace
 
     return open_trace(path, m)
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .. import __version__
 from .._io import write_json_atomic
+from .._version import __version__
 from ..datasets import load_benchmark
 from ..evaluation import evaluate_method
 from ._common import (

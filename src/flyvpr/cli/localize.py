@@ -87,7 +87,7 @@ def _cmd_benchmark(args) -> int:
     from tqdm.auto import tqdm
 
     from ..evaluation import speed_profile
-    from ..localizer import LOCALIZED, Localizer
+    from ..localization import LOCALIZED, Localizer
 
     if args.method not in METHODS:
         raise UsageError(f"--method: unknown method {args.method!r}")

@@ -55,7 +55,7 @@ def recording_inputs(args) -> list:
 
 
 def cmd_map(args) -> int:
-    from ..maps import Map
+    from ..localization.maps import Map
 
     if args.method not in METHODS:
         raise UsageError(f"--method: unknown method {args.method!r}")

@@ -153,7 +153,7 @@ def _dataset_protocol_text(ds, proto: dict | None) -> str:
 
 # -- the report ----------------------------------------------------------------------------------
 def _build(config: ExperimentConfig, experiment: dict, records: dict, figures: bool) -> Document:
-    from .. import __version__
+    from .._version import __version__
 
     doc = Document(config.title)
     doc.heading(1, config.title)

@@ -83,7 +83,7 @@ def machine_info() -> dict:
         usable = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         usable = os.cpu_count()
-    from .. import __version__
+    from .._version import __version__
 
     info = {
         "cpu": cpu,

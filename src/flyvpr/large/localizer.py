@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from .._validation import check_positive_int
-from ..localizer import LOCALIZED, Fix
+from ..localization import LOCALIZED, Fix
 from ..temporal.cann import WindowedCANN
 from .codes import as_words, hamming_similarity, hamming_similarity_at
 from .index import CandidateIndex, pool_candidates
@@ -39,7 +39,7 @@ _CHECK_MARGIN = 0.06
 
 
 class LargeLocalizer:
-    """One frame in, a :class:`~flyvpr.localizer.Fix` out, on a very large map.
+    """One frame in, a :class:`~flyvpr.localization.Fix` out, on a very large map.
 
     Parameters
     ----------

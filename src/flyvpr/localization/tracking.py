@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .datasets import ground_truth_from_frames, ground_truth_from_positions
-from .sources import Batch, Source
+from ..datasets import ground_truth_from_frames, ground_truth_from_positions
+from ..sources import Batch, Source
 
 __all__ = ["Step", "track", "ground_truth_frames", "ground_truth_positions"]
 
@@ -35,7 +35,7 @@ class Step:
         The filter's score rows (the CANN's activity over places).
     relocated : ndarray of bool, shape (n,)
     states : ndarray of str, shape (n,)
-        ``"localized"`` or ``"lost"`` (see :class:`flyvpr.localizer.Fix`).
+        ``"localized"`` or ``"lost"`` (see :class:`flyvpr.localization.Fix`).
     positions : ndarray, shape (n, 2), or None
         The map positions of the matched places, when the map has positions.
     """
@@ -64,7 +64,7 @@ def track(
     Parameters
     ----------
     localizer : Localizer
-        Fitted, e.g. :meth:`flyvpr.localizer.Localizer.from_map` (its ``map_``, when it has
+        Fitted, e.g. :meth:`flyvpr.localization.Localizer.from_map` (its ``map_``, when it has
         one, gives the map's positions to the steps).
     source : Source
         The recording (:mod:`flyvpr.sources`).

@@ -8,10 +8,10 @@ section, ``map``: the same safe, versioned and checksummed format, no pickle.
 
 Examples
 --------
->>> from flyvpr.maps import Map
+>>> from flyvpr.localization.maps import Map
 >>> m = Map.build("runs/summer.mp4", every="0.5s")            # doctest: +SKIP
 >>> m.save("route.map")                                        # doctest: +SKIP
->>> from flyvpr.localizer import Localizer
+>>> from flyvpr.localization.localizer import Localizer
 >>> loc = Localizer.from_map("route.map")                      # doctest: +SKIP
 """
 
@@ -22,12 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ._chunks import ChunkRunner
-from ._validation import ArraySpec, check_memory
-from .images import DEFAULT_SIZE
-from .methods import DEFAULT_METHOD, Method, make_method
-from .modelio import _load, save_method
-from .sources import (
+from .._chunks import ChunkRunner
+from .._validation import ArraySpec, check_memory
+from ..images import DEFAULT_SIZE
+from ..methods import DEFAULT_METHOD, Method, make_method
+from ..modelio import _load, save_method
+from ..sources import (
     Batch,
     Positions,
     RecordingError,
@@ -36,7 +36,7 @@ from .sources import (
     parse_every,
     read_positions,
 )
-from .temporal.base import OnlineFilter
+from ..temporal.base import OnlineFilter
 
 __all__ = ["Map", "MAP_VERSION", "MapFileError"]
 
@@ -112,7 +112,7 @@ class Map:
         have a position (None without positions, or when that median is 0 or undefined).
 
         It turns odometry in metres into places for the localizer
-        (:meth:`flyvpr.localizer.Localizer.from_map`).
+        (:meth:`flyvpr.localization.Localizer.from_map`).
         """
         if self.positions is None:
             return None

@@ -22,9 +22,9 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from ._validation import NotFittedError, check_images
-from .methods import DEFAULT_METHOD, Method, make_method
-from .temporal.base import OnlineFilter
+from .._validation import NotFittedError, check_images
+from ..methods import DEFAULT_METHOD, Method, make_method
+from ..temporal.base import OnlineFilter
 
 if TYPE_CHECKING:
     from .maps import Map
@@ -124,7 +124,7 @@ class Localizer:
     place_spacing : float, optional
         Metres between consecutive reference places, to turn the ``distance`` given to
         :meth:`update` into places.  :meth:`from_map` takes it from the map's positions
-        (:attr:`flyvpr.maps.Map.place_spacing`).
+        (:attr:`flyvpr.localization.maps.Map.place_spacing`).
 
     Examples
     --------
@@ -162,7 +162,7 @@ class Localizer:
 
     @classmethod
     def from_map(cls, path, *, size=None, place_spacing=None) -> Localizer:
-        """A localizer over the places of a map (see :class:`flyvpr.maps.Map`).
+        """A localizer over the places of a map (see :class:`flyvpr.localization.maps.Map`).
 
         Parameters
         ----------
@@ -172,7 +172,7 @@ class Localizer:
             The image size the caller will feed; a map built for another size is refused.
         place_spacing : float, optional
             Metres between consecutive places; default the map's
-            :attr:`~flyvpr.maps.Map.place_spacing` (None for a map without positions).
+            :attr:`~flyvpr.localization.maps.Map.place_spacing` (None for a map without positions).
 
         The map is kept as ``map_`` (timestamps, positions and thumbnails of the places).
         """

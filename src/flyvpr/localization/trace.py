@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from ._io import atomic_open
+from .._io import atomic_open
 from .localizer import LOST
 
 __all__ = ["VideoTrace", "HtmlTrace", "open_trace", "HTML_BINS"]
@@ -72,7 +72,7 @@ class VideoTrace:
     """Write a trace video frame by frame (use :func:`open_trace`)."""
 
     def __init__(self, fh, path: Path, the_map, fps: float = 10.0):
-        from .sources.base import require_extra
+        from ..sources.base import require_extra
 
         av = require_extra("av")
         self.map = the_map
@@ -186,7 +186,8 @@ def _png_sprite(stack: np.ndarray) -> str:
 def open_trace(path, the_map):
     """A trace writer for ``path`` (``.mp4``/``.mkv`` video or ``.html``), written atomically.
 
-    Use as ``with open_trace(path, map) as t: t.add(step)`` for each :class:`flyvpr.tracking.Step`.
+    Use as ``with open_trace(path, map) as t: t.add(step)`` for each
+    :class:`flyvpr.localization.tracking.Step`.
     """
     path = Path(path)
     html = path.suffix.lower() in (".html", ".htm")
