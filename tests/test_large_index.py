@@ -139,3 +139,44 @@ def test_pool_ignores_padding_and_checks_input():
         pool_candidates([[1, 2]], [[1]], 256)
     with pytest.raises(ValueError, match="speed"):
         pool_candidates([[1]], [[1]], 256, speed=(2, 1))
+
+
+def _pool_by_loop(places, dist, n_bits, speed, slack):
+    """pool_candidates written as its docstring says, one place and one candidate at a time."""
+    n_frames = len(places)
+    low, high = speed
+    scored = set()
+    for t in range(n_frames):
+        for p in places[t]:
+            if p >= 0:
+                scored.add(int(np.rint(p + 0.5 * (low + high) * (n_frames - 1 - t))))
+    scored |= {int(p) for p in places[-1] if p >= 0}
+    totals = {}
+    for s in scored:
+        total = 0.0
+        for t in range(n_frames):
+            ahead = n_frames - 1 - t
+            best = 0.0
+            for p, d in zip(places[t], dist[t], strict=True):
+                if p >= 0 and p + low * ahead - slack <= s <= p + high * ahead + slack:
+                    best = max(best, 0.5 - d / n_bits)
+            total += best
+        totals[s] = total
+    order = sorted(totals, key=lambda s: (-totals[s], s))
+    return np.array(order, dtype=np.int64), np.array([totals[s] for s in order])
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("speed, slack", [((0.0, 2.0), 3), ((0.5, 2.0), 0), ((1.0, 1.0), 2)])
+def test_pool_matches_a_loop(seed, speed, slack):
+    rng = np.random.default_rng(seed)
+    n_frames, k = int(rng.integers(1, 12)), int(rng.integers(1, 40))
+    places = rng.integers(0, 300, (n_frames, k))
+    places[rng.random((n_frames, k)) < 0.2] = -1  # padding
+    if n_frames > 2:
+        places[1] = -1  # a frame that was not searched
+    dist = rng.integers(40, 200, (n_frames, k))
+    best, score = pool_candidates(places, dist, 256, speed=speed, slack=slack)
+    ref_best, ref_score = _pool_by_loop(places, dist, 256, speed, slack)
+    np.testing.assert_array_equal(best, ref_best)
+    np.testing.assert_allclose(score, ref_score)

@@ -445,15 +445,40 @@ def pool_candidates(
     ahead = (n_frames - 1 - np.arange(n_frames))[:, None].astype(np.float64)
     valid = p >= 0
     weight = np.where(valid, np.maximum(0.0, 0.5 - d / n_bits), 0.0)
-    lo = p + low * ahead - slack
-    hi = p + high * ahead + slack
     mid = np.rint(p + 0.5 * (low + high) * ahead).astype(np.int64)
     scored = np.unique(np.concatenate([mid[valid], p[-1][valid[-1]]]))
     if scored.size == 0:
         return np.empty(0, np.int64), np.empty(0, np.float64)
     total = np.zeros(scored.size)
     for t in range(n_frames):
-        inside = (scored[:, None] >= lo[t][None, :]) & (scored[:, None] <= hi[t][None, :])
-        total += np.max(np.where(inside, weight[t][None, :], 0.0), axis=1)
+        if not valid[t].any():
+            continue
+        # p supports s where p + low * a - slack <= s <= p + high * a + slack: the frame's
+        # candidates between s - high * a - slack and s - low * a + slack, a run of them once
+        # sorted; the strongest weight of each run from a table of running maxima.
+        order = np.argsort(p[t][valid[t]], kind="stable")
+        at = p[t][valid[t]][order]
+        w = weight[t][valid[t]][order]
+        first = np.searchsorted(at, scored - high * ahead[t, 0] - slack, side="left")
+        stop = np.searchsorted(at, scored - low * ahead[t, 0] + slack, side="right")
+        total += _range_max(w, first, stop)
     order = np.lexsort((scored, -total))
     return scored[order], total[order]
+
+
+def _range_max(values: np.ndarray, first: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """``max(values[first[i]:stop[i]])`` for each ``i`` (0 where the run is empty), from a
+    sparse table of maxima over runs of 1, 2, 4, ... values."""
+    table = [values]  # table[j][i] = max(values[i : i + 2**j])
+    while 2 ** len(table) <= len(values):
+        half = 2 ** (len(table) - 1)
+        table.append(np.maximum(table[-1][:-half], table[-1][half:]))
+    length = stop - first
+    out = np.zeros(first.shape)
+    some = length > 0
+    level = np.floor(np.log2(np.maximum(length, 1))).astype(np.int64)
+    for j, row in enumerate(table):
+        pick = some & (level == j)
+        if pick.any():
+            out[pick] = np.maximum(row[first[pick]], row[stop[pick] - 2**j])
+    return out

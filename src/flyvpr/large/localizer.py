@@ -4,18 +4,22 @@ when lost.
 :class:`LargeLocalizer` runs the place-velocity layer
 (:class:`~flyvpr.temporal.cann.WindowedCANN`) on a window of places around its packet, scoring
 each frame's compact code against those places only, so a tracked frame costs the same on a
-map of 10^3 or 10^7 places.  When the layer has been ``lost`` for ``reseed_after`` frames (and
-every ``pool`` lost frames after that; at once on the first frame), the codes of the last
-``pool`` frames go to an index over the map's codes, their candidates are pooled
-(:func:`~flyvpr.large.pool_candidates`) and ranked by the similarity along their recent
-tracks, and the layer re-seeds around the best unless its own track is as good.  Every
-``check_every`` tracked frames the index is asked too, and a candidate outside the window
-whose track clearly beats the layer's makes it re-seed (a kidnap the layer has not noticed).
+map of 10^3 or 10^7 places.  When the layer has been ``lost`` for ``reseed_after`` frames (at
+once on the first frame), the codes of the newest frames go to an index over the map's codes,
+the candidates of the lost stretch's frames are pooled (:func:`~flyvpr.large.pool_candidates`)
+and ranked by their tracks over those frames (each place's similarity less its baseline, the
+layer's own adaptation), and the layer re-seeds around the best, when it beats the layer's own
+track by more than chance, and is run over those frames again (a replay) so that it has
+weighed their evidence already.  Searches come ``reseed_after`` frames after a re-seed and
+twice as far apart each time the layer's own track won.  Every ``check_every`` tracked frames
+the index is asked too, and a candidate outside the window whose track clearly beats the
+layer's makes it re-seed (a kidnap the layer has not noticed).
 """
 
 from __future__ import annotations
 
 import time
+from collections import deque
 
 import numpy as np
 
@@ -27,14 +31,19 @@ from .index import CandidateIndex, pool_candidates
 
 __all__ = ["LargeLocalizer"]
 
-#: pooled candidates whose recent tracks are compared with the layer's
+#: pooled candidates whose tracks are compared with the layer's
 _COMPARED = 100
-#: speeds (places per frame) over which a recent track is scored
+#: speeds (places per frame) over which a track is scored
 _TRACK_SPEEDS = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
-#: a lost layer re-seeds where a candidate's track beats its own by this much mean similarity
-#: (0.02: five bits of 256 per frame)
-_LOST_MARGIN = 0.02
-#: a tracked layer, at a check, by this much (a stronger case against a tracked packet)
+#: a candidate's tracks may end this many places either side of it
+_REFINE = 10
+#: a place's baseline is shrunk towards chance as if this many more frames had scored 1/2
+_PRIOR_FRAMES = 5
+#: a lost layer re-seeds where a candidate's track beats its own by this many standard errors
+#: of a mean similarity of unrelated codes over the tracks' frames
+_LOST_Z = 3.5
+#: a tracked layer, at a check, by this much mean similarity (a stronger case against a
+#: tracked packet)
 _CHECK_MARGIN = 0.06
 
 
@@ -55,10 +64,13 @@ class LargeLocalizer:
     k : int, default 100
         Candidates per frame from the index.
     pool : int, default 10
-        Frames whose candidates are pooled; a lost layer re-seeds every ``pool`` frames.
-    reseed_after : int, default 10
-        Lost frames before the first re-seed of a lost stretch (a layer often dips below
-        ``localized`` for a few frames on the right stretch).
+        Frames whose candidates are pooled and over which tracks are scored: the last
+        ``pool`` frames, only those of the lost stretch when lost.
+    reseed_after : int, default 4
+        Lost frames before the first search of a lost stretch (a layer often dips below
+        ``localized`` for a few frames on the right stretch), and between a re-seed and the
+        next search.  A search sends the index the codes of at most this many frames, the
+        newest it has not seen (each code is searched once).
     check_every : int, default 1000
         Tracked frames between two checks against the index (0: never).
     speed : (float, float), default (0.0, 2.0)
@@ -70,8 +82,28 @@ class LargeLocalizer:
     ----------
     filter_ : WindowedCANN
     n_frames_, n_searches_, n_reseeds_ : int
+        Frames, codes sent to the index and re-seeds since :meth:`reset`.
     search_s_ : float
-        Seconds spent in the index and the pooling since :meth:`reset`.
+        Seconds spent relocating since :meth:`reset`: the index, the pooling, the tracks and
+        the re-seeds' replays.
+
+    Notes
+    -----
+    A lost stretch is searched at its ``reseed_after``-th frame, then ``reseed_after``
+    frames after each re-seed, or, where the layer's own track won, after as many frames as
+    the stretch has lasted (with the default, at lost frames 4, 8, 16, 32, ...: a long dip
+    on the right stretch backs off, a kidnapped layer is re-seeded within a few frames).
+
+    A candidate's track is scored, at speeds of 0 to 2 places per frame and ending within
+    10 places of it, by the mean over the frames of each frame's similarity to the track's
+    place less that place's baseline, its mean similarity to all these frames (shrunk
+    towards 1/2 as if five more frames had scored 1/2): the layer's own adaptation, which
+    keeps a place whose code resembles every query of these conditions from winning on all of
+    them.  A lost layer re-seeds where the best track beats the layer's own (at its place) by
+    more than 3.5 standard errors of a mean similarity of unrelated codes.  The layer then
+    restarts around the candidates as they were at the oldest of these frames and steps
+    through them (the replay), so that it is ``localized`` as soon as their evidence allows
+    instead of after as many new frames.
 
     Examples
     --------
@@ -98,7 +130,7 @@ class LargeLocalizer:
         window: int = 2048,
         k: int = 100,
         pool: int = 10,
-        reseed_after: int = 10,
+        reseed_after: int = 4,
         check_every: int = 1000,
         speed=(0.0, 2.0),
         **params,
@@ -136,11 +168,13 @@ class LargeLocalizer:
     def reset(self) -> None:
         """Forget all frames (the next one is searched for in the whole map)."""
         self.filter_.reset()
-        self._recent: list[np.ndarray] = []  # the last ``pool`` query codes
-        self._places: list[np.ndarray] = []
-        self._dists: list[np.ndarray] = []
+        # the last ``pool`` frames' codes and odometry, newest last
+        self._recent: deque[np.ndarray] = deque(maxlen=self.pool)
+        self._velocities: deque[float | None] = deque(maxlen=self.pool)
+        # frame number -> the index's (places, distances) for its code, for the last frames
+        self._found: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._lost = 0
-        self._next_search, self._gap = self.reseed_after, self.pool
+        self._next_search = self.reseed_after
         self.n_frames_ = 0
         self.n_searches_ = 0
         self.n_reseeds_ = 0
@@ -174,115 +208,147 @@ class LargeLocalizer:
             )
         f = self.filter_
         self._recent.append(q)
-        del self._recent[: -self.pool]
+        self._velocities.append(velocity)
         if f.state_ != LOCALIZED:
             self._lost += 1
-            # Re-seed on the very first frame, then after ``reseed_after`` lost frames; the
-            # index is asked only then, for the last ``pool`` frames at once, so a short dip
-            # below ``localized`` costs no search.  Then again every ``pool`` lost frames,
-            # twice as long after each time the layer's own track won (a long dip on the
-            # right stretch backs off; a kidnapped layer keeps asking).
             if self.n_frames_ == 0 or self._lost == self._next_search:
-                self._search_recent()
-                reseeded = self._reseed(None)
-                self._gap = self.pool if reseeded or self.n_frames_ == 0 else 2 * self._gap
-                self._next_search = self._lost + self._gap
+                # The lost stretch's frames (the frames before it belong to the track the
+                # layer lost): again soon after a re-seed, twice as late after each time the
+                # layer's own track won (a long dip on the right stretch backs off).
+                reseeded = self._reseed_lost(min(self._lost, self.pool))
+                self._next_search = self._lost + (self.reseed_after if reseeded else self._lost)
         else:
             self._lost = 0
-            self._next_search, self._gap = self.reseed_after, self.pool
+            self._next_search = self.reseed_after
             check = self.check_every and self.n_frames_ % self.check_every == self.check_every - 1
             if check:
-                self._search_recent()
-                if self._far_candidate_wins():
-                    self._reseed(_CHECK_MARGIN)
+                self._check()
         lo, hi = f.window_
         scores = hamming_similarity(q[None], self.codes, lo, hi)[0]
         place, confidence, state = f.step(scores, velocity)
         self.n_frames_ += 1
+        for frame in [t for t in self._found if t <= self.n_frames_ - self.pool]:
+            del self._found[frame]  # no longer pooled
         return Fix(int(place), float(confidence), state)
 
-    def _search_recent(self) -> None:
-        """The index's candidates for each of the last ``pool`` frames (one batch)."""
+    def _candidates(self, n_frames: int) -> np.ndarray:
+        """Candidate places at this frame, best first (at most _COMPARED): the index's answers
+        for the last ``n_frames`` frames, pooled; the newest ``reseed_after`` of them not
+        searched yet are searched first, in one batch (a frame never searched adds nothing)."""
+        now = self.n_frames_
+        frames = range(now - n_frames + 1, now + 1)
+        new = [t for t in frames if t not in self._found][-self.reseed_after :]
         t0 = time.perf_counter()
-        places, dist = self.index.search(np.stack(self._recent), self.k)
-        self._places, self._dists = list(places), list(dist)
-        self.n_searches_ += len(self._recent)
-        self.search_s_ += time.perf_counter() - t0
-
-    def _pooled(self) -> tuple[np.ndarray, np.ndarray]:
-        t0 = time.perf_counter()
-        out = pool_candidates(
-            np.stack(self._places), np.stack(self._dists), self.n_bits, speed=self.speed
+        if new:
+            codes = np.stack([self._recent[t - now - 1] for t in new])
+            places, dist = self.index.search(codes, self.k)
+            self._found.update(zip(new, zip(places, dist, strict=True), strict=True))
+            self.n_searches_ += len(new)
+        none = (np.full(self.k, -1, np.int64), np.full(self.k, self.n_bits + 1, np.int32))
+        answers = [self._found.get(t, none) for t in frames]
+        pooled, scores = pool_candidates(
+            np.stack([a[0] for a in answers]),
+            np.stack([a[1] for a in answers]),
+            self.n_bits,
+            speed=self.speed,
         )
         self.search_s_ += time.perf_counter() - t0
-        return out
+        keep = (pooled < self.n_places) & (scores > 0)  # not moved on past the end of the map
+        return pooled[keep][:_COMPARED]
 
-    def _reseed(self, margin: float | None) -> bool:
-        """Re-seed the layer around the pooled candidates whose recent track beats the
-        layer's own by ``margin`` (mean similarity; any candidate on the first frame).  Returns
-        whether it did."""
-        places, scores = self._pooled()
-        keep = places < self.n_places  # moved on past the end of the map
-        places, scores = places[keep][:_COMPARED], scores[keep][:_COMPARED]
-        if places.size == 0 or scores[0] <= 0:
+    def _reseed_lost(self, n_frames: int) -> bool:
+        """A lost layer: search, and re-seed around the candidates whose tracks over the last
+        ``n_frames`` frames beat the layer's own by more than chance (any candidate when the
+        layer has no place yet).  Returns whether it did."""
+        places = self._candidates(n_frames)
+        if places.size == 0:
             return False
         t0 = time.perf_counter()
-        tracks = self._track_scores(places)
+        here = self.filter_.place_
+        ends = places if here < 0 else np.append(places, here)
+        tracks, ends, speeds = self._track_scores(ends, n_frames)
         self.search_s_ += time.perf_counter() - t0
-        if margin is None:
-            # Lost: the candidates ranked by their recent tracks.  Where the best is near the
-            # packet, the layer already weighs it; where the layer's own recent track is as
-            # good, the layer is only unsure (a dip in its support), not somewhere else.
-            best = int(places[np.argmax(tracks)])
-            here = self.filter_.place_
-            if here >= 0:
-                if abs(best - here) <= self.filter_.width // 4:
-                    return False
-                if self._track_scores(np.array([here]))[0] >= tracks.max():
-                    return False
-            w = np.exp((tracks - tracks.max()) * (self.n_bits / 8.0))
-            self.filter_.reseed(places, w)
-            self.n_reseeds_ += 1
-            return True
-        t0 = time.perf_counter()
-        own = self._track_scores(np.array([self.filter_.place_]))[0]
-        better = tracks > own + margin
-        self.search_s_ += time.perf_counter() - t0
-        if not better.any():
-            return False
-        # The candidates' weights: how much better than the rest their tracks are, in units
-        # of a few bits of similarity.
-        w = np.exp((tracks[better] - tracks[better].max()) * (self.n_bits / 8.0))
-        self.filter_.reseed(places[better], w)
-        self.n_reseeds_ += 1
+        if here >= 0:
+            own, tracks, ends, speeds = tracks[-1], tracks[:-1], ends[:-1], speeds[:-1]
+            # The best of ~_COMPARED candidates at several speeds and ends beats an unrelated
+            # track by a few standard errors by chance alone (the layer's own track may be on
+            # the right stretch, dipping where its frames match poorly).
+            if tracks.max() <= own + _LOST_Z * 0.5 / np.sqrt(self.n_bits * n_frames):
+                return False
+        self._replay(ends, tracks, speeds, n_frames)
         return True
 
-    def _track_scores(self, places: np.ndarray) -> np.ndarray:
-        """Mean similarity of the recent query codes along a track ending at each of
-        ``places`` (the best over a few speeds: 0 to 2 places per frame)."""
-        codes = np.stack(self._recent)
-        n = len(codes)
-        back = (n - 1 - np.arange(n))[:, None] * _TRACK_SPEEDS[None, :]  # (frames, speeds)
-        at = places[:, None, None] - np.rint(back)[None].astype(np.int64)
-        at = np.clip(at, 0, self.n_places - 1)  # (places, frames, speeds)
-        sims = np.empty(at.shape, np.float32)
-        for t in range(n):
-            flat = at[:, t, :].ravel()
-            sims[:, t, :] = hamming_similarity_at(codes[t][None], self.codes, flat)[0].reshape(
-                at.shape[0], at.shape[2]
-            )
-        return sims.mean(axis=1).max(axis=1)
-
-    def _far_candidate_wins(self) -> bool:
-        """At a check: whether a pooled candidate outside the window has a recent track
-        better than the layer's by the check's margin."""
-        return self._reseed_would(_CHECK_MARGIN)
-
-    def _reseed_would(self, margin: float) -> bool:
-        places, _ = self._pooled()
+    def _check(self) -> None:
+        """A tracked layer: search, and re-seed around the candidates outside the window whose
+        tracks over the last ``pool`` frames beat the layer's own by _CHECK_MARGIN (a kidnap
+        the layer has not noticed)."""
+        n_frames = len(self._recent)
+        places = self._candidates(n_frames)
         lo, hi = self.filter_.window_
-        places = places[(places < self.n_places) & ((places < lo) | (places >= hi))][:_COMPARED]
-        if places.size == 0 or self.filter_.place_ < 0:
-            return False
-        own = self._track_scores(np.array([self.filter_.place_]))[0]
-        return bool((self._track_scores(places) > own + margin).any())
+        places = places[(places < lo) | (places >= hi)]
+        if places.size == 0:
+            return
+        t0 = time.perf_counter()
+        tracks, ends, speeds = self._track_scores(np.append(places, self.filter_.place_), n_frames)
+        self.search_s_ += time.perf_counter() - t0
+        own, tracks, ends, speeds = tracks[-1], tracks[:-1], ends[:-1], speeds[:-1]
+        better = tracks > own + _CHECK_MARGIN
+        if better.any():
+            self._replay(ends[better], tracks[better], speeds[better], n_frames)
+
+    def _replay(self, ends, tracks, speeds, n_frames: int) -> None:
+        """Re-seed the layer around the tracks ending at ``ends`` as they were ``n_frames -
+        1`` frames ago and step it through those frames' codes (not this one's), so that it
+        has weighed their evidence by the time this frame comes."""
+        t0 = time.perf_counter()
+        # The candidates' weights: how much better than the rest their tracks are, in units
+        # of a few bits of similarity.
+        w = np.exp((tracks - tracks.max()) * (self.n_bits / 8.0))
+        start = ends - np.rint(speeds * (n_frames - 1)).astype(np.int64)
+        f = self.filter_
+        f.reseed(np.clip(start, 0, self.n_places - 1), w)
+        self.n_reseeds_ += 1
+        for i in range(-n_frames, -1):
+            lo, hi = f.window_
+            scores = hamming_similarity(self._recent[i][None], self.codes, lo, hi)[0]
+            f.step(scores, None if i == -n_frames else self._velocities[i])
+        self.search_s_ += time.perf_counter() - t0
+
+    def _track_scores(
+        self, places: np.ndarray, n_frames: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The best track over the last ``n_frames`` frames ending within _REFINE places of
+        each of ``places``: its score, its end and its speed.
+
+        A track ending at a place at a speed (_TRACK_SPEEDS, places per frame) scores the mean,
+        over the frames, of the frame's similarity to the track's place there less that
+        place's baseline: its mean similarity to all these frames, shrunk towards chance (1/2)
+        as if _PRIOR_FRAMES more frames had scored 1/2.  The baseline is the layer's
+        adaptation (each place's running mean input, subtracted): a place whose code
+        resembles every query of these conditions stands out on none of them.  The shrinking
+        keeps a standing query (frames all alike, each place's baseline its similarity) from
+        scoring nothing.  The ends tried around each place: an index's candidate is the best
+        match of one frame, often a few places from where the frames fit best together.
+        """
+        codes = np.stack(list(self._recent)[-n_frames:])
+        reach = int(np.ceil(_TRACK_SPEEDS.max() * (n_frames - 1)))
+        width = reach + 2 * _REFINE + 1  # the places one candidate's tracks visit
+        block = (places - _REFINE - reach)[:, None] + np.arange(width)[None, :]
+        block = np.clip(block, 0, self.n_places - 1)
+        sims = hamming_similarity_at(codes, self.codes, block.ravel())
+        sims = sims.reshape(n_frames, len(places), width).transpose(1, 0, 2)  # place, frame
+        baseline = (sims.sum(axis=1) + 0.5 * _PRIOR_FRAMES) / (n_frames + _PRIOR_FRAMES)
+        sims -= baseline[:, None, :]
+        # speed s, end e (in the block): at frame t the block's place e - round(s * (n - 1 - t))
+        back = np.rint(_TRACK_SPEEDS[:, None] * (n_frames - 1 - np.arange(n_frames))[None, :])
+        ends = reach + np.arange(2 * _REFINE + 1)
+        at = ends[None, :, None] - back[:, None, :].astype(np.int64)  # (speed, end, frame)
+        at += (np.arange(n_frames) * width)[None, None, :]
+        score = sims.reshape(len(places), -1)[:, at].mean(axis=3).reshape(len(places), -1)
+        best = np.argmax(score, axis=1)
+        speed, end = np.divmod(best, 2 * _REFINE + 1)
+        return (
+            score[np.arange(len(places)), best],
+            np.clip(places + end - _REFINE, 0, self.n_places - 1),
+            _TRACK_SPEEDS[speed],
+        )
