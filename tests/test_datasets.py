@@ -130,7 +130,7 @@ def test_ground_truth_from_positions_large_route():
         ([[0, 0]], [[0, 0, 0]], 1, ValueError, "same number of columns"),
         ([[0, np.nan]], [[0, 0]], 1, ValueError, "query_positions contains NaN"),
         ([], [[0, 0]], 1, ValueError, r"query_positions must have shape \(N, D\)"),
-        ([[0, 0]], [[0, 0]], -1, ValueError, "radius must be a finite number >= 0"),
+        ([[0, 0]], [[0, 0]], -1, ValueError, "radius must be >= 0.0; got -1.0"),
         ([[0, 0]], [[0, 0]], "50", TypeError, "radius must be a number"),
     ],
 )

@@ -311,8 +311,8 @@ def test_read_poses_reads_only_needed_columns(tmp_path):
     "kwargs, err, match",
     [
         ({"spacing": 0}, ValueError, "spacing must be > 0"),
-        ({"spacing": -1.0}, ValueError, "spacing must be a finite number >= 0"),
-        ({"tolerance_m": float("nan")}, ValueError, "tolerance_m must be a finite"),
+        ({"spacing": -1.0}, ValueError, "spacing must be >= 0.0; got -1.0"),
+        ({"tolerance_m": float("nan")}, ValueError, "tolerance_m must be finite; got nan"),
         ({"tolerance_m": "50"}, TypeError, "tolerance_m must be a number"),
         ({"count": 0}, ValueError, "count must be >= 1"),
     ],

@@ -181,8 +181,8 @@ def test_bad_images(fn):
 @pytest.mark.parametrize(
     ("params", "error", "match"),
     [
-        ({"sigma": -1.0}, ValueError, "^sigma must be a positive finite number; got -1.0"),
-        ({"eps": 0.0}, ValueError, "^eps must be a positive finite number; got 0.0"),
+        ({"sigma": -1.0}, ValueError, "^sigma must be > 0.0; got -1.0"),
+        ({"eps": 0.0}, ValueError, "^eps must be > 0.0; got 0.0"),
         ({"sigma": "4"}, TypeError, "^sigma must be a number; got str"),
     ],
 )

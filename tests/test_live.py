@@ -194,8 +194,8 @@ def test_password_is_not_shown():
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        ({"stall_timeout": 0}, "stall_timeout must be a finite number of seconds > 0; got 0.0"),
-        ({"open_timeout": float("inf")}, "open_timeout must be a finite number"),
+        ({"stall_timeout": 0}, "stall_timeout must be > 0.0 seconds; got 0.0"),
+        ({"open_timeout": float("inf")}, "open_timeout must be finite; got inf"),
         ({"retries": -1}, r"retries must be an integer >= 0; got -1"),
         ({"retries": 1.5}, r"retries must be an integer >= 0; got 1.5"),
     ],

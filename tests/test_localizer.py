@@ -224,10 +224,10 @@ def test_bad_batch_odometry_is_refused(ref, kwargs, error, match):
 @pytest.mark.parametrize(
     "spacing, error, match",
     [
-        (0.0, ValueError, "place_spacing must be a finite number of metres > 0; got 0.0"),
-        (-1.0, ValueError, "> 0; got -1.0"),
-        (math.nan, ValueError, "> 0; got nan"),
-        (math.inf, ValueError, "> 0; got inf"),
+        (0.0, ValueError, "place_spacing must be > 0.0 metres; got 0.0"),
+        (-1.0, ValueError, "place_spacing must be > 0.0 metres; got -1.0"),
+        (math.nan, ValueError, "place_spacing must be finite; got nan"),
+        (math.inf, ValueError, "place_spacing must be finite; got inf"),
         ("2", TypeError, "place_spacing must be a number of metres; got str"),
         (True, TypeError, "got bool"),
     ],

@@ -133,6 +133,54 @@ def is_real(value: object) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
+def check_real(
+    value,
+    name: str,
+    *,
+    low: float | None = 0.0,
+    inclusive: bool = False,
+    high: float | None = None,
+    unit: str = "",
+) -> float:
+    """Return ``value`` as float: a finite real number (Python's or numpy's, not a bool) above
+    ``low`` (or at it when ``inclusive``; ``None``: no lower bound) and at most ``high``.
+
+    The one check of a real-valued parameter in the package (scikit-learn's ``check_scalar``
+    plays the same part there); ``unit`` names what the number counts, in the messages.
+
+    Raises
+    ------
+    TypeError
+        ``"{name} must be a number; got str"``.
+    ValueError
+        ``"{name} must be finite; got nan"``, ``"{name} must be > 0; got -1.0"``, ``"{name}
+        must be in (0.0, 1.0]; got 2.0"``.
+
+    Examples
+    --------
+    >>> check_real(np.float32(0.5), "rate", high=1.0)
+    0.5
+    >>> check_real(0, "speed", low=None)
+    0.0
+    """
+    of = f" of {unit}" if unit else ""
+    if not is_real(value):
+        raise TypeError(f"{name} must be a number{of}; got {type(value).__name__}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite; got {value}")
+    too_low = low is not None and (value < low or (value == low and not inclusive))
+    if too_low or (high is not None and value > high):
+        if low is not None and high is not None:
+            relation = f"in {'[' if inclusive else '('}{low}, {high}]"
+        elif low is not None:
+            relation = f"{'>=' if inclusive else '>'} {low}"
+        else:
+            relation = f"<= {high}"
+        raise ValueError(f"{name} must be {relation}{' ' + unit if unit else ''}; got {value}")
+    return value
+
+
 def check_positive_int(value, name: str, minimum: int = 1) -> int:
     """Return ``value`` as int, requiring an integral value >= ``minimum``."""
     if isinstance(value, bool) or not isinstance(value, (numbers.Integral, np.integer)):

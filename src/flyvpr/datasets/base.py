@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import itertools
 import logging
-import numbers
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from .._validation import check_positive_int
+from .._validation import check_positive_int, check_real
 from ..images import DEFAULT_SIZE, ImageFolderError, list_images, load_images
 
 __all__ = [
@@ -81,15 +80,6 @@ def _check_window(first, count, n_available: int, what: str) -> tuple[int, int]:
             f"{n_available} frames (valid positions 0..{n_available - 1})"
         )
     return first, stop - first
-
-
-def _check_nonnegative_number(value, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a number; got {type(value).__name__}")
-    value = float(value)
-    if not np.isfinite(value) or value < 0:
-        raise ValueError(f"{name} must be a finite number >= 0; got {value}")
-    return value
 
 
 def _check_root(root, layout: str) -> Path:
@@ -532,7 +522,7 @@ def ground_truth_from_positions(query_positions, reference_positions, radius) ->
             "query_positions and reference_positions must have the same number of columns; "
             f"got {q.shape[1]} and {r.shape[1]}"
         )
-    radius = _check_nonnegative_number(radius, "radius")
+    radius = check_real(radius, "radius", low=0.0, inclusive=True)
     tree = cKDTree(r)
     # Search a hair wider than radius; the exact test below decides the boundary.
     neighbours = tree.query_ball_point(q, radius * (1 + 1e-9) + 1e-12, return_sorted=False)

@@ -24,11 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .._validation import check_positive_int
+from .._validation import check_positive_int, check_real
 from .base import (
     Benchmark,
     Traverse,
-    _check_nonnegative_number,
     _check_window,
     _list_images_or_explain,
     _read_csv_text,
@@ -192,7 +191,7 @@ def load_generic(
             )
         if radius is None:
             raise ValueError("radius (metres) is required with positions_csv")
-        radius = _check_nonnegative_number(radius, "radius")
+        radius = check_real(radius, "radius", low=0.0, inclusive=True)
     if root is not None and not isinstance(root, (str, Path)):
         raise TypeError(f"root must be None, a str or Path; got {type(root).__name__}")
     ref_dir = _folder(root, reference, "reference")

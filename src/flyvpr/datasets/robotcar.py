@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .._validation import check_real
 from .base import (
     Benchmark,
     Traverse,
-    _check_nonnegative_number,
     _check_root,
     _check_window,
     _list_images_or_explain,
@@ -212,7 +212,7 @@ def select_by_distance(positions, spacing) -> np.ndarray:
     pos = np.asarray(positions, dtype=np.float64)
     if pos.ndim != 2 or pos.shape[0] == 0:
         raise ValueError(f"positions must have shape (N, 2) with N >= 1; got {pos.shape}")
-    spacing = _check_nonnegative_number(spacing, "spacing")
+    spacing = check_real(spacing, "spacing", low=0.0, inclusive=True)
     if spacing == 0:
         raise ValueError("spacing must be > 0 metres; got 0")
     travelled = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(pos, axis=0).T))))
@@ -346,10 +346,10 @@ def load_robotcar(
         ``spacing``/``tolerance_m`` or a window beyond the data.
     """
     root = _check_root(root, LAYOUT)
-    spacing = _check_nonnegative_number(spacing, "spacing")
+    spacing = check_real(spacing, "spacing", low=0.0, inclusive=True)
     if spacing == 0:
         raise ValueError("spacing must be > 0 metres; got 0")
-    tolerance_m = _check_nonnegative_number(tolerance_m, "tolerance_m")
+    tolerance_m = check_real(tolerance_m, "tolerance_m", low=0.0, inclusive=True)
     ref, ref_source = _load_run(root, reference, "reference", spacing)
     qry, query_source = _load_run(root, query, "query", spacing)
     windows = [

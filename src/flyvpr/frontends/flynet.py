@@ -20,6 +20,7 @@ from .._validation import (
     check_memory,
     check_positive_int,
     check_random_state,
+    check_real,
 )
 from .base import Encoder
 from .flyhash import FlyHash, _check_codes
@@ -93,9 +94,7 @@ class FlyNet(Encoder):
 
     def _fit(self, images: np.ndarray) -> None:
         epochs = check_positive_int(self.epochs, "epochs")
-        lr = float(self.learning_rate)
-        if not np.isfinite(lr) or lr <= 0:
-            raise ValueError(f"learning_rate must be a positive number; got {self.learning_rate}")
+        lr = check_real(self.learning_rate, "learning_rate")
         n = images.shape[0]
         batch = n if self.batch_size is None else check_positive_int(self.batch_size, "batch_size")
         n_hidden = check_positive_int(self.n_hidden, "n_hidden")

@@ -35,7 +35,7 @@ import numpy as np
 from scipy import fft as sfft
 from scipy import ndimage
 
-from .._validation import check_images, check_memory, check_positive_int
+from .._validation import check_images, check_memory, check_positive_int, check_real
 
 __all__ = [
     "varying_pixels",
@@ -116,15 +116,6 @@ def _check_valid_pixels(valid_pixels, h: int, w: int):
     return None if valid.all() else np.ascontiguousarray(valid)
 
 
-def _check_positive_real(value, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise TypeError(f"{name} must be a number; got {type(value).__name__}")
-    value = float(value)
-    if not (np.isfinite(value) and value > 0):
-        raise ValueError(f"{name} must be a positive finite number; got {value}")
-    return value
-
-
 def local_contrast_normalize(
     images, sigma: float = 4.0, eps: float = 0.05, *, valid_pixels=None
 ) -> np.ndarray:
@@ -167,8 +158,8 @@ def local_contrast_normalize(
     0.0
     """
     x = check_images(images, "images")
-    sigma = _check_positive_real(sigma, "sigma")
-    eps = _check_positive_real(eps, "eps")
+    sigma = check_real(sigma, "sigma")
+    eps = check_real(eps, "eps")
     valid = _check_valid_pixels(valid_pixels, *x.shape[1:])
     if valid is None:
         return _lcn(x, sigma, eps)
@@ -233,7 +224,7 @@ def _gabor_factors(n_orientations: int, wavelength: float, size: int) -> tuple:
 
 def _check_gabor(n_orientations, wavelength, size) -> tuple[int, float, int]:
     n_orientations = check_positive_int(n_orientations, "n_orientations")
-    wavelength = _check_positive_real(wavelength, "wavelength")
+    wavelength = check_real(wavelength, "wavelength")
     size = check_positive_int(size, "size", minimum=3)
     if size % 2 == 0:
         raise ValueError(f"size must be odd (a kernel centred on a pixel); got {size}")
@@ -358,8 +349,8 @@ class OpticLobe:
     """
 
     def __init__(self, lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size):
-        self.lcn_sigma = _check_positive_real(lcn_sigma, "lcn_sigma")
-        self.lcn_eps = _check_positive_real(lcn_eps, "lcn_eps")
+        self.lcn_sigma = check_real(lcn_sigma, "lcn_sigma")
+        self.lcn_eps = check_real(lcn_eps, "lcn_eps")
         factors = _gabor_factors(*_check_gabor(n_orientations, wavelength, kernel_size))
         self.bank = _compose(*factors)
         # the kernels' 1-d factors as the compiled filter takes them, float32

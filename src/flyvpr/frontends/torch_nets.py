@@ -62,7 +62,7 @@ import numbers
 import numpy as np
 
 from .._torch import import_torch
-from .._validation import ArraySpec, check_positive_int, check_random_state, is_real
+from .._validation import ArraySpec, check_positive_int, check_random_state, check_real
 from .base import Encoder
 from .flynet import softmax
 
@@ -163,11 +163,7 @@ class TorchClassifier(Encoder):
     # -- validation -----------------------------------------------------------------------
     def _check_training(self) -> tuple[int, float, int | None]:
         epochs = check_positive_int(self.epochs, "epochs")
-        lr = self.learning_rate
-        if not is_real(lr):
-            raise TypeError(f"learning_rate must be a number; got {type(lr).__name__}")
-        if not (np.isfinite(lr) and lr > 0):
-            raise ValueError(f"learning_rate must be a positive number; got {lr}")
+        lr = check_real(self.learning_rate, "learning_rate")
         batch = (
             None if self.batch_size is None else check_positive_int(self.batch_size, "batch_size")
         )

@@ -15,14 +15,13 @@ the map's spacing between places (``place_spacing``).
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Callable
 from inspect import signature
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from .._validation import NotFittedError, check_images
+from .._validation import NotFittedError, check_images, check_real
 from ..methods import DEFAULT_METHOD, Method, make_method
 from ..temporal.base import OnlineFilter
 
@@ -86,26 +85,7 @@ class Fixes(NamedTuple):
 
 
 def _check_place_spacing(value) -> float | None:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"place_spacing must be a number of metres; got {type(value).__name__}")
-    value = float(value)
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"place_spacing must be a finite number of metres > 0; got {value}")
-    return value
-
-
-def _check_motion(value, name: str, low: float | None) -> float:
-    """One frame's odometry: a finite number (at least ``low`` when given)."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a number; got {type(value).__name__}")
-    value = float(value)
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite; got {value}")
-    if low is not None and value < low:
-        raise ValueError(f"{name} must be >= {low:g}; got {value}")
-    return value
+    return None if value is None else check_real(value, "place_spacing", unit="metres")
 
 
 class Localizer:
@@ -230,12 +210,12 @@ class Localizer:
     def _velocity(self, velocity, distance) -> float | None:
         """One frame's odometry in places (None: the filter estimates the movement itself)."""
         if distance is None:
-            return None if velocity is None else _check_motion(velocity, "velocity", None)
+            return None if velocity is None else check_real(velocity, "velocity", low=None)
         if velocity is not None:
             raise ValueError(
                 "give the movement as velocity (places) or distance (metres), not both"
             )
-        distance = _check_motion(distance, "distance", 0.0)
+        distance = check_real(distance, "distance", low=0, inclusive=True)
         if self.place_spacing is None:
             raise ValueError(
                 "distance (metres) needs place_spacing, the metres between places: give "

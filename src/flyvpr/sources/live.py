@@ -26,7 +26,6 @@ from __future__ import annotations
 import errno
 import logging
 import math
-import numbers
 import os
 import re
 import threading
@@ -36,7 +35,7 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
-from .._validation import is_integer
+from .._validation import check_real, is_integer
 from ..images import DEFAULT_SIZE, _check_size
 from .base import RecordingError, _reason, require_extra
 
@@ -183,8 +182,8 @@ class LiveSource:
             )
         self.kind = "stream" if _SCHEME_RE.match(self.url) else "camera"
         self.options = {str(k): str(v) for k, v in (options or {}).items()}
-        self.stall_timeout = _positive(stall_timeout, "stall_timeout")
-        self.open_timeout = _positive(open_timeout, "open_timeout")
+        self.stall_timeout = check_real(stall_timeout, "stall_timeout", unit="seconds")
+        self.open_timeout = check_real(open_timeout, "open_timeout", unit="seconds")
         if not is_integer(retries) or retries < 0:
             raise ValueError(f"retries must be an integer >= 0; got {retries!r}")
         self.retries = int(retries)
@@ -466,12 +465,3 @@ class LiveSource:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def _positive(value, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a number of seconds; got {type(value).__name__}")
-    value = float(value)
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"{name} must be a finite number of seconds > 0; got {value}")
-    return value

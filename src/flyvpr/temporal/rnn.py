@@ -106,8 +106,8 @@ from .._validation import (
     NotFittedError,
     check_positive_int,
     check_random_state,
+    check_real,
     check_scores,
-    is_real,
 )
 from . import _rnn_net as net
 from .base import OnlineFilter
@@ -150,18 +150,6 @@ def _check_range(value, name: str, low: float, high: float | None) -> tuple[floa
         bound = f"[{low}, {high}]" if high is not None else f"[{low}, inf)"
         raise ValueError(f"{name} must satisfy low <= high within {bound}; got {value!r}")
     return lo, hi
-
-
-def _check_number(value, name: str, low: float, high: float, low_open: bool = True) -> float:
-    """A real number in (low, high] (or [low, high] with ``low_open=False``)."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a number; got {type(value).__name__}")
-    value = float(value)
-    above = value > low if low_open else value >= low
-    if not (np.isfinite(value) and above and value <= high):
-        interval = f"{'(' if low_open else '['}{low}, {high}]"
-        raise ValueError(f"{name} must be in {interval}; got {value}")
-    return value
 
 
 def _is_probability_matrix(S: np.ndarray) -> bool:
@@ -298,8 +286,8 @@ class RNNFilter(OnlineFilter):
             return None
         speeds = self._check_speeds()
         return {
-            "decay": _check_number(self.decay, "decay", 0.0, 1.0),
-            "input_gain": _check_number(self.input_gain, "input_gain", 0.0, np.inf),
+            "decay": check_real(self.decay, "decay", high=1.0),
+            "input_gain": check_real(self.input_gain, "input_gain"),
             "speed": 0.5 * (speeds[0] + speeds[1]),
         }
 
@@ -366,11 +354,7 @@ class RNNFilter(OnlineFilter):
                 "init='route' or epochs >= 1"
             )
         batch = check_positive_int(self.batch_size, "batch_size")
-        lr = self.learning_rate
-        if not is_real(lr):
-            raise TypeError(f"learning_rate must be a number; got {type(lr).__name__}")
-        if not (np.isfinite(lr) and lr > 0):
-            raise ValueError(f"learning_rate must be a positive number; got {lr}")
+        lr = check_real(self.learning_rate, "learning_rate")
         speeds = self._check_speeds()
         noise = _check_range(self.noise, "noise", 0.0, 1.0)
         rng = check_random_state(self.random_state)

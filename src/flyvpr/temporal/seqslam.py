@@ -66,7 +66,7 @@ from collections import deque
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from .._validation import check_memory, check_positive_int, is_real
+from .._validation import check_memory, check_positive_int, check_real
 from .base import OnlineFilter
 
 __all__ = ["SeqSLAM", "enhance_contrast"]
@@ -223,11 +223,7 @@ class SeqSLAM(OnlineFilter):
         check_positive_int(self.sequence_length, "sequence_length")
         check_positive_int(self.enhance_window, "enhance_window", minimum=2)
         for name in ("v_min", "v_max", "v_step"):
-            value = getattr(self, name)
-            if not is_real(value):
-                raise TypeError(f"{name} must be a number; got {type(value).__name__}")
-            if not np.isfinite(value):
-                raise ValueError(f"{name} must be finite; got {value}")
+            check_real(getattr(self, name), name, low=None)
         if self.v_step <= 0:
             raise ValueError(f"v_step must be > 0; got {self.v_step}")
         if self.v_min > self.v_max:

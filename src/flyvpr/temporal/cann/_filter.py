@@ -12,10 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from ..._validation import check_memory, check_positive_int
+from ..._validation import check_memory, check_positive_int, check_real
 from . import _kernels
 from ._input import OdometryFilter, begin_frame, normalised_input
-from ._params import TRANSFORMS, _check_velocities, check_real
+from ._params import TRANSFORMS, _check_velocities
 
 #: candidate velocities, places per frame: standing still to 2 in steps of 1/8, then to 3 in
 #: steps of 1/4; backwards, a coarse bank of 1/2 to 2 in steps of 1/2 (a robot that turns

@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..._validation import check_scores
+from ..._validation import check_real, check_scores
 from ..base import OnlineFilter
 from ._kernels import VAR_FLOOR
-from ._params import check_real
 
 #: smallest positive float32, the floor before the log of a probability row
 TINY = np.float32(np.finfo(np.float32).tiny)

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import numbers
 from typing import Any
 
 import numpy as np
 
-from ..._validation import check_positive_int
+from ..._validation import check_positive_int, check_real
 
 #: how a score row becomes the input (see the user guide's "Input")
 TRANSFORMS = ("auto", "log", "linear")
@@ -27,19 +26,6 @@ FAST_RECOVERY = {
     "adapt_variance": True,
     "relocation_margin": None,
 }
-
-
-def check_real(value, name: str, *, low: float | None = 0.0, inclusive: bool = False) -> float:
-    """A finite real number, above ``low`` (or at it when ``inclusive``)."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a number; got {type(value).__name__}")
-    value = float(value)
-    if not np.isfinite(value):
-        raise ValueError(f"{name} must be finite; got {value}")
-    if low is not None and (value < low or (value == low and not inclusive)):
-        relation = ">=" if inclusive else ">"
-        raise ValueError(f"{name} must be {relation} {low}; got {value}")
-    return value
 
 
 def _optional(value, name: str, **kwargs) -> float | None:

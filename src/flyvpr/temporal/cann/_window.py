@@ -13,9 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..._validation import check_positive_int, check_scores
+from ..._validation import check_positive_int, check_real, check_scores
 from ._filter import CANN
-from ._params import check_real
 
 __all__ = ["WindowedCANN"]
 

@@ -1,0 +1,71 @@
+"""The package's one check of a real-valued parameter, and the integer and fraction checks."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from flyvpr._validation import check_fraction, check_positive_int, check_real, is_integer, is_real
+
+
+@pytest.mark.parametrize(
+    ("value", "kwargs", "expected"),
+    [
+        (0.5, {}, 0.5),
+        (np.float32(0.25), {"high": 1.0}, 0.25),
+        (np.int64(3), {}, 3.0),
+        (0, {"low": None}, 0.0),
+        (-7.5, {"low": None}, -7.5),
+        (0.0, {"low": 0.0, "inclusive": True}, 0.0),
+        (1.0, {"high": 1.0}, 1.0),  # the upper bound is inclusive
+        (2.0, {"low": 2.0, "inclusive": True, "high": 2.0}, 2.0),
+    ],
+)
+def test_check_real_accepts(value, kwargs, expected):
+    got = check_real(value, "x", **kwargs)
+    assert got == expected and type(got) is float
+
+
+@pytest.mark.parametrize(
+    ("value", "kwargs", "error", "message"),
+    [
+        ("1", {}, TypeError, "x must be a number; got str"),
+        (True, {}, TypeError, "x must be a number; got bool"),
+        (None, {"low": None}, TypeError, "x must be a number; got NoneType"),
+        ([1.0], {}, TypeError, "x must be a number; got list"),
+        ("1", {"unit": "seconds"}, TypeError, "x must be a number of seconds; got str"),
+        (math.nan, {"low": None}, ValueError, "x must be finite; got nan"),
+        (-math.inf, {"low": None}, ValueError, "x must be finite; got -inf"),
+        (0.0, {}, ValueError, "x must be > 0.0; got 0.0"),
+        (-1, {"low": 0, "inclusive": True}, ValueError, "x must be >= 0; got -1.0"),
+        (1.5, {"low": None, "high": 1.0}, ValueError, "x must be <= 1.0; got 1.5"),
+        (1.5, {"high": 1.0}, ValueError, "x must be in (0.0, 1.0]; got 1.5"),
+        (0.0, {"high": 1.0}, ValueError, "x must be in (0.0, 1.0]; got 0.0"),
+        (-1.0, {"inclusive": True, "high": 1.0}, ValueError, "x must be in [0.0, 1.0]; got -1.0"),
+        (0.0, {"unit": "metres"}, ValueError, "x must be > 0.0 metres; got 0.0"),
+    ],
+)
+def test_check_real_refuses_naming_the_parameter(value, kwargs, error, message):
+    with pytest.raises(error) as info:
+        check_real(value, "x", **kwargs)
+    assert str(info.value) == message
+
+
+def test_is_integer_and_is_real():
+    assert is_integer(3) and is_integer(np.int8(3)) and not is_integer(True)
+    assert not is_integer(3.0) and not is_integer("3")
+    assert is_real(3) and is_real(np.float16(0.5)) and is_real(2.5) and not is_real(False)
+    assert not is_real("2.5") and not is_real(None) and not is_real(1j)
+
+
+def test_check_positive_int_and_fraction():
+    assert check_positive_int(np.int32(4), "n") == 4 and check_positive_int(0, "n", 0) == 0
+    with pytest.raises(TypeError, match="^n must be an int; got float"):
+        check_positive_int(4.0, "n")
+    with pytest.raises(ValueError, match="^n must be >= 1; got 0"):
+        check_positive_int(0, "n")
+    assert check_fraction(1.0, "f") == 1.0
+    with pytest.raises(ValueError, match=r"^f must be in \(0.0, 1.0\]; got 0.0"):
+        check_fraction(0.0, "f")
