@@ -10,13 +10,13 @@ from flyvpr.frontends import FRONTENDS, KenyonEncoder
 from flyvpr.frontends.kenyon import balanced_connections, code_overlap
 from flyvpr.frontends.optic_lobe import (
     gabor_bank,
-    gabor_energy,
     local_contrast_normalize,
     optic_lobe,
 )
 from flyvpr.localization import Localizer
 from flyvpr.methods import METHODS, make_method
 from flyvpr.modelio import ModelFileError, _write_archive, load_method, save_method
+from oracles import gabor_energy
 
 
 @pytest.fixture(scope="module")

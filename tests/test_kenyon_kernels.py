@@ -9,10 +9,11 @@ from scipy import ndimage, sparse
 from flyvpr.frontends import _kenyon_kernels as kk
 from flyvpr.frontends.flyhash import winner_take_all
 from flyvpr.frontends.kenyon import KenyonEncoder, _inverted_index, _overlap_packed
-from flyvpr.frontends.optic_lobe import OpticLobe, gabor_energy, local_contrast_normalize
+from flyvpr.frontends.optic_lobe import OpticLobe, local_contrast_normalize
 from flyvpr.images import list_images, load_images
 from flyvpr.localization import Localizer
 from flyvpr.methods import make_method
+from oracles import gabor_energy
 
 
 def _bits(a):

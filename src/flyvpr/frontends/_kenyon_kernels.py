@@ -23,9 +23,9 @@ makes that possible:
 
 The Gabor filtering (:func:`optic_lobe`) is a direct convolution: each complex Gabor kernel
 is the sum of two separable ones, so it takes one pass along the rows and one along the
-columns per orientation, in float32.  It agrees with the FFT convolution of
-:func:`flyvpr.frontends.optic_lobe.gabor_energy` to float32 rounding (relative 1e-6), not
-bit for bit: for a 32x64 frame it costs about a third of the FFTs and their calls.
+columns per orientation, in float32.  It agrees with an FFT convolution (the tests' oracle,
+``tests/oracles.py``) to float32 rounding (relative 1e-6), not bit for bit: for a 32x64 frame
+it costs about a third of the FFTs and their calls.
 
 Compiled by :func:`flyvpr._numba.jit`, without ``fastmath``: reassociating or fusing
 operations would change the rounding (and make it depend on the CPU).

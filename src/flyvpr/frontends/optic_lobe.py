@@ -8,11 +8,11 @@ local light level (lamina) and the medulla responds to oriented edges:
    neighbourhood, divided by the Gaussian-weighted standard deviation (plus ``eps``).  Unlike
    SeqSLAM's patch normalisation on a fixed grid of patches it is shift-equivariant, so a camera
    that moves by a few pixels sees the same normalised image, moved.
-2. :func:`gabor_energy`: the response energy ``sqrt(even^2 + odd^2)`` of a quadrature pair of
-   Gabor filters at a few orientations (a complex Gabor kernel): phase-invariant edge and bar
-   detectors.  :func:`gabor_energy` convolves by FFT; :func:`optic_lobe` by a compiled direct
-   convolution (each kernel is the sum of two separable ones), which agrees with it to
-   float32 rounding and is about three times faster on one 32x64 frame.
+2. Gabor energy: the response energy ``sqrt(even^2 + odd^2)`` of a quadrature pair of Gabor
+   filters at a few orientations (a complex Gabor kernel, :func:`gabor_bank`):
+   phase-invariant edge and bar detectors, by a compiled direct convolution (each kernel is
+   the sum of two separable ones; the tests check it against an FFT convolution, to float32
+   rounding).
 3. Max pooling over ``pool_size x pool_size`` cells, the square root (compresses the heavy tail
    of the energies) and a per-image z-score (divisive normalisation: only the pattern of
    responses counts, not the image's overall contrast).
@@ -32,7 +32,6 @@ takes the others only.  With every pixel valid nothing changes.
 from __future__ import annotations
 
 import numpy as np
-from scipy import fft as sfft
 from scipy import ndimage
 
 from .._validation import check_images, check_memory, check_positive_int, check_real
@@ -41,7 +40,6 @@ __all__ = [
     "varying_pixels",
     "local_contrast_normalize",
     "gabor_bank",
-    "gabor_energy",
     "optic_lobe",
 ]
 
@@ -250,40 +248,6 @@ def _compose(g, a, b, dc, z) -> np.ndarray:
     """The 2-d kernels (orientation, y, x) of the factors of :func:`_gabor_factors`."""
     kernel = b[:, :, None] * a[:, None, :] - dc[:, None, None] * np.outer(g, g)
     return kernel / z[:, None, None]
-
-
-def _spectra(bank: np.ndarray, h: int, w: int) -> tuple[np.ndarray, tuple[int, int]]:
-    """FFT of the kernels at a padded size (fast FFT lengths >= the linear convolution's)."""
-    s = bank.shape[1]
-    shape = (sfft.next_fast_len(h + s - 1), sfft.next_fast_len(w + s - 1))
-    return sfft.fft2(bank, s=shape, axes=(1, 2)).astype(np.complex64), shape
-
-
-def gabor_energy(images, bank, *, _spectra_cache=None) -> np.ndarray:
-    """Energy ``|image * kernel|`` of every image under every complex kernel ("same" size).
-
-    Linear convolution (zero padding) computed by FFT in single precision, in blocks of images.
-
-    Parameters
-    ----------
-    images : ndarray, shape (N, H, W)
-    bank : ndarray of complex, shape (n_kernels, s, s)
-        ``s`` odd, e.g. from :func:`gabor_bank`.
-
-    Returns
-    -------
-    ndarray of float32, shape (N, n_kernels, H, W)
-    """
-    x = np.asarray(images, dtype=np.float32)
-    n, h, w = x.shape
-    spectra, shape = _spectra_cache or _spectra(bank, h, w)
-    r = bank.shape[1] // 2
-    out = np.empty((n, bank.shape[0], h, w), dtype=np.float32)
-    for start in range(0, n, _BLOCK):
-        block = sfft.fft2(x[start : start + _BLOCK], s=shape, axes=(1, 2))
-        full = sfft.ifft2(block[:, None] * spectra[None], axes=(2, 3), overwrite_x=True)
-        out[start : start + _BLOCK] = np.abs(full[:, :, r : r + h, r : r + w])
-    return out
 
 
 def optic_lobe(
