@@ -43,8 +43,9 @@ import sys
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script: make the ``benchmarks`` package importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
+    sys.path.insert(0, str(ROOT))
 
 from benchmarks._common import DEFAULT_DATA, machine  # noqa: E402
 from benchmarks.accuracy_merge import load_previous, merge_runs  # noqa: E402

@@ -16,11 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.accuracy_setup import Dataset, Entry, View, fisheye
 from flyvpr import metrics
 from flyvpr.datasets import ground_truth_from_frames, load_benchmark
 from flyvpr.methods import make_method
-
-from .accuracy_setup import Dataset, Entry, View, fisheye
 
 #: stream frames at which the kidnap test's query stream jumps KIDNAP_JUMP places ahead
 KIDNAP_AT = (100, 200, 300, 400, 500, 600, 700)

@@ -33,8 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
+    sys.path.insert(0, str(ROOT))
 
 from benchmarks._common import DEFAULT_DATA  # noqa: E402
 from benchmarks.scale import N_BITS, PLACE_FLIP, TILE_FLIP, load_frames  # noqa: E402

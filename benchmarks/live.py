@@ -58,9 +58,9 @@ from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
+    sys.path.insert(0, str(ROOT))
 
 from benchmarks.stream_servers import (  # noqa: E402
     MjpegServer,
@@ -282,7 +282,7 @@ def run_udp_vs_file(map_path: Path, folder: Path, log, options=UDP_OPTIONS) -> d
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seconds", type=float, default=60.0, help="length of each MJPEG stream")
-    p.add_argument("--json", type=Path, default=HERE / "live.json")
+    p.add_argument("--json", type=Path, default=ROOT / "benchmarks" / "live.json")
     args = p.parse_args(argv)
     from flyvpr import __version__
     from flyvpr.methods import DEFAULT_METHOD

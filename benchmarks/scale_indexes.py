@@ -25,10 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
+    sys.path.insert(0, str(ROOT))
 
-import scale  # noqa: E402  (benchmarks/scale.py, beside this file)
+from benchmarks import scale  # noqa: E402
 
 
 def measure(name, factory, codes, queries, truth, exact, k) -> dict:

@@ -86,19 +86,25 @@ PAGES = [
         "faults",
         "Fault battery",
         "benchmarks/faults.json",
-        "python benchmarks/faults.py --json benchmarks/faults.json",
+        "python tests/faults/faults.py --json benchmarks/faults.json",
         "faults",
     ),
 ]
 
 
+#: scripts that write a page's JSON from outside benchmarks/ (the fault battery sits with the
+#: tests, which run its cases)
+_SCRIPTS = {"faults": "tests/faults/faults.py"}
+
+
 @functools.cache
 def _benchmark_module(name: str):
-    """``benchmarks/<name>.py`` as a module, or None where it does not exist."""
-    path = ROOT / "benchmarks" / f"{name}.py"
+    """``benchmarks/<name>.py`` (or the script of :data:`_SCRIPTS`) as a module, or None where
+    it does not exist."""
+    path = ROOT / _SCRIPTS.get(name, f"benchmarks/{name}.py")
     if not path.is_file():
         return None
-    if (ROOT / "benchmarks" / "__init__.py").is_file():  # a package: import it as one
+    if name not in _SCRIPTS and (ROOT / "benchmarks" / "__init__.py").is_file():
         if str(ROOT) not in sys.path:
             sys.path.insert(0, str(ROOT))
         return importlib.import_module(f"benchmarks.{name}")

@@ -21,7 +21,6 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.stream_servers import MjpegServer, free_udp_port, jpeg_bytes  # noqa: E402
-
 from flyvpr.cli import main  # noqa: E402
 from flyvpr.localization.maps import Map  # noqa: E402
 from flyvpr.synthetic import make_route, save_route  # noqa: E402

@@ -1,4 +1,4 @@
-"""The fault battery (benchmarks/faults.py) as tests: one test per case, each must be OK.
+"""The fault battery (tests/faults/faults.py) as tests: one test per case, each must be OK.
 
 A case whose verdict is "n/a" (its data is missing, or a signal could not be timed to a
 write) is skipped with the battery's own explanation.
@@ -10,12 +10,12 @@ from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+BATTERY = Path(__file__).resolve().parent / "faults"
 
 
 def _load_battery():
-    sys.path.insert(0, str(BENCHMARKS))
-    spec = importlib.util.spec_from_file_location("faults", BENCHMARKS / "faults.py")
+    sys.path.insert(0, str(BATTERY))
+    spec = importlib.util.spec_from_file_location("faults", BATTERY / "faults.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules["faults"] = module
     spec.loader.exec_module(module)

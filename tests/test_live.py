@@ -23,7 +23,6 @@ from benchmarks.stream_servers import (  # noqa: E402
     free_udp_port,
     jpeg_bytes,
 )
-
 from flyvpr.sources import LiveSource, RecordingError, is_live  # noqa: E402
 
 #: gray level of served frame i (distinct for 40 frames, away from the ends of the range)

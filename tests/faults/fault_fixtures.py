@@ -1,4 +1,4 @@
-"""Fixtures of the fault battery (``benchmarks/faults.py``): small datasets and damaged files.
+"""Fixtures of the fault battery (``tests/faults/faults.py``): small datasets and damaged files.
 
 Every builder writes into a folder it is given and returns what the cases need; nothing is
 downloaded and nothing outside that folder is touched.  The model-file tools play an attacker

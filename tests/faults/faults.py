@@ -10,8 +10,8 @@ computed from the observation; nothing is hard-coded.
 
 Usage::
 
-    python benchmarks/faults.py [--json faults.json] [--only PREFIX ...] [--markdown out.md]
-                                [--from-json faults.json]
+    python tests/faults/faults.py [--json benchmarks/faults.json] [--only PREFIX ...]
+                                  [--markdown out.md] [--from-json faults.json]
 
 Prints the table (case, class, expected, observed, verdict); exit status 0 when every case
 is OK, 1 otherwise.  ``render_markdown(json.load(...))`` renders the table for the docs:
@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
+REPO = HERE.parents[1]
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
@@ -240,7 +240,7 @@ def run_battery(only=(), workdir: Path | None = None, progress=None) -> dict:
 
     counts = {v: sum(r["verdict"] == v for r in rows) for v in ("OK", "FAIL", "n/a")}
     return {
-        "benchmark": "flyvpr fault battery (benchmarks/faults.py)",
+        "benchmark": "flyvpr fault battery (tests/faults/faults.py)",
         "flyvpr_version": flyvpr.__version__,
         "commit": _commit(),
         "python": platform.python_version(),
