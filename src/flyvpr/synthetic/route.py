@@ -31,9 +31,9 @@ from .._validation import (
     check_fraction,
     check_positive_int,
     check_random_state,
-    is_integer,
     is_real,
 )
+from ..datasets import ground_truth_from_frames
 from ..images import DEFAULT_SIZE
 from .conditions import CONDITIONS, Condition
 from .render import _render_condition
@@ -106,19 +106,16 @@ class SyntheticRoute:
         Returns
         -------
         ndarray of bool, shape (n_places, n_places)
-            Rows are queries, columns references: ``|i - j| <= tolerance``.
+            Rows are queries, columns references: ``|i - j| <= tolerance``
+            (:func:`flyvpr.datasets.ground_truth_from_frames` with the place indices).
 
         Raises
         ------
         TypeError, ValueError
             If ``tolerance`` is not a non-negative int.
         """
-        if not is_integer(tolerance):
-            raise TypeError(f"tolerance must be an int; got {type(tolerance).__name__}")
-        if tolerance < 0:
-            raise ValueError(f"tolerance must be >= 0 frames; got {tolerance}")
         idx = np.arange(self.n_places)
-        return np.abs(idx[:, None] - idx[None, :]) <= int(tolerance)
+        return ground_truth_from_frames(idx, idx, tolerance)
 
 
 def _check_size(size) -> tuple[int, int]:
