@@ -84,6 +84,27 @@ class Fixes(NamedTuple):
     states: np.ndarray
 
 
+def online_method(method, random_state=None, frontend_params=None, filter_params=None) -> Method:
+    """``method`` (a :class:`~flyvpr.methods.Method`, or a name made with the other arguments),
+    checked to run one frame at a time: its filter, if any, is an online one.
+
+    Raises
+    ------
+    ValueError
+        For a filter that needs the whole query traverse (SeqSLAM, say).
+    """
+    if isinstance(method, Method):
+        m = method
+    else:
+        m = make_method(method, random_state, frontend_params, filter_params)
+    if m.filter is not None and not isinstance(m.filter, OnlineFilter):
+        raise ValueError(
+            f"method {m.name!r} uses filter {type(m.filter).__name__}, which cannot run one "
+            "frame at a time; choose an online filter (e.g. cann) or none"
+        )
+    return m
+
+
 def _check_place_spacing(value) -> float | None:
     return None if value is None else check_real(value, "place_spacing", unit="metres")
 
@@ -126,18 +147,12 @@ class Localizer:
         filter_params=None,
         place_spacing=None,
     ):
-        if isinstance(method, Method):
-            self.method = method
-        else:
-            self.method = make_method(method, random_state, frontend_params, filter_params)
+        self.method = online_method(method, random_state, frontend_params, filter_params)
         filt = self.method.filter
-        if filt is not None and not isinstance(filt, OnlineFilter):
-            raise ValueError(
-                f"method {self.method.name!r} uses filter {type(filt).__name__}, which cannot run "
-                "one frame at a time; choose an online filter (e.g. cann)"
-            )
         self.place_spacing = _check_place_spacing(place_spacing)
-        self._takes_velocity = filt is not None and "velocity" in signature(filt.step).parameters
+        self._takes_velocity = isinstance(filt, OnlineFilter) and (
+            "velocity" in signature(filt.step).parameters
+        )
         self.n_frames_ = 0
 
     @classmethod

@@ -25,7 +25,7 @@ import numpy as np
 from .._chunks import ChunkRunner
 from .._validation import ArraySpec, check_memory
 from ..images import DEFAULT_SIZE
-from ..methods import DEFAULT_METHOD, Method, make_method
+from ..methods import DEFAULT_METHOD
 from ..modelio import _load, save_method
 from ..sources import (
     Batch,
@@ -36,7 +36,7 @@ from ..sources import (
     parse_every,
     read_positions,
 )
-from ..temporal.base import OnlineFilter
+from .localizer import online_method
 
 __all__ = ["Map", "MAP_VERSION", "MapFileError"]
 
@@ -190,15 +190,7 @@ class Map:
             If the scheduler cannot be reached (checked before any frame is read).
         """
         runner = ChunkRunner(n_jobs, scheduler, progress=progress)
-        if isinstance(method, Method):
-            m = method
-        else:
-            m = make_method(method, random_state, frontend_params, filter_params)
-        if m.filter is not None and not isinstance(m.filter, OnlineFilter):
-            raise ValueError(
-                f"method {m.name!r}: its filter {type(m.filter).__name__} cannot run one frame "
-                "at a time; a map needs an online filter (e.g. cann) or none"
-            )
+        m = online_method(method, random_state, frontend_params, filter_params)
         src = source if isinstance(source, Source) else open_source(source, topic=topic)
         every = parse_every(every)
         pos = positions if isinstance(positions, Positions) else None
