@@ -21,9 +21,11 @@ Protocol:
   ``build_s`` is the map file's alone.
 * **Localizer** (in its own process; ``peak_rss_mb`` is its VmHWM): open the map and the
   index (``open_s``), refit the encoder on the summer frames (not timed), then
-  :class:`flyvpr.large.LargeLocalizer` on the map's memory-mapped codes (window 2,048, index
-  top 100 for the last 10 frames at once when re-seeding (after 10 lost frames, then every
-  10) and at a check every 1000 frames, the CANN's defaults).
+  :class:`flyvpr.large.LargeLocalizer` on the map's memory-mapped codes (window 2,048; a
+  lost stretch searched at its 4th frame, then 4 frames after a re-seed or twice as late
+  after a search that did not re-seed, each search sending the index at most 4 new codes
+  for their top 100; the candidates of the stretch's last 10 frames pooled; a check every
+  1000 frames; the CANN's defaults).
   The frame at map place ``p`` is winter frame ``p mod 2400`` seen on tile ``p // 2400``
   (:func:`flyvpr.large.tile_queries`); its true place is ``p``.  Each frame is encoded from
   its pixels, then given to ``update_code``.
@@ -32,18 +34,19 @@ Protocol:
 * **Stream**: after lock-on and 100 frames more (not timed), ``--queries`` frames driven on:
   the stream measures the localizer *while localized*.  ``frames_per_s`` counts all of it
   (encoding included); ``same_place_within_20_share``: fixes within 20 places of the truth;
-  ``localized_share``: fixes ``localized``; ``searched_share``: frames whose code went to the
-  index (the checks' frames, and any frame while lost).  The stream's frames are also split:
-  ``tracked_frames_per_s``, the rate of the frames the window alone answered (encoding
-  included); ``searched_ms_per_frame``, the mean time of a frame that also searched the index.
+  ``localized_share``: fixes ``localized``; ``searched_share``: codes sent to the index per
+  frame (some of a check's frames and of the lost frames: see the localizer's schedule).
+  The stream's frames are also split: ``tracked_frames_per_s``, the rate of the frames the
+  window alone answered (encoding included); ``searched_ms_per_frame``, the mean time of a
+  frame that also searched the index.
 * **Kidnap** (``--kidnaps`` trials, default 50): while localized, the query jumps to a random
   place and drives on from there; the localizer is not told.  Relocated at the first fix that
   is ``localized`` and within 20 places of the truth, if within 30 frames
   (``kidnap_relocated_share``, ``kidnap_frames_median`` of the relocated).  Between trials
   the stream drives on until the fix is on the place again (``kidnap_unsettled`` counts the
-  times it was not within 500 frames).  ``kidnap_ms_per_search``: the relocation cost of a
-  lost frame, index search and pooling (``search_s_ / n_searches_`` over the trials'
-  frames); ``kidnap_ms_per_frame``: the trials' frames, all costs.
+  times it was not within 500 frames).  ``kidnap_ms_per_search``: the relocation cost per
+  code searched, index search, pooling, tracks and re-seeds (``search_s_ / n_searches_`` over
+  the trials' frames); ``kidnap_ms_per_frame``: the trials' frames, all costs.
 """
 
 from __future__ import annotations
@@ -78,6 +81,7 @@ LOCK_LIMIT = 500
 CHECK_EVERY = 1000
 K = 100
 POOL = 10
+RESEED_AFTER = 4
 KIDNAP_LIMIT = 30
 TOLERANCE = 20
 
@@ -139,7 +143,15 @@ def _open(args):
     else:
         index = ExhaustiveIndex().build(m.codes)
     open_s = time.perf_counter() - t0
-    loc = LargeLocalizer(m.codes, index, window=WINDOW, k=K, pool=POOL, check_every=CHECK_EVERY)
+    loc = LargeLocalizer(
+        m.codes,
+        index,
+        window=WINDOW,
+        k=K,
+        pool=POOL,
+        reseed_after=RESEED_AFTER,
+        check_every=CHECK_EVERY,
+    )
     return m, loc, open_s
 
 
@@ -262,9 +274,11 @@ def protocol(args, index: str) -> dict:
         "codes": f"CompactEncoder {N_BITS} bits (PCA-rotated signs of the kenyon optic lobe)",
         "map": f"Nordland 64x32 summer codes tiled, tile flip {TILE_FLIP}, place flip "
         f"{PLACE_FLIP}; relocation index: {name}",
-        "localizer": f"LargeLocalizer (windowed CANN, defaults), window {WINDOW}, index top {K} "
-        f"for the last {POOL} frames at once when re-seeding (after {POOL} lost frames, then every "
-        f"{POOL}) and at a check every {CHECK_EVERY} frames",
+        "localizer": f"LargeLocalizer (windowed CANN, defaults), window {WINDOW}; a lost stretch "
+        f"searched at its {RESEED_AFTER}th frame, then {RESEED_AFTER} frames after a re-seed or "
+        f"twice as late after a search without one, each search sending at most {RESEED_AFTER} "
+        f"new codes for the index's top {K}, the candidates of the stretch's last {POOL} frames "
+        f"pooled; a check every {CHECK_EVERY} frames",
         "lock_frames": f"frames from a cold start at a random place until the fix is "
         f"localized and within {TOLERANCE} places of the truth (limit {LOCK_LIMIT})",
         "frames_per_s": f"after locking on and {LOCK} frames more (untimed), {args.queries} "
