@@ -332,3 +332,24 @@ def test_experiment_command_errors(tmp_path, capsys):
     assert "experiment config not found" in capsys.readouterr().err
     assert main(["report", str(tmp_path / "none")]) == 1
     assert "results folder not found" in capsys.readouterr().err
+
+
+def test_library_parameters_are_shown_as_options(route_folder, tmp_path, capsys):
+    from flyvpr.cli._common import as_options
+    from flyvpr.sources import open_source
+
+    src = route_folder(60) / "summer"
+    # the library names its parameters ...
+    with pytest.raises(
+        ValueError, match=r"^every=2m: .* \(positions=CSV or position_topic=TOPIC\)"
+    ):
+        next(open_source(src).batches((32, 64), every="2m"))
+    # ... the command line the options that set them
+    code = main(["map", str(src), "--every", "2m", "--out", str(tmp_path / "m.map")])
+    err = capsys.readouterr().err
+    assert code == 1 and not (tmp_path / "m.map").exists()
+    assert "--every 2m: keeping frames by distance needs positions" in err
+    assert "(--positions CSV or --position-topic TOPIC)" in err and "every=" not in err
+    assert as_options("topic=/a; position_topic=/b; n_every=3; my-topic=4") == (
+        "--topic /a; --position-topic /b; n_every=3; my-topic=4"
+    )

@@ -19,7 +19,7 @@ from contextlib import contextmanager
 
 from .._version import __version__
 from . import demo, evaluate, experiment, info, localize, map
-from ._common import UsageError
+from ._common import UsageError, as_options
 
 __all__ = ["main", "build_parser"]
 
@@ -138,7 +138,7 @@ def main(argv=None) -> int:
         )
         return 1
     except (ValueError, TypeError, OSError, ImportError, RuntimeError) as exc:
-        message = " ".join(str(exc).split()) or type(exc).__name__
+        message = as_options(" ".join(str(exc).split())) or type(exc).__name__
         print(f"flyvpr {args.command}: error: {message}", file=sys.stderr)
         logger.debug("traceback", exc_info=True)
         return 1

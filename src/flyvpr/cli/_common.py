@@ -9,6 +9,7 @@ import argparse
 import json
 import logging
 import math
+import re
 from pathlib import Path
 
 from .._io import OutputPathError, check_output_path
@@ -22,6 +23,27 @@ logger = logging.getLogger("flyvpr")
 
 class UsageError(Exception):
     """Bad command-line usage detected after parsing (exit code 2)."""
+
+
+#: library parameters that are command-line options under another name
+_OPTION_OF = {
+    "every": "--every",
+    "topic": "--topic",
+    "positions": "--positions",
+    "position_topic": "--position-topic",
+}
+_PARAMETER = re.compile(r"(?<![\w-])(" + "|".join(_OPTION_OF) + r")=")
+
+
+def as_options(message: str) -> str:
+    """A library message in the command line's words: the library names its parameters
+    (``every=2m``, ``position_topic=TOPIC``), the command line shows the options that set
+    them (``--every 2m``, ``--position-topic TOPIC``).
+
+    >>> as_options("every=2m: keeping frames by distance needs positions (positions=CSV)")
+    '--every 2m: keeping frames by distance needs positions (--positions CSV)'
+    """
+    return _PARAMETER.sub(lambda m: _OPTION_OF[m.group(1)] + " ", message)
 
 
 # ---------------------------------------------------------------------------

@@ -20,7 +20,7 @@ def parse_every_arg(text: str):
     try:
         return parse_every(text)
     except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc).removeprefix("--every: ")) from None
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("every: ")) from None
 
 
 def add_recording_args(p, positions: bool = True) -> None:

@@ -280,7 +280,7 @@ def _read_frames(src: Source, size, every, positions, progress: bool):
             parts.append(b)
             bar.update(len(b))
     if not parts:
-        raise RecordingError(f"{src.describe()}: --every {every} keeps no frame")
+        raise RecordingError(f"{src.describe()}: every={every} keeps no frame")
     return Batch(
         np.concatenate([b.images for b in parts]),
         np.concatenate([b.timestamps for b in parts]),

@@ -87,7 +87,7 @@ def track(
         For ``odometry`` without ``positions``.
     """
     if odometry and positions is None:
-        raise ValueError("odometry needs positions: the recording's own (--positions CSV)")
+        raise ValueError("odometry needs positions: the recording's own (positions=CSV)")
     m = getattr(localizer, "map_", None)
     size = localizer.method.frontend.image_shape_
     start_wall: float | None = None  # the wall clock at the first frame with a timestamp

@@ -72,7 +72,7 @@ def open_source(path, *, topic: str | None = None) -> Source:
         p.is_file() and p.suffix.lower() in BAG_EXTENSIONS
     )
     if topic is not None and not is_bag:
-        raise ValueError(f"--topic {topic}: {p} is not a ROS bag")
+        raise ValueError(f"topic={topic}: {p} is not a ROS bag")
     if is_bag:
         return BagSource(p, topic)
     if p.is_dir():

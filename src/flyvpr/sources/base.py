@@ -1,4 +1,4 @@
-"""What every recording source shares: batches of frames, ``--every`` thinning, errors.
+"""What every recording source shares: batches of frames, ``every`` thinning, errors.
 
 A source yields :class:`Batch` objects: a few dozen frames already converted to gray, in
 [0, 1] and resized, with their timestamps (seconds, NaN when the recording has none) and their
@@ -66,7 +66,7 @@ _EVERY_RE = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:e[-+]?\d+)?)\s*(s|m)?\s*$", re.I
 
 
 def parse_every(text) -> Every:
-    """``--every``: ``3`` (every 3rd frame), ``0.5s`` (one per half second), ``2m`` (per 2 m).
+    """``every``: ``3`` (every 3rd frame), ``0.5s`` (one per half second), ``2m`` (per 2 m).
 
     Raises
     ------
@@ -80,15 +80,15 @@ def parse_every(text) -> Every:
     m = _EVERY_RE.match(str(text))
     if m is None:
         raise ValueError(
-            f"--every: expected N (every N-th frame), Ts (seconds) or Dm (metres), such as 3, "
+            f"every: expected N (every N-th frame), Ts (seconds) or Dm (metres), such as 3, "
             f"0.5s or 2m; got {text!r}"
         )
     value = float(m.group(1))
     unit = {None: "frames", "s": "seconds", "m": "metres"}[(m.group(2) or "").lower() or None]
     if unit == "frames" and (value != int(value) or value < 1):
-        raise ValueError(f"--every: a frame count must be an integer >= 1; got {text!r}")
+        raise ValueError(f"every: a frame count must be an integer >= 1; got {text!r}")
     if not math.isfinite(value) or value <= 0:
-        raise ValueError(f"--every: the step must be > 0; got {text!r}")
+        raise ValueError(f"every: the step must be > 0; got {text!r}")
     return Every(value, unit)
 
 
@@ -124,8 +124,8 @@ class _Thinner:
         self.last_xy: np.ndarray | None = None
         if every.unit == "metres" and positions is None:
             raise ValueError(
-                f"--every {every}: keeping frames by distance needs positions "
-                "(--positions CSV or --position-topic)"
+                f"every={every}: keeping frames by distance needs positions "
+                "(positions=CSV or position_topic=TOPIC)"
             )
 
     def keep(self, index: int, timestamp: float) -> bool:
@@ -135,7 +135,7 @@ class _Thinner:
         if e.unit == "seconds":
             if not math.isfinite(timestamp):
                 raise RecordingError(
-                    f"{self.where}: --every {e} needs timestamps, and this recording has none"
+                    f"{self.where}: every={e} needs timestamps, and this recording has none"
                 )
             if self.last_t is not None and timestamp - self.last_t < e.value - 1e-9:
                 return False
@@ -215,7 +215,7 @@ class Source:
         """Every kept frame in one :class:`Batch` (for a reference map, which needs them all)."""
         parts = list(self.batches(size, every=every, positions=positions))
         if not parts:
-            raise RecordingError(f"{self.describe()}: --every {every} keeps no frame")
+            raise RecordingError(f"{self.describe()}: every={every} keeps no frame")
         return Batch(
             np.concatenate([b.images for b in parts]),
             np.concatenate([b.timestamps for b in parts]),

@@ -117,7 +117,7 @@ def read_positions(csv_path=None, *, bag=None, topic: str | None = None) -> Posi
     if topic is None:
         return None
     if bag is None:
-        raise ValueError(f"--position-topic {topic}: the recording is not a ROS bag")
+        raise ValueError(f"position_topic={topic}: the recording is not a ROS bag")
     from .rosbag import read_bag_positions
 
     t, xy = read_bag_positions(bag, topic)

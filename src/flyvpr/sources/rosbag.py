@@ -177,7 +177,7 @@ class BagSource(Source):
         super().__init__(path)
         bag = _Bag(self.path)
         try:
-            conns = bag.pick(topic, _IMAGE + _COMPRESSED, "image", "--topic")
+            conns = bag.pick(topic, _IMAGE + _COMPRESSED, "image", "topic=TOPIC")
         finally:
             bag.close()
         self.topic = conns[0].topic
@@ -188,7 +188,7 @@ class BagSource(Source):
     def _frames(self) -> Iterator[tuple[int, float, Decoder]]:
         bag = _Bag(self.path)
         try:
-            conns = bag.pick(self.topic, _IMAGE + _COMPRESSED, "image", "--topic")
+            conns = bag.pick(self.topic, _IMAGE + _COMPRESSED, "image", "topic=TOPIC")
             for index, (conn, logtime, msg) in enumerate(bag.messages(conns)):
                 yield index, _stamp(msg, logtime), self._decoder(conn.msgtype, msg, index)
         finally:
@@ -305,7 +305,7 @@ def read_bag_positions(path, topic: str) -> tuple[np.ndarray, np.ndarray]:
     """
     bag = _Bag(Path(path))
     try:
-        conns = bag.pick(topic, _NAVSAT + _ODOMETRY, "position", "--position-topic")
+        conns = bag.pick(topic, _NAVSAT + _ODOMETRY, "position", "position_topic=TOPIC")
         stamps, values = [], []
         for conn, logtime, msg in bag.messages(conns):
             stamps.append(_stamp(msg, logtime))
