@@ -58,4 +58,4 @@ bench-speed: $(VENV)/.core
 	$(BIN)/python benchmarks/speed.py --json benchmarks/speed.json
 
 clean:
-	rm -rf $(VENV) build src/*.egg-info .pytest_cache .ruff_cache docs/_build docs/api
+	rm -rf $(VENV) build src/*.egg-info .pytest_cache .ruff_cache .mypy_cache docs/_build docs/api

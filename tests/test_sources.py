@@ -337,3 +337,14 @@ def test_area_resize_equals_the_dense_area_product(shape):
     np.testing.assert_allclose(out, dense, atol=1e-3)
     # a constant frame stays that constant, whatever the band weights
     np.testing.assert_allclose(area_resize(np.full(shape, 200, np.uint8), 32, 64), 200, rtol=1e-5)
+
+
+def test_writers_take_a_name_up_to_name_max(tmp_path):
+    # the temporary file beside a 250-character target is short enough (and keeps the suffix
+    # the container is picked from); nothing is left beside the written video
+    from flyvpr.sources.writers import write_video
+
+    frames = (np.random.default_rng(0).random((4, 32, 64)) * 255).astype(np.uint8)
+    path = tmp_path / ("v" * 246 + ".mp4")
+    write_video(path, frames, fps=10)
+    assert path.is_file() and [p.name for p in tmp_path.iterdir()] == [path.name]

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from .._io import _temporary_name
 from .base import require_extra
 
 __all__ = ["write_video", "write_bag"]
@@ -33,7 +34,10 @@ def _uint8(frames) -> np.ndarray:
 
 
 def _temporary(path: Path) -> Path:
-    return path.with_name(f".tmp{os.getpid()}-{path.name}")
+    """The temporary file beside ``path``: the short name ``flyvpr._io``'s atomic writes use
+    (fits for any target name up to the file system's limit), with the target's suffix, from
+    which the writers pick the container."""
+    return path.with_name(_temporary_name(path.name) + path.suffix[:16])
 
 
 def _discard(tmp: Path) -> None:
