@@ -342,8 +342,8 @@ VIEWS: list[View] = [
     ),
     View("syn-night", "syn-night", "synthetic s->night", "synthetic", (2, 10)),
     View("syn-jitter", "syn-jitter", "synthetic s->w jitter 3", "synthetic", (2, 10)),
-    View("vp-0", "vp-0", "viewpoint s->w 0-999", "viewpoint", (20,)),
-    View("vp-1000", "vp-1000", "viewpoint s->w 1000-1999", "viewpoint", (20,)),
+    View("vp-0", "vp-0", "viewpoint s->w 0-999", "viewpoint", (20, 2)),
+    View("vp-1000", "vp-1000", "viewpoint s->w 1000-1999", "viewpoint", (20, 2)),
     View(
         "blank",
         "blank",
