@@ -60,6 +60,25 @@ def test_resize_is_exact_area_average():
     np.testing.assert_allclose(out, expected, atol=1e-6)
 
 
+def test_resize_is_the_exact_area_product_at_any_factor():
+    # image files, video frames and bags share this one resize: exact area weights
+    rng = np.random.default_rng(2)
+    src = rng.random((270, 480), dtype=np.float32)
+    dense = im.area_matrix(32, 270) @ src @ im.area_matrix(64, 480).T
+    np.testing.assert_allclose(im.resize_area(src, (32, 64)), dense, rtol=1e-5, atol=1e-6)
+    # output pixel 0 of 270 -> 32 rows covers rows 0-7 and 0.4375 of row 8
+    w = im.area_matrix(32, 270)[0]
+    np.testing.assert_allclose(w[:9] * 8.4375, [1] * 8 + [0.4375], rtol=1e-6)
+    assert w[9:].sum() == 0
+    # uint8 frames too (the video path), in their own units
+    u8 = rng.integers(0, 256, (360, 640), dtype=np.uint8)
+    np.testing.assert_allclose(
+        im.area_resize(u8, 32, 64) / 255.0,
+        im.resize_area(u8.astype(np.float32) / 255.0, (32, 64)),
+        atol=1e-6,
+    )
+
+
 def test_resize_non_integer_factor_preserves_mean():
     rng = np.random.default_rng(1)
     src = rng.random((270, 480), dtype=np.float32)

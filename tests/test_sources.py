@@ -318,7 +318,7 @@ def test_other_pixel_formats_go_through_swscale(route):
 
 
 def test_area_matrix_averages_exactly():
-    from flyvpr.sources.video import area_matrix
+    from flyvpr.images import area_matrix
 
     a = area_matrix(2, 5)  # output pixel 0 covers [0, 2.5): pixels 0, 1 and half of 2
     np.testing.assert_allclose(a, [[0.4, 0.4, 0.2, 0, 0], [0, 0, 0.2, 0.4, 0.4]], atol=1e-7)
@@ -327,7 +327,7 @@ def test_area_matrix_averages_exactly():
 
 @pytest.mark.parametrize("shape", [(480, 640), (720, 1280), (361, 500), (64, 128), (20, 30)])
 def test_area_resize_equals_the_dense_area_product(shape):
-    from flyvpr.sources.video import area_matrix, area_resize
+    from flyvpr.images import area_matrix, area_resize
 
     rng = np.random.default_rng(shape[0])
     y = rng.integers(0, 256, (shape[0], shape[1] + 5), dtype=np.uint8)[:, : shape[1]]

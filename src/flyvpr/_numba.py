@@ -2,7 +2,7 @@
 
 numba is a core dependency: every kernel is compiled, and there is no pure-Python fallback
 for a missing numba.  The kernel modules (``frontends/_kenyon_kernels.py``,
-``frontends/_pixels_kernels.py``, ``sources/_video_kernels.py``, ``large/_kernels.py`` and
+``frontends/_pixels_kernels.py``, ``_image_kernels.py`` (the area resize), ``large/_kernels.py`` and
 the CANN's ``temporal/cann/_kernels.py``) are imported on first use, never by ``import
 flyvpr``, so that importing the package does not import numba.  (The CANN's
 ``_kernels.USE_NUMBA = False`` runs the same functions uncompiled: a switch for tests and

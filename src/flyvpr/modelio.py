@@ -85,7 +85,7 @@ def preprocessing_settings(size=DEFAULT_SIZE) -> dict:
     return {
         "image_size": [int(size[0]), int(size[1])],
         "gray": "ITU-R BT.601 luma (0.299 R + 0.587 G + 0.114 B), values in [0, 1]",
-        "resize": "area averaging (Pillow BOX)",
+        "resize": "area averaging (exact area weights)",
         "preprocess_version": _PREPROCESS_VERSION,
     }
 

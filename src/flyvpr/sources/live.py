@@ -402,7 +402,8 @@ class LiveSource:
             When the stream stalled and every reconnection failed (the message names the
             source and the reason).
         """
-        from .video import _decoder, area_resize
+        from ..images import area_resize
+        from .video import _decoder
 
         h, w = _check_size(size)
         if self._thread is not None:

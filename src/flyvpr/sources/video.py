@@ -2,10 +2,9 @@
 
 Gray is the video's luma plane (Y), which 8-bit YUV frames (``yuv420p``, ``yuvj420p``,
 ``nv12``, ``yuv422p``, ``yuv444p`` ...) hand over without any conversion: the plane is viewed
-in place and area-averaged to the target size (``area_resize``: exact area weights, as
-OpenCV's ``INTER_AREA``; for integer factors the same average as Pillow's ``BOX`` used for
-image files), a compiled loop over the band of input rows each output row covers, then the
-same along the columns.  Limited-range ("TV", 16-235) luma is then expanded to
+in place and area-averaged to the target size (:func:`flyvpr.images.area_resize`, the one
+area resize of the package, also that of image files and ROS bags: exact area weights, as
+OpenCV's ``INTER_AREA``).  Limited-range ("TV", 16-235) luma is then expanded to
 full range, and the result divided by 255.  That costs a fraction of what FFmpeg's swscale
 takes for the same area resize (``frame.reformat(..., interpolation="AREA")``), which remains
 the path for every other pixel format (RGB, 10-bit, palette ...): converted to full-size gray
@@ -15,10 +14,10 @@ first, then averaged the same way.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from functools import lru_cache
 
 import numpy as np
 
+from ..images import area_resize
 from .base import Decoder, RecordingError, Source, _reason, require_extra
 
 __all__ = ["VideoSource", "VIDEO_EXTENSIONS"]
@@ -100,54 +99,6 @@ _LUMA_FORMATS = frozenset(
     "nv12 nv21 nv16 gray".split()
 )
 _FULL_RANGE_FORMATS = frozenset({"yuvj420p", "yuvj422p", "yuvj444p", "yuvj440p", "gray"})
-
-
-@lru_cache(maxsize=16)
-def area_matrix(n_out: int, n_in: int) -> np.ndarray:
-    """Weights (n_out, n_in) of an area resize along one axis: each output pixel is the mean of
-    the input interval it covers, partial pixels weighted by their covered fraction."""
-    edges = np.arange(n_out + 1, dtype=np.float64) * (n_in / n_out)
-    j = np.arange(n_in, dtype=np.float64)[None, :]
-    overlap = np.minimum(edges[1:, None], j + 1) - np.maximum(edges[:-1, None], j)
-    weights = np.clip(overlap, 0.0, None)
-    return (weights / weights.sum(axis=1, keepdims=True)).astype(np.float32)
-
-
-@lru_cache(maxsize=16)
-def _row_band(n_out: int, n_in: int):
-    """:func:`area_matrix` as a band: per output row its first input row, the count of input
-    rows it covers and their weights (zero-padded to the widest band)."""
-    m = area_matrix(n_out, n_in)
-    nz = m > 0
-    starts = nz.argmax(axis=1).astype(np.int64)
-    counts = nz.sum(axis=1).astype(np.int64)
-    weights = np.zeros((n_out, int(counts.max())), np.float32)
-    for i in range(n_out):  # n_out rows (32 by default), once per frame size
-        weights[i, : counts[i]] = m[i, starts[i] : starts[i] + counts[i]]
-    return starts, counts, weights
-
-
-def _kernels():
-    """The compiled resize kernel's module (imports numba on first use)."""
-    from . import _video_kernels
-
-    return _video_kernels
-
-
-def area_resize(y: np.ndarray, h: int, w: int) -> np.ndarray:
-    """Area-average the 2-d array ``y`` (uint8 or float) to ``(h, w)``, float32.
-
-    The same weights as :func:`area_matrix` along both axes.  Along the rows only the band of
-    input rows each output row covers is read (a compiled loop: one multiply-add per input
-    pixel, instead of the dense product's ``h`` per pixel), then the same along the columns
-    of that small result.  No BLAS call: BLAS threads would compete with the video decoder's.
-    """
-    kernel = _kernels().band
-    rows = np.zeros((h, y.shape[1]), np.float32)
-    kernel(y, *_row_band(h, y.shape[0]), rows)
-    cols = np.zeros((w, h), np.float32)
-    kernel(rows.T, *_row_band(w, y.shape[1]), cols)
-    return np.ascontiguousarray(cols.T)
 
 
 def _luma(frame) -> tuple[np.ndarray, bool]:

@@ -1,12 +1,12 @@
-"""The compiled (numba) kernel of the video reader's area resize.
+"""The compiled (numba) kernel of the area resize (:func:`flyvpr.images.area_resize`).
 
-Imported on first use (:func:`flyvpr.sources.video.area_resize`), so that ``import flyvpr``
-does not import numba.  ``nogil``: frames resize while the decoder's threads run.
+Imported on first use, so that ``import flyvpr`` does not import numba.  ``nogil``: frames
+resize while a video decoder's threads run.
 """
 
 from __future__ import annotations
 
-from .._numba import jit
+from ._numba import jit
 
 
 @jit(nogil=True)
