@@ -11,6 +11,8 @@ import platform
 import resource
 from pathlib import Path
 
+import numpy as np
+
 __all__ = ["DEFAULT_DATA", "peak_rss_mb", "machine"]
 
 #: the shared data folder beside the checkout (``../shared/data``)
@@ -41,3 +43,25 @@ def machine() -> dict:
         "processor": platform.processor(),
         "cpu_count": os.cpu_count(),
     }
+
+
+#: places of the long map of the speed benchmarks (the summer frames repeated)
+LINE_PLACES = 35_768
+
+
+def make_line_map(summer: np.ndarray, n_places: int, rng) -> np.ndarray:
+    """Repeat the real frames with per-copy perturbations up to ``n_places`` frames."""
+    reps = -(-n_places // len(summer))
+    out = np.empty((n_places, *summer.shape[1:]), dtype=np.float32)
+    for r in range(reps):
+        lo = r * len(summer)
+        hi = min(n_places, lo + len(summer))
+        block = summer[: hi - lo]
+        if r:
+            gain = rng.uniform(0.9, 1.1)
+            offset = rng.uniform(-0.03, 0.03)
+            dy, dx = rng.integers(-1, 2, size=2)
+            block = np.roll(block, (dy, dx), axis=(1, 2)) * gain + offset
+            block = block + rng.normal(0.0, 0.01, block.shape).astype(np.float32)
+        out[lo:hi] = np.clip(block, 0.0, 1.0)
+    return out

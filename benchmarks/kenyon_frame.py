@@ -25,9 +25,9 @@ from flyvpr.methods import FILTERS, Method
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
     sys.path.insert(0, str(ROOT))
-from benchmarks._common import DEFAULT_DATA  # noqa: E402
+from benchmarks._common import DEFAULT_DATA, LINE_PLACES, make_line_map  # noqa: E402
 
-N_PLACES = 35_768
+N_PLACES = LINE_PLACES
 
 
 def best_per_frame_ms(step, n: int, repeat: int) -> float:
@@ -52,7 +52,7 @@ def main(argv=None) -> int:
         return 1
     summer = load_images(list_images(root / "summer"), progress=False)
     winter = load_images(list_images(root / "winter")[:1000], progress=False)
-    line = np.concatenate([summer] * -(-N_PLACES // len(summer)))[:N_PLACES]
+    line = make_line_map(summer, N_PLACES, np.random.default_rng(0))  # as speed.py's
     front = KenyonEncoder(random_state=0)
     loc = Localizer(Method("kenyon+cann", front, FILTERS["cann"]())).fit(line)
     frames = [winter[i : i + 1] for i in range(200)]

@@ -57,10 +57,15 @@ from flyvpr.temporal import FILTERS
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
     sys.path.insert(0, str(ROOT))
-from benchmarks._common import DEFAULT_DATA, peak_rss_mb  # noqa: E402
+from benchmarks._common import (  # noqa: E402
+    DEFAULT_DATA,
+    LINE_PLACES,
+    make_line_map,
+    peak_rss_mb,
+)
 
 HERE = Path(__file__).resolve().parent
-N_LINE = 35_768
+N_LINE = LINE_PLACES
 
 # Paper, Table "Processing time", Nordland 1000 queries x 1000 references.
 PAPER = {
@@ -96,24 +101,6 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
-
-
-def make_line_map(summer: np.ndarray, n_places: int, rng) -> np.ndarray:
-    """Repeat the real frames with per-copy perturbations up to ``n_places`` frames."""
-    reps = -(-n_places // len(summer))
-    out = np.empty((n_places, *summer.shape[1:]), dtype=np.float32)
-    for r in range(reps):
-        lo = r * len(summer)
-        hi = min(n_places, lo + len(summer))
-        block = summer[: hi - lo]
-        if r:
-            gain = rng.uniform(0.9, 1.1)
-            offset = rng.uniform(-0.03, 0.03)
-            dy, dx = rng.integers(-1, 2, size=2)
-            block = np.roll(block, (dy, dx), axis=(1, 2)) * gain + offset
-            block = block + rng.normal(0.0, 0.01, block.shape).astype(np.float32)
-        out[lo:hi] = np.clip(block, 0.0, 1.0)
-    return out
 
 
 def stream(data: Path, n_queries: int, epochs: int, method: str = "flynet+cann") -> dict:

@@ -192,7 +192,7 @@ def test_missing_results_folder(tmp_path):
 
 
 def test_report_renders_in_chromium(report, tmp_path):
-    script = REPO / "benchmarks" / "render_report.py"
+    script = REPO / "docs" / "render_report.py"
     browsers = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
     if not any(shutil.which(b) for b in browsers):
         pytest.skip("no Chromium/Chrome on PATH")

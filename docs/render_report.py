@@ -6,7 +6,7 @@ screenshot is not blank (pixel spread and share of non-white pixels).
 
 Usage::
 
-    python benchmarks/render_report.py DIR/report.html [--screenshot out.png]
+    python docs/render_report.py DIR/report.html [--screenshot out.png]
                                        [--width 1280] [--height 4000] [--chromium PATH]
 
 Exit status 0 when every check passes, 1 when one fails, 2 when no Chromium
