@@ -15,7 +15,8 @@ Protocol (written into the JSON):
   ``7 * 2400 + i``; ground truth within 2 and 20 places.
 * **Whole map**: the CANN (defaults) over every frame's Hamming similarity to all 35,768
   places.  **Windowed**: :class:`flyvpr.large.LargeLocalizer` (window 2,048, multi-index
-  hashing or, with ``--index exhaustive``, an exact scan; top 100, pooled over 10 frames),
+  hashing or, with ``--index exhaustive``, an exact scan; top 300, pooled over 10 frames;
+  the layer a re-seed displaces held while neither is localized),
   one frame at a time from a fresh start: its answer
   and confidence per frame.  AUC of the precision-recall curve from each frame's answer and
   confidence (:func:`flyvpr.metrics.evaluate`).

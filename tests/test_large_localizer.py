@@ -181,3 +181,23 @@ def test_errors():
         loc.update_code(np.zeros(16, np.uint8))
     with pytest.raises(ValueError, match="code must be uint8"):
         loc.update_code(np.zeros(32, np.int64))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_reseed_in_a_dip_keeps_the_track_it_displaced(seed):
+    # A lost layer on the right stretch (frames that match nothing) re-seeded onto a wrong
+    # place: the layer it displaced is held and integrated on, and when the frames match the
+    # route again it answers again, localized, with no second re-seed; then it is let go.
+    codes = _map(seed=seed)
+    rng = np.random.default_rng(30 + seed)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
+    _drive(loc, codes, 3000 + np.arange(60), rng)
+    for _ in range(3):
+        loc.update_code(rng.integers(0, 256, 32, dtype=np.uint8))
+    incumbent, reseeds = loc.filter_, loc.n_reseeds_
+    loc._replay(np.array([12000]), np.array([0.1]), np.array([1.0]), 3, hold=True)
+    assert loc.held_ is incumbent and loc.filter_ is not incumbent
+    fixes = _drive(loc, codes, 3063 + np.arange(20), rng)
+    right = [f.state == "localized" and abs(f.place - 3063 - t) <= 2 for t, f in enumerate(fixes)]
+    assert all(right[5:])
+    assert loc.filter_ is incumbent and loc.held_ is None and loc.n_reseeds_ == reseeds + 1

@@ -32,7 +32,7 @@ from .index import CandidateIndex, pool_candidates
 __all__ = ["LargeLocalizer"]
 
 #: pooled candidates whose tracks are compared with the layer's
-_COMPARED = 100
+_COMPARED = 300
 #: speeds (places per frame) over which a track is scored
 _TRACK_SPEEDS = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
 #: a candidate's tracks may end this many places either side of it
@@ -61,7 +61,7 @@ class LargeLocalizer:
         Fitted; needed by :meth:`update` (images), not by :meth:`update_code`.
     window : int, default 2048
         Places the layer covers.
-    k : int, default 100
+    k : int, default 300
         Candidates per frame from the index.
     pool : int, default 10
         Frames whose candidates are pooled and over which tracks are scored: the last
@@ -81,6 +81,11 @@ class LargeLocalizer:
     Attributes
     ----------
     filter_ : WindowedCANN
+        The layer that answers.
+    held_ : WindowedCANN or None
+        The layer a lost re-seed displaced (the more confident one, preferring one that had
+        been localized since its seed), stepped on beside ``filter_`` for at most ``pool``
+        frames while the answer is not localized; whichever is more confident answers.
     n_frames_, n_searches_, n_reseeds_ : int
         Frames, codes sent to the index and re-seeds since :meth:`reset`.
     search_s_ : float
@@ -103,7 +108,12 @@ class LargeLocalizer:
     more than 3.5 standard errors of a mean similarity of unrelated codes.  The layer then
     restarts around the candidates as they were at the oldest of these frames and steps
     through them (the replay), so that it is ``localized`` as soon as their evidence allows
-    instead of after as many new frames.
+    instead of after as many new frames.  The layer it displaces is not thrown away: a lost
+    layer is as often dipping on the right stretch, where a look-alike can match a few frames
+    better, as kidnapped, and only the frames that follow tell the two apart, so it is held
+    and integrated on and answers whenever it is the more confident.  A layer not localized
+    since its seed (a guess from the index) is searched again every ``reseed_after`` frames
+    instead of backing off.
 
     Examples
     --------
@@ -128,7 +138,7 @@ class LargeLocalizer:
         encoder=None,
         *,
         window: int = 2048,
-        k: int = 100,
+        k: int = 300,
         pool: int = 10,
         reseed_after: int = 4,
         check_every: int = 1000,
@@ -158,7 +168,8 @@ class LargeLocalizer:
         self.check_every = check_positive_int(check_every, "check_every", minimum=0)
         self.speed = tuple(float(v) for v in speed)
         self.n_bits = codes.shape[1] * 8
-        self.filter_ = WindowedCANN(n_places, window=window, **params)
+        self._layer = {"window": window, **params}
+        self.filter_ = WindowedCANN(n_places, **self._layer)
         self.reset()
 
     @property
@@ -168,6 +179,12 @@ class LargeLocalizer:
     def reset(self) -> None:
         """Forget all frames (the next one is searched for in the whole map)."""
         self.filter_.reset()
+        # the layer a re-seed displaced, integrated on while neither is localized
+        self.held_: WindowedCANN | None = None
+        self._held_frames = 0
+        # whether the answering layer (and the held one) has been localized since its seed: a
+        # layer that never was is a guess, with no track to defend
+        self._proven = self._held_proven = False
         # the last ``pool`` frames' codes and odometry, newest last
         self._recent: deque[np.ndarray] = deque(maxlen=self.pool)
         self._velocities: deque[float | None] = deque(maxlen=self.pool)
@@ -216,16 +233,32 @@ class LargeLocalizer:
                 # layer lost): again soon after a re-seed, twice as late after each time the
                 # layer's own track won (a long dip on the right stretch backs off).
                 reseeded = self._reseed_lost(min(self._lost, self.pool))
-                self._next_search = self._lost + (self.reseed_after if reseeded else self._lost)
+                again = self.reseed_after if reseeded or not self._proven else self._lost
+                self._next_search = self._lost + again
         else:
             self._lost = 0
             self._next_search = self.reseed_after
             check = self.check_every and self.n_frames_ % self.check_every == self.check_every - 1
             if check:
                 self._check()
-        lo, hi = f.window_
-        scores = hamming_similarity(q[None], self.codes, lo, hi)[0]
-        place, confidence, state = f.step(scores, velocity)
+        for layer in (self.filter_, self.held_):
+            if layer is not None:
+                lo, hi = layer.window_
+                layer.step(hamming_similarity(q[None], self.codes, lo, hi)[0], velocity)
+        held = self.held_
+        if held is not None:
+            # Two hypotheses: the one more likely right answers (the confidence is that
+            # probability); the other is kept while the answer is not localized (a re-seed in
+            # a dip on the right stretch must not throw the right track away).
+            if held.confidence_ > self.filter_.confidence_:
+                self.filter_, self.held_ = held, self.filter_
+                self._proven, self._held_proven = self._held_proven, self._proven
+            self._held_frames += 1
+            if self.filter_.state_ == LOCALIZED or self._held_frames >= self.pool:
+                self.held_ = None
+        f = self.filter_
+        place, confidence, state = f.place_, f.confidence_, f.state_
+        self._proven |= state == LOCALIZED
         self.n_frames_ += 1
         for frame in [t for t in self._found if t <= self.n_frames_ - self.pool]:
             del self._found[frame]  # no longer pooled
@@ -264,18 +297,23 @@ class LargeLocalizer:
         if places.size == 0:
             return False
         t0 = time.perf_counter()
-        here = self.filter_.place_
-        ends = places if here < 0 else np.append(places, here)
+        # The layers' own tracks: the answering layer's and the one it displaced, if kept.
+        # The best of ~_COMPARED candidates at several speeds and ends beats an unrelated
+        # track by a few standard errors by chance alone (the layer's own track may be on
+        # the right stretch, dipping where its frames match poorly).
+        margin = _LOST_Z * 0.5 / np.sqrt(self.n_bits * n_frames)
+        own = [layer.place_ for layer in (self.filter_, self.held_) if layer is not None]
+        own = [p for p in own if p >= 0]
+        ends = np.append(places, np.array(own, np.int64))
         tracks, ends, speeds = self._track_scores(ends, n_frames)
         self.search_s_ += time.perf_counter() - t0
-        if here >= 0:
-            own, tracks, ends, speeds = tracks[-1], tracks[:-1], ends[:-1], speeds[:-1]
-            # The best of ~_COMPARED candidates at several speeds and ends beats an unrelated
-            # track by a few standard errors by chance alone (the layer's own track may be on
-            # the right stretch, dipping where its frames match poorly).
-            if tracks.max() <= own + _LOST_Z * 0.5 / np.sqrt(self.n_bits * n_frames):
+        if own:
+            defended = tracks[-len(own) :].max() + margin
+            tracks, ends, speeds = tracks[: -len(own)], ends[: -len(own)], speeds[: -len(own)]
+            if tracks.max() <= defended:
                 return False
-        self._replay(ends, tracks, speeds, n_frames)
+        # (a layer that never had a place, the first frame's, is no hypothesis to keep)
+        self._replay(ends, tracks, speeds, n_frames, hold=self.n_frames_ > 0)
         return True
 
     def _check(self) -> None:
@@ -296,22 +334,34 @@ class LargeLocalizer:
         if better.any():
             self._replay(ends[better], tracks[better], speeds[better], n_frames)
 
-    def _replay(self, ends, tracks, speeds, n_frames: int) -> None:
-        """Re-seed the layer around the tracks ending at ``ends`` as they were ``n_frames -
-        1`` frames ago and step it through those frames' codes (not this one's), so that it
-        has weighed their evidence by the time this frame comes."""
+    def _replay(self, ends, tracks, speeds, n_frames: int, hold: bool = False) -> None:
+        """Start a layer around the tracks ending at ``ends`` as they were ``n_frames - 1``
+        frames ago and step it through those frames' codes (not this one's), so that it has
+        weighed their evidence by the time this frame comes; it answers from now on.  With
+        ``hold``, the more confident of the layers it displaces is kept (:attr:`held_`)."""
         t0 = time.perf_counter()
         # The candidates' weights: how much better than the rest their tracks are, in units
         # of a few bits of similarity.
         w = np.exp((tracks - tracks.max()) * (self.n_bits / 8.0))
         start = ends - np.rint(speeds * (n_frames - 1)).astype(np.int64)
-        f = self.filter_
+        f = WindowedCANN(self.n_places, **self._layer)
         f.reseed(np.clip(start, 0, self.n_places - 1), w)
         self.n_reseeds_ += 1
         for i in range(-n_frames, -1):
             lo, hi = f.window_
             scores = hamming_similarity(self._recent[i][None], self.codes, lo, hi)[0]
             f.step(scores, None if i == -n_frames else self._velocities[i])
+        kept = [
+            (layer, proven)
+            for layer, proven in ((self.filter_, self._proven), (self.held_, self._held_proven))
+            if layer is not None
+        ]
+        self.held_, self._held_proven = (
+            max(kept, key=lambda lp: (lp[1], lp[0].confidence_)) if hold else (None, False)
+        )
+        self._held_frames = 0
+        self._proven = False
+        self.filter_ = f
         self.search_s_ += time.perf_counter() - t0
 
     def _track_scores(
