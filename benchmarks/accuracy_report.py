@@ -222,10 +222,33 @@ def _kidnap_lines(data: dict) -> list[str]:
     return lines
 
 
-def reliability_table(data: dict, method: str) -> list[list[str]]:
+#: the two sets of robot views the reliability tables pool: those whose window chose the
+#: defaults and fitted the calibration table, and the held-out window's
+RELIABILITY_SETS = (
+    ("dev", "the dev views (frames 0-999: they chose the defaults and fitted the calibration)"),
+    ("held out", "the held-out views (frames 2000-2399: they tuned nothing)"),
+)
+
+
+def _held_out_views(data: dict) -> set[str]:
+    """View keys whose conditions say they are held out (tuned nothing)."""
+    return {
+        c["view_key"]
+        for c in data.get("conditions", [])
+        if str(c.get("tuning", "")).startswith("held out")
+    }
+
+
+def reliability_table(data: dict, method: str, views: str | None = None) -> list[list[str]]:
     """Rows (confidence bin, frames, mean confidence, share right, gap) of ``method``'s answers
-    on the robot views at their strictest tolerance, pooled over views and seeds."""
-    parts = [x for x in data.get("reliability", []) if x["method"] == method]
+    on the robot views at their strictest tolerance, pooled over views and seeds; ``views``:
+    ``"dev"`` or ``"held out"`` (see ``RELIABILITY_SETS``) pools only those, None all."""
+    held = _held_out_views(data)
+    parts = [
+        x
+        for x in data.get("reliability", [])
+        if x["method"] == method and (views is None or (x["view"] in held) == (views == "held out"))
+    ]
     if not parts:
         return []
     bins = len(parts[0]["n"])
@@ -400,16 +423,24 @@ def render_markdown(data: dict) -> str:
     if robot:
         parts += ["### Robot verdicts", "", *(f"- {line}" for line in robot), ""]
     for method in dict.fromkeys(x["method"] for x in data.get("reliability", [])):
-        rows = reliability_table(data, method)
         parts += [
             f"### Reliability of {method}'s confidence",
             "",
             "Its answers on the robot views (tolerance 2), pooled over views and seeds, by "
             "confidence: a calibrated confidence is right as often as it says (gap near 0).",
             "",
-            _md_table(["confidence", "frames", "mean confidence", "share right", "gap"], rows),
-            "",
         ]
+        for key, what in RELIABILITY_SETS:
+            rows = reliability_table(data, method, key)
+            if rows:
+                parts += [
+                    f"On {what}:",
+                    "",
+                    _md_table(
+                        ["confidence", "frames", "mean confidence", "share right", "gap"], rows
+                    ),
+                    "",
+                ]
     kid = _kidnap_lines(data)
     if kid:
         p = data.get("kidnap_protocol", {})
@@ -454,14 +485,16 @@ def render_text(data: dict) -> str:
     parts += _control_checks(data)
     parts += _robot_lines(data)
     for method in dict.fromkeys(x["method"] for x in data.get("reliability", [])):
-        parts += [
-            "",
-            f"Reliability of {method}'s confidence (robot views, tolerance 2):",
-            _text_table(
-                ["confidence", "frames", "mean confidence", "share right", "gap"],
-                reliability_table(data, method),
-            ),
-        ]
+        for key, what in RELIABILITY_SETS:
+            rows = reliability_table(data, method, key)
+            if rows:
+                parts += [
+                    "",
+                    f"Reliability of {method}'s confidence (tolerance 2) on {what}:",
+                    _text_table(
+                        ["confidence", "frames", "mean confidence", "share right", "gap"], rows
+                    ),
+                ]
     kid = _kidnap_lines(data)
     if kid:
         parts += ["", "Kidnap:", *kid]

@@ -89,6 +89,13 @@ PAGES = [
         "python tests/faults/faults.py --json benchmarks/faults.json",
         "faults",
     ),
+    Page(
+        "calibration",
+        "Calibration on a route of one's own",
+        "benchmarks/calibration.json",
+        "python benchmarks/calibration.py --json benchmarks/calibration.json",
+        "calibration",
+    ),
 ]
 
 

@@ -12,12 +12,14 @@ whether the query follows the route at all; the answer comes with a calibrated c
 
 Modules: ``_filter`` (:class:`CANN`), ``_layer`` (its per-frame kernels), ``_window``
 (:class:`WindowedCANN`: the layer on a window of a large map), ``_attractor``
-(:class:`AttractorCANN`) with ``_params``, ``_speed`` and ``_readout``; ``_kernels`` holds the
-attractor's kernels, the input normalisation both use, and the numba compilation of both
-tables.
+(:class:`AttractorCANN`) with ``_params``, ``_speed`` and ``_readout``; ``_calibration``
+(:func:`fit_calibration`: the confidence table fitted on a labelled route of one's own);
+``_kernels`` holds the attractor's kernels, the input normalisation both use, and the numba
+compilation of both tables.
 """
 
 from ._attractor import AttractorCANN
+from ._calibration import fit_calibration
 from ._filter import CANN, LAYER_VELOCITIES
 from ._kernels import excitation_kernel
 from ._params import FAST_RECOVERY
@@ -30,4 +32,5 @@ __all__ = [
     "LAYER_VELOCITIES",
     "WindowedCANN",
     "excitation_kernel",
+    "fit_calibration",
 ]

@@ -169,7 +169,8 @@ class CANN(OdometryFilter):
         The sequence's confidence at raw confidence (support times the window's
         probability) 0, 0.1, ..., 1, linearly between (strictly increasing, in [0, 1]);
         fitted on kenyon+cann's answers on the dev robot conditions (Nordland 0-999, seeds
-        0-2, tolerance 2).  ``None``: the raw confidence.
+        0-2, tolerance 2).  ``None``: the raw confidence.  For another route or camera,
+        :func:`~flyvpr.temporal.cann.fit_calibration` fits a table from a labelled run.
 
     Attributes
     ----------

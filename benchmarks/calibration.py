@@ -1,0 +1,183 @@
+"""Calibration benchmark: the CANN's confidence on a route, with its default table and with a
+table fitted on a labelled run of that route.
+
+Usage::
+
+    python benchmarks/calibration.py --json benchmarks/calibration.json [--data DIR]
+
+Protocol: ``kenyon+cann`` (defaults) on the robot views of the held-out window (Nordland 64x32
+summer -> winter, frames 2000-2399, which tuned nothing: ``r-walk-2000``, ``r-stopgo-2000``,
+``r-detour-2000`` of ``benchmarks/accuracy.py``), tolerance 2.  The runs of seeds 0-4 (the
+front end's random projection) are the labelled run: the raw confidences of their sequence
+answers (``CANN(calibration=None)``) and whether each was right give a table through
+:func:`flyvpr.temporal.cann.fit_calibration`.  The runs of seeds 5-9 are then scored twice,
+with the default table (fitted on window 0-999) and with the fitted one: per confidence
+decile, answers, mean confidence and share right.  Both halves see the same route and frames
+(a user who labels one drive of a route and calibrates the filter for it); they differ in the
+front end's projection.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks._common import DEFAULT_DATA, machine  # noqa: E402
+from benchmarks.accuracy_run import gap_keep, load_dataset  # noqa: E402
+from benchmarks.accuracy_setup import DATASETS, ROBOT_VIEWS  # noqa: E402
+from flyvpr._io import write_json_atomic  # noqa: E402
+from flyvpr.datasets import ground_truth_from_frames  # noqa: E402
+from flyvpr.methods import make_method  # noqa: E402
+from flyvpr.temporal.cann import CANN, fit_calibration  # noqa: E402
+from flyvpr.temporal.cann._filter import CALIBRATION  # noqa: E402
+
+DATASET = "n64-2000"
+TOLERANCE = 2
+FIT_SEEDS = (0, 1, 2, 3, 4)
+TEST_SEEDS = (5, 6, 7, 8, 9)
+BINS = 10
+
+
+def _runs(data: Path, seeds, progress: bool):
+    """For each seed and held-out robot view: the front end's scores of the view's frames, its
+    odometry (or None) and its ground truth at ``TOLERANCE``."""
+    dataset = {d.key: d for d in DATASETS}[DATASET]
+    ref, qry, ref_ids, qry_ids, _ = load_dataset(dataset, data)
+    views = [v for v in ROBOT_VIEWS if v.dataset == DATASET]
+    for seed in seeds:
+        for view in views:
+            keep = np.arange(len(ref)) if view.gap is None else gap_keep(len(ref), view.gap)
+            method = make_method("kenyon+cann", seed, {}, {})
+            method.frontend.fit(ref[keep])
+            idx = view.indices(len(qry_ids))
+            S = method.frontend.score(qry[idx])
+            moved = np.diff(qry_ids[idx], prepend=qry_ids[idx][0]).astype(float)
+            gt = ground_truth_from_frames(qry_ids[idx], ref_ids[keep], TOLERANCE)
+            if progress:
+                print(f"  seed {seed} {view.key}", file=sys.stderr, flush=True)
+            yield view.key, seed, S, moved if view.odometry else None, gt
+
+
+def _stream(filt: CANN, S, moved, gt):
+    """Per frame: confidence, whether the answer is right, and whether it came from the
+    sequence."""
+    filt.reset()
+    out = []
+    for t in range(len(S)):
+        v = None if moved is None or t == 0 else float(moved[t])
+        row = filt.step(S[t]) if v is None else filt.step(S[t], velocity=v)
+        out.append((filt.confidence_, bool(gt[t, int(row.argmax())]), filt.source_ == "sequence"))
+    return out
+
+
+def reliability(answers) -> list[dict]:
+    """Per confidence decile: answers, mean confidence, share right."""
+    conf = np.array([a[0] for a in answers], np.float64)
+    right = np.array([a[1] for a in answers], np.float64)
+    b = np.minimum((conf * BINS).astype(np.int64), BINS - 1)
+    rows = []
+    for k in range(BINS):
+        m = b == k
+        if m.any():
+            rows.append(
+                {
+                    "bin": f"{k / BINS:.1f}-{(k + 1) / BINS:.1f}",
+                    "n": int(m.sum()),
+                    "confidence": float(conf[m].mean()),
+                    "right": float(right[m].mean()),
+                }
+            )
+    return rows
+
+
+def run(data: Path, progress: bool = True) -> dict:
+    raw, right = [], []
+    for _key, _seed, S, moved, gt in _runs(data, FIT_SEEDS, progress):
+        for conf, ok, seq in _stream(CANN(calibration=None), S, moved, gt):
+            if seq:
+                raw.append(conf)
+                right.append(ok)
+    table = fit_calibration(raw, right)
+    answers: dict[str, list] = {"default": [], "fitted": []}
+    for _key, _seed, S, moved, gt in _runs(data, TEST_SEEDS, progress):
+        for name, t in (("default", CALIBRATION), ("fitted", table)):
+            answers[name] += _stream(CANN(calibration=t), S, moved, gt)
+    result = {
+        "benchmark": "calibration",
+        "protocol": {
+            "method": "kenyon+cann (defaults)",
+            "data": "nordland_64x32 summer -> winter, frames 2000-2399 (held out)",
+            "views": [v.key for v in ROBOT_VIEWS if v.dataset == DATASET],
+            "tolerance": TOLERANCE,
+            "fit_seeds": list(FIT_SEEDS),
+            "test_seeds": list(TEST_SEEDS),
+            "fit": "fit_calibration (prior_weight 1) on the sequence answers' raw confidences",
+        },
+        "machine": machine(),
+        "fit_answers": len(raw),
+        "default_table": list(CALIBRATION),
+        "fitted_table": list(table),
+        "tables": {name: reliability(a) for name, a in answers.items()},
+    }
+    for name, rows in result["tables"].items():
+        result[f"{name}_largest_gap"] = max(abs(r["right"] - r["confidence"]) for r in rows)
+    return result
+
+
+def render_markdown(data: dict) -> str:
+    """The protocol and the two reliability tables (headings from level 2)."""
+    p = data["protocol"]
+    lines = [
+        "## Protocol",
+        "",
+        f"{p['method']} on {p['data']}; views {', '.join(p['views'])}; tolerance "
+        f"{p['tolerance']}.  Seeds {p['fit_seeds'][0]}-{p['fit_seeds'][-1]} are the labelled "
+        f"run ({data['fit_answers']} sequence answers; {p['fit']}); seeds "
+        f"{p['test_seeds'][0]}-{p['test_seeds'][-1]} are scored with the default table "
+        "(fitted on window 0-999) and with the fitted one.",
+        "",
+        f"Default table: {', '.join(f'{v:.3f}' for v in data['default_table'])}.  ",
+        f"Fitted table: {', '.join(f'{v:.3f}' for v in data['fitted_table'])}.",
+        "",
+    ]
+    for name in ("default", "fitted"):
+        lines += [
+            f"## With the {name} table (largest gap {data[f'{name}_largest_gap']:.3f})",
+            "",
+            "| confidence | answers | mean confidence | share right | gap |",
+            "|---|---|---|---|---|",
+        ]
+        for r in data["tables"][name]:
+            lines.append(
+                f"| {r['bin']} | {r['n']} | {r['confidence']:.3f} | {r['right']:.3f} | "
+                f"{r['right'] - r['confidence']:+.3f} |"
+            )
+        lines.append("")
+    m = data.get("machine", {})
+    if m:
+        lines.append(f"Machine: {', '.join(f'{k} {v}' for k, v in m.items())}.")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
+    ap.add_argument("--json", type=Path, help="write the figures as JSON")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines")
+    args = ap.parse_args(argv)
+    result = run(args.data, progress=not args.quiet)
+    print(render_markdown(result))
+    if args.json:
+        write_json_atomic(args.json, result)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
