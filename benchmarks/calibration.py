@@ -1,4 +1,4 @@
-"""Calibration benchmark: the CANN's confidence on a route, with its default table and with a
+"""Calibration benchmark: the CANN's confidence on a route, as it comes and recalibrated with a
 table fitted on a labelled run of that route.
 
 Usage::
@@ -8,13 +8,12 @@ Usage::
 Protocol: ``kenyon+cann`` (defaults) on the robot views of the held-out window (Nordland 64x32
 summer -> winter, frames 2000-2399, which tuned nothing: ``r-walk-2000``, ``r-stopgo-2000``,
 ``r-detour-2000`` of ``benchmarks/accuracy.py``), tolerance 2.  The runs of seeds 0-4 (the
-front end's random projection) are the labelled run: the raw confidences of their sequence
-answers (``CANN(calibration=None)``) and whether each was right give a table through
-:func:`flyvpr.temporal.cann.fit_calibration`.  The runs of seeds 5-9 are then scored twice,
-with the default table (fitted on window 0-999) and with the fitted one: per confidence
-decile, answers, mean confidence and share right.  Both halves see the same route and frames
-(a user who labels one drive of a route and calibrates the filter for it); they differ in the
-front end's projection.
+front end's random projection) are the labelled run: every frame's confidence and whether its
+answer was right give a table through :func:`flyvpr.temporal.cann.fit_calibration`.  The runs
+of seeds 5-9 are then scored twice, with the defaults and with ``recalibration`` set to the
+fitted table: per confidence decile, answers, mean confidence and share right.  Both halves
+see the same route and frames (a user who labels one drive of a route and calibrates the
+filter for it); they differ in the front end's projection.
 """
 
 from __future__ import annotations
@@ -36,7 +35,6 @@ from flyvpr._io import write_json_atomic  # noqa: E402
 from flyvpr.datasets import ground_truth_from_frames  # noqa: E402
 from flyvpr.methods import make_method  # noqa: E402
 from flyvpr.temporal.cann import CANN, fit_calibration  # noqa: E402
-from flyvpr.temporal.cann._filter import CALIBRATION  # noqa: E402
 
 DATASET = "n64-2000"
 TOLERANCE = 2
@@ -98,17 +96,16 @@ def reliability(answers) -> list[dict]:
 
 
 def run(data: Path, progress: bool = True) -> dict:
-    raw, right = [], []
+    confidence, right = [], []
     for _key, _seed, S, moved, gt in _runs(data, FIT_SEEDS, progress):
-        for conf, ok, seq in _stream(CANN(calibration=None), S, moved, gt):
-            if seq:
-                raw.append(conf)
-                right.append(ok)
-    table = fit_calibration(raw, right)
-    answers: dict[str, list] = {"default": [], "fitted": []}
+        for conf, ok, _seq in _stream(CANN(), S, moved, gt):
+            confidence.append(conf)
+            right.append(ok)
+    table = fit_calibration(confidence, right)
+    answers: dict[str, list] = {"default": [], "recalibrated": []}
     for _key, _seed, S, moved, gt in _runs(data, TEST_SEEDS, progress):
-        for name, t in (("default", CALIBRATION), ("fitted", table)):
-            answers[name] += _stream(CANN(calibration=t), S, moved, gt)
+        for name, t in (("default", None), ("recalibrated", table)):
+            answers[name] += _stream(CANN(recalibration=t), S, moved, gt)
     result = {
         "benchmark": "calibration",
         "protocol": {
@@ -118,12 +115,11 @@ def run(data: Path, progress: bool = True) -> dict:
             "tolerance": TOLERANCE,
             "fit_seeds": list(FIT_SEEDS),
             "test_seeds": list(TEST_SEEDS),
-            "fit": "fit_calibration (prior_weight 1) on the sequence answers' raw confidences",
+            "fit": "fit_calibration (prior_weight 1) on every frame's confidence",
         },
         "machine": machine(),
-        "fit_answers": len(raw),
-        "default_table": list(CALIBRATION),
-        "fitted_table": list(table),
+        "fit_answers": len(confidence),
+        "table": list(table),
         "tables": {name: reliability(a) for name, a in answers.items()},
     }
     for name, rows in result["tables"].items():
@@ -139,17 +135,18 @@ def render_markdown(data: dict) -> str:
         "",
         f"{p['method']} on {p['data']}; views {', '.join(p['views'])}; tolerance "
         f"{p['tolerance']}.  Seeds {p['fit_seeds'][0]}-{p['fit_seeds'][-1]} are the labelled "
-        f"run ({data['fit_answers']} sequence answers; {p['fit']}); seeds "
-        f"{p['test_seeds'][0]}-{p['test_seeds'][-1]} are scored with the default table "
-        "(fitted on window 0-999) and with the fitted one.",
+        f"run ({data['fit_answers']} frames; {p['fit']}); seeds "
+        f"{p['test_seeds'][0]}-{p['test_seeds'][-1]} are scored with the defaults and with "
+        "the fitted table as the CANN's `recalibration`.",
         "",
-        f"Default table: {', '.join(f'{v:.3f}' for v in data['default_table'])}.  ",
-        f"Fitted table: {', '.join(f'{v:.3f}' for v in data['fitted_table'])}.",
+        "Fitted table (at confidence 0, 0.1, ..., 1): "
+        + ", ".join(f"{v:.3f}" for v in data["table"])
+        + ".",
         "",
     ]
-    for name in ("default", "fitted"):
+    for name, title in (("default", "As it comes"), ("recalibrated", "Recalibrated")):
         lines += [
-            f"## With the {name} table (largest gap {data[f'{name}_largest_gap']:.3f})",
+            f"## {title} (largest gap {data[f'{name}_largest_gap']:.3f})",
             "",
             "| confidence | answers | mean confidence | share right | gap |",
             "|---|---|---|---|---|",

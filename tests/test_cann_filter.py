@@ -219,6 +219,10 @@ def reference_filter(S, velocity=None, **params):
                 calibrated = float(np.interp(confidence, KNOTS, q["calibration"]))
                 out = out * calibrated / confidence if confidence > 0 else out
                 confidence = calibrated
+        if q["recalibration"] is not None:  # every answer, after the sequence's table
+            final = float(np.interp(confidence, KNOTS, q["recalibration"]))
+            out = out * final / confidence if confidence > 0 else out
+            confidence = final
         out = np.minimum(out, confidence)
         out[answer] = confidence
         rows.append(out)
@@ -320,6 +324,15 @@ REFERENCE_CASES = {
         "speed_prior": 1.5,
         "calibration": (0.0, 0.2, 0.3, 0.35, 0.5, 0.6, 0.62, 0.7, 0.9, 0.95, 0.96),
     },
+    "recalibrated": {
+        **WIDE,
+        "recalibration": (0.05, 0.07, 0.1, 0.2, 0.25, 0.3, 0.45, 0.5, 0.6, 0.8, 0.9),
+    },
+    "recalibrated raw": {
+        **WIDE,
+        "calibration": None,
+        "recalibration": (0.0, 0.3, 0.35, 0.4, 0.5, 0.55, 0.6, 0.8, 0.85, 0.9, 1.0),
+    },
 }
 
 
@@ -340,6 +353,26 @@ def test_matches_reference_where_the_front_end_learned():
     # (the front end answers after its model learned a positive slope)
     assert [fr["source_"] for fr in frames[40:]].count("front end") >= 5
     assert frames[40]["front_model"][1] > 0.3
+
+
+def test_recalibration_maps_every_answer_and_keeps_the_rest():
+    # the front end's answers too, through the same table; answers, states and the order
+    # of each row stay
+    table = (0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.55, 0.6, 0.7, 0.8, 0.85)
+    params = {**WIDE, "support_memory": 5.0, "calibration": None, "sequence_break": 0.2}
+    frames = assert_matches_reference(_front_scenario(), **params, recalibration=table)
+    plain = assert_matches_reference(_front_scenario(), **params)
+    S = _front_scenario()
+    rows, _ = run(CANN(**params, recalibration=table), S)
+    plain_rows, _ = run(CANN(**params), S)
+    for t, (got, want) in enumerate(zip(frames, plain, strict=True)):
+        assert got["answer"] == want["answer"] and got["state_"] == want["state_"], t
+        assert got["source_"] == want["source_"], t
+        expected = float(np.interp(want["confidence_"], KNOTS, table))
+        assert got["confidence_"] == pytest.approx(expected, rel=1e-5, abs=1e-7), t
+        order = np.argsort(-plain_rows[t], kind="stable")[:5]
+        assert (np.diff(rows[t][order]) <= 0).all(), t
+    assert {f["source_"] for f in frames} == {"sequence", "front end"}
 
 
 @pytest.mark.parametrize("transform", ["auto", "log", "linear"])
@@ -400,6 +433,7 @@ DEFAULTS = {
     "support_memory": 100.0,
     "fallback": True,
     "calibration": CALIBRATION,
+    "recalibration": None,
 }
 
 
@@ -557,6 +591,26 @@ BAD_PARAMS = [
         {"calibration": (0.0, 0.1, 0.2, 0.3, 0.4, 0.35, 0.6, 0.7, 0.8, 0.9, 1.0)},
         ValueError,
         "calibration must increase strictly; got",
+    ),
+    (
+        {"recalibration": "abc"},
+        TypeError,
+        "recalibration must be None or 11 numbers (at confidence 0, 0.1, ..., 1); got 'abc'",
+    ),
+    (
+        {"recalibration": [0.0, 1.0]},
+        ValueError,
+        "recalibration must hold 11 values (at confidence 0, 0.1, ..., 1); got shape (2,)",
+    ),
+    (
+        {"recalibration": _BAD_CALIBRATION[:-1] + (1.1,)},
+        ValueError,
+        "recalibration values must lie in [0, 1]; got [0.0, 0.1,",
+    ),
+    (
+        {"recalibration": (0.0, 0.1, 0.2, 0.3, 0.4, 0.4, 0.6, 0.7, 0.8, 0.9, 1.0)},
+        ValueError,
+        "recalibration must increase strictly; got [0.0, 0.1, 0.2, 0.3, 0.4, 0.4, 0.6",
     ),
 ]
 

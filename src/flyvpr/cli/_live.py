@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._calibrate import apply_table
 from ._common import UsageError, check_outputs, flag, nonnegative_int, positive_float, positive_int
 
 #: live runs: the latency histogram's bin (ms) and its last bin (everything slower lands there)
@@ -213,16 +214,18 @@ def cmd_localize_live(args) -> int:
 
     for option in (
         "topic", "every", "positions", "position_topic", "ground_truth", "render", "realtime",
-        "no_odometry",
+        "no_odometry", "fit_calibration",
     ):  # fmt: skip
         if getattr(args, option):
             raise UsageError(
                 f"{flag(option)}: not with a live source ({args.source}); it needs a recording"
             )
-    inputs = [args.map]
+    inputs = [args.map] + ([args.calibration] if args.calibration is not None else [])
     check_outputs(args, inputs, ("out",))
     check_view_args(args, inputs)
     loc = Localizer.from_map(args.map, size=args.size)
+    if args.calibration is not None:
+        apply_table(loc, args.calibration)
     m = loc.map_
     size = loc.method.frontend.image_shape_
 

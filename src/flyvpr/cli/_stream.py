@@ -13,6 +13,7 @@ import numpy as np
 
 from .._io import OutputPathError, check_output_path
 from .._validation import check_memory
+from ._calibrate import apply_table, check_calibration_args, fit_and_write
 from ._common import UsageError, check_outputs
 from ._live import check_view_args, open_view, print_view_summary
 from ._records import open_records
@@ -67,6 +68,7 @@ def cmd_localize_recording(args) -> int:
         raise UsageError("--ground-truth CSV needs --radius (metres)")
     if args.ground_truth == "frames" and args.tolerance is None:
         raise UsageError("--ground-truth frames needs --tolerance (frames)")
+    check_calibration_args(args)
     if args.mcap_thumbnails and (args.out is None or args.out.suffix.lower() != ".mcap"):
         raise UsageError("--mcap-thumbnails needs --out FILE.mcap (the thumbnails go in it)")
     renders = args.render or []
@@ -76,8 +78,12 @@ def cmd_localize_recording(args) -> int:
     inputs = recording_inputs(args) + [args.map]
     if args.ground_truth not in (None, "frames"):
         inputs.append(args.ground_truth)
-    check_outputs(args, inputs, ("out",))
-    taken = [args.out] if args.out is not None else []
+    if args.calibration is not None:
+        inputs.append(args.calibration)
+    check_outputs(args, inputs, ("out", "fit_calibration"))
+    taken = [p for p in (args.out, args.fit_calibration) if p is not None]
+    if len(taken) == 2 and taken[0].resolve() == taken[1].resolve():
+        raise UsageError(f"--fit-calibration {args.fit_calibration}: already an output of this run")
     for path in renders:
         if any(path.resolve() == t.resolve() for t in taken):
             raise UsageError(f"--render {path}: already an output of this run")
@@ -88,6 +94,8 @@ def cmd_localize_recording(args) -> int:
         taken.append(path)
     check_view_args(args, inputs)
     loc = Localizer.from_map(args.map, size=args.size)
+    if args.calibration is not None:
+        apply_table(loc, args.calibration)
     m = loc.map_
     source = open_source(args.source, topic=args.topic)
     bag = source.path if source.kind == "bag" else None
@@ -102,7 +110,7 @@ def cmd_localize_recording(args) -> int:
     if args.ground_truth is not None:
         columns.append("correct")
     show = not args.quiet and sys.stderr.isatty()
-    confidences, scores, truth = [], [], []
+    confidences, scores, truth, correct = [], [], [], []
     n_frames = n_reloc = n_localized = 0
     t0 = time.perf_counter()
     with ExitStack() as stack:
@@ -146,6 +154,7 @@ def cmd_localize_recording(args) -> int:
                     row["x"], row["y"] = (float(v) for v in step.positions[i])
                 if gt is not None:
                     row["correct"] = int(gt[i, step.places[i]])
+                    correct.append(bool(row["correct"]))
                 if out is not None:
                     images = None
                     if args.mcap_thumbnails:
@@ -178,8 +187,18 @@ def cmd_localize_recording(args) -> int:
         print(odometry_note)
     if args.ground_truth is not None:
         _print_scores(args, np.concatenate(scores), np.concatenate(truth))
+    if args.fit_calibration is not None:
+        fitted_on = {
+            "map": str(args.map),
+            "method": m.method.name,
+            "source": source.describe(),
+            "ground_truth": _rule(args),
+        }
+        print(fit_and_write(args.fit_calibration, conf, np.array(correct), fitted_on))
+    if args.calibration is not None:
+        print(f"confidence through the table of --calibration {args.calibration}")
     print_view_summary(view)
-    for path in [args.out, *renders, args.view_save]:
+    for path in [args.out, args.fit_calibration, *renders, args.view_save]:
         if path is not None:
             print(f"wrote {path}")
     return 0
@@ -202,17 +221,20 @@ def _tracer(path, m):
     return open_trace(path, m)
 
 
+def _rule(args) -> str:
+    """What --ground-truth counts as right, in words."""
+    if args.ground_truth == "frames":
+        return f"frames within {args.tolerance}"
+    return f"{args.ground_truth} within {args.radius:g} m"
+
+
 def _print_scores(args, S, gt) -> None:
     from ..metrics import evaluate
 
     if not gt.any():
         raise ValueError(f"--ground-truth {args.ground_truth}: no frame has a true place")
     r = evaluate(S, gt)
-    rule = (
-        f"frames within {args.tolerance}"
-        if args.ground_truth == "frames"
-        else f"{args.ground_truth} within {args.radius:g} m"
-    )
+    rule = _rule(args)
     print(
         f"ground truth ({rule}): AUC {r['auc']:.4f}, R@1 {r['recall_at_1']:.4f}, "
         f"R@5 {r['recall_at_5']:.4f}, R@100%P {r['recall_at_100_precision']:.4f} "

@@ -41,7 +41,7 @@ def cmd_localize(args) -> int:
         raise UsageError("give --map MAP SOURCE (a recording) or --dataset (a benchmark layout)")
     for option in (
         "render", "ground_truth", "topic", "every", "positions", "position_topic", "no_odometry",
-        "mcap_thumbnails", "view", "view_save", *LIVE_OPTIONS,
+        "mcap_thumbnails", "view", "view_save", "calibration", "fit_calibration", *LIVE_OPTIONS,
     ):  # fmt: skip
         if getattr(args, option):
             raise UsageError(f"{flag(option)} needs --map MAP SOURCE")
@@ -175,6 +175,22 @@ def register(sub) -> None:
         help="score the run: 'frames' (query frame i shows the place of map frame i, within "
         "--tolerance frames) or a CSV of the query's positions (timestamp,x,y or frame,x,y; "
         "within --radius metres of a place's map position)",
+    )
+    p.add_argument(
+        "--fit-calibration",
+        type=Path,
+        metavar="TABLE",
+        help="with --ground-truth: fit a confidence table for this route from the run (each "
+        "frame's confidence and whether its answer was right) and write it as JSON, so that "
+        "later runs' confidences are the share of right answers (give it with --calibration)",
+    )
+    p.add_argument(
+        "--calibration",
+        type=Path,
+        metavar="TABLE",
+        help="map every frame's confidence through a table written by --fit-calibration on "
+        "a labelled run of this route (places and states do not change); the map's method "
+        "must have the CANN filter",
     )
     add_dataset_args(p, required=False)
     add_method_args(p, note=f" (an online filter; default {DEFAULT_METHOD})")

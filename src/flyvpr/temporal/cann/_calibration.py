@@ -1,10 +1,10 @@
-"""Fitting the CANN's calibration table on a labelled route of one's own.
+"""Fitting a confidence table for the CANN on a labelled route of one's own.
 
-The filter's sequence confidence is mapped through an 11-value table (its ``calibration``
-parameter).  The default table was fitted on Nordland's dev window; on another route or camera
-the same raw confidence can mean a different chance of being right.  :func:`fit_calibration`
-fits the table from the raw confidences of a run with ``calibration=None`` and whether each
-answer was right.
+The filter's confidence comes through a table fitted on Nordland's dev window (its
+``calibration``); on another route or camera the same confidence can mean a different chance
+of being right.  :func:`fit_calibration` fits a table from a labelled run's confidences and
+whether each answer was right; given as the filter's ``recalibration`` it maps every answer's
+confidence to the share right on that run.
 """
 
 from __future__ import annotations
@@ -38,13 +38,15 @@ def _pool_adjacent_violators(values: np.ndarray, weights: np.ndarray) -> np.ndar
 
 
 def fit_calibration(raw, right, prior_weight: float = 1.0) -> tuple[float, ...]:
-    """A calibration table for :class:`~flyvpr.temporal.cann.CANN` from a labelled run.
+    """A confidence table for :class:`~flyvpr.temporal.cann.CANN` from a labelled run.
 
     Parameters
     ----------
     raw : array-like of float in [0, 1]
-        Raw confidences of sequence answers: ``confidence_`` of a ``CANN(calibration=None)``
-        after each frame whose ``source_`` is ``"sequence"``.
+        Confidences of a labelled run: ``confidence_`` of a
+        :class:`~flyvpr.temporal.cann.CANN` after each frame (for its ``recalibration``),
+        or, for its ``calibration`` (the sequence's own table), that of a
+        ``CANN(calibration=None)`` after each frame whose ``source_`` is ``"sequence"``.
     right : array-like of bool, same length
         Whether each of those answers was right (within the filter's ``tolerance``).
     prior_weight : float, default 1.0
@@ -57,7 +59,8 @@ def fit_calibration(raw, right, prior_weight: float = 1.0) -> tuple[float, ...]:
         The share of right answers at raw confidence 0, 0.1, ..., 1, as a piecewise-linear
         function between them: the least-squares fit (each answer weighs on its two nearest
         knots, linearly), made non-decreasing by pooling adjacent violators, then strictly
-        increasing by steps of at least 0.001 within [0, 1].  Pass it as ``calibration``.
+        increasing by steps of at least 0.001 within [0, 1].  Pass it as the CANN's
+        ``recalibration`` (or ``calibration``, as above).
 
     Raises
     ------

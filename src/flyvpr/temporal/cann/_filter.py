@@ -80,6 +80,29 @@ def _calibrate(raw: float, table) -> float:
     return float(np.interp(raw, _KNOTS, table))
 
 
+def _check_table(value, name: str, at: str) -> np.ndarray | None:
+    """A confidence table: None, or 11 strictly increasing numbers in [0, 1] (at ``at`` 0,
+    0.1, ..., 1)."""
+    if value is None:
+        return None
+    try:
+        table = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(
+            f"{name} must be None or 11 numbers (at {at} 0, 0.1, ..., 1); got {value!r}"
+        ) from None
+    if table.shape != (_KNOTS.size,):
+        raise ValueError(
+            f"{name} must hold {_KNOTS.size} values (at {at} 0, 0.1, ..., 1); got shape "
+            f"{table.shape}"
+        )
+    if not (np.isfinite(table).all() and table.min() >= 0.0 and table.max() <= 1.0):
+        raise ValueError(f"{name} values must lie in [0, 1]; got {table.tolist()}")
+    if (np.diff(table) <= 0).any():
+        raise ValueError(f"{name} must increase strictly; got {table.tolist()}")
+    return table
+
+
 def _probability(value, name: str) -> float:
     """A probability: a finite real number in [0, 1]."""
     value = check_real(value, name, low=0.0, inclusive=True)
@@ -169,8 +192,14 @@ class CANN(OdometryFilter):
         The sequence's confidence at raw confidence (support times the window's
         probability) 0, 0.1, ..., 1, linearly between (strictly increasing, in [0, 1]);
         fitted on kenyon+cann's answers on the dev robot conditions (Nordland 0-999, seeds
-        0-2, tolerance 2).  ``None``: the raw confidence.  For another route or camera,
-        :func:`~flyvpr.temporal.cann.fit_calibration` fits a table from a labelled run.
+        0-2, tolerance 2).  ``None``: the raw confidence.
+    recalibration : sequence of 11 float or None, default None
+        A table for a route of one's own, applied to every answer's confidence (the
+        sequence's after ``calibration``, and the front end's) at confidence 0, 0.1, ...,
+        1, linearly between (strictly increasing, in [0, 1]):
+        :func:`~flyvpr.temporal.cann.fit_calibration` fits it from a labelled run's
+        confidences and whether each answer was right.  The ``state`` stays as it is, and
+        the order of the answers too (to float32 resolution where the table is nearly flat).
 
     Attributes
     ----------
@@ -232,6 +261,7 @@ class CANN(OdometryFilter):
         support_memory=100.0,
         fallback=True,
         calibration=CALIBRATION,
+        recalibration=None,
     ):
         self.velocities = velocities
         self.bidirectional = bidirectional
@@ -254,6 +284,7 @@ class CANN(OdometryFilter):
         self.support_memory = support_memory
         self.fallback = fallback
         self.calibration = calibration
+        self.recalibration = recalibration
 
     # -- parameters -------------------------------------------------------------
     def _check_params(self) -> dict:
@@ -304,26 +335,8 @@ class CANN(OdometryFilter):
                 f"input_transform must be one of {TRANSFORMS}; got {self.input_transform!r}"
             )
         p["input_transform"] = self.input_transform
-        if self.calibration is None:
-            p["calibration"] = None
-        else:
-            try:
-                table = np.asarray(self.calibration, dtype=np.float64)
-            except (TypeError, ValueError):
-                raise TypeError(
-                    "calibration must be None or 11 numbers (at raw confidence 0, 0.1, ..., 1); "
-                    f"got {self.calibration!r}"
-                ) from None
-            if table.shape != (_KNOTS.size,):
-                raise ValueError(
-                    f"calibration must hold {_KNOTS.size} values (at raw confidence 0, 0.1, "
-                    f"..., 1); got shape {table.shape}"
-                )
-            if not (np.isfinite(table).all() and table.min() >= 0.0 and table.max() <= 1.0):
-                raise ValueError(f"calibration values must lie in [0, 1]; got {table.tolist()}")
-            if (np.diff(table) <= 0).any():
-                raise ValueError(f"calibration must increase strictly; got {table.tolist()}")
-            p["calibration"] = table
+        p["calibration"] = _check_table(self.calibration, "calibration", "raw confidence")
+        p["recalibration"] = _check_table(self.recalibration, "recalibration", "confidence")
         # Sorted, so that neighbouring rows are neighbouring speeds.
         vel = np.unique(_check_velocities(self.velocities, p["bidirectional"]))
         p["velocities"] = vel
@@ -585,6 +598,9 @@ class CANN(OdometryFilter):
         calibrated = confidence
         if self.source_ == "sequence":
             calibrated = _calibrate(confidence, p["calibration"])
+        # Then every answer's through the route's own table, if given (also increasing).
+        if p["recalibration"] is not None:
+            calibrated = _calibrate(calibrated, p["recalibration"])
         if confidence > 0.0 and calibrated != confidence:
             out *= np.float32(calibrated / confidence)  # the row keeps its order
         confidence = calibrated
