@@ -170,6 +170,7 @@ def test_garbage_stream_one_line_exit_1(route, tmp_path, capsys):
         (["--realtime"], "--realtime: not with a live source"),
         (["--ground-truth", "frames", "--tolerance", "1"], "--ground-truth: not with a live"),
         (["--render", "x.mp4"], "--render: not with a live source"),
+        (["--fit-calibration", "t.json"], "--fit-calibration: not with a live source"),
         (["--view-save", "x.txt"], "--view-save x.txt: expected a .rrd file"),
         (["--view", "--view-port", "9000", "--view-data-port", "9000"], "two ports are needed"),
     ],
@@ -177,6 +178,18 @@ def test_garbage_stream_one_line_exit_1(route, tmp_path, capsys):
 def test_live_usage_errors(route, capsys, extra, match):
     code, _, err = _run(capsys, "localize", "--map", route["map"], "udp://127.0.0.1:9", *extra)
     assert code == 2 and match in err
+
+
+def test_live_calibration_is_read_and_needs_the_cann(route, tmp_path, capsys):
+    # the live path reads the table too: a missing file, then a map without the CANN
+    code, _, err = _run(capsys, "localize", "--map", route["map"], "udp://127.0.0.1:9",
+                        "--calibration", tmp_path / "none.json")  # fmt: skip
+    assert code == 2 and "has no CANN filter" in err  # the method is checked first
+    table = tmp_path / "t.json"
+    table.write_text('{"format": "flyvpr-confidence-table", "table": [0.1]}')
+    code, _, err = _run(capsys, "localize", "--map", route["map"], "udp://127.0.0.1:9",
+                        "--calibration", table)  # fmt: skip
+    assert code == 2 and "pixels" in err and "has no CANN filter" in err
 
 
 def test_live_options_need_a_live_source(route, capsys):
