@@ -201,3 +201,75 @@ def test_a_reseed_in_a_dip_keeps_the_track_it_displaced(seed):
     right = [f.state == "localized" and abs(f.place - 3063 - t) <= 2 for t, f in enumerate(fixes)]
     assert all(right[5:])
     assert loc.filter_ is incumbent and loc.held_ is None and loc.n_reseeds_ == reseeds + 1
+
+
+@pytest.mark.parametrize("speed", [1.0, 2.0])
+def test_every_track_finds_a_route_no_single_frame_does(speed):
+    # frames with 42% of their bits flipped: each one's true place is down its own list
+    # (about 2.6 standard deviations above chance), but its track over 10 frames stands out
+    # (a standing track less: each place's baseline is its own mean, shrunk towards chance)
+    codes = _map(seed=4)
+    rng = np.random.default_rng(40)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
+    truth = 7000 + np.rint(speed * np.arange(10)).astype(int)
+    queries = np.stack([_query(codes, p, rng, flip=0.42) for p in truth])
+    top, _ = ExhaustiveIndex().build(codes).search(queries, 20)
+    assert not any(abs(top[t] - truth[t]).min() <= 2 for t in range(10))  # no frame finds it
+    loc._recent.extend(queries)
+    ends = loc._full_track_ends(10)
+    assert ends.size == 50 and abs(ends[0] - truth[-1]) <= 1
+    # best first, at least 11 places apart
+    gaps = np.abs(ends[:, None] - ends[None, :]) + np.eye(ends.size, dtype=int) * 100
+    assert gaps.min() > 10
+    # the same scores as the candidates' tracks: the best end's is the highest of all
+    scores, _, best_speed = loc._track_scores(ends, 10)
+    assert np.argmax(scores) == 0 and best_speed[0] == speed
+
+
+def test_every_track_is_searched_only_for_a_lost_guess_on_a_map_small_enough():
+    codes = _map(seed=5)
+    index = ExhaustiveIndex().build(codes)
+    truth = 9000 + np.arange(60)
+
+    def cold_start(**kw):
+        loc = LargeLocalizer(codes, index, window=512, k=20, **kw)
+        fixes = _drive(loc, codes, truth, np.random.default_rng(50), flip=0.43)
+        return loc, fixes
+
+    loc, fixes = cold_start()
+    assert loc.n_full_searches_ >= 1  # the cold start's guesses were lost
+    assert fixes[-1].state == "localized" and abs(fixes[-1].place - truth[-1]) <= 2
+    assert cold_start(full_search_places=0)[0].n_full_searches_ == 0
+    assert cold_start(full_search_places=len(codes) - 1)[0].n_full_searches_ == 0
+    assert cold_start(full_search_places=len(codes))[0].n_full_searches_ >= 1
+    # tracked (localized since its seed), and lost for a few frames: the index only
+    full, searches = loc.n_full_searches_, loc.n_searches_
+    rng = np.random.default_rng(51)
+    for _ in range(8):
+        loc.update_code(rng.integers(0, 256, 32, dtype=np.uint8))
+    assert loc.n_searches_ > searches and loc.n_full_searches_ == full
+
+
+def test_hold_bounds_how_long_a_displaced_layer_is_stepped():
+    # the displaced layer is stepped on until the answering one is localized or for ``hold``
+    # frames, whichever comes first
+    codes = _map(seed=6)
+    for hold, seed in ((3, 60), (12, 60), (12, 61)):
+        rng = np.random.default_rng(seed)
+        loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512, hold=hold)
+        _drive(loc, codes, 3000 + np.arange(40), rng)
+        for _ in range(15):  # the frames stop matching: the layer is no longer localized
+            loc.update_code(rng.integers(0, 256, 32, dtype=np.uint8))
+        reseeds = loc.n_reseeds_
+        loc._replay(np.array([12000]), np.array([0.1]), np.array([1.0]), 3, hold=True)
+        let_go = None
+        for i in range(20):
+            fix = loc.update_code(rng.integers(0, 256, 32, dtype=np.uint8))
+            if loc.held_ is None and let_go is None:
+                let_go = i
+                assert fix.state == "localized" or i == hold - 1, (hold, seed, i)
+            if let_go is None:
+                assert fix.state != "localized" and i < hold - 1, (hold, seed, i)
+        assert let_go is not None and loc.n_reseeds_ == reseeds + 1
+        if hold == 3:
+            assert let_go == 2
