@@ -267,15 +267,16 @@ def _reliability(label: str, view: str, seed: int, out, gt) -> dict:
     the confidence, the argmax the answer, right = within the tolerance)."""
     answer = out.argmax(axis=1)
     conf = out[np.arange(len(out)), answer].astype(np.float64)
-    right = gt[np.arange(len(out)), answer]
-    b = np.minimum((conf * RELIABILITY_BINS).astype(np.int64), RELIABILITY_BINS - 1)
+    n, total, hits = metrics.reliability_counts(
+        conf, gt[np.arange(len(out)), answer], RELIABILITY_BINS
+    )
     return {
         "method": label,
         "view": view,
         "seed": seed,
-        "n": np.bincount(b, minlength=RELIABILITY_BINS).tolist(),
-        "confidence": np.bincount(b, conf, minlength=RELIABILITY_BINS).tolist(),
-        "right": np.bincount(b, right, minlength=RELIABILITY_BINS).astype(int).tolist(),
+        "n": n.tolist(),
+        "confidence": total.tolist(),
+        "right": hits.tolist(),
     }
 
 

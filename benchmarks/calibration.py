@@ -31,6 +31,7 @@ if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``ben
 from benchmarks._common import DEFAULT_DATA, machine  # noqa: E402
 from benchmarks.accuracy_run import gap_keep, load_dataset  # noqa: E402
 from benchmarks.accuracy_setup import DATASETS, ROBOT_VIEWS  # noqa: E402
+from flyvpr import metrics  # noqa: E402
 from flyvpr._io import write_json_atomic  # noqa: E402
 from flyvpr.datasets import ground_truth_from_frames  # noqa: E402
 from flyvpr.methods import make_method  # noqa: E402
@@ -77,22 +78,7 @@ def _stream(filt: CANN, S, moved, gt):
 
 def reliability(answers) -> list[dict]:
     """Per confidence decile: answers, mean confidence, share right."""
-    conf = np.array([a[0] for a in answers], np.float64)
-    right = np.array([a[1] for a in answers], np.float64)
-    b = np.minimum((conf * BINS).astype(np.int64), BINS - 1)
-    rows = []
-    for k in range(BINS):
-        m = b == k
-        if m.any():
-            rows.append(
-                {
-                    "bin": f"{k / BINS:.1f}-{(k + 1) / BINS:.1f}",
-                    "n": int(m.sum()),
-                    "confidence": float(conf[m].mean()),
-                    "right": float(right[m].mean()),
-                }
-            )
-    return rows
+    return metrics.reliability([a[0] for a in answers], [a[1] for a in answers], BINS)
 
 
 def run(data: Path, progress: bool = True) -> dict:

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from flyvpr.cli import main
-from flyvpr.cli._calibrate import FORMAT, KNOTS, read_table, reliability
+from flyvpr.cli._calibrate import FORMAT, KNOTS, read_table
+from flyvpr.metrics import reliability
 from flyvpr.synthetic import make_route, save_route
 from flyvpr.temporal.cann import fit_calibration
 
@@ -177,13 +178,3 @@ def test_a_map_without_the_cann(tmp_path, capsys):
         capsys, "localize", "--map", m, tmp_path / "png" / "night", "--calibration", path
     )
     assert code == 2 and "has no CANN filter" in err
-
-
-def test_reliability_rows_by_hand():
-    conf = np.array([0.05, 0.15, 0.15, 0.95, 1.0])
-    right = np.array([False, True, False, True, True])
-    rows = reliability(conf, right)
-    assert [r["bin"] for r in rows] == ["0.0-0.1", "0.1-0.2", "0.9-1.0"]
-    assert [r["n"] for r in rows] == [1, 2, 2]
-    assert rows[1]["confidence"] == pytest.approx(0.15) and rows[1]["right"] == 0.5
-    assert rows[2]["confidence"] == pytest.approx(0.975) and rows[2]["right"] == 1.0

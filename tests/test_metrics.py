@@ -456,3 +456,46 @@ def test_recall_at_k_accepts_numpy_int():
 def test_evaluate_bad_ks(ks, error, match):
     with pytest.raises(error, match=match):
         evaluate(GOOD_S, GOOD_GT, ks=ks)
+
+
+def test_reliability_by_hand():
+    from flyvpr.metrics import reliability, reliability_counts
+
+    conf = np.array([0.05, 0.15, 0.15, 0.95, 1.0, 0.0])
+    right = np.array([False, True, False, True, True, True])
+    rows = reliability(conf, right)
+    assert [r["bin"] for r in rows] == ["0.0-0.1", "0.1-0.2", "0.9-1.0"]
+    assert [r["n"] for r in rows] == [2, 2, 2]  # 0 and 0.05 share the first; 1.0 the last
+    assert rows[0]["confidence"] == pytest.approx(0.025) and rows[0]["right"] == 0.5
+    assert rows[1]["confidence"] == pytest.approx(0.15) and rows[1]["right"] == 0.5
+    assert rows[2]["confidence"] == pytest.approx(0.975) and rows[2]["right"] == 1.0
+    n, total, hits = reliability_counts(conf, right.astype(int), bins=4)
+    assert n.tolist() == [4, 0, 0, 2] and hits.tolist() == [2, 0, 0, 2]
+    np.testing.assert_allclose(total, [0.35, 0.0, 0.0, 1.95])
+    assert [r["bin"] for r in reliability(conf, right, bins=20)][:2] == ["0.00-0.05", "0.05-0.10"]
+    assert reliability([], []) == []
+
+
+@pytest.mark.parametrize(
+    "confidence, right, bins, error, match",
+    [
+        (
+            [0.5, 1.2],
+            [True, False],
+            10,
+            ValueError,
+            r"confidence must be finite and lie in \[0, 1\]",
+        ),
+        ([-0.1], [True], 10, ValueError, r"confidence must be finite and lie in \[0, 1\]"),
+        ([np.nan], [True], 10, ValueError, r"confidence must be finite and lie in \[0, 1\]"),
+        ([0.5, 0.6], [True], 10, ValueError, "one label per confidence: 2; got 1"),
+        ([0.5], [2], 10, ValueError, r"right must hold booleans \(or 0 and 1\)"),
+        ([0.5], [True], 0, ValueError, ">= 1"),
+        ([0.5], [True], 2.5, TypeError, "int"),
+    ],
+)
+def test_reliability_refuses(confidence, right, bins, error, match):
+    from flyvpr.metrics import reliability
+
+    with pytest.raises(error, match=match):
+        reliability(confidence, right, bins)

@@ -1,4 +1,5 @@
-"""Place-recognition metrics: precision-recall curve, its area, recall@k, extended precision.
+"""Place-recognition metrics: precision-recall curve, its area, recall@k, extended precision;
+and the reliability table of a probability-like confidence.
 
 Pure functions of a score matrix ``S`` and a ground-truth matrix ``gt``; no state, no I/O, and no
 import of any other flyvpr module (metrics sit at the bottom of the import graph).
@@ -30,6 +31,7 @@ a true match, so every function that reports recall raises ``ValueError`` for su
 
 from __future__ import annotations
 
+import math
 import numbers
 from typing import Any
 
@@ -43,6 +45,8 @@ __all__ = [
     "recall_at_100_precision",
     "extended_precision",
     "evaluate",
+    "reliability",
+    "reliability_counts",
 ]
 
 # Row-block size (in matrix elements) for the recall@k pass: bounds the temporaries to a few
@@ -504,3 +508,77 @@ def evaluate(S, gt, ks=(1, 5, 10)) -> dict:
         n_query_with_match=n_pos,
     )
     return result
+
+
+# --------------------------------------------------------------------------------------------
+# calibration of a probability-like confidence
+# --------------------------------------------------------------------------------------------
+def reliability_counts(confidence, right, bins: int = 10) -> tuple:
+    """Per confidence bin: answers, their summed confidence and how many were right.
+
+    The bins split [0, 1] into ``bins`` equal parts (a confidence of 1 falls in the last).
+    Counts, not means, so that the tables of several runs add up.
+
+    Parameters
+    ----------
+    confidence : array-like of float in [0, 1]
+        One answer's confidence each (a probability that the answer is right: the CANN's).
+    right : array-like of bool, same length
+        Whether each answer was right.
+    bins : int, default 10
+
+    Returns
+    -------
+    n, confidence_sum, right_count : ndarray, shape (bins,)
+
+    Raises
+    ------
+    TypeError, ValueError
+        For ``bins`` not an int >= 1, confidences not finite or outside [0, 1], or labels of
+        another length or not booleans (or 0 and 1).
+
+    Examples
+    --------
+    >>> n, c, r = reliability_counts([0.05, 0.15, 0.95, 1.0], [False, True, True, True], bins=2)
+    >>> n.tolist(), c.round(2).tolist(), r.tolist()
+    ([2, 2], [0.2, 1.95], [1, 2])
+    """
+    bins = _check_k(bins)
+    c = np.asarray(confidence, dtype=np.float64).ravel()
+    r = np.asarray(right).ravel()
+    if r.shape != c.shape:
+        raise ValueError(f"right must hold one label per confidence: {c.size}; got {r.size}")
+    if c.size and not (np.isfinite(c).all() and c.min() >= 0.0 and c.max() <= 1.0):
+        raise ValueError("confidence must be finite and lie in [0, 1]")
+    if r.dtype != bool and not np.isin(r, (0, 1)).all():
+        raise ValueError("right must hold booleans (or 0 and 1)")
+    b = np.minimum((c * bins).astype(np.int64), bins - 1)
+    return (
+        np.bincount(b, minlength=bins),
+        np.bincount(b, c, minlength=bins),
+        np.bincount(b, r.astype(bool), minlength=bins).astype(np.int64),
+    )
+
+
+def reliability(confidence, right, bins: int = 10) -> list[dict]:
+    """The reliability table: per confidence bin with answers, its range (``bin``, e.g.
+    ``"0.9-1.0"``), answers (``n``), mean ``confidence`` and share ``right``.  A calibrated
+    confidence is right as often as it says; see :func:`reliability_counts` for the bins and
+    the checks.
+
+    Examples
+    --------
+    >>> [(r["bin"], r["n"], r["right"]) for r in reliability([0.05, 0.95, 1.0], [0, 1, 0])]
+    [('0.0-0.1', 1, 0.0), ('0.9-1.0', 2, 0.5)]
+    """
+    n, total, hits = reliability_counts(confidence, right, bins)
+    digits = max(1, math.ceil(math.log10(bins)))  # 0.1 for ten bins, 0.05 for twenty
+    return [
+        {
+            "bin": f"{k / bins:.{digits}f}-{(k + 1) / bins:.{digits}f}",
+            "n": int(n[k]),
+            "confidence": float(total[k] / n[k]),
+            "right": float(hits[k] / n[k]),
+        }
+        for k in np.flatnonzero(n)
+    ]

@@ -18,8 +18,6 @@ from ._common import UsageError
 FORMAT = "flyvpr-confidence-table"
 #: confidences at which a table is given
 KNOTS = [round(0.1 * i, 1) for i in range(11)]
-#: deciles of the reliability lines
-_BINS = 10
 
 
 def _recalibration_param(loc, option: str):
@@ -83,24 +81,6 @@ def apply_table(loc, path: Path) -> None:
         raise ValueError(f"--calibration {path}: {exc}") from None
 
 
-def reliability(confidence: np.ndarray, right: np.ndarray) -> list[dict]:
-    """Per confidence decile with answers: its range, answers, mean confidence, share right."""
-    b = np.minimum((confidence * _BINS).astype(np.int64), _BINS - 1)
-    rows = []
-    for k in range(_BINS):
-        m = b == k
-        if m.any():
-            rows.append(
-                {
-                    "bin": f"{k / _BINS:.1f}-{(k + 1) / _BINS:.1f}",
-                    "n": int(m.sum()),
-                    "confidence": float(confidence[m].mean()),
-                    "right": float(right[m].mean()),
-                }
-            )
-    return rows
-
-
 def _largest_gap(rows: list[dict]) -> float:
     return max(abs(r["right"] - r["confidence"]) for r in rows)
 
@@ -108,6 +88,7 @@ def _largest_gap(rows: list[dict]) -> float:
 def fit_and_write(path: Path, confidence: np.ndarray, right: np.ndarray, fitted_on: dict) -> str:
     """Fit a table on the run's confidences and rightness, write it to ``path`` (atomically)
     and return the summary's line."""
+    from ..metrics import reliability
     from ..temporal.cann import fit_calibration
 
     conf = np.asarray(confidence, dtype=np.float64)
