@@ -127,6 +127,14 @@ def test_bad_tables_are_refused_naming_the_file(route, tmp_path, capsys, content
     assert not out_path.exists()
 
 
+def test_a_huge_table_file_is_not_read(route, tmp_path, capsys):
+    m, query = route
+    path = tmp_path / "huge.json"
+    path.write_text('{"format": "' + FORMAT + '", "table": [' + "0.5, " * 300000 + "1]}")
+    code, _, err = _run(capsys, "localize", "--map", m, query, "--calibration", path)
+    assert code == 1 and f"--calibration {path}: " in err and "bytes; a confidence table" in err
+
+
 def test_a_missing_table_file(route, tmp_path, capsys):
     m, query = route
     code, _, err = _run(

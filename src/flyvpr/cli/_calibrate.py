@@ -18,6 +18,8 @@ from ._common import UsageError
 FORMAT = "flyvpr-confidence-table"
 #: confidences at which a table is given
 KNOTS = [round(0.1 * i, 1) for i in range(11)]
+#: the largest table file read (one written by --fit-calibration is about 1.5 kB)
+_MAX_BYTES = 1 << 20
 
 
 def _recalibration_param(loc, option: str):
@@ -45,6 +47,12 @@ def check_calibration_args(args) -> None:
 def read_table(path: Path) -> list[float]:
     """The table of a file written by ``--fit-calibration``."""
     try:
+        size = Path(path).stat().st_size
+        if size > _MAX_BYTES:
+            raise ValueError(
+                f"--calibration {path}: {size} bytes; a confidence table file is a few "
+                f"kilobytes (at most {_MAX_BYTES} read)"
+            )
         data = json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ValueError(f"--calibration {path}: no such file") from None
