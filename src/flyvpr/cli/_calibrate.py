@@ -12,12 +12,13 @@ from pathlib import Path
 import numpy as np
 
 from .._io import write_json_atomic
+from ..temporal.cann._calibration import KNOTS as _TABLE_KNOTS
 from ._common import UsageError
 
 #: what a table file says it is
 FORMAT = "flyvpr-confidence-table"
 #: confidences at which a table is given
-KNOTS = [round(0.1 * i, 1) for i in range(11)]
+KNOTS = [round(float(k), 6) for k in _TABLE_KNOTS]
 #: the largest table file read (one written by --fit-calibration is about 1.5 kB)
 _MAX_BYTES = 1 << 20
 

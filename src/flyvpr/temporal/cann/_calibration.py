@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-#: raw confidences at which a table is given: 0, 0.1, ..., 1
-KNOTS = np.linspace(0.0, 1.0, 11)
+from ._filter import _KNOTS as KNOTS  # the confidences at which a table is given
+
 #: the least step between neighbouring values of a fitted table (the filter requires a strictly
 #: increasing table, which keeps the order of its answers)
 MIN_STEP = 1e-3
