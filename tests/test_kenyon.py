@@ -125,6 +125,10 @@ def test_balanced_connections():
     assert counts.max() - counts.min() <= 2  # 50 each, give or take a redrawn row
     with pytest.raises(ValueError, match="n_inputs must be <="):
         balanced_connections(10, 5, 6)
+    with pytest.raises(ValueError, match="^n_kenyon must be >= 1; got 0$"):
+        balanced_connections(0, 5, 2)
+    with pytest.raises(ValueError, match="^n_inputs must be >= 1; got 0$"):
+        balanced_connections(10, 5, 0)
 
 
 def test_recognises_places_of_the_route(route):
@@ -260,6 +264,10 @@ def test_an_encoder_rebuilds_a_dropped_optic_lobe(route):
     ("params", "error", "match"),
     [
         ({"n_kenyon": 1004}, ValueError, "multiple of 8"),
+        ({"n_kenyon": 0}, ValueError, "^n_kenyon must be >= 8; got 0$"),
+        ({"n_kenyon": 4}, ValueError, "^n_kenyon must be >= 8; got 4$"),
+        ({"n_projections": 0}, ValueError, "^n_projections must be >= 1; got 0$"),
+        ({"n_projections": 1.5}, TypeError, "^n_projections must be an int; got float$"),
         ({"n_kenyon": 4096, "n_projections": 3}, ValueError, "multiple of 8 and of n_proj"),
         ({"active_ratio": 0.0}, ValueError, r"^active_ratio must be in \(0.0, 1.0\]; got 0.0"),
         ({"active_ratio": "5%"}, TypeError, "^active_ratio must be a number; got str"),
@@ -331,3 +339,68 @@ def test_footprint_counts_no_trained_parameters(route):
     enc = KenyonEncoder(random_state=0).fit(route[0])
     fp = enc.footprint()
     assert fp["params"] == 0 and fp["neurons"] == 512 + 4096
+
+
+def test_kenyon_activity_checks_its_images_and_is_float32(route):
+    ref, qry = route
+    enc = KenyonEncoder(random_state=0).fit(ref)
+    y = enc.kenyon_activity(qry)
+    assert y.dtype == np.float32 and y.shape == (len(qry), 4096)
+    with pytest.raises(ValueError, match=r"^images must have image size \(H, W\) = \(32, 64\)"):
+        enc.kenyon_activity(np.zeros((2, 16, 32), np.float32))
+    with pytest.raises(ValueError, match=r"^images must hold gray values in \[0, 1\]"):
+        enc.kenyon_activity(qry * 3)
+
+
+def test_footprint_names_its_layers_and_fixed_connections(route):
+    enc = KenyonEncoder(n_kenyon=1024, n_inputs=8, random_state=0).fit(route[0])
+    fp = enc.footprint()
+    assert fp["layers"] == 2  # optic lobe, Kenyon cells
+    assert fp["fixed_connections"] == 1024 * 8 == enc.connections_.size
+    assert fp["neurons"] == enc.n_features_ + 1024
+
+
+def test_the_smallest_layout_fits(route):
+    # n_kenyon = 8 (one byte per place) is allowed
+    ref, qry = route
+    enc = KenyonEncoder(n_kenyon=8, active_ratio=0.25, n_inputs=4, random_state=0).fit(ref)
+    assert enc.encode(qry).shape == (len(qry), 1) and enc.n_active_ == 2
+
+
+def test_the_optic_lobe_is_built_once_and_the_fit_names_its_chunked_work(route):
+    ref, qry = route
+    seen = []
+
+    def recording(func, rows, what=""):
+        seen.append((what, len(rows)))
+        return func(rows)
+
+    enc = KenyonEncoder(random_state=0)
+    enc._fit_checked(ref, recording)
+    assert seen == [("optic lobe", len(ref)), ("kenyon codes", len(ref))]
+    np.testing.assert_array_equal(
+        enc.reference_codes_, KenyonEncoder(random_state=0).fit(ref).reference_codes_
+    )
+    lobe = enc._optic_lobe
+    enc.encode(qry)
+    enc.score(qry)
+    assert enc._optic_lobe is lobe
+
+
+@pytest.mark.parametrize(
+    ("q", "r"),
+    [
+        (np.zeros(8, bool), np.zeros((3, 8), bool)),
+        (np.zeros((2, 8), bool), np.zeros(8, bool)),
+        (np.zeros((2, 8), bool), np.zeros((3, 16), bool)),
+    ],
+)
+def test_code_overlap_refuses_other_shapes(q, r):
+    with pytest.raises(ValueError, match=r"^query_codes and reference_codes must be 2-d with th"):
+        code_overlap(q, r)
+
+
+def test_code_overlap_is_int32():
+    out = code_overlap([[1, 1, 0, 0]], [[1, 0, 1, 0], [1, 1, 0, 0]])
+    assert out.dtype == np.int32
+    np.testing.assert_array_equal(out, [[1, 2]])
