@@ -96,6 +96,13 @@ PAGES = [
         "python benchmarks/calibration.py --json benchmarks/calibration.json",
         "calibration",
     ),
+    Page(
+        "robot-limits",
+        "What the dev window's frames allow",
+        "benchmarks/robot-limits.json",
+        "python benchmarks/robot_limits.py --json benchmarks/robot-limits.json",
+        "robot_limits",
+    ),
 ]
 
 

@@ -1,0 +1,292 @@
+"""What the dev window's frames allow: same-image stretches and the robot must-shows they bound.
+
+Usage::
+
+    python benchmarks/robot_limits.py --json benchmarks/robot-limits.json [--data DIR]
+
+Protocol: Nordland 64x32 summer (the map) -> winter (the query), frames 0-999, the dev window
+of the robot views of ``benchmarks/accuracy.py``; ``kenyon+cann`` with its defaults, seeds 0-2
+(the front end's random projection), tolerance 2.
+
+* **Same-image stretches.**  Two consecutive frames of a traverse show *the same image* when
+  their mean absolute gray difference is below ``SAME`` (1% of the gray range); a stretch is a
+  maximal run of such frames (the train standing in a station, or a tunnel's dark frames).
+  Within a stretch of the map no front end can tell the places apart: only the motion model
+  can say where in it the query is.
+* **Stop-and-go** (``r-stopgo``: 1 place per frame, standing 30 frames after every 150):
+  kenyon+cann's AUC as the accuracy benchmark scores it, and the same answers scored with
+  the places of one same-image stretch of the map counted as one place (an answer is right
+  when it lies within the tolerance of the true place, or in a map stretch holding a place
+  within the tolerance).  Which stops fall in a map stretch.
+* **Detour** (``r-detour``: the map leaves out places 400-699, the query drives through them):
+  frames after rejoining until the answer is ``localized`` and right (as the accuracy
+  benchmark counts them), the map stretches in the 30 places after the rejoin, and the front
+  end's rank of the true place (places scoring strictly higher) over the 30 frames after it.
+* **Cold start at 1x** (``r-1x``): the first frame ``localized`` and right, the query's first
+  same-image stretch, and the first frame whose true place the front end ranks first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks._common import DEFAULT_DATA, machine  # noqa: E402
+from benchmarks.accuracy_run import gap_keep, load_dataset  # noqa: E402
+from benchmarks.accuracy_setup import DATASETS, ROBOT_VIEWS  # noqa: E402
+from flyvpr import metrics  # noqa: E402
+from flyvpr._io import write_json_atomic  # noqa: E402
+from flyvpr.datasets import ground_truth_from_frames  # noqa: E402
+from flyvpr.methods import make_method  # noqa: E402
+
+DATASET = "n64-0"
+SEEDS = (0, 1, 2)
+TOLERANCE = 2
+#: consecutive frames are the same image below this mean absolute gray difference
+SAME = 0.01
+#: frames after the rejoin that the detour's figures cover (the must-show's bound)
+AFTER = 30
+
+
+def same_image_stretches(images: np.ndarray, same: float = SAME) -> list[tuple[int, int]]:
+    """(first, last) frame of every maximal run of consecutive frames whose mean absolute
+    difference is below ``same``."""
+    flat = images.reshape(len(images), -1).astype(np.float64)
+    still = np.abs(np.diff(flat, axis=0)).mean(axis=1) < same  # frame i+1 repeats frame i
+    out, start = [], None
+    for i, s in enumerate(still):
+        if s and start is None:
+            start = i
+        elif not s and start is not None:
+            out.append((start, i))
+            start = None
+    if start is not None:
+        out.append((start, len(still)))
+    return out
+
+
+def place_groups(n: int, stretches) -> np.ndarray:
+    """A group per place: the places of one stretch share one, every other place has its own."""
+    group = np.arange(n)
+    for first, last in stretches:
+        group[first : last + 1] = first
+    return group
+
+
+def as_one(gt: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """``gt`` with every place of a group right where any place of the group is."""
+    ids, inverse = np.unique(group, return_inverse=True)
+    onehot = np.zeros((len(group), len(ids)), bool)
+    onehot[np.arange(len(group)), inverse] = True
+    return (gt.astype(np.float32) @ onehot.astype(np.float32) > 0)[:, inverse]
+
+
+def _view(key: str):
+    return next(v for v in ROBOT_VIEWS if v.key == key)
+
+
+def _run(seed: int, view, ref, qry, ref_ids, qry_ids):
+    """kenyon+cann over the view: rows, localized flags, the front end's scores and ground
+    truth, and the map's place ids."""
+    keep = np.arange(len(ref)) if view.gap is None else gap_keep(len(ref), view.gap)
+    method = make_method("kenyon+cann", seed, {}, {})
+    method.frontend.fit(ref[keep])
+    idx = view.indices(len(qry))
+    S = method.frontend.score(qry[idx])
+    filt = method.filter
+    filt.reset()
+    out = np.empty(S.shape, np.float32)
+    localized = np.zeros(len(S), bool)
+    for t in range(len(S)):
+        out[t] = filt.step(S[t])
+        localized[t] = filt.state_ == "localized"
+    gt = ground_truth_from_frames(qry_ids[idx], ref_ids[keep], TOLERANCE)
+    return out, localized, S, gt, ref_ids[keep], qry_ids[idx]
+
+
+def _true_rank(S: np.ndarray, truth: np.ndarray, map_ids: np.ndarray) -> np.ndarray:
+    """Per frame, the number of map places scoring strictly higher than the true place (-1
+    where the true place is not in the map)."""
+    col = {int(p): j for j, p in enumerate(map_ids)}
+    out = np.full(len(S), -1)
+    for t, p in enumerate(truth):
+        j = col.get(int(p))
+        if j is not None:
+            out[t] = int((S[t] > S[t, j]).sum())
+    return out
+
+
+def run(data: Path, progress: bool = True) -> dict:
+    dataset = {d.key: d for d in DATASETS}[DATASET]
+    ref, qry, ref_ids, qry_ids, _ = load_dataset(dataset, data)
+    map_stretches = same_image_stretches(ref)
+    query_stretches = same_image_stretches(qry)
+    group = place_groups(len(ref), map_stretches)
+    in_stretch = np.zeros(len(ref), bool)
+    for first, last in map_stretches:
+        in_stretch[first : last + 1] = True
+
+    stopgo, detour, cold = [], [], []
+    for seed in SEEDS:
+        if progress:
+            print(f"  seed {seed}", file=sys.stderr, flush=True)
+        # stop-and-go
+        out, _, _, gt, _, truth = _run(seed, _view("r-stopgo"), ref, qry, ref_ids, qry_ids)
+        places, counts = np.unique(truth, return_counts=True)
+        stops = [int(p) for p in places[counts > 1]]
+        stopgo.append(
+            {
+                "seed": seed,
+                "auc": metrics.evaluate(out, gt, ks=(1,))["auc"],
+                "auc_same_image_as_one": metrics.evaluate(out, as_one(gt, group), ks=(1,))["auc"],
+                "stops": stops,
+                "stops_in_a_map_stretch": [p for p in stops if in_stretch[p]],
+            }
+        )
+        # detour
+        view = _view("r-detour")
+        out, localized, S, gt, map_ids, truth = _run(seed, view, ref, qry, ref_ids, qry_ids)
+        back = int(view.gap[1] * len(ref))  # the first frame on the map again
+        right = gt[np.arange(len(out)), out.argmax(axis=1)]
+        hit = np.flatnonzero(localized[back:] & right[back:])
+        rank = _true_rank(S[back : back + AFTER], truth[back : back + AFTER], map_ids)
+        detour.append(
+            {
+                "seed": seed,
+                "rejoin_frames": int(hit[0]) if hit.size else None,
+                "front_rank_median": float(np.median(rank)),
+                "front_rank_top10_frames": int((rank < 10).sum()),
+                "first_front_top1": next((i for i, r in enumerate(rank) if r == 0), None),
+            }
+        )
+        # cold start at 1x
+        view = _view("r-1x")
+        out, localized, S, gt, map_ids, truth = _run(seed, view, ref, qry, ref_ids, qry_ids)
+        right = gt[np.arange(len(out)), out.argmax(axis=1)]
+        hit = np.flatnonzero(localized & right)
+        rank = _true_rank(S, truth, map_ids)
+        cold.append(
+            {
+                "seed": seed,
+                "first_localized_right": int(hit[0]) if hit.size else None,
+                "first_front_top1": int(np.flatnonzero(rank == 0)[0]),
+                "right_share": float(right.mean()),
+            }
+        )
+    back = int(_view("r-detour").gap[1] * len(ref))
+    return {
+        "benchmark": "robot-limits",
+        "protocol": {
+            "method": "kenyon+cann (defaults)",
+            "data": "nordland_64x32 summer (map) -> winter (query), frames 0-999 (dev window)",
+            "seeds": list(SEEDS),
+            "tolerance": TOLERANCE,
+            "same_image": f"consecutive frames with a mean absolute gray difference below {SAME}",
+            "views": ["r-stopgo", "r-detour", "r-1x"],
+            "detour_after": f"the {AFTER} frames after the rejoin (frame {back})",
+        },
+        "machine": machine(),
+        "map_stretches": [list(s) for s in map_stretches],
+        "query_stretches": [list(s) for s in query_stretches],
+        "map_places_in_stretches": int(in_stretch.sum()),
+        "rejoin_map_stretches": [
+            list(s) for s in map_stretches if s[1] >= back and s[0] < back + AFTER
+        ],
+        "stopgo": stopgo,
+        "detour": detour,
+        "cold_start": cold,
+    }
+
+
+def _stretches(s) -> str:
+    return ", ".join(f"{a}-{b}" for a, b in s) or "none"
+
+
+def render_markdown(data: dict) -> str:
+    """The protocol, the stretches and the three tables (headings from level 2)."""
+    p = data["protocol"]
+    lines = [
+        "## Protocol",
+        "",
+        f"{p['method']} on {p['data']}; seeds {', '.join(map(str, p['seeds']))}; tolerance "
+        f"{p['tolerance']}.  Same image: {p['same_image']}.  Detour figures: "
+        f"{p['detour_after']}.",
+        "",
+        "## Same-image stretches",
+        "",
+        f"- Map (summer): {_stretches(data['map_stretches'])} "
+        f"({data['map_places_in_stretches']} places).",
+        f"- Query (winter): {_stretches(data['query_stretches'])}.",
+        "",
+        "Within a stretch of the map every place shows one image: no front end can tell them "
+        "apart, only the motion model places the query in it.",
+        "",
+        "## Stop-and-go",
+        "",
+        "| seed | AUC | AUC, a map stretch counted as one place | stops in a map stretch |",
+        "|---|---|---|---|",
+    ]
+    for r in data["stopgo"]:
+        inside = ", ".join(map(str, r["stops_in_a_map_stretch"])) or "none"
+        lines.append(
+            f"| {r['seed']} | {r['auc']:.3f} | {r['auc_same_image_as_one']:.3f} | "
+            f"{inside} (of {len(r['stops'])}) |"
+        )
+    lines += [
+        "",
+        "## Detour: after the rejoin",
+        "",
+        f"Map stretches there: {_stretches(data['rejoin_map_stretches'])}.",
+        "",
+        "| seed | frames until localized and right | front end's rank of the true place "
+        "(median) | frames with it in the top 10 | first frame it is first |",
+        "|---|---|---|---|---|",
+    ]
+    for r in data["detour"]:
+        first = "never" if r["first_front_top1"] is None else r["first_front_top1"]
+        lines.append(
+            f"| {r['seed']} | {r['rejoin_frames']} | {r['front_rank_median']:.0f} | "
+            f"{r['front_rank_top10_frames']} | {first} |"
+        )
+    lines += [
+        "",
+        "## Cold start at 1x",
+        "",
+        "| seed | first frame localized and right | first frame the front end ranks the "
+        "true place first | answers right |",
+        "|---|---|---|---|",
+    ]
+    for r in data["cold_start"]:
+        lines.append(
+            f"| {r['seed']} | {r['first_localized_right']} | {r['first_front_top1']} | "
+            f"{r['right_share']:.3f} |"
+        )
+    lines.append("")
+    m = data.get("machine", {})
+    if m:
+        lines.append(f"Machine: {', '.join(f'{k} {v}' for k, v in m.items())}.")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
+    ap.add_argument("--json", type=Path, help="write the figures as JSON")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines")
+    args = ap.parse_args(argv)
+    result = run(args.data, progress=not args.quiet)
+    print(render_markdown(result))
+    if args.json:
+        write_json_atomic(args.json, result)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
