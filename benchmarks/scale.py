@@ -11,12 +11,13 @@ figures and the ``protocol``.
 
 Protocol:
 
-* **Codes**: :class:`flyvpr.large.CompactEncoder` (256 bits, PCA-rotated signs of the
-  ``kenyon`` optic lobe, seed 0) fitted on the 2,400 Nordland 64x32 summer frames.
+* **Codes**: :class:`flyvpr.large.CompactEncoder` (256 bits, or ``--bits``; PCA-rotated signs
+  of the ``kenyon`` optic lobe, seed 0) fitted on the 2,400 Nordland 64x32 summer frames.
 * **Map** (``build_s``, in its own process, whose peak memory is ``build_peak_rss_mb``): the
   summer codes tiled to N places with :func:`flyvpr.large.write_tiled_map` (tile masks
   flip 25% of the bits, per-place noise 2%), streamed to a map file, then the multi-index
-  hashing tables (16 x 16-bit substrings) built from the memory-mapped codes and saved.  A
+  hashing tables (16 x 16-bit substrings: the first 256 bits of a longer code, re-ranked by the
+  whole code) built from the memory-mapped codes and saved.  A
   row with ``--index exhaustive`` relocates by an exact scan, which needs no tables: its
   ``build_s`` is the map file's alone.
 * **Localizer** (in its own process; ``peak_rss_mb`` is its VmHWM): open the map and the
@@ -73,6 +74,8 @@ from benchmarks._common import DEFAULT_DATA, peak_rss_mb  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 N_BITS = 256
+#: multi-index hashing tables (16-bit substrings): the first 256 bits of a longer code
+MIH_TABLES = 16
 TILE_FLIP = 0.25
 PLACE_FLIP = 0.02
 WINDOW = 2048
@@ -119,11 +122,11 @@ def build(args) -> dict:
         TILE_FLIP,
         PLACE_FLIP,
         random_state=0,
-        metadata={"encoder": "CompactEncoder(n_bits=256, projection='pca', random_state=0)"},
+        metadata={"encoder": f"CompactEncoder(n_bits={N_BITS}, projection='pca', random_state=0)"},
     )
     t1 = time.perf_counter()
     m = open_large_map(path)
-    index = MultiIndexHash(radius=1).build(m.codes)
+    index = MultiIndexHash(n_tables=min(MIH_TABLES, N_BITS // 16), radius=1).build(m.codes)
     save_index(path.with_suffix(".mih"), index, m)
     t2 = time.perf_counter()
     return {
@@ -275,7 +278,14 @@ def stream(args) -> dict:
 
 def protocol(args, index: str) -> dict:
     """The row's protocol, in words."""
-    name = "multi-index hashing (16 x 16-bit tables, radius 1)" if index == "mih" else "exact scan"
+    tables = min(MIH_TABLES, N_BITS // 16)
+    over = "" if tables * 16 == N_BITS else f" over the first {tables * 16} bits"
+    name = (
+        f"multi-index hashing ({tables} x 16-bit tables{over}, radius 1, re-ranked by the "
+        "whole code)"
+        if index == "mih"
+        else "exact scan"
+    )
     return {
         "codes": f"CompactEncoder {N_BITS} bits (PCA-rotated signs of the kenyon optic lobe)",
         "map": f"Nordland 64x32 summer codes tiled, tile flip {TILE_FLIP}, place flip "
@@ -316,6 +326,8 @@ def _child(mode: str, args) -> dict:
         str(args.kidnaps),
         "--index",
         args.index if isinstance(args.index, str) else args.index[0],
+        "--bits",
+        str(args.bits),
         "--data",
         str(args.data),
         "--work",
@@ -328,6 +340,7 @@ def _child(mode: str, args) -> dict:
 
 
 def main(argv=None) -> int:
+    global N_BITS
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--places", type=int, action="append", required=True)
     p.add_argument("--queries", type=int, default=5000)
@@ -340,6 +353,12 @@ def main(argv=None) -> int:
         help="the relocation index (one row per index and map size): multi-index hashing "
         "(radius 1) or an exact scan",
     )
+    p.add_argument(
+        "--bits",
+        type=int,
+        default=N_BITS,
+        help=f"bits per place of the compact codes (a multiple of 64; default {N_BITS})",
+    )
     p.add_argument("--json", type=Path, required=True)
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
     p.add_argument("--work", type=Path, help="folder for the map files (default: a temporary one)")
@@ -347,6 +366,7 @@ def main(argv=None) -> int:
     p.add_argument("--_build", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--_stream", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    N_BITS = args.bits
     if args._build or args._stream:
         args.places = args.places[0]
         args.index = args.index[0]

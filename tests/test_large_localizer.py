@@ -73,10 +73,10 @@ def test_a_reseed_replays_the_lost_frames(seed):
 
 
 @pytest.mark.parametrize("seed", [1, 3, 4])
-def test_a_dip_backs_off_and_keeps_the_track(seed):
-    # Codes that match nothing: searched at the 4th, 8th, 16th and 32nd lost frame, 4 codes
-    # each, no candidate beats the layer's own track by more than chance, no re-seed; the
-    # layer picks its track up again when the frames match.
+def test_frames_that_match_nothing_keep_the_track(seed):
+    # Codes that match nothing: the best of the candidates' tracks beats the layer's own at
+    # chance, never by the margin, so the stretch is searched every 4th frame (4 new codes
+    # each) and never re-seeded; the layer picks its track up again when the frames match.
     codes = _map(seed=seed)
     rng = np.random.default_rng(20 + seed)
     loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
@@ -89,11 +89,59 @@ def test_a_dip_backs_off_and_keeps_the_track(seed):
         if loc.n_searches_ > before:
             searched.append((frame, loc.n_searches_ - before))
     frames, codes_sent = zip(*searched, strict=True)
-    assert np.diff(frames).tolist() == [4, 8, 16]
-    assert codes_sent == (4, 4, 4, 4)
+    assert set(np.diff(frames).tolist()) == {4}
+    assert set(codes_sent) == {4}
     assert loc.n_reseeds_ == reseeds
     fixes = _drive(loc, codes, 3100 + np.arange(30), rng)
     assert fixes[-1].state == "localized" and abs(fixes[-1].place - 3129) <= 2
+
+
+class _OwnTrackBest(LargeLocalizer):
+    """A localizer whose lost searches never re-seed and find the layer's own track the best."""
+
+    def _reseed_lost(self, n_frames):
+        super()._reseed_lost(n_frames)
+        return False, True
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_a_dip_whose_own_track_is_the_best_backs_off(seed):
+    # Searched at the 4th, 8th, 16th and 32nd lost frame, 4 codes each: a long dip on the
+    # right stretch does not ask the index every few frames.
+    codes = _map(seed=seed)
+    rng = np.random.default_rng(20 + seed)
+    loc = _OwnTrackBest(codes, ExhaustiveIndex().build(codes), window=512)
+    _drive(loc, codes, 3000 + np.arange(60), rng)
+    searched = []
+    for frame in range(40):
+        before = loc.n_searches_
+        loc.update_code(rng.integers(0, 256, 32, dtype=np.uint8))
+        if loc.n_searches_ > before:
+            searched.append((frame, loc.n_searches_ - before))
+    frames, codes_sent = zip(*searched, strict=True)
+    assert np.diff(frames).tolist() == [4, 8, 16]
+    assert codes_sent == (4, 4, 4, 4)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_weakly_matching_kidnap_is_searched_again_soon(seed):
+    # After a kidnap to frames that match their places weakly (42% of the bits flipped), the
+    # true track beats the layer's own at the 2nd search without clearing the margin: the
+    # next search comes 4 frames later, not 8 (the back-off of a dip), and re-seeds it.
+    codes = _map(seed=seed)
+    rng = np.random.default_rng(30 + seed)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
+    _drive(loc, codes, 3000 + np.arange(60), rng)
+    searched, got = [], None
+    for i, t in enumerate(17000 + np.arange(40)):
+        before = loc.n_searches_
+        fix = loc.update_code(_query(codes, t, rng, 0.42))
+        if loc.n_searches_ > before:
+            searched.append(i)
+        if got is None and fix.state == "localized" and abs(fix.place - t) <= 2:
+            got = i
+    assert np.diff(searched[:3]).tolist() == [4, 4]
+    assert got is not None and got <= 15
 
 
 def _biased_map(rng, n=20000):

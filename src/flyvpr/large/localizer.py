@@ -10,10 +10,11 @@ the candidates of the lost stretch's frames are pooled (:func:`~flyvpr.large.poo
 and ranked by their tracks over those frames (each place's similarity less its baseline, the
 layer's own adaptation), and the layer re-seeds around the best, when it beats the layer's own
 track by more than chance, and is run over those frames again (a replay) so that it has
-weighed their evidence already.  Searches come ``reseed_after`` frames after a re-seed and
-twice as far apart each time the layer's own track won.  Every ``check_every`` tracked frames
-the index is asked too, and a candidate outside the window whose track clearly beats the
-layer's makes it re-seed (a kidnap the layer has not noticed).
+weighed their evidence already.  Searches come ``reseed_after`` frames after a re-seed or
+after a search where a candidate's track beat the layer's own (by less than chance allows),
+and twice as far apart each time the layer's own track was the best of all.  Every
+``check_every`` tracked frames the index is asked too, and a candidate outside the window
+whose track clearly beats the layer's makes it re-seed (a kidnap the layer has not noticed).
 """
 
 from __future__ import annotations
@@ -111,9 +112,14 @@ class LargeLocalizer:
     Notes
     -----
     A lost stretch is searched at its ``reseed_after``-th frame, then ``reseed_after``
-    frames after each re-seed, or, where the layer's own track won, after as many frames as
-    the stretch has lasted (with the default, at lost frames 4, 8, 16, 32, ...: a long dip
-    on the right stretch backs off, a kidnapped layer is re-seeded within a few frames).
+    frames after each re-seed or each search where some candidate's track beat the layer's
+    own without clearing the margin, or, where the layer's own track was the best of all,
+    after as many frames as the stretch has lasted (with the default, at lost frames 4, 8,
+    16, 32, ...: a long dip on the right stretch, where the layer's own track is the best,
+    backs off; a kidnapped layer, whose track at its wrong place is beaten by the
+    candidates', keeps being searched every 4 frames until one of them clears the margin.
+    Backing off there too cost kidnaps: the 4th search of a stretch came at its 32nd
+    frame).
 
     A candidate's track is scored, at speeds of 0 to 2 places per frame and ending within
     10 places of it, by the mean over the frames of each frame's similarity to the track's
@@ -257,10 +263,12 @@ class LargeLocalizer:
             self._lost += 1
             if self.n_frames_ == 0 or self._lost == self._next_search:
                 # The lost stretch's frames (the frames before it belong to the track the
-                # layer lost): again soon after a re-seed, twice as late after each time the
-                # layer's own track won (a long dip on the right stretch backs off).
-                reseeded = self._reseed_lost(min(self._lost, self.pool))
-                again = self.reseed_after if reseeded or not self._proven else self._lost
+                # layer lost): again soon after a re-seed or where a candidate's track beat
+                # the layer's own, twice as late after each time the layer's own track was
+                # the best (a long dip on the right stretch backs off).
+                reseeded, own_best = self._reseed_lost(min(self._lost, self.pool))
+                soon = reseeded or not own_best or not self._proven
+                again = self.reseed_after if soon else self._lost
                 self._next_search = self._lost + again
         else:
             self._lost = 0
@@ -355,13 +363,14 @@ class LargeLocalizer:
                     break
         return np.array(ends, np.int64)
 
-    def _reseed_lost(self, n_frames: int) -> bool:
+    def _reseed_lost(self, n_frames: int) -> tuple[bool, bool]:
         """A lost layer: search, and re-seed around the candidates whose tracks over the last
         ``n_frames`` frames beat the layer's own by more than chance (any candidate when the
-        layer has no place yet).  Returns whether it did."""
+        layer has no place yet).  Returns whether it did, and whether the layer's own track
+        (the answering or the held layer's) was at least as good as every candidate's."""
         places = self._candidates(n_frames)
         if places.size == 0:
-            return False
+            return False, True
         t0 = time.perf_counter()
         # The layers' own tracks: the answering layer's and the one it displaced, if kept.
         # The best of ~_COMPARED candidates at several speeds and ends beats an unrelated
@@ -374,13 +383,13 @@ class LargeLocalizer:
         tracks, ends, speeds = self._track_scores(ends, n_frames)
         self.search_s_ += time.perf_counter() - t0
         if own:
-            defended = tracks[-len(own) :].max() + margin
+            mine = tracks[-len(own) :].max()
             tracks, ends, speeds = tracks[: -len(own)], ends[: -len(own)], speeds[: -len(own)]
-            if tracks.max() <= defended:
-                return False
+            if tracks.max() <= mine + margin:
+                return False, bool(mine >= tracks.max())
         # (a layer that never had a place, the first frame's, is no hypothesis to keep)
         self._replay(ends, tracks, speeds, n_frames, hold=self.n_frames_ > 0)
-        return True
+        return True, False
 
     def _check(self) -> None:
         """A tracked layer: search, and re-seed around the candidates outside the window whose
