@@ -404,3 +404,49 @@ def test_code_overlap_is_int32():
     out = code_overlap([[1, 1, 0, 0]], [[1, 0, 1, 0], [1, 1, 0, 0]])
     assert out.dtype == np.int32
     np.testing.assert_array_equal(out, [[1, 2]])
+
+
+def test_gabor_bank_defaults_are_the_optic_lobes():
+    # 4 orientations, a 6-pixel wavelength, 11x11 kernels: what the optic lobe uses by default
+    bank = gabor_bank()
+    assert bank.shape == (4, 11, 11)
+    np.testing.assert_array_equal(bank, gabor_bank(4, 6.0, 11))
+    assert not np.allclose(bank, gabor_bank(4, 7.0, 11))
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ({"n_orientations": 0}, "n_orientations must be >= 1; got 0"),
+        ({"wavelength": -1.0}, r"wavelength must be > 0\.0; got -1\.0"),
+        ({"size": 1}, "size must be >= 3; got 1"),
+    ],
+)
+def test_gabor_bank_names_a_bad_parameter(params, message):
+    with pytest.raises(ValueError, match=f"^{message}$"):
+        gabor_bank(**params)
+
+
+@pytest.mark.parametrize(
+    ("params", "error", "message"),
+    [
+        ({"lcn_sigma": 0.0}, ValueError, r"lcn_sigma must be > 0\.0; got 0\.0"),
+        ({"lcn_eps": -1.0}, ValueError, r"lcn_eps must be > 0\.0; got -1\.0"),
+        ({"lcn_eps": "a"}, TypeError, "lcn_eps must be a number; got str"),
+        ({"pool_size": 0}, ValueError, "pool_size must be >= 1; got 0"),
+        ({"kernel_size": 1}, ValueError, "size must be >= 3; got 1"),
+    ],
+)
+def test_optic_lobe_names_a_bad_parameter(params, error, message):
+    from flyvpr.frontends.optic_lobe import OpticLobe
+
+    base = {
+        "lcn_sigma": 4.0,
+        "lcn_eps": 0.05,
+        "n_orientations": 4,
+        "wavelength": 6.0,
+        "kernel_size": 11,
+        "pool_size": 4,
+    }
+    with pytest.raises(error, match=f"^{message}$"):
+        OpticLobe(**{**base, **params})
