@@ -321,3 +321,97 @@ def test_hold_bounds_how_long_a_displaced_layer_is_stepped():
         assert let_go is not None and loc.n_reseeds_ == reseeds + 1
         if hold == 3:
             assert let_go == 2
+
+
+def test_the_documented_defaults():
+    codes = _map(n=5000)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes))
+    assert (loc.k, loc.pool, loc.reseed_after, loc.check_every) == (300, 10, 4, 1000)
+    assert loc.speed == (0.0, 2.0) and loc.hold == 30 and loc.full_search_places == 2**20
+    assert loc.filter_.window == 2048 and loc.n_bits == 256 and loc.n_places == 5000
+    assert loc.encoder is None
+    # the CANN's own parameters go to the layer
+    assert LargeLocalizer(codes, loc.index, evidence_gain=0.3).filter_.cann_.evidence_gain == 0.3
+
+
+@pytest.mark.parametrize(
+    ("params", "error", "message"),
+    [
+        ({"k": 0}, ValueError, "k must be >= 1; got 0"),
+        ({"pool": 0}, ValueError, "pool must be >= 1; got 0"),
+        ({"reseed_after": 0}, ValueError, "reseed_after must be >= 1; got 0"),
+        ({"check_every": -1}, ValueError, "check_every must be >= 0; got -1"),
+        ({"hold": 0}, ValueError, "hold must be >= 1; got 0"),
+        ({"full_search_places": -1}, ValueError, "full_search_places must be >= 0; got -1"),
+        ({"pool": 2.5}, TypeError, "pool must be an int; got float"),
+    ],
+)
+def test_each_bad_parameter_is_named(params, error, message):
+    codes = _map(n=1000)
+    with pytest.raises(error, match=f"^{message}$"):
+        LargeLocalizer(codes, ExhaustiveIndex().build(codes), **params)
+
+
+def test_bad_maps_and_indexes_are_named():
+    codes = _map(n=1000)
+    index = ExhaustiveIndex().build(codes)
+    with pytest.raises(TypeError, match="^codes must be bit-packed uint8 codes; got dtype int64$"):
+        LargeLocalizer(codes.astype(np.int64), index)
+    bad = r"^codes must be a 2-d uint8 array \(n_places, n_bytes\); got "
+    with pytest.raises(ValueError, match=bad + r"uint8 \(0, 32\)$"):
+        LargeLocalizer(codes[:0], index)
+    shape = r"^codes must have shape \(n, n_bytes\) with n_bytes a positive multiple of 8; got "
+    with pytest.raises(ValueError, match=shape + r"\(1, 32, 1\)$"):
+        LargeLocalizer(codes[:, :, None], index)
+    with pytest.raises(ValueError, match=shape + r"\(1, 5\)$"):
+        LargeLocalizer(codes[:, :5], index)
+    with pytest.raises(TypeError, match="^index must be a CandidateIndex; got dict$"):
+        LargeLocalizer(codes, {})
+    with pytest.raises(
+        ValueError, match=r"^index must be built over the map's 1000 codes; it holds 10 places"
+    ):
+        LargeLocalizer(codes, ExhaustiveIndex().build(codes[:10]))
+    with pytest.raises(ValueError, match="it holds no places \\(build it first\\)$"):
+        LargeLocalizer(codes, ExhaustiveIndex())
+
+
+def test_reset_forgets_everything():
+    codes = _map(n=5000)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256)
+    rng = np.random.default_rng(4)
+    _drive(loc, codes, 1000 + np.arange(40), rng)
+    _drive(loc, codes, 4000 + np.arange(20), rng)  # a kidnap: searches and a re-seed
+    assert loc.n_searches_ > 0 and loc.n_reseeds_ > 0 and loc.search_s_ > 0
+    loc.reset()
+    assert (loc.n_frames_, loc.n_searches_, loc.n_reseeds_, loc.n_full_searches_) == (0, 0, 0, 0)
+    assert loc.search_s_ == 0.0 and loc.held_ is None and loc.filter_.state_ == "lost"
+    # after a reset the first frame is searched for in the whole map, as on the first run
+    fresh = LargeLocalizer(codes, loc.index, window=256)
+    rng_a, rng_b = np.random.default_rng(5), np.random.default_rng(5)
+    a = _drive(loc, codes, 2500 + np.arange(30), rng_a)
+    b = _drive(fresh, codes, 2500 + np.arange(30), rng_b)
+    assert [(f.place, f.state) for f in a] == [(f.place, f.state) for f in b]
+    assert loc.n_searches_ == fresh.n_searches_ and loc.n_frames_ == 30
+
+
+def test_update_encodes_the_image_and_passes_the_odometry_on():
+    from flyvpr.large import CompactEncoder
+
+    rng = np.random.default_rng(6)
+    images = rng.random((300, 32, 64)).astype(np.float32)
+    enc = CompactEncoder(n_bits=64, random_state=0).fit(images)
+    codes = enc.reference_codes_
+    index = ExhaustiveIndex().build(codes)
+    by_image = LargeLocalizer(codes, index, encoder=enc, window=64)
+    by_code = LargeLocalizer(codes, index, window=64)
+    for t in range(20):
+        velocity = None if t == 0 else 1.0
+        a = by_image.update(images[100 + t], velocity)
+        b = by_code.update_code(enc.encode(images[100 + t][None])[0], velocity)
+        assert (a.place, a.state, a.confidence) == (b.place, b.state, b.confidence)
+        if velocity is not None:
+            assert by_image.filter_.cann_.velocity_ == 1.0
+    with pytest.raises(
+        ValueError, match=r"^update needs an encoder \(LargeLocalizer\(\.\.\., encoder=\.\.\.\)\)$"
+    ):
+        by_code.update(images[0])
