@@ -415,3 +415,69 @@ def test_update_encodes_the_image_and_passes_the_odometry_on():
         ValueError, match=r"^update needs an encoder \(LargeLocalizer\(\.\.\., encoder=\.\.\.\)\)$"
     ):
         by_code.update(images[0])
+
+
+def _reference_tracks(loc, places, n_frames):
+    """_track_scores by loops: every speed and end around each place, each frame's similarity
+    less the place's baseline (shrunk towards 1/2 as if 5 more frames had scored 1/2)."""
+    from flyvpr.large import localizer as mod
+
+    frames = [np.unpackbits(c) for c in list(loc._recent)[-n_frames:]]
+    bits = np.unpackbits(loc.codes, axis=1)
+    n = loc.n_places
+
+    def sim(t, p):
+        return 1.0 - np.count_nonzero(frames[t] != bits[p]) / bits.shape[1]
+
+    def baseline(p):
+        return (sum(sim(t, p) for t in range(n_frames)) + 0.5 * mod._PRIOR_FRAMES) / (
+            n_frames + mod._PRIOR_FRAMES
+        )
+
+    out = []
+    for c in places:
+        best = None
+        for s in mod._TRACK_SPEEDS:
+            for e in range(c - mod._REFINE, c + mod._REFINE + 1):
+                track = [
+                    min(max(e - round(s * (n_frames - 1 - t)), 0), n - 1) for t in range(n_frames)
+                ]
+                score = np.mean([sim(t, p) - baseline(p) for t, p in enumerate(track)])
+                if best is None or score > best[0] + 1e-9:
+                    best = (score, min(max(e, 0), n - 1), s)
+        out.append(best)
+    return out
+
+
+@pytest.mark.parametrize("n_frames", [1, 4, 7])
+def test_track_scores_equal_a_loop_reference(n_frames):
+    codes = _map(n=400, n_bytes=8, seed=5)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64)
+    rng = np.random.default_rng(7)
+    for p in 200 + np.arange(n_frames):
+        loc._recent.append(_query(codes, int(p), rng, flip=0.2))
+    places = np.array([3, 150, 200 + n_frames - 1, 396])  # both ends of the map too
+    scores, ends, speeds = loc._track_scores(places, n_frames)
+    ref = _reference_tracks(loc, places, n_frames)
+    np.testing.assert_allclose(scores, [r[0] for r in ref], atol=1e-5)
+    np.testing.assert_array_equal(ends, [r[1] for r in ref])
+    np.testing.assert_array_equal(speeds, [r[2] for r in ref])
+
+
+@pytest.mark.parametrize(
+    ("frames", "candidate", "end", "speed"),
+    [
+        ([0, 0, 0, 0], 2, 0, 0.0),  # standing on the first place
+        ([395, 397, 399, 399], 397, 399, 2.0),  # 2 per frame into the last place: end past it
+    ],
+)
+def test_tracks_at_the_ends_of_the_map(frames, candidate, end, speed):
+    codes = _map(n=400, n_bytes=8, seed=6)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64)
+    for p in frames:
+        loc._recent.append(codes[p])
+    places = np.array([candidate])
+    scores, ends, speeds = loc._track_scores(places, len(frames))
+    ref = _reference_tracks(loc, places, len(frames))[0]
+    assert (ends[0], speeds[0]) == (end, speed) == (ref[1], ref[2])
+    np.testing.assert_allclose(scores[0], ref[0], atol=1e-6)
