@@ -65,3 +65,39 @@ def make_line_map(summer: np.ndarray, n_places: int, rng) -> np.ndarray:
             block = block + rng.normal(0.0, 0.01, block.shape).astype(np.float32)
         out[lo:hi] = np.clip(block, 0.0, 1.0)
     return out
+
+
+def machine_sentence(data: dict) -> str:
+    """The "Machine: ..." line of a results page from its JSON's ``machine`` (empty if none)."""
+    m = data.get("machine") or {}
+    return f"Machine: {', '.join(f'{k} {v}' for k, v in m.items())}." if m else ""
+
+
+def run_page_benchmark(doc: str, run, render_markdown, argv=None) -> int:
+    """The command line of a benchmark that owns a results page: ``--data``, ``--json``,
+    ``--quiet``; checks both paths before the run (a missing data folder, a JSON path that is a
+    folder or in none), prints the page, writes the JSON atomically.  Exit status 1 with one
+    line on stderr for a bad path."""
+    import argparse
+    import sys
+
+    from flyvpr._io import write_json_atomic
+
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
+    ap.add_argument("--json", type=Path, help="write the figures as JSON")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines")
+    args = ap.parse_args(argv)
+    folder = args.data / "nordland_64x32"
+    if not folder.is_dir():
+        print(f"data folder not found: {folder} (--data names the folder that holds it)",
+              file=sys.stderr)  # fmt: skip
+        return 1
+    if args.json is not None and (args.json.is_dir() or not args.json.parent.is_dir()):
+        print(f"--json {args.json}: expected a file path in an existing folder", file=sys.stderr)
+        return 1
+    result = run(args.data, progress=not args.quiet)
+    print(render_markdown(result))
+    if args.json is not None:
+        write_json_atomic(args.json, result)
+    return 0

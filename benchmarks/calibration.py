@@ -18,7 +18,6 @@ filter for it); they differ in the front end's projection.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -28,11 +27,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
     sys.path.insert(0, str(ROOT))
 
-from benchmarks._common import DEFAULT_DATA, machine  # noqa: E402
+from benchmarks._common import machine, machine_sentence, run_page_benchmark  # noqa: E402
 from benchmarks.accuracy_run import gap_keep, load_dataset  # noqa: E402
 from benchmarks.accuracy_setup import DATASETS, ROBOT_VIEWS  # noqa: E402
 from flyvpr import metrics  # noqa: E402
-from flyvpr._io import write_json_atomic  # noqa: E402
 from flyvpr.datasets import ground_truth_from_frames  # noqa: E402
 from flyvpr.methods import make_method  # noqa: E402
 from flyvpr.temporal.cann import CANN, fit_calibration  # noqa: E402
@@ -143,23 +141,13 @@ def render_markdown(data: dict) -> str:
                 f"{r['right'] - r['confidence']:+.3f} |"
             )
         lines.append("")
-    m = data.get("machine", {})
-    if m:
-        lines.append(f"Machine: {', '.join(f'{k} {v}' for k, v in m.items())}.")
+    if machine_sentence(data):
+        lines.append(machine_sentence(data))
     return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data folder")
-    ap.add_argument("--json", type=Path, help="write the figures as JSON")
-    ap.add_argument("--quiet", action="store_true", help="no progress lines")
-    args = ap.parse_args(argv)
-    result = run(args.data, progress=not args.quiet)
-    print(render_markdown(result))
-    if args.json:
-        write_json_atomic(args.json, result)
-    return 0
+    return run_page_benchmark(__doc__, run, render_markdown, argv)
 
 
 if __name__ == "__main__":
