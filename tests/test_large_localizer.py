@@ -481,3 +481,74 @@ def test_tracks_at_the_ends_of_the_map(frames, candidate, end, speed):
     ref = _reference_tracks(loc, places, len(frames))[0]
     assert (ends[0], speeds[0]) == (end, speed) == (ref[1], ref[2])
     np.testing.assert_allclose(scores[0], ref[0], atol=1e-6)
+
+
+def test_a_replay_seeds_the_tracks_starts_weighted_by_their_scores(monkeypatch):
+    from flyvpr.temporal.cann import WindowedCANN
+
+    codes = _map(n=3000, n_bytes=8)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=128)
+    rng = np.random.default_rng(8)
+    for p in 1000 + np.arange(6):
+        loc._recent.append(_query(codes, int(p), rng, flip=0.2))
+        loc._velocities.append(None)
+    seeded = []
+    real = WindowedCANN.reseed
+
+    def spy(self, places, weights=None):
+        seeded.append((np.array(places), np.array(weights)))
+        return real(self, places, weights)
+
+    monkeypatch.setattr(WindowedCANN, "reseed", spy)
+    ends = np.array([1005, 20, 2999])
+    tracks = np.array([0.30, 0.25, 0.10])
+    speeds = np.array([1.0, 2.0, 0.5])
+    before = loc.search_s_
+    loc._replay(ends, tracks, speeds, 6)
+    ((places, weights),) = seeded
+    # each track's start, 5 frames back at its speed, clipped to the map
+    np.testing.assert_array_equal(places, [1000, 10, 2997])  # 2.5 places rounds to 2
+    # weights: exp of the score less the best's, in units of 8 bits of a 64-bit code
+    np.testing.assert_allclose(weights, np.exp((tracks - 0.30) * 64 / 8.0))
+    assert loc.n_reseeds_ == 1 and loc.held_ is None and loc.search_s_ > before
+    # a start before the first place is clipped to it
+    seeded.clear()
+    loc._replay(np.array([3]), np.array([0.2]), np.array([2.0]), 6)
+    np.testing.assert_array_equal(seeded[0][0], [0])
+    assert loc.n_reseeds_ == 2
+    # with hold, the displaced layers' more confident one is kept (a proven one first)
+    loc._replay(ends, tracks, speeds, 6, hold=True)
+    assert loc.held_ is not None and loc.held_ is not loc.filter_
+    for proven in (False, True):
+        loc._held_proven = proven
+        layers = [(loc.filter_, loc._proven), (loc.held_, loc._held_proven)]
+        expected = max(layers, key=lambda lp: (lp[1], lp[0].confidence_))
+        loc._replay(ends, tracks, speeds, 6, hold=True)
+        assert loc.held_ is expected[0] and loc._held_proven == expected[1]
+        assert loc._proven is False and loc._held_frames == 0
+
+
+def test_the_time_spent_relocating_adds_up(monkeypatch):
+    from flyvpr.large import localizer as mod
+
+    class Clock:  # every reading one second later
+        now = 0.0
+
+        def __call__(self):
+            self.now += 1.0
+            return self.now
+
+    clock = Clock()
+    monkeypatch.setattr(mod.time, "perf_counter", clock)
+    codes = _map(n=5000)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256, check_every=20)
+    rng = np.random.default_rng(9)
+    seen = [0.0]
+    for places in (1000 + np.arange(30), 4000 + np.arange(30), 2500 + np.arange(30)):
+        for p in places:
+            loc.update_code(_query(codes, int(p), rng))
+            seen.append(loc.search_s_)
+    assert loc.n_reseeds_ >= 3
+    assert all(b >= a for a, b in zip(seen, seen[1:], strict=False))  # it only grows
+    # each timed stretch counts at least one tick, and no more ticks than were read
+    assert loc.n_reseeds_ <= loc.search_s_ <= clock.now
