@@ -552,3 +552,19 @@ def test_the_time_spent_relocating_adds_up(monkeypatch):
     assert all(b >= a for a, b in zip(seen, seen[1:], strict=False))  # it only grows
     # each timed stretch counts at least one tick, and no more ticks than were read
     assert loc.n_reseeds_ <= loc.search_s_ <= clock.now
+
+
+def test_a_check_leaves_a_layer_on_the_better_of_two_look_alikes():
+    # Places 3000.. are a slightly noisier copy of 12000..: on the queries of 12000.. the true
+    # track beats the copy's by less than the check's margin, and the checks must not move it.
+    rng = np.random.default_rng(6)
+    codes = _map()
+    copy = np.unpackbits(codes[12000:12300], axis=1)
+    codes[3000:3300] = np.packbits(copy ^ (rng.random(copy.shape) < 0.05), axis=1)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512, check_every=10)
+    _drive(loc, codes, 12000 + np.arange(60), rng, flip=0.25)
+    assert abs(loc.filter_.place_ - 12059) <= 2
+    reseeds = loc.n_reseeds_
+    fixes = _drive(loc, codes, 12060 + np.arange(200), rng, flip=0.25)
+    assert loc.n_reseeds_ == reseeds
+    assert all(abs(f.place - t) <= 2 for f, t in zip(fixes, 12060 + np.arange(200), strict=True))
