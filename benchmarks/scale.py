@@ -366,6 +366,8 @@ def main(argv=None) -> int:
     p.add_argument("--_build", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--_stream", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.bits % 64 or not 64 <= args.bits <= 512:
+        p.error(f"--bits must be a multiple of 64 from 64 to 512; got {args.bits}")
     N_BITS = args.bits
     if args._build or args._stream:
         args.places = args.places[0]
