@@ -516,6 +516,10 @@ def test_a_replay_seeds_the_tracks_starts_weighted_by_their_scores(monkeypatch):
     loc._replay(np.array([3]), np.array([0.2]), np.array([2.0]), 6)
     np.testing.assert_array_equal(seeded[0][0], [0])
     assert loc.n_reseeds_ == 2
+    # a standing track on the last place starts there
+    seeded.clear()
+    loc._replay(np.array([2999]), np.array([0.2]), np.array([0.0]), 6)
+    np.testing.assert_array_equal(seeded[0][0], [2999])
     # with hold, the displaced layers' more confident one is kept (a proven one first)
     loc._replay(ends, tracks, speeds, 6, hold=True)
     assert loc.held_ is not None and loc.held_ is not loc.filter_
@@ -568,3 +572,30 @@ def test_a_check_leaves_a_layer_on_the_better_of_two_look_alikes():
     fixes = _drive(loc, codes, 12060 + np.arange(200), rng, flip=0.25)
     assert loc.n_reseeds_ == reseeds
     assert all(abs(f.place - t) <= 2 for f, t in zip(fixes, 12060 + np.arange(200), strict=True))
+
+
+def test_a_replay_steps_the_new_layer_with_the_frames_odometry():
+    from flyvpr.large.codes import hamming_similarity
+    from flyvpr.temporal.cann import WindowedCANN
+
+    codes = _map(n=3000, n_bytes=8)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=128)
+    rng = np.random.default_rng(11)
+    places = 1000 + 2 * np.arange(6)  # 2 places per frame, and the odometry says so
+    for t, p in enumerate(places):
+        loc._recent.append(_query(codes, int(p), rng, flip=0.3))
+        loc._velocities.append(None if t == 0 else 2.0)
+    ends, tracks, speeds = np.array([1010]), np.array([0.3]), np.array([2.0])
+    loc._replay(ends, tracks, speeds, 6)
+    # the same layer stepped by hand through the first five frames with their odometry
+    ref = WindowedCANN(loc.n_places, **loc._layer)
+    ref.reseed(np.array([1000]), np.array([1.0]))
+    for i in range(-6, -1):
+        lo, hi = ref.window_
+        ref.step(
+            hamming_similarity(loc._recent[i][None], codes, lo, hi)[0],
+            None if i == -6 else loc._velocities[i],
+        )
+    assert loc.filter_.place_ == ref.place_
+    assert loc.filter_.confidence_ == ref.confidence_
+    assert loc.filter_.cann_.velocity_ == 2.0
