@@ -24,6 +24,13 @@ of the robot views of ``benchmarks/accuracy.py``; ``kenyon+cann`` with its defau
   end's rank of the true place (places scoring strictly higher) over the 30 frames after it.
 * **Cold start at 1x** (``r-1x``): the first frame ``localized`` and right, the query's first
   same-image stretch, and the first frame whose true place the front end ranks first.
+* **Parked** (not a view of the accuracy benchmark): the query drives at 1 place per frame to
+  place ``a``, stands there ``PARK_FRAMES`` frames (its one winter frame repeated, as a
+  robot's camera sees a parked scene), then drives on ``PARK_AFTER`` frames.  ``PARK_PLACES``
+  stop places drawn with ``numpy.random.default_rng(PARK_SEED)`` from 200-799, none within 3
+  places of a map stretch.  Per stand length: the share of the stand's answers right and
+  ``localized``, split by whether the front end ranks the stop's true place within the
+  tolerance first (its single-frame answer there), and the share right over the frames after.
 """
 
 from __future__ import annotations
@@ -51,6 +58,11 @@ TOLERANCE = 2
 SAME = 0.01
 #: frames after the rejoin that the detour's figures cover (the must-show's bound)
 AFTER = 30
+#: parked robot: stand lengths (frames), stop places, the seed that draws them, frames after
+PARK_FRAMES = (30, 100, 300, 1000)
+PARK_PLACES = 12
+PARK_SEED = 5
+PARK_AFTER = 100
 
 
 def same_image_stretches(images: np.ndarray, same: float = SAME) -> list[tuple[int, int]]:
@@ -84,6 +96,60 @@ def as_one(gt: np.ndarray, group: np.ndarray) -> np.ndarray:
     onehot = np.zeros((len(group), len(ids)), bool)
     onehot[np.arange(len(group)), inverse] = True
     return (gt.astype(np.float32) @ onehot.astype(np.float32) > 0)[:, inverse]
+
+
+def parked_places(stop: int, frames: int, after: int, n: int) -> np.ndarray:
+    """True place per query frame: 1 place per frame from 0 to ``stop``, ``frames`` frames at
+    ``stop`` (the first of them the arrival), then on for ``after`` frames (within ``n``)."""
+    if not 0 <= stop < n:
+        raise ValueError(f"stop must be in [0, {n}); got {stop}")
+    drive_on = np.arange(stop + 1, min(stop + 1 + after, n))
+    return np.concatenate([np.arange(stop), np.full(frames, stop), drive_on]).astype(np.int64)
+
+
+def stop_places(in_stretch: np.ndarray, count: int, seed: int, margin: int = 3) -> list[int]:
+    """``count`` distinct places of the middle 60% of the map, drawn with ``seed``, none
+    within ``margin`` places of a place in a same-image stretch (``in_stretch``)."""
+    n = in_stretch.size
+    near = np.convolve(in_stretch.astype(int), np.ones(2 * margin + 1, int), mode="same") > 0
+    allowed = np.flatnonzero(~near[int(0.2 * n) : int(0.8 * n)]) + int(0.2 * n)
+    if allowed.size < count:
+        raise ValueError(f"only {allowed.size} places away from the stretches; need {count}")
+    rng = np.random.default_rng(seed)
+    return sorted(int(a) for a in rng.choice(allowed, size=count, replace=False))
+
+
+def _parked(seed: int, ref, qry, stops) -> list[dict]:
+    """Per stand length, kenyon+cann's answers through every stop (see the module's text)."""
+    method = make_method("kenyon+cann", seed, {}, {})
+    method.frontend.fit(ref)
+    S = method.frontend.score(qry)
+    n = len(ref)
+    filt = method.filter
+    fe_right = {a: abs(int(np.argmax(S[a])) - a) <= TOLERANCE for a in stops}
+    rows = []
+    for frames in PARK_FRAMES:
+        during = {True: [], False: []}
+        localized = {True: [], False: []}
+        after = []
+        for a in stops:
+            truth = parked_places(a, frames, PARK_AFTER, n)
+            filt.reset()
+            right = np.empty(len(truth), bool)
+            state = np.empty(len(truth), bool)
+            for t, place in enumerate(truth):
+                right[t] = abs(int(np.argmax(filt.step(S[place]))) - place) <= TOLERANCE
+                state[t] = filt.state_ == "localized"
+            during[fe_right[a]].append(right[a : a + frames].mean())
+            localized[fe_right[a]].append(state[a : a + frames].mean())
+            after.append(right[a + frames :].mean())
+        row = {"seed": seed, "frames": frames, "right_after": float(np.mean(after))}
+        for key, flag in (("front_right", True), ("front_wrong", False)):
+            row[f"stops_{key}"] = len(during[flag])
+            row[f"right_{key}"] = float(np.mean(during[flag])) if during[flag] else None
+            row[f"localized_{key}"] = float(np.mean(localized[flag])) if during[flag] else None
+        rows.append(row)
+    return rows
 
 
 def _view(key: str):
@@ -131,7 +197,8 @@ def run(data: Path, progress: bool = True) -> dict:
     for first, last in map_stretches:
         in_stretch[first : last + 1] = True
 
-    stopgo, detour, cold = [], [], []
+    stopgo, detour, cold, parked = [], [], [], []
+    park_stops = stop_places(in_stretch, PARK_PLACES, PARK_SEED)
     for seed in SEEDS:
         if progress:
             print(f"  seed {seed}", file=sys.stderr, flush=True)
@@ -178,6 +245,7 @@ def run(data: Path, progress: bool = True) -> dict:
                 "right_share": float(right.mean()),
             }
         )
+        parked += _parked(seed, ref, qry, park_stops)
     back = int(_view("r-detour").gap[1] * len(ref))
     return {
         "benchmark": "robot-limits",
@@ -189,6 +257,9 @@ def run(data: Path, progress: bool = True) -> dict:
             "same_image": f"consecutive frames with a mean absolute gray difference below {SAME}",
             "views": ["r-stopgo", "r-detour", "r-1x"],
             "detour_after": f"the {AFTER} frames after the rejoin (frame {back})",
+            "parked": f"1 place per frame to a stop, stand, then {PARK_AFTER} frames on; "
+            f"{PARK_PLACES} stops drawn with seed {PARK_SEED} from places 200-799 at least 4 "
+            "places from a map stretch",
         },
         "machine": machine(),
         "map_stretches": [list(s) for s in map_stretches],
@@ -200,11 +271,58 @@ def run(data: Path, progress: bool = True) -> dict:
         "stopgo": stopgo,
         "detour": detour,
         "cold_start": cold,
+        "parked_stops": park_stops,
+        "parked": parked,
     }
 
 
 def _stretches(s) -> str:
     return ", ".join(f"{a}-{b}" for a, b in s) or "none"
+
+
+def parked_summary(rows: list[dict]) -> list[dict]:
+    """Per stand length, the parked rows of all seeds pooled: shares weighted by their stops."""
+    out = []
+    for frames in sorted({r["frames"] for r in rows}):
+        mine = [r for r in rows if r["frames"] == frames]
+        row = {"frames": frames, "right_after": float(np.mean([r["right_after"] for r in mine]))}
+        for key in ("front_right", "front_wrong"):
+            count = sum(r[f"stops_{key}"] for r in mine)
+            row[f"stops_{key}"] = count
+            for name in ("right", "localized"):
+                total = sum(
+                    r[f"{name}_{key}"] * r[f"stops_{key}"] for r in mine if r[f"stops_{key}"]
+                )
+                row[f"{name}_{key}"] = total / count if count else None
+        out.append(row)
+    return out
+
+
+def _share(value) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
+def _parked_table(data: dict) -> list[str]:
+    lines = [
+        "",
+        "## Parked",
+        "",
+        f"{data['protocol']['parked']}: places {', '.join(map(str, data['parked_stops']))}.  "
+        "Shares over the stand's frames, the stops pooled over the seeds, split by the front "
+        "end's own answer at the stop.",
+        "",
+        "| frames standing | front end right at the stop: stops / right / localized | "
+        "front end wrong: stops / right / localized | right after it |",
+        "|---|---|---|---|",
+    ]
+    for r in parked_summary(data["parked"]):
+        lines.append(
+            f"| {r['frames']} | {r['stops_front_right']} / {_share(r['right_front_right'])} / "
+            f"{_share(r['localized_front_right'])} | {r['stops_front_wrong']} / "
+            f"{_share(r['right_front_wrong'])} / {_share(r['localized_front_wrong'])} | "
+            f"{r['right_after']:.2f} |"
+        )
+    return lines
 
 
 def render_markdown(data: dict) -> str:
@@ -266,6 +384,8 @@ def render_markdown(data: dict) -> str:
             f"| {r['seed']} | {r['first_localized_right']} | {r['first_front_top1']} | "
             f"{r['right_share']:.3f} |"
         )
+    if data.get("parked"):
+        lines += _parked_table(data)
     lines.append("")
     if machine_sentence(data):
         lines.append(machine_sentence(data))

@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -44,3 +45,63 @@ def test_a_stretch_scored_as_one_place():
     np.testing.assert_array_equal(one[0], [0, 1, 1, 1, 0, 0])
     np.testing.assert_array_equal(one[1], gt[1])
     assert not one[2].any()
+
+
+def test_parked_profile_drives_stands_and_drives_on():
+    np.testing.assert_array_equal(
+        robot_limits.parked_places(3, 4, 2, 10), [0, 1, 2, 3, 3, 3, 3, 4, 5]
+    )
+    # the drive on stops at the end of the map
+    np.testing.assert_array_equal(robot_limits.parked_places(8, 2, 5, 10), [*range(8), 8, 8, 9])
+    # a stop at the start: no approach
+    np.testing.assert_array_equal(robot_limits.parked_places(0, 2, 1, 10), [0, 0, 1])
+    for bad in (-1, 10):
+        with pytest.raises(ValueError, match="stop"):
+            robot_limits.parked_places(bad, 2, 1, 10)
+
+
+def test_stop_places_keep_away_from_the_stretches():
+    in_stretch = np.zeros(100, bool)
+    in_stretch[40:50] = True
+    stops = robot_limits.stop_places(in_stretch, 20, seed=3, margin=3)
+    assert len(set(stops)) == 20 and stops == sorted(stops)
+    assert all(20 <= a < 80 for a in stops)
+    assert not any(37 <= a <= 52 for a in stops)
+    assert 36 in robot_limits.stop_places(in_stretch, 60 - 16, seed=0, margin=3)
+    assert stops == robot_limits.stop_places(in_stretch, 20, seed=3, margin=3)
+    assert stops != robot_limits.stop_places(in_stretch, 20, seed=4, margin=3)
+    with pytest.raises(ValueError, match="need 45"):
+        robot_limits.stop_places(in_stretch, 45, seed=0, margin=3)
+
+
+def test_parked_summary_pools_the_seeds_by_their_stops():
+    def row(seed, frames, n_right, right, n_wrong, wrong, after):
+        return {
+            "seed": seed,
+            "frames": frames,
+            "right_after": after,
+            "stops_front_right": n_right,
+            "right_front_right": right if n_right else None,
+            "localized_front_right": right / 2 if n_right else None,
+            "stops_front_wrong": n_wrong,
+            "right_front_wrong": wrong if n_wrong else None,
+            "localized_front_wrong": wrong / 2 if n_wrong else None,
+        }
+
+    rows = [row(0, 30, 1, 1.0, 3, 0.2, 0.9), row(1, 30, 3, 0.6, 1, 0.6, 0.7)]
+    rows.append(row(0, 100, 0, 0.0, 4, 0.5, 0.5))
+    (first, second) = robot_limits.parked_summary(rows)
+    assert first["frames"] == 30 and second["frames"] == 100
+    assert first["stops_front_right"] == 4
+    assert first["right_front_right"] == pytest.approx((1.0 + 3 * 0.6) / 4)
+    assert first["localized_front_right"] == pytest.approx((0.5 + 3 * 0.3) / 4)
+    assert first["right_front_wrong"] == pytest.approx((3 * 0.2 + 0.6) / 4)
+    assert first["right_after"] == pytest.approx(0.8)
+    assert second["stops_front_right"] == 0 and second["right_front_right"] is None
+    assert second["right_front_wrong"] == pytest.approx(0.5)
+    table = "\n".join(
+        robot_limits._parked_table(
+            {"protocol": {"parked": "p"}, "parked_stops": [1], "parked": rows}
+        )
+    )
+    assert "| 100 | 0 / - / - | 4 / 0.50 / 0.25 | 0.50 |" in table
