@@ -399,12 +399,15 @@ def scale_tables(rows: list[dict]) -> tuple[str, str]:
             f"| {r['build_s']:.1f} | {r['open_s']:.3f} | {_n(r['lock_frames'])} |"
         )
     kid = [
-        "| places | index | relocated within 30 frames | median frames | frames searched "
-        "| ms per search (index + pooling) |\n|---|---|---|---|---|---|"
+        "| places | index | trials | relocated within 30 frames (95% interval) | median frames "
+        "| frames searched | ms per search (index + pooling) |\n|---|---|---|---|---|---|---|"
     ]
     for r in rows:
+        ci = r.get("kidnap_relocated_ci95")
+        interval = f" ({ci[0]:.2f}-{ci[1]:.2f})" if ci else ""
         kid.append(
-            f"| {r['places']:,} | {r['index']} | {r['kidnap_relocated_share']:.2f} "
+            f"| {r['places']:,} | {r['index']} | {r['kidnap_trials']} "
+            f"| {r['kidnap_relocated_share']:.2f}{interval} "
             f"| {_n(r['kidnap_frames_median'], 1)} | {r['kidnap_searched_share']:.2f} "
             f"| {r['kidnap_ms_per_search']:.2f} |"
         )

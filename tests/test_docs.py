@@ -204,3 +204,35 @@ def test_paper_page_data_from_a_results_folder(gen, tmp_path):
     assert str(tmp_path) not in json.dumps(data), "no path of the machine that ran it"
     page = gen.ADAPTERS["paper"](data)
     assert "## Single frame" in page and "| pixels |" in page.replace("|  ", "| ")
+
+
+def _scale_row(**kidnap):
+    row = {
+        "places": 100000,
+        "index": "mih",
+        "frames_per_s": 1000.0,
+        "tracked_frames_per_s": 2000.0,
+        "searched_ms_per_frame": 5.0,
+        "localized_share": 0.9,
+        "searched_share": 0.05,
+        "same_place_within_20_share": 0.99,
+        "peak_rss_mb": 100.0,
+        "build_s": 1.0,
+        "open_s": 0.001,
+        "lock_frames": 9,
+        "kidnap_trials": 200,
+        "kidnap_relocated_share": 0.88,
+        "kidnap_frames_median": 12.0,
+        "kidnap_searched_share": 0.7,
+        "kidnap_ms_per_search": 1.5,
+    }
+    row.update(kidnap)
+    return row
+
+
+def test_scale_kidnap_table_gives_the_trials_and_the_interval(gen):
+    _, kidnap = gen.scale_tables([_scale_row(kidnap_relocated_ci95=[0.827, 0.918])])
+    assert "| 100,000 | mih | 200 | 0.88 (0.83-0.92) | 12.0 | 0.70 | 1.50 |" in kidnap
+    # rows of runs before the interval was written: the share alone
+    _, kidnap = gen.scale_tables([_scale_row(kidnap_trials=50)])
+    assert "| 100,000 | mih | 50 | 0.88 | 12.0 |" in kidnap
