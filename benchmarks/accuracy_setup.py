@@ -55,6 +55,7 @@ MOTIONS = {
     "0.6x": "place floor(0.6 i) at frame i",
     "0.8x": "place floor(0.8 i) at frame i",
     "2.5x": "place floor(2.5 i) at frame i",
+    "3.25x": "place floor(3.25 i) at frame i",
     "walk": "speed v = clip(1 + cumsum(N(0, 0.05)), 0.4, 1.6) per frame from "
     "numpy.random.default_rng(view_seed); frame k shows place floor(sum(v[:k+1]))",
     "stopgo": "1 place per frame, standing 30 frames after every 150 moving frames",
@@ -67,7 +68,7 @@ FISHEYE_DISC = (15.5, 16.0, 31.5, 16.8, 0.05)
 
 def motion_places(kind: str, n: int, seed: int = 0) -> np.ndarray:
     """The true place of every query frame for motion profile ``kind`` (see MOTIONS)."""
-    if kind in ("0.6x", "0.8x", "2.5x"):
+    if kind in ("0.6x", "0.8x", "2.5x", "3.25x"):
         speed = float(kind[:-1])
         places = np.floor(speed * np.arange(int(np.ceil(n / speed)) + 1)).astype(np.int64)
         return places[places < n]
@@ -407,6 +408,7 @@ ROBOT_VIEWS: list[View] = [
     _motion("r-stop100", "n64-0", "0-999, one 100-frame stop", "stop100"),
     _motion("r-2.5x", "n64-0", "0-999 at 2.5x", "2.5x"),
     _motion("r-2.5x-odo", "n64-0", "0-999 at 2.5x, odometry", "2.5x", odometry=True),
+    _motion("r-3.25x", "n64-0", "0-999 at 3.25x", "3.25x"),
     View(
         "r-detour", "n64-0", "0-999, detour off the map (400-699)", "robot", _ROBOT, gap=(0.4, 0.7)
     ),
@@ -430,6 +432,8 @@ VIEWS += ROBOT_VIEWS
 CANN_SPEEDS = {"v_min": 0.75, "v_max": 2.0, "v_step": 0.125}
 #: SeqSLAM searching the robot views' speeds (0.25-3 places per frame, steps of 1/8)
 ROBOT_SPEEDS = {"v_min": 0.25, "v_max": 3.0, "v_step": 0.125}
+#: the same up to 3.5 places per frame, the CANN's bank since it reaches 3.5 (r-3.25x)
+ROBOT_SPEEDS_35 = {"v_min": 0.25, "v_max": 3.5, "v_step": 0.125}
 _FAST_ROWS = ("nordland", "speed")
 
 METHODS: list[Entry] = [
@@ -470,6 +474,7 @@ METHODS: list[Entry] = [
     Entry("netvlad+cann", first_seed_only=True),
     Entry("flynet+cann-paper", groups=("nordland", "speed", "robot")),
     Entry("seqslam-60 v0.25-3", "seqslam", filter_params=ROBOT_SPEEDS, groups=("robot",)),
+    Entry("seqslam-60 v0.25-3.5", "seqslam", filter_params=ROBOT_SPEEDS_35, groups=("robot",)),
 ]
 
 #: the methods that run on the robot views (the rest skip them)
@@ -479,6 +484,7 @@ ROBOT_METHODS = (
     "kenyon",
     "seqslam-60",
     "seqslam-60 v0.25-3",
+    "seqslam-60 v0.25-3.5",
     "flynet+cann",
     "flynet+cann-paper",
     "pixels+cann",

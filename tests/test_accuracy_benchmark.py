@@ -347,3 +347,21 @@ def test_reliability_tables_keep_dev_and_held_out_apart():
     assert md.index("On the held-out views") < md.index("| 0.9-1.0 | 2 | 0.900 |")
     text = accuracy_report.render_text(doc)
     assert "on the held-out views" in text
+
+
+def test_motion_profiles_give_the_true_place_of_every_frame():
+    from benchmarks.accuracy_setup import MOTIONS, motion_places
+
+    np.testing.assert_array_equal(motion_places("3.25x", 10), [0, 3, 6, 9])
+    np.testing.assert_array_equal(motion_places("0.6x", 4), [0, 0, 1, 1, 2, 3, 3])
+    np.testing.assert_array_equal(motion_places("2.5x", 8), [0, 2, 5, 7])
+    np.testing.assert_array_equal(motion_places("reversed", 3), [2, 1, 0])
+    stopgo = motion_places("stopgo", 400)
+    assert stopgo.size == 400 + 2 * 30 and (np.diff(stopgo) == 0).sum() == 60
+    walk = motion_places("walk", 500, seed=3)
+    steps = np.diff(walk)
+    assert walk[0] >= 0 and walk[-1] < 500 and steps.min() >= 0 and steps.max() <= 2
+    np.testing.assert_array_equal(walk, motion_places("walk", 500, seed=3))
+    assert set(MOTIONS) >= {"0.6x", "0.8x", "2.5x", "3.25x", "walk", "stopgo", "reversed"}
+    with pytest.raises(ValueError, match="unknown motion profile"):
+        motion_places("9x", 10)

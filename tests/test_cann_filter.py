@@ -440,7 +440,7 @@ DEFAULTS = {
 def test_defaults():
     assert CANN().get_params() == DEFAULTS
     assert list(CANN().get_params()) == list(DEFAULTS)
-    forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0)
+    forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0, 3.25, 3.5)
     assert LAYER_VELOCITIES == (-2.0, -1.5, -1.0, -0.5) + forward
     assert all(type(v) is float for v in LAYER_VELOCITIES)
     table = (0.507, 0.838, 0.839, 0.844, 0.916, 0.917, 0.943, 0.956, 0.985, 0.999, 1.0)
@@ -736,7 +736,7 @@ def test_reverse_weight_is_the_backward_share_of_prior_and_redraw(reverse_weight
     # bidirectional mirrors the whole bank (0 once): fine steps backwards too
     np.testing.assert_array_equal(vel, np.unique(np.r_[bank, -bank]) if bidirectional else bank)
     back = vel < 0
-    assert back.sum() == (20 if bidirectional else 4)  # (-2 .. -0.5 are mirrors already)
+    assert back.sum() == (22 if bidirectional else 4)  # (-2 .. -0.5 are mirrors already)
     w = reverse_weight
     assert prior[back].sum() == pytest.approx(w, abs=1e-12)
     assert prior[~back].sum() == pytest.approx(1 - w, abs=1e-12)
@@ -970,7 +970,7 @@ def test_auto_transform_takes_the_log_of_probability_rows_only():
 
 
 # -- tracking ----------------------------------------------------------------------------------
-@pytest.mark.parametrize("speed", [0.5, 1.0, 2.5])
+@pytest.mark.parametrize("speed", [0.5, 1.0, 2.5, 3.4])
 def test_tracks_a_moving_bump(speed):
     pos = 4 + speed * np.arange(50)
     f = CANN()
@@ -980,6 +980,33 @@ def test_tracks_a_moving_bump(speed):
     assert f.velocity_ == pytest.approx(speed, abs=0.1)
     assert f.state_ == "localized" and f.source_ == "sequence" and f.confidence_ > 0.95
     assert f.n_relocations_ == frames[12]["n_relocations_"]  # none after the burn-in
+
+
+def _share_on_route(velocities, speed, seed=0):
+    """Share of frames 30-149 answered within the tolerance on a weak bump (amplitude 1.5 in
+    noise 1) moving ``speed`` places per frame."""
+    pos = 4 + speed * np.arange(150)
+    S = bump_rows(pos, int(pos[-1]) + 8, amp=1.5, noise=1.0, seed=seed)
+    rows, _ = run(CANN(velocities=velocities), S)
+    return float((np.abs(rows.argmax(axis=1) - pos)[30:] <= 2.5).mean())
+
+
+@pytest.mark.parametrize("speed", [3.0, 3.25, 3.4])
+def test_a_bank_follows_speeds_within_half_a_step_of_its_rows_only(speed):
+    # On weak evidence a speed is followed only near a row of the bank: the default reaches
+    # 3.5 places per frame; a bank that stops at 3 (the default before) loses 3.25 and 3.4.
+    assert LAYER_VELOCITIES[-3:] == (3.0, 3.25, 3.5)
+    assert _share_on_route(LAYER_VELOCITIES, speed) >= 0.9
+    old = _share_on_route(LAYER_VELOCITIES[:-2], speed)
+    assert old >= 0.9 if speed == 3.0 else old <= 0.3
+
+
+def test_a_coarse_bank_loses_a_speed_between_its_rows():
+    coarse = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
+    # (on Nordland's dev window at 2.25x: AUC 0.66 against 0.93 with the default bank)
+    assert _share_on_route(LAYER_VELOCITIES, 2.25) >= 0.95
+    assert _share_on_route(coarse, 2.25) <= 0.75
+    assert _share_on_route(coarse, 2.5) >= 0.95
 
 
 def test_tracks_a_bump_that_stops_for_30_frames():
@@ -1491,18 +1518,18 @@ def test_state_arrays_and_the_memory_check(monkeypatch):
     f = CANN()
     f.step(np.zeros(1000))
     for name in ("_p", "_spare"):
-        assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (25, 1000)
+        assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (27, 1000)
     for name in ("_marginal", "_predicted", "_weight", "_mean", "_var", "_x"):
         assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (1000,)
     state = sum(v.nbytes for v in vars(f).values() if isinstance(v, np.ndarray) and v.size >= 1000)
-    assert state == 8 * 25 * 1000 + 32 * 1000  # float32 layer (twice) and per-place buffers
+    assert state == 8 * 27 * 1000 + 32 * 1000  # float32 layer (twice) and per-place buffers
     # the memory check asks for the layer and its per-place buffers before allocating them
     monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(state))
     CANN().step(np.zeros(1000))
-    monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(8 * 25 * 1000 + 16 * 1000))
+    monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(8 * 27 * 1000 + 16 * 1000))
     with pytest.raises(
         InsufficientMemoryError,
-        match=re.escape("n_reference=1000 places x 25 velocities (velocities, bidirectional)"),
+        match=re.escape("n_reference=1000 places x 27 velocities (velocities, bidirectional)"),
     ):
         CANN().step(np.zeros(1000))
 
@@ -1524,10 +1551,10 @@ def test_footprint_by_hand():
     default = CANN().footprint(1000)
     assert default == {
         "layers": 1,
-        "params": 25000 * 5 + 2 * 24 * 1000,
-        "neurons": 25001,
-        "distinct_weights": 28,
-        "state_variables": 27006,
+        "params": 27000 * 5 + 2 * 26 * 1000,
+        "neurons": 27001,
+        "distinct_weights": 30,
+        "state_variables": 29006,
     }
     assert CANN(velocities=(1.0,)).footprint(1)["params"] == 5  # no velocity neighbours
     with pytest.raises(ValueError, match="^n_reference must be >= 1; got 0"):

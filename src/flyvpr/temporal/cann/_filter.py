@@ -17,13 +17,14 @@ from . import _kernels
 from ._input import OdometryFilter, begin_frame, normalised_input
 from ._params import TRANSFORMS, _check_velocities
 
-#: candidate velocities, places per frame: standing still to 2 in steps of 1/8, then to 3 in
-#: steps of 1/4; backwards, a coarse bank of 1/2 to 2 in steps of 1/2 (a robot that turns
-#: round or reverses along its map)
+#: candidate velocities, places per frame: standing still to 2 in steps of 1/8, then to 3.5 in
+#: steps of 1/4 (a speed is followed only within about half a step of a row: the bank reaches
+#: half a place beyond the 3 places per frame it is meant to follow); backwards, a coarse bank
+#: of 1/2 to 2 in steps of 1/2 (a robot that turns round or reverses along its map)
 LAYER_VELOCITIES = tuple(
     float(v)
     for v in np.r_[
-        -np.arange(2.0, 0.25, -0.5), np.arange(0.0, 2.0, 0.125), np.arange(2.0, 3.01, 0.25)
+        -np.arange(2.0, 0.25, -0.5), np.arange(0.0, 2.0, 0.125), np.arange(2.0, 3.51, 0.25)
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
@@ -131,7 +132,7 @@ class CANN(OdometryFilter):
 
     Parameters
     ----------
-    velocities : sequence of float, default -2, -1.5, -1, -0.5, 0, 1/8, ..., 2, 2.25, ..., 3
+    velocities : sequence of float, default -2, -1.5, -1, -0.5, 0, 1/8, ..., 2, 2.25, ..., 3.5
         Candidate movements, places per frame (each row of the layer moves by one of them;
         negative: backwards along the route).
     bidirectional : bool, default False
