@@ -599,3 +599,157 @@ def test_a_replay_steps_the_new_layer_with_the_frames_odometry():
     assert loc.filter_.place_ == ref.place_
     assert loc.filter_.confidence_ == ref.confidence_
     assert loc.filter_.cann_.velocity_ == 2.0
+
+
+def test_the_first_frame_displaces_no_layer():
+    # the first frame re-seeds a layer that never had a place: there is no hypothesis to hold
+    codes = _map(n=5000)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256)
+    loc.update_code(_query(codes, 2500, np.random.default_rng(12)))
+    assert loc.n_reseeds_ == 1 and loc.held_ is None
+
+
+def test_a_check_acts_on_the_index_s_best_answer_alone():
+    # As in the kidnap a check catches (places 3000.. a noisier copy of 12000..), with the
+    # index answering one candidate a frame: the one candidate outside the window is enough.
+    rng = np.random.default_rng(5)
+    codes = _map()
+    copy = np.unpackbits(codes[12000:12200], axis=1)
+    codes[3000:3200] = np.packbits(copy ^ (rng.random(copy.shape) < 0.25), axis=1)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512, k=1, check_every=50)
+    _drive(loc, codes, 3000 + np.arange(60), rng, flip=0.25)
+    reseeds = loc.n_reseeds_
+    fixes = _drive(loc, codes, 12060 + np.arange(120), rng, flip=0.25)
+    assert fixes[20].state == "localized" and abs(fixes[20].place - 3080) <= 2
+    assert loc.n_reseeds_ == reseeds + 1 and abs(fixes[-1].place - 12179) <= 2
+
+
+def test_checks_on_every_frame_send_each_code_once():
+    # a check on every tracked frame searches that frame's code only (the others were sent)
+    codes = _map()
+    rng = np.random.default_rng(13)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512, check_every=1)
+    _drive(loc, codes, 15000 + np.arange(40), rng)
+    searches, reseeds = loc.n_searches_, loc.n_reseeds_
+    fixes = _drive(loc, codes, 15040 + np.arange(20), rng)
+    right = [f.state == "localized" and abs(f.place - 15040 - t) <= 2 for t, f in enumerate(fixes)]
+    assert all(right)
+    assert loc.n_searches_ - searches == 20 and loc.n_reseeds_ == reseeds
+
+
+def test_candidates_at_the_end_of_the_map_are_places_of_the_map():
+    # a query standing on the last place: its candidates, moved on at the pooling's mid speed,
+    # would lie past the end; the candidates are the map's places, the last one first
+    codes = _map(n=400, n_bytes=8, seed=6)
+    rng = np.random.default_rng(3)
+    for k in (20, 300):
+        loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64, k=k)
+        for _ in range(4):
+            loc.update_code(_query(codes, 399, rng, flip=0.2), velocity=0.0)
+        places = loc._candidates(4)
+        assert places.size > 0 and places.min() >= 0 and places.max() <= 399, k
+        assert places[0] == 399 and np.unique(places).size == places.size
+
+
+def test_a_lost_guess_s_candidates_lead_with_every_track_s_ends_once():
+    # the ends of the search of every place's track come first, then the index's candidates
+    # that are not among them: no place twice
+    codes = _map(seed=5)
+    rng = np.random.default_rng(7)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
+    for p in 9000 + np.arange(4):
+        loc._recent.append(_query(codes, int(p), rng))
+        loc._velocities.append(1.0)
+    loc.n_frames_ = loc._lost = 4  # lost since the start: a guess, on a small enough map
+    places = loc._candidates(4)
+    ends = loc._full_track_ends(4)
+    assert loc.n_full_searches_ == 1
+    np.testing.assert_array_equal(places[: ends.size], ends)
+    assert places.size == 300 and np.unique(places).size == 300
+    assert ends[0] == 9003  # the route's end, which the index finds too
+
+
+@pytest.mark.parametrize(
+    ("truth", "speed"),
+    [([0, 0, 0, 0], 0.0), ([2997, 2998, 2999, 3000], 1.0), ([19999] * 4, 0.0)],
+)
+def test_a_layer_whose_track_the_index_finds_again_is_not_reseeded(truth, speed):
+    # the layer's place is among the candidates (the first and the last place of the map
+    # too): its own track is as good as the best of theirs, no re-seed, and the search says
+    # so (the stretch backs off as a dip does)
+    codes = _map(seed=2)
+    rng = np.random.default_rng(4)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
+    for t, p in enumerate(truth):
+        loc._recent.append(_query(codes, p, rng, flip=0.2))
+        loc._velocities.append(None if t == 0 else speed)
+    loc.n_frames_ = 4
+    loc._replay(np.array([truth[-1]]), np.array([0.0]), np.array([speed]), 4)
+    assert abs(loc.filter_.place_ - truth[-1]) <= 1
+    loc._lost = 4
+    reseeds = loc.n_reseeds_
+    assert loc._reseed_lost(4) == (False, True)
+    assert loc.n_reseeds_ == reseeds
+
+
+class _FindsNothing(ExhaustiveIndex):
+    """An index that finds no place for any query (every answer -1)."""
+
+    def _search(self, q, k, places, dist):
+        pass
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_a_dip_where_the_index_finds_nothing_backs_off(seed):
+    # no candidate beats the layer's own track: searched at the 4th, 8th, 16th and 32nd lost
+    # frame, never re-seeded, and the layer picks its track up again
+    codes = _map(seed=seed)
+    rng = np.random.default_rng(20 + seed)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
+    _drive(loc, codes, 3000 + np.arange(60), rng)
+    loc.index = _FindsNothing().build(codes)
+    reseeds, searched = loc.n_reseeds_, []
+    for frame in range(40):
+        before = loc.n_searches_
+        fix = loc.update_code(rng.integers(0, 256, 32, dtype=np.uint8))
+        if loc.n_searches_ > before:
+            searched.append((frame, loc.n_searches_ - before, fix.state))
+    frames, codes_sent, states = zip(*searched, strict=True)
+    assert np.diff(frames).tolist() == [4, 8, 16] and set(states) == {"lost"}
+    assert codes_sent == (4, 4, 4, 4) and loc.n_reseeds_ == reseeds
+    fixes = _drive(loc, codes, 3100 + np.arange(30), rng)
+    assert fixes[-1].state == "localized" and abs(fixes[-1].place - 3129) <= 2
+
+
+def test_every_track_s_ends_are_the_best_tracks_at_least_11_places_apart():
+    # a map too small for 50 ends: greedily the best track's end, then the best at least 11
+    # places from every end taken, until none is left; a track's score is its frames'
+    # similarities less each place's shrunk baseline (a loop reference, at its end exactly)
+    from flyvpr.large import localizer as mod
+
+    codes = _map(n=300, n_bytes=8, seed=7)
+    rng = np.random.default_rng(14)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64)
+    n_frames = 6
+    for p in 150 + np.arange(n_frames):
+        loc._recent.append(_query(codes, int(p), rng, flip=0.2))
+    ends = loc._full_track_ends(n_frames)
+
+    frames = [np.unpackbits(c) for c in loc._recent]
+    bits = np.unpackbits(codes, axis=1)
+    sims = np.array([[1.0 - np.count_nonzero(f != b) / 64 for b in bits] for f in frames])
+    sims -= (sims.sum(axis=0) + 0.5 * mod._PRIOR_FRAMES) / (n_frames + mod._PRIOR_FRAMES)
+    ref = np.full(300, -np.inf)
+    for s in mod._TRACK_SPEEDS:
+        for e in range(300):
+            track = [e - round(s * (n_frames - 1 - t)) for t in range(n_frames)]
+            if track[0] >= 0:  # a track may not begin before the first place
+                ref[e] = max(ref[e], np.mean([sims[t, p] for t, p in enumerate(track)]))
+
+    assert ends[0] == 155 and 12 < ends.size < 50
+    gaps = np.abs(ends[:, None] - ends[None, :]) + np.eye(ends.size, dtype=int) * 100
+    assert gaps.min() > 10
+    assert np.all(np.diff(ref[ends]) <= 1e-6)  # best first
+    for p in range(300):  # every place left out is near an end at least as good
+        near = ends[np.abs(ends - p) <= 10]
+        assert near.size and ref[near].max() >= ref[p] - 1e-6, p
