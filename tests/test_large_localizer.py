@@ -753,3 +753,96 @@ def test_every_track_s_ends_are_the_best_tracks_at_least_11_places_apart():
     for p in range(300):  # every place left out is near an end at least as good
         near = ends[np.abs(ends - p) <= 10]
         assert near.size and ref[near].max() >= ref[p] - 1e-6, p
+
+
+def test_frames_never_searched_add_no_candidates():
+    # a search sends the newest reseed_after codes: the older frames of the pool were never
+    # searched, and the candidates over all ten frames are those of the four searched ones
+    # (a route at the start of the map, where anything the others added would be scored)
+    codes = _map(n=400, n_bytes=8, seed=8)
+    rng = np.random.default_rng(15)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64, k=5)
+    for p in range(10):
+        loc._recent.append(_query(codes, p, rng, flip=0.2))
+        loc._velocities.append(1.0)
+    loc.n_frames_ = 9
+    loc._proven = True  # a layer that had a track: the index's candidates only
+    places = loc._candidates(10)
+    assert loc.n_searches_ == 4 and places[0] == 9
+    np.testing.assert_array_equal(places, loc._candidates(4))
+    assert loc.n_searches_ == 4  # each code is searched once
+
+
+@pytest.mark.parametrize(
+    ("seed_at", "reseeds"),
+    [
+        (2000 - 256, 1),  # the window ends just before the route's end: outside, re-seeded
+        (2000 + 1 + 256, 1),  # the window starts just after it: outside
+        (2000 - 255, 0),  # its last place: inside (the layer finds it itself)
+        (2000 + 256, 0),  # its first place: inside
+    ],
+)
+def test_a_check_re_seeds_for_a_candidate_just_outside_the_window(seed_at, reseeds):
+    codes = _map(n=5000)
+    rng = np.random.default_rng(16)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512, k=1)
+    for p in 1991 + np.arange(10):  # the route ends at 2000; the index answers it alone
+        loc._recent.append(_query(codes, int(p), rng, flip=0.2))
+        loc._velocities.append(1.0)
+    loc.n_frames_ = 9
+    loc.filter_.reseed(np.array([seed_at]))  # a window of 512 places centred on seed_at
+    lo, hi = loc.filter_.window_
+    assert hi - lo == 512 and (lo <= 2000 < hi) == (reseeds == 0)
+    np.testing.assert_array_equal(loc._candidates(10), [2000])
+    loc._check()
+    assert loc.n_reseeds_ == reseeds
+    lo, hi = loc.filter_.window_
+    assert lo <= 2000 < hi
+
+
+def test_the_time_spent_relocating_counts_the_index_and_the_tracks(monkeypatch):
+    # a clock that moves only while the index searches (10 s a call) and while tracks are
+    # scored (100 s a call): the time relocating is all of that time and nothing else
+    from flyvpr.large import localizer as mod
+
+    now = [0.0]
+    monkeypatch.setattr(mod.time, "perf_counter", lambda: now[0])
+    codes = _map(n=5000)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256, check_every=20)
+    calls = {"search": 0, "tracks": 0}
+
+    def slow(name, seconds, method):
+        def timed(*args, **kwargs):
+            calls[name] += 1
+            now[0] += seconds
+            return method(*args, **kwargs)
+
+        return timed
+
+    loc.index.search = slow("search", 10.0, loc.index.search)
+    loc._track_scores = slow("tracks", 100.0, loc._track_scores)
+    rng = np.random.default_rng(9)
+    for places in (1000 + np.arange(30), 4000 + np.arange(30), 2500 + np.arange(30)):
+        _drive(loc, codes, places, rng)
+    assert loc.n_reseeds_ >= 3 and calls["tracks"] > loc.n_reseeds_
+    assert loc.search_s_ == 10.0 * calls["search"] + 100.0 * calls["tracks"]
+
+
+def test_a_lost_re_seed_holds_the_layer_it_displaced():
+    # a kidnap whose re-seed leaves the new layer lost at first: the kidnapped layer is held
+    # beside it, and let go once the new one is localized on the route
+    codes = _map(seed=2)
+    rng = np.random.default_rng(32)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
+    _drive(loc, codes, 3000 + np.arange(60), rng)
+    reseeds = loc.n_reseeds_
+    for t in 17000 + np.arange(20):
+        incumbent = loc.filter_
+        fix = loc.update_code(_query(codes, t, rng))
+        if loc.n_reseeds_ > reseeds:
+            break
+    assert loc.n_reseeds_ == reseeds + 1 and fix.state == "lost"
+    assert loc.held_ is incumbent and loc.filter_ is not incumbent
+    fixes = _drive(loc, codes, t + 1 + np.arange(20), rng)
+    assert fixes[-1].state == "localized" and abs(fixes[-1].place - t - 20) <= 2
+    assert loc.held_ is None and loc.filter_ is not incumbent
