@@ -721,17 +721,20 @@ def test_a_dip_where_the_index_finds_nothing_backs_off(seed):
     assert fixes[-1].state == "localized" and abs(fixes[-1].place - 3129) <= 2
 
 
-def test_every_track_s_ends_are_the_best_tracks_at_least_11_places_apart():
+@pytest.mark.parametrize(("start", "speed"), [(150, 1), (0, 2)])
+def test_every_track_s_ends_are_the_best_tracks_at_least_11_places_apart(start, speed):
     # a map too small for 50 ends: greedily the best track's end, then the best at least 11
     # places from every end taken, until none is left; a track's score is its frames'
-    # similarities less each place's shrunk baseline (a loop reference, at its end exactly)
+    # similarities less each place's shrunk baseline (a loop reference, at its end exactly);
+    # a route from the first place is found at its full speed
     from flyvpr.large import localizer as mod
 
     codes = _map(n=300, n_bytes=8, seed=7)
     rng = np.random.default_rng(14)
     loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64)
     n_frames = 6
-    for p in 150 + np.arange(n_frames):
+    truth = start + speed * np.arange(n_frames)
+    for p in truth:
         loc._recent.append(_query(codes, int(p), rng, flip=0.2))
     ends = loc._full_track_ends(n_frames)
 
@@ -746,7 +749,7 @@ def test_every_track_s_ends_are_the_best_tracks_at_least_11_places_apart():
             if track[0] >= 0:  # a track may not begin before the first place
                 ref[e] = max(ref[e], np.mean([sims[t, p] for t, p in enumerate(track)]))
 
-    assert ends[0] == 155 and 12 < ends.size < 50
+    assert ends[0] == truth[-1] and 12 < ends.size < 50
     gaps = np.abs(ends[:, None] - ends[None, :]) + np.eye(ends.size, dtype=int) * 100
     assert gaps.min() > 10
     assert np.all(np.diff(ref[ends]) <= 1e-6)  # best first
@@ -846,3 +849,117 @@ def test_a_lost_re_seed_holds_the_layer_it_displaced():
     fixes = _drive(loc, codes, t + 1 + np.arange(20), rng)
     assert fixes[-1].state == "localized" and abs(fixes[-1].place - t - 20) <= 2
     assert loc.held_ is None and loc.filter_ is not incumbent
+
+
+def test_every_search_of_a_lost_guess_from_its_4th_frame_scores_every_track():
+    # a cold start on frames that match nothing: its guess is never localized, searched at
+    # lost frames 1, 5, 9, 13 and 17, and each search from the 4th lost frame on scores every
+    # place's track
+    codes = _map(n=5000)
+    rng = np.random.default_rng(17)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256)
+    fixes = [loc.update_code(rng.integers(0, 256, 32, dtype=np.uint8)) for _ in range(20)]
+    assert {f.state for f in fixes} == {"lost"}
+    assert loc.n_searches_ == 1 + 4 * 4 and loc.n_full_searches_ == 4
+
+
+def test_frames_no_place_matches_better_than_chance_give_no_candidates():
+    # every place's code has few bits set, the frames nearly all: the index still answers
+    # its k nearest, but none is nearer than chance, so there is no candidate
+    rng = np.random.default_rng(18)
+    codes = _map(n=2000, n_bytes=8, seed=9) & _map(n=2000, n_bytes=8, seed=10)
+    codes &= _map(n=2000, n_bytes=8, seed=11)  # a bit set in 1 code of 8
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64, k=50)
+    for _ in range(4):
+        loc._recent.append(np.packbits(rng.random(64) < 0.95))  # nearly every bit set
+        loc._velocities.append(1.0)
+    loc.n_frames_ = 3
+    loc._proven = True  # a layer that had a track: the index's candidates only
+    assert loc._candidates(4).size == 0 and loc.n_searches_ == 4
+
+
+def test_the_second_frame_s_re_seed_holds_the_first_frame_s_guess():
+    # only the first frame's re-seed has no layer to hold: with reseed_after=1 the second
+    # frame is searched too, and its re-seed holds the guess the first frame made
+    codes = _map(n=5000)
+    rng = np.random.default_rng(1)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256, reseed_after=1)
+    loc.update_code(rng.integers(0, 256, 32, dtype=np.uint8))  # matches nothing: a guess
+    guess = loc.filter_
+    fix = loc.update_code(_query(codes, 4000, rng, flip=0.05))
+    assert loc.n_reseeds_ == 2 and abs(fix.place - 4000) <= 1 and fix.state == "lost"
+    assert loc.held_ is guess
+
+
+def test_a_track_at_full_speed_ending_10_places_short_of_the_candidate():
+    # the farthest end back and the fastest speed: the track's oldest place is the first of
+    # the places the candidate's tracks visit
+    codes = _map(n=400, n_bytes=8, seed=6)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64)
+    rng = np.random.default_rng(19)
+    for p in 180 + 2 * np.arange(6):  # 180, 182, ..., 190
+        loc._recent.append(_query(codes, int(p), rng, flip=0.1))
+    places = np.array([200])
+    scores, ends, speeds = loc._track_scores(places, 6)
+    ref = _reference_tracks(loc, places, 6)[0]
+    assert (ends[0], speeds[0]) == (190, 2.0) == (ref[1], ref[2])
+    np.testing.assert_allclose(scores[0], ref[0], atol=1e-6)
+
+
+def test_a_cold_start_whose_index_finds_nothing():
+    # no candidate from the index: lost, and nothing to re-seed around, until the search of
+    # every place's track (a lost guess, from its 4th frame) finds the route; without that
+    # search the layer stays lost
+    codes = _map(n=5000)
+    for full_search_places, found in ((1 << 20, True), (0, False)):
+        loc = LargeLocalizer(
+            codes, _FindsNothing().build(codes), window=256, full_search_places=full_search_places
+        )
+        rng = np.random.default_rng(20)
+        fixes = [loc.update_code(_query(codes, 1000 + t, rng)) for t in range(10)]
+        assert {f.state for f in fixes[:4]} == {"lost"} and loc.n_searches_ == (5 if found else 9)
+        if found:
+            assert loc.n_reseeds_ == 1 and loc.n_full_searches_ == 1
+            assert all(
+                f.state == "localized" and f.place == 1000 + t
+                for t, f in enumerate(fixes)
+                if t >= 4
+            )
+        else:
+            assert {f.state for f in fixes} == {"lost"} and loc.n_reseeds_ == 0
+
+
+def test_the_odometry_given_to_update_code_steps_the_replay(monkeypatch):
+    # a kidnap onto a stretch driven at 2 places a frame, the odometry saying so: the layer
+    # the re-seed starts is stepped through the lost frames with that odometry
+    from flyvpr.large.codes import hamming_similarity
+    from flyvpr.temporal.cann import WindowedCANN
+
+    codes = _map(n=5000)
+    rng = np.random.default_rng(21)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256)
+    replays = []
+    real = LargeLocalizer._replay
+
+    def spy(self, ends, tracks, speeds, n_frames, hold=False):
+        frames = list(self._recent)[-n_frames:-1]
+        real(self, ends, tracks, speeds, n_frames, hold)
+        layer = self.filter_
+        replays.append((ends, tracks, speeds, frames, layer.place_, layer.confidence_))
+
+    monkeypatch.setattr(LargeLocalizer, "_replay", spy)
+    for t, p in enumerate(1000 + 2 * np.arange(40)):
+        loc.update_code(_query(codes, int(p), rng), None if t == 0 else 2.0)
+    replays.clear()
+    for p in 3000 + 2 * np.arange(30):
+        loc.update_code(_query(codes, int(p), rng), 2.0)
+        if replays:
+            break
+    ((ends, tracks, speeds, frames, place, confidence),) = replays
+    ref = WindowedCANN(loc.n_places, **loc._layer)
+    start = ends - np.rint(speeds * len(frames)).astype(np.int64)
+    ref.reseed(np.clip(start, 0, loc.n_places - 1), np.exp((tracks - tracks.max()) * 256 / 8))
+    for i, code in enumerate(frames):
+        lo, hi = ref.window_
+        ref.step(hamming_similarity(code[None], codes, lo, hi)[0], None if i == 0 else 2.0)
+    assert (place, confidence) == (ref.place_, ref.confidence_)
