@@ -599,3 +599,367 @@ def test_a_replay_steps_the_new_layer_with_the_frames_odometry():
     assert loc.filter_.place_ == ref.place_
     assert loc.filter_.confidence_ == ref.confidence_
     assert loc.filter_.cann_.velocity_ == 2.0
+
+
+def test_the_first_frame_displaces_no_layer():
+    # the first frame re-seeds a layer that never had a place: there is no hypothesis to hold
+    codes = _map(n=5000)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256)
+    loc.update_code(_query(codes, 2500, np.random.default_rng(12)))
+    assert loc.n_reseeds_ == 1 and loc.held_ is None
+
+
+def test_a_check_acts_on_the_index_s_best_answer_alone():
+    # As in the kidnap a check catches (places 3000.. a noisier copy of 12000..), with the
+    # index answering one candidate a frame: the one candidate outside the window is enough.
+    rng = np.random.default_rng(5)
+    codes = _map()
+    copy = np.unpackbits(codes[12000:12200], axis=1)
+    codes[3000:3200] = np.packbits(copy ^ (rng.random(copy.shape) < 0.25), axis=1)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512, k=1, check_every=50)
+    _drive(loc, codes, 3000 + np.arange(60), rng, flip=0.25)
+    reseeds = loc.n_reseeds_
+    fixes = _drive(loc, codes, 12060 + np.arange(120), rng, flip=0.25)
+    assert fixes[20].state == "localized" and abs(fixes[20].place - 3080) <= 2
+    assert loc.n_reseeds_ == reseeds + 1 and abs(fixes[-1].place - 12179) <= 2
+
+
+def test_checks_on_every_frame_send_each_code_once():
+    # a check on every tracked frame searches that frame's code only (the others were sent)
+    codes = _map()
+    rng = np.random.default_rng(13)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512, check_every=1)
+    _drive(loc, codes, 15000 + np.arange(40), rng)
+    searches, reseeds = loc.n_searches_, loc.n_reseeds_
+    fixes = _drive(loc, codes, 15040 + np.arange(20), rng)
+    right = [f.state == "localized" and abs(f.place - 15040 - t) <= 2 for t, f in enumerate(fixes)]
+    assert all(right)
+    assert loc.n_searches_ - searches == 20 and loc.n_reseeds_ == reseeds
+
+
+def test_candidates_at_the_end_of_the_map_are_places_of_the_map():
+    # a query standing on the last place: its candidates, moved on at the pooling's mid speed,
+    # would lie past the end; the candidates are the map's places, the last one first
+    codes = _map(n=400, n_bytes=8, seed=6)
+    rng = np.random.default_rng(3)
+    for k in (20, 300):
+        loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64, k=k)
+        for _ in range(4):
+            loc.update_code(_query(codes, 399, rng, flip=0.2), velocity=0.0)
+        places = loc._candidates(4)
+        assert places.size > 0 and places.min() >= 0 and places.max() <= 399, k
+        assert places[0] == 399 and np.unique(places).size == places.size
+
+
+def test_a_lost_guess_s_candidates_lead_with_every_track_s_ends_once():
+    # the ends of the search of every place's track come first, then the index's candidates
+    # that are not among them: no place twice
+    codes = _map(seed=5)
+    rng = np.random.default_rng(7)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
+    for p in 9000 + np.arange(4):
+        loc._recent.append(_query(codes, int(p), rng))
+        loc._velocities.append(1.0)
+    loc.n_frames_ = loc._lost = 4  # lost since the start: a guess, on a small enough map
+    places = loc._candidates(4)
+    ends = loc._full_track_ends(4)
+    assert loc.n_full_searches_ == 1
+    np.testing.assert_array_equal(places[: ends.size], ends)
+    assert places.size == 300 and np.unique(places).size == 300
+    assert ends[0] == 9003  # the route's end, which the index finds too
+
+
+@pytest.mark.parametrize(
+    ("truth", "speed"),
+    [([0, 0, 0, 0], 0.0), ([2997, 2998, 2999, 3000], 1.0), ([19999] * 4, 0.0)],
+)
+def test_a_layer_whose_track_the_index_finds_again_is_not_reseeded(truth, speed):
+    # the layer's place is among the candidates (the first and the last place of the map
+    # too): its own track is as good as the best of theirs, no re-seed, and the search says
+    # so (the stretch backs off as a dip does)
+    codes = _map(seed=2)
+    rng = np.random.default_rng(4)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
+    for t, p in enumerate(truth):
+        loc._recent.append(_query(codes, p, rng, flip=0.2))
+        loc._velocities.append(None if t == 0 else speed)
+    loc.n_frames_ = 4
+    loc._replay(np.array([truth[-1]]), np.array([0.0]), np.array([speed]), 4)
+    assert abs(loc.filter_.place_ - truth[-1]) <= 1
+    loc._lost = 4
+    reseeds = loc.n_reseeds_
+    assert loc._reseed_lost(4) == (False, True)
+    assert loc.n_reseeds_ == reseeds
+
+
+class _FindsNothing(ExhaustiveIndex):
+    """An index that finds no place for any query (every answer -1)."""
+
+    def _search(self, q, k, places, dist):
+        pass
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_a_dip_where_the_index_finds_nothing_backs_off(seed):
+    # no candidate beats the layer's own track: searched at the 4th, 8th, 16th and 32nd lost
+    # frame, never re-seeded, and the layer picks its track up again
+    codes = _map(seed=seed)
+    rng = np.random.default_rng(20 + seed)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
+    _drive(loc, codes, 3000 + np.arange(60), rng)
+    loc.index = _FindsNothing().build(codes)
+    reseeds, searched = loc.n_reseeds_, []
+    for frame in range(40):
+        before = loc.n_searches_
+        fix = loc.update_code(rng.integers(0, 256, 32, dtype=np.uint8))
+        if loc.n_searches_ > before:
+            searched.append((frame, loc.n_searches_ - before, fix.state))
+    frames, codes_sent, states = zip(*searched, strict=True)
+    assert np.diff(frames).tolist() == [4, 8, 16] and set(states) == {"lost"}
+    assert codes_sent == (4, 4, 4, 4) and loc.n_reseeds_ == reseeds
+    fixes = _drive(loc, codes, 3100 + np.arange(30), rng)
+    assert fixes[-1].state == "localized" and abs(fixes[-1].place - 3129) <= 2
+
+
+@pytest.mark.parametrize(("start", "speed"), [(150, 1), (0, 2)])
+def test_every_track_s_ends_are_the_best_tracks_at_least_11_places_apart(start, speed):
+    # a map too small for 50 ends: greedily the best track's end, then the best at least 11
+    # places from every end taken, until none is left; a track's score is its frames'
+    # similarities less each place's shrunk baseline (a loop reference, at its end exactly);
+    # a route from the first place is found at its full speed
+    from flyvpr.large import localizer as mod
+
+    codes = _map(n=300, n_bytes=8, seed=7)
+    rng = np.random.default_rng(14)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64)
+    n_frames = 6
+    truth = start + speed * np.arange(n_frames)
+    for p in truth:
+        loc._recent.append(_query(codes, int(p), rng, flip=0.2))
+    ends = loc._full_track_ends(n_frames)
+
+    frames = [np.unpackbits(c) for c in loc._recent]
+    bits = np.unpackbits(codes, axis=1)
+    sims = np.array([[1.0 - np.count_nonzero(f != b) / 64 for b in bits] for f in frames])
+    sims -= (sims.sum(axis=0) + 0.5 * mod._PRIOR_FRAMES) / (n_frames + mod._PRIOR_FRAMES)
+    ref = np.full(300, -np.inf)
+    for s in mod._TRACK_SPEEDS:
+        for e in range(300):
+            track = [e - round(s * (n_frames - 1 - t)) for t in range(n_frames)]
+            if track[0] >= 0:  # a track may not begin before the first place
+                ref[e] = max(ref[e], np.mean([sims[t, p] for t, p in enumerate(track)]))
+
+    assert ends[0] == truth[-1] and 12 < ends.size < 50
+    gaps = np.abs(ends[:, None] - ends[None, :]) + np.eye(ends.size, dtype=int) * 100
+    assert gaps.min() > 10
+    assert np.all(np.diff(ref[ends]) <= 1e-6)  # best first
+    for p in range(300):  # every place left out is near an end at least as good
+        near = ends[np.abs(ends - p) <= 10]
+        assert near.size and ref[near].max() >= ref[p] - 1e-6, p
+
+
+def test_frames_never_searched_add_no_candidates():
+    # a search sends the newest reseed_after codes: the older frames of the pool were never
+    # searched, and the candidates over all ten frames are those of the four searched ones
+    # (a route at the start of the map, where anything the others added would be scored)
+    codes = _map(n=400, n_bytes=8, seed=8)
+    rng = np.random.default_rng(15)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64, k=5)
+    for p in range(10):
+        loc._recent.append(_query(codes, p, rng, flip=0.2))
+        loc._velocities.append(1.0)
+    loc.n_frames_ = 9
+    loc._proven = True  # a layer that had a track: the index's candidates only
+    places = loc._candidates(10)
+    assert loc.n_searches_ == 4 and places[0] == 9
+    np.testing.assert_array_equal(places, loc._candidates(4))
+    assert loc.n_searches_ == 4  # each code is searched once
+
+
+@pytest.mark.parametrize(
+    ("seed_at", "reseeds"),
+    [
+        (2000 - 256, 1),  # the window ends just before the route's end: outside, re-seeded
+        (2000 + 1 + 256, 1),  # the window starts just after it: outside
+        (2000 - 255, 0),  # its last place: inside (the layer finds it itself)
+        (2000 + 256, 0),  # its first place: inside
+    ],
+)
+def test_a_check_re_seeds_for_a_candidate_just_outside_the_window(seed_at, reseeds):
+    codes = _map(n=5000)
+    rng = np.random.default_rng(16)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512, k=1)
+    for p in 1991 + np.arange(10):  # the route ends at 2000; the index answers it alone
+        loc._recent.append(_query(codes, int(p), rng, flip=0.2))
+        loc._velocities.append(1.0)
+    loc.n_frames_ = 9
+    loc.filter_.reseed(np.array([seed_at]))  # a window of 512 places centred on seed_at
+    lo, hi = loc.filter_.window_
+    assert hi - lo == 512 and (lo <= 2000 < hi) == (reseeds == 0)
+    np.testing.assert_array_equal(loc._candidates(10), [2000])
+    loc._check()
+    assert loc.n_reseeds_ == reseeds
+    lo, hi = loc.filter_.window_
+    assert lo <= 2000 < hi
+
+
+def test_the_time_spent_relocating_counts_the_index_and_the_tracks(monkeypatch):
+    # a clock that moves only while the index searches (10 s a call) and while tracks are
+    # scored (100 s a call): the time relocating is all of that time and nothing else
+    from flyvpr.large import localizer as mod
+
+    now = [0.0]
+    monkeypatch.setattr(mod.time, "perf_counter", lambda: now[0])
+    codes = _map(n=5000)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256, check_every=20)
+    calls = {"search": 0, "tracks": 0}
+
+    def slow(name, seconds, method):
+        def timed(*args, **kwargs):
+            calls[name] += 1
+            now[0] += seconds
+            return method(*args, **kwargs)
+
+        return timed
+
+    loc.index.search = slow("search", 10.0, loc.index.search)
+    loc._track_scores = slow("tracks", 100.0, loc._track_scores)
+    rng = np.random.default_rng(9)
+    for places in (1000 + np.arange(30), 4000 + np.arange(30), 2500 + np.arange(30)):
+        _drive(loc, codes, places, rng)
+    assert loc.n_reseeds_ >= 3 and calls["tracks"] > loc.n_reseeds_
+    assert loc.search_s_ == 10.0 * calls["search"] + 100.0 * calls["tracks"]
+
+
+def test_a_lost_re_seed_holds_the_layer_it_displaced():
+    # a kidnap whose re-seed leaves the new layer lost at first: the kidnapped layer is held
+    # beside it, and let go once the new one is localized on the route
+    codes = _map(seed=2)
+    rng = np.random.default_rng(32)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
+    _drive(loc, codes, 3000 + np.arange(60), rng)
+    reseeds = loc.n_reseeds_
+    for t in 17000 + np.arange(20):
+        incumbent = loc.filter_
+        fix = loc.update_code(_query(codes, t, rng))
+        if loc.n_reseeds_ > reseeds:
+            break
+    assert loc.n_reseeds_ == reseeds + 1 and fix.state == "lost"
+    assert loc.held_ is incumbent and loc.filter_ is not incumbent
+    fixes = _drive(loc, codes, t + 1 + np.arange(20), rng)
+    assert fixes[-1].state == "localized" and abs(fixes[-1].place - t - 20) <= 2
+    assert loc.held_ is None and loc.filter_ is not incumbent
+
+
+def test_every_search_of_a_lost_guess_from_its_4th_frame_scores_every_track():
+    # a cold start on frames that match nothing: its guess is never localized, searched at
+    # lost frames 1, 5, 9, 13 and 17, and each search from the 4th lost frame on scores every
+    # place's track
+    codes = _map(n=5000)
+    rng = np.random.default_rng(17)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256)
+    fixes = [loc.update_code(rng.integers(0, 256, 32, dtype=np.uint8)) for _ in range(20)]
+    assert {f.state for f in fixes} == {"lost"}
+    assert loc.n_searches_ == 1 + 4 * 4 and loc.n_full_searches_ == 4
+
+
+def test_frames_no_place_matches_better_than_chance_give_no_candidates():
+    # every place's code has few bits set, the frames nearly all: the index still answers
+    # its k nearest, but none is nearer than chance, so there is no candidate
+    rng = np.random.default_rng(18)
+    codes = _map(n=2000, n_bytes=8, seed=9) & _map(n=2000, n_bytes=8, seed=10)
+    codes &= _map(n=2000, n_bytes=8, seed=11)  # a bit set in 1 code of 8
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64, k=50)
+    for _ in range(4):
+        loc._recent.append(np.packbits(rng.random(64) < 0.95))  # nearly every bit set
+        loc._velocities.append(1.0)
+    loc.n_frames_ = 3
+    loc._proven = True  # a layer that had a track: the index's candidates only
+    assert loc._candidates(4).size == 0 and loc.n_searches_ == 4
+
+
+def test_the_second_frame_s_re_seed_holds_the_first_frame_s_guess():
+    # only the first frame's re-seed has no layer to hold: with reseed_after=1 the second
+    # frame is searched too, and its re-seed holds the guess the first frame made
+    codes = _map(n=5000)
+    rng = np.random.default_rng(1)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256, reseed_after=1)
+    loc.update_code(rng.integers(0, 256, 32, dtype=np.uint8))  # matches nothing: a guess
+    guess = loc.filter_
+    fix = loc.update_code(_query(codes, 4000, rng, flip=0.05))
+    assert loc.n_reseeds_ == 2 and abs(fix.place - 4000) <= 1 and fix.state == "lost"
+    assert loc.held_ is guess
+
+
+def test_a_track_at_full_speed_ending_10_places_short_of_the_candidate():
+    # the farthest end back and the fastest speed: the track's oldest place is the first of
+    # the places the candidate's tracks visit
+    codes = _map(n=400, n_bytes=8, seed=6)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=64)
+    rng = np.random.default_rng(19)
+    for p in 180 + 2 * np.arange(6):  # 180, 182, ..., 190
+        loc._recent.append(_query(codes, int(p), rng, flip=0.1))
+    places = np.array([200])
+    scores, ends, speeds = loc._track_scores(places, 6)
+    ref = _reference_tracks(loc, places, 6)[0]
+    assert (ends[0], speeds[0]) == (190, 2.0) == (ref[1], ref[2])
+    np.testing.assert_allclose(scores[0], ref[0], atol=1e-6)
+
+
+def test_a_cold_start_whose_index_finds_nothing():
+    # no candidate from the index: lost, and nothing to re-seed around, until the search of
+    # every place's track (a lost guess, from its 4th frame) finds the route; without that
+    # search the layer stays lost
+    codes = _map(n=5000)
+    for full_search_places, found in ((1 << 20, True), (0, False)):
+        loc = LargeLocalizer(
+            codes, _FindsNothing().build(codes), window=256, full_search_places=full_search_places
+        )
+        rng = np.random.default_rng(20)
+        fixes = [loc.update_code(_query(codes, 1000 + t, rng)) for t in range(10)]
+        assert {f.state for f in fixes[:4]} == {"lost"} and loc.n_searches_ == (5 if found else 9)
+        if found:
+            assert loc.n_reseeds_ == 1 and loc.n_full_searches_ == 1
+            assert all(
+                f.state == "localized" and f.place == 1000 + t
+                for t, f in enumerate(fixes)
+                if t >= 4
+            )
+        else:
+            assert {f.state for f in fixes} == {"lost"} and loc.n_reseeds_ == 0
+
+
+def test_the_odometry_given_to_update_code_steps_the_replay(monkeypatch):
+    # a kidnap onto a stretch driven at 2 places a frame, the odometry saying so: the layer
+    # the re-seed starts is stepped through the lost frames with that odometry
+    from flyvpr.large.codes import hamming_similarity
+    from flyvpr.temporal.cann import WindowedCANN
+
+    codes = _map(n=5000)
+    rng = np.random.default_rng(21)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256)
+    replays = []
+    real = LargeLocalizer._replay
+
+    def spy(self, ends, tracks, speeds, n_frames, hold=False):
+        frames = list(self._recent)[-n_frames:-1]
+        real(self, ends, tracks, speeds, n_frames, hold)
+        layer = self.filter_
+        replays.append((ends, tracks, speeds, frames, layer.place_, layer.confidence_))
+
+    monkeypatch.setattr(LargeLocalizer, "_replay", spy)
+    for t, p in enumerate(1000 + 2 * np.arange(40)):
+        loc.update_code(_query(codes, int(p), rng), None if t == 0 else 2.0)
+    replays.clear()
+    for p in 3000 + 2 * np.arange(30):
+        loc.update_code(_query(codes, int(p), rng), 2.0)
+        if replays:
+            break
+    ((ends, tracks, speeds, frames, place, confidence),) = replays
+    ref = WindowedCANN(loc.n_places, **loc._layer)
+    start = ends - np.rint(speeds * len(frames)).astype(np.int64)
+    ref.reseed(np.clip(start, 0, loc.n_places - 1), np.exp((tracks - tracks.max()) * 256 / 8))
+    for i, code in enumerate(frames):
+        lo, hi = ref.window_
+        ref.step(hamming_similarity(code[None], codes, lo, hi)[0], None if i == 0 else 2.0)
+    assert (place, confidence) == (ref.place_, ref.confidence_)
