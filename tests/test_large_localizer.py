@@ -963,3 +963,20 @@ def test_the_odometry_given_to_update_code_steps_the_replay(monkeypatch):
         lo, hi = ref.window_
         ref.step(hamming_similarity(code[None], codes, lo, hi)[0], None if i == 0 else 2.0)
     assert (place, confidence) == (ref.place_, ref.confidence_)
+
+
+@pytest.mark.parametrize("n", [1, 2, 6, 17])
+def test_a_map_shorter_than_the_fastest_track_is_searched(n):
+    # The every-track search of a lost guess reaches back up to 2 places per frame over the
+    # pooled frames: on a map shorter than that the far-back frames have no place to score.
+    codes = _map(n=n, n_bytes=8)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=16, k=1)
+    rng = np.random.default_rng(0)
+    for _ in range(12):
+        fix = loc.update_code(rng.integers(0, 256, 8, dtype=np.uint8))
+        assert 0 <= fix.place < n and 0.0 <= fix.confidence <= 1.0
+    # and a route on it is still found
+    loc.reset()
+    for t in range(12):
+        fix = loc.update_code(_query(codes, min(t, n - 1), rng, flip=0.05))
+    assert abs(fix.place - min(11, n - 1)) <= 2

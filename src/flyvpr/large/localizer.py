@@ -349,7 +349,8 @@ class LargeLocalizer:
             track[:] = 0.0
             for t in range(n_frames):
                 back = int(np.rint(speed * (n_frames - 1 - t)))  # the track's place at frame t
-                track[back:] += sims[t, : n - back]
+                if back < n:  # (on a map shorter than that every such track is masked below)
+                    track[back:] += sims[t, : n - back]
             track[: int(np.rint(speed * (n_frames - 1)))] = -np.inf  # began before place 0
             np.maximum(best, track, out=best)
         m = min(n, 20 * _FULL_ENDS)  # enough to leave _FULL_ENDS apart from each other
