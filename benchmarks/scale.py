@@ -178,7 +178,7 @@ def stream(args) -> dict:
     enc = fit_encoder(summer)
     del summer
     n_base = len(winter)
-    rng = np.random.default_rng(1)
+    rng = np.random.default_rng(args.seed)
 
     def code_at(p: int) -> np.ndarray:
         """The winter frame of map place ``p``, encoded from its pixels, seen on its tile."""
@@ -325,7 +325,8 @@ def protocol(args, index: str) -> dict:
         "frames_per_s": f"after locking on and {LOCK} frames more (untimed), {args.queries} "
         "winter frames driven on along the map, each encoded from its pixels and localized; "
         "all of it timed",
-        "kidnap": f"{args.kidnaps} trials while localized: the query jumps to a random place "
+        "kidnap": f"{args.kidnaps} trials while localized (seed {args.seed}): the query jumps to "
+        "a random place "
         "and drives on from there, the localizer not told; relocated at the first fix "
         f"localized and within {TOLERANCE} of the truth, within {KIDNAP_LIMIT} frames; "
         "between trials the stream drives on until the fix is on the place again",
@@ -349,6 +350,8 @@ def _child(mode: str, args) -> dict:
         args.index if isinstance(args.index, str) else args.index[0],
         "--bits",
         str(args.bits),
+        "--seed",
+        str(args.seed),
         "--data",
         str(args.data),
         "--work",
@@ -384,6 +387,13 @@ def main(argv=None) -> int:
         type=int,
         default=N_BITS,
         help=f"bits per place of the compact codes (a multiple of 64; default {N_BITS})",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=1,
+        help="seed of the cold start's place and of the kidnaps' jumps (default 1, the "
+        "committed run's)",
     )
     p.add_argument("--json", type=Path, required=True)
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
