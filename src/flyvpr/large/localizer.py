@@ -12,9 +12,10 @@ layer's own adaptation), and the layer re-seeds around the best, when it beats t
 track by more than chance, and is run over those frames again (a replay) so that it has
 weighed their evidence already.  Searches come ``reseed_after`` frames after a re-seed or
 after a search where a candidate's track beat the layer's own (by less than chance allows),
-and twice as far apart each time the layer's own track was the best of all.  Every
-``check_every`` tracked frames the index is asked too, and a candidate outside the window
-whose track clearly beats the layer's makes it re-seed (a kidnap the layer has not noticed).
+and twice as far apart each time the layer's own track was the best of all.  On every
+``check_every``-th frame, if the layer is localized then, the index is asked too, and a
+candidate outside the window whose track clearly beats the layer's makes it re-seed (a kidnap
+the layer has not noticed).
 """
 
 from __future__ import annotations
@@ -75,7 +76,9 @@ class LargeLocalizer:
         next search.  A search sends the index the codes of at most this many frames, the
         newest it has not seen (each code is searched once).
     check_every : int, default 1000
-        Tracked frames between two checks against the index (0: never).
+        Checks against the index come on every ``check_every``-th frame since ``reset()``
+        (0: never), if the layer is localized when that frame arrives; a check that finds it
+        lost is skipped (a lost layer searches anyway).
     speed : (float, float), default (0.0, 2.0)
         Speeds, places per frame, the pooling allows between frames.
     hold : int, default 30
