@@ -2,6 +2,7 @@
 
 import io
 import tracemalloc
+import warnings
 import zipfile
 
 import numpy as np
@@ -114,3 +115,17 @@ def test_random_header_bytes(tmp_path, data, at):
         assert "a.npy" in str(exc)
     else:
         assert out.nbytes <= len(raw)
+
+
+def test_a_header_with_stray_escapes_is_refused_without_python_warnings(tmp_path):
+    path = tmp_path / "a.npy"
+    np.save(path, np.arange(10.0))
+    raw = path.read_bytes()
+    start = raw.index(b"{")
+    bad = raw[:start] + b"{'descr': '\\=<f8'" + raw[start + 17 :]
+    path.write_bytes(bad)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(ArrayFileError, match="a.npy"):
+            load_npy(path)
+    assert [str(w.message) for w in caught] == []

@@ -20,6 +20,7 @@ expand beyond the bytes it occupies on disk.  Kept free of flyvpr imports other 
 from __future__ import annotations
 
 import os
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -41,13 +42,18 @@ class ArrayFileError(ValueError):
 
 def _parse_header(fh, what: str):
     try:
-        version = np.lib.format.read_magic(fh)
-        if version == (1, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh, _MAX_HEADER)
-        elif version == (2, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh, _MAX_HEADER)
-        else:
-            raise ArrayFileError(f"{what}: unsupported .npy format version {version}")
+        with warnings.catch_warnings():
+            # numpy evaluates the header's text as a Python literal: a corrupt header can
+            # make Python warn about its escapes before the parse fails (the error says it)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            warnings.simplefilter("ignore", SyntaxWarning)
+            version = np.lib.format.read_magic(fh)
+            if version == (1, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh, _MAX_HEADER)
+            elif version == (2, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh, _MAX_HEADER)
+            else:
+                raise ArrayFileError(f"{what}: unsupported .npy format version {version}")
     except ArrayFileError:
         raise
     except Exception as exc:  # numpy's header parser raises many kinds on malformed text
