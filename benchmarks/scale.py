@@ -404,6 +404,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.bits % 64 or not 64 <= args.bits <= 512:
         p.error(f"--bits must be a multiple of 64 from 64 to 512; got {args.bits}")
+    for name in ("kidnaps", "seed"):
+        if getattr(args, name) < 0:
+            p.error(f"--{name} must be >= 0; got {getattr(args, name)}")
     N_BITS = args.bits
     if args._build or args._stream:
         args.places = args.places[0]

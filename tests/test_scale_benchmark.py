@@ -45,3 +45,23 @@ def test_wilson_interval_refuses_impossible_counts():
     for bad in (-1, 11):
         with pytest.raises(ValueError, match="successes"):
             wilson_interval(bad, 10)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--kidnaps", "-1"], "--kidnaps must be >= 0; got -1"),
+        (["--seed", "-3"], "--seed must be >= 0; got -3"),
+        (["--bits", "100"], "--bits must be a multiple of 64"),
+        (["--seed", "x"], "invalid int value: 'x'"),
+    ],
+)
+def test_bad_arguments_are_refused_before_any_work(args, message, tmp_path, capsys):
+    from benchmarks.scale import main
+
+    out = tmp_path / "scale.json"
+    with pytest.raises(SystemExit) as exc:
+        main(["--places", "1000", "--json", str(out), *args])
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
