@@ -216,3 +216,62 @@ def test_real_nordland_frame(nordland_64x32):
     out = im.load_image(p)
     assert out.shape == (32, 64)
     assert 0.0 <= out.min() <= out.max() <= 1.0
+
+
+class _Interrupt(BaseException):
+    """Stands for Ctrl-C or the CLI's SIGTERM exit."""
+
+
+# (the interrupted archive, never closed, says so when it is garbage collected)
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_an_interruption_while_the_cache_is_written_is_not_swallowed(tmp_path, monkeypatch):
+    # The interruption arrives while the cache's zip member is being closed: the archive's
+    # own close then raises ValueError ("open writing handle"), which a cache that may fail
+    # tolerates -- but the interruption must still stop the work, and leave no file behind.
+    import gc
+    import zipfile
+
+    paths = _folder(tmp_path / "imgs")
+    cache = tmp_path / "cache"
+    real_close = zipfile._ZipWriteFile.close
+
+    def interrupted_close(self):
+        monkeypatch.setattr(zipfile._ZipWriteFile, "close", real_close)
+        raise _Interrupt
+
+    monkeypatch.setattr(zipfile._ZipWriteFile, "close", interrupted_close)
+    with pytest.raises(_Interrupt):
+        im.load_images(paths, cache=cache, progress=False)
+    gc.collect()  # here, under this test's warning filter
+    assert not cache.exists() or list(cache.iterdir()) == []
+    # without an interruption a failing cache write only warns, and the images come back
+    monkeypatch.setattr(im, "_write_cache", _raise_value_error)
+    assert im.load_images(paths, cache=cache, progress=False).shape == (5, 32, 64)
+
+
+def _raise_value_error(*args):
+    raise ValueError("cannot write here")
+
+
+def test_raise_interruption_walks_the_chain():
+    from flyvpr._io import raise_interruption
+
+    try:
+        try:
+            raise _Interrupt
+        except _Interrupt:
+            raise ValueError("clean-up failed") from None
+    except ValueError as exc:
+        caught = exc
+    # "from None" hides it from the traceback, but it is still the context being handled
+    with pytest.raises(_Interrupt):
+        raise_interruption(caught)
+    plain = ValueError("nothing behind it")
+    raise_interruption(plain)  # returns
+    try:
+        try:
+            raise KeyError("an ordinary error")
+        except KeyError:
+            raise ValueError("while handling it") from None
+    except ValueError as exc:
+        raise_interruption(exc)  # an Exception in the chain is no interruption: returns

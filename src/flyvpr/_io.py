@@ -36,6 +36,7 @@ __all__ = [
     "atomic_open",
     "check_output_path",
     "make_folders",
+    "raise_interruption",
     "remove_folders",
     "resolve_output",
     "write_bytes_atomic",
@@ -190,6 +191,23 @@ def make_folders(folder) -> list[Path]:
         else:
             created.append(sub)
     return created
+
+
+def raise_interruption(exc: BaseException) -> None:
+    """Re-raise the interruption that ``exc`` was raised while handling, if there is one.
+
+    An interruption is a ``BaseException`` that is not an ``Exception``: Ctrl-C, the CLI's
+    SIGTERM exit.  A clean-up that fails while one unwinds replaces it (a zip archive closed
+    while a member is still being written raises ``ValueError``), and a caller that tolerates
+    that error (an optional cache) would carry on as if nothing had happened.
+    """
+    seen: set[int] = set()
+    ctx = exc.__context__
+    while ctx is not None and id(ctx) not in seen:
+        seen.add(id(ctx))
+        if not isinstance(ctx, Exception):
+            raise ctx
+        ctx = ctx.__context__
 
 
 def remove_folders(created) -> None:

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from ._io import atomic_open
+from ._io import atomic_open, raise_interruption
 from ._npy import read_npz_member
 from ._validation import array_nbytes, check_memory
 
@@ -592,6 +592,7 @@ def load_images(
                 logger.debug("image cache hit: %s", cache_file)
                 return arr
             except (OSError, ValueError) as exc:
+                raise_interruption(exc)
                 logger.warning("image cache %s is unusable (%s); rebuilding it", cache_file, exc)
     out = np.empty(shape, dtype=np.float32)
     with warnings.catch_warnings():
@@ -604,5 +605,6 @@ def load_images(
         try:
             _write_cache(cache_file, out, key)
         except (OSError, ValueError) as exc:  # a read-only cache must not stop the work
+            raise_interruption(exc)  # ... but a Ctrl-C or SIGTERM while writing it must
             logger.warning("could not write image cache %s (%s)", cache_file, exc)
     return out
