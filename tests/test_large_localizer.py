@@ -316,9 +316,12 @@ def test_hold_bounds_how_long_a_displaced_layer_is_stepped():
             if loc.held_ is None and let_go is None:
                 let_go = i
                 assert fix.state == "localized" or i == hold - 1, (hold, seed, i)
+                # while a localized layer was held, no guess beat it by the margin
+                assert loc.n_reseeds_ == reseeds + 1
+                assert loc._held_proven is False  # nothing held: the layer is a guess again
             if let_go is None:
                 assert fix.state != "localized" and i < hold - 1, (hold, seed, i)
-        assert let_go is not None and loc.n_reseeds_ == reseeds + 1
+        assert let_go is not None
         if hold == 3:
             assert let_go == 2
 
@@ -520,16 +523,26 @@ def test_a_replay_seeds_the_tracks_starts_weighted_by_their_scores(monkeypatch):
     seeded.clear()
     loc._replay(np.array([2999]), np.array([0.2]), np.array([0.0]), 6)
     np.testing.assert_array_equal(seeded[0][0], [2999])
-    # with hold, the displaced layers' more confident one is kept (a proven one first)
+    # with hold, of the displaced layers those localized since their seed are kept, the more
+    # confident one; a guess is not
     loc._replay(ends, tracks, speeds, 6, hold=True)
-    assert loc.held_ is not None and loc.held_ is not loc.filter_
-    for proven in (False, True):
-        loc._held_proven = proven
-        layers = [(loc.filter_, loc._proven), (loc.held_, loc._held_proven)]
-        expected = max(layers, key=lambda lp: (lp[1], lp[0].confidence_))
+    assert loc.held_ is None and loc._held_proven is False  # the layer was a guess
+    first = loc.filter_
+    loc._proven = True
+    loc._replay(ends, tracks, speeds, 6, hold=True)
+    assert loc.held_ is first and loc._held_proven is True and loc._proven is False
+    for proven, held_proven in ((True, True), (True, False), (False, True), (False, False)):
+        loc._proven, loc._held_proven = proven, held_proven
+        loc._held_frames = 5
+        layers = [(loc.filter_, proven), (loc.held_, held_proven)]
+        kept = [layer for layer, p in layers if p]
+        expected = max(kept, key=lambda layer: layer.confidence_) if kept else None
         loc._replay(ends, tracks, speeds, 6, hold=True)
-        assert loc.held_ is expected[0] and loc._held_proven == expected[1]
+        assert loc.held_ is expected and loc._held_proven is (expected is not None)
         assert loc._proven is False and loc._held_frames == 0
+        if expected is None:  # (a layer to hold for the next case)
+            loc._proven = True
+            loc._replay(ends, tracks, speeds, 6, hold=True)
 
 
 def test_the_time_spent_relocating_adds_up(monkeypatch):
@@ -855,8 +868,10 @@ def test_every_search_of_a_lost_guess_from_its_4th_frame_scores_every_track():
     # a cold start on frames that match nothing: its guess is never localized, searched at
     # lost frames 1, 5, 9, 13 and 17, and each search from the 4th lost frame on scores every
     # place's track
+    # (a re-seed on the best of chance tracks is at times localized for a frame or two; on
+    # these frames it is not)
     codes = _map(n=5000)
-    rng = np.random.default_rng(17)
+    rng = np.random.default_rng(18)
     loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256)
     fixes = [loc.update_code(rng.integers(0, 256, 32, dtype=np.uint8)) for _ in range(20)]
     assert {f.state for f in fixes} == {"lost"}
@@ -878,9 +893,9 @@ def test_frames_no_place_matches_better_than_chance_give_no_candidates():
     assert loc._candidates(4).size == 0 and loc.n_searches_ == 4
 
 
-def test_the_second_frame_s_re_seed_holds_the_first_frame_s_guess():
-    # only the first frame's re-seed has no layer to hold: with reseed_after=1 the second
-    # frame is searched too, and its re-seed holds the guess the first frame made
+def test_the_second_frame_s_re_seed_drops_the_first_frame_s_guess():
+    # with reseed_after=1 the second frame is searched too; its re-seed does not hold the
+    # guess the first frame made (never localized: no track to keep)
     codes = _map(n=5000)
     rng = np.random.default_rng(1)
     loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256, reseed_after=1)
@@ -888,7 +903,77 @@ def test_the_second_frame_s_re_seed_holds_the_first_frame_s_guess():
     guess = loc.filter_
     fix = loc.update_code(_query(codes, 4000, rng, flip=0.05))
     assert loc.n_reseeds_ == 2 and abs(fix.place - 4000) <= 1 and fix.state == "lost"
-    assert loc.held_ is guess
+    assert loc.filter_ is not guess and loc.held_ is None
+
+
+def _scored_search(monkeypatch, proven, held_proven, lead):
+    """A lost search whose one candidate's track beats the layers' own by ``lead`` standard
+    margins: (its result, the places and weights a re-seed started from, the localizer)."""
+    from flyvpr.large import localizer as mod
+    from flyvpr.temporal.cann import WindowedCANN
+
+    codes = _map(n=3000, n_bytes=8)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=128)
+    rng = np.random.default_rng(3)
+    for p in 700 + np.arange(6):
+        loc._recent.append(_query(codes, int(p), rng, flip=0.2))
+        loc._velocities.append(None)
+    loc.n_frames_ = loc._lost = 6
+    loc.filter_.reseed(np.array([1500]))
+    loc._proven = proven
+    if held_proven is not None:
+        loc.held_ = WindowedCANN(3000, window=128)
+        loc.held_.reseed(np.array([2500]))
+        loc._held_proven = held_proven
+    margin = mod._LOST_Z * 0.5 / np.sqrt(64 * 6)
+    own = 0.05 if held_proven is None else np.array([0.05, 0.04])
+
+    def scores(places, n_frames):
+        assert n_frames == 6
+        tracks = np.zeros(len(places))
+        tracks[0] = 0.05 + lead * margin
+        tracks[1:] = own
+        return tracks, places.copy(), np.ones(len(places))
+
+    monkeypatch.setattr(loc, "_candidates", lambda n: np.array([705]))
+    monkeypatch.setattr(loc, "_track_scores", scores)
+    seeded = []
+    real = WindowedCANN.reseed
+
+    def spy(self, places, weights=None):
+        seeded.append((np.array(places), np.array(weights)))
+        return real(self, places, weights)
+
+    monkeypatch.setattr(WindowedCANN, "reseed", spy)
+    return loc._reseed_lost(6), seeded, loc
+
+
+@pytest.mark.parametrize("held_proven", [None, False])
+def test_a_guess_gives_way_to_any_better_track(monkeypatch, held_proven):
+    # only guesses: a candidate's track better than theirs by less than the margin re-seeds
+    # the layer, from the candidate and the guesses' own tracks weighed alike
+    result, seeded, loc = _scored_search(monkeypatch, False, held_proven, 0.5)
+    assert result == (True, False) and loc.n_reseeds_ == 1 and loc.held_ is None
+    ((places, weights),) = seeded
+    own = [1500] if held_proven is None else [1500, 2500]
+    np.testing.assert_array_equal(places, np.array([705] + own) - 5)
+    tracks = np.array([0.05 + 0.5 * (3.5 * 0.5 / np.sqrt(384))] + [0.05, 0.04][: len(own)])
+    np.testing.assert_allclose(weights, np.exp((tracks - tracks.max()) * 8.0))
+    # a candidate no better than the guesses' own tracks: no re-seed, their track the best
+    result, seeded, loc = _scored_search(monkeypatch, False, held_proven, 0.0)
+    assert result == (False, True) and loc.n_reseeds_ == 0 and not seeded
+
+
+@pytest.mark.parametrize(("proven", "held_proven"), [(True, None), (False, True), (True, False)])
+def test_a_localized_layer_gives_way_only_beyond_the_margin(monkeypatch, proven, held_proven):
+    # a layer localized since its seed (answering or held): a better track within the margin
+    # does not re-seed, one beyond it does, from the candidates alone
+    result, seeded, loc = _scored_search(monkeypatch, proven, held_proven, 0.9)
+    assert result == (False, False) and loc.n_reseeds_ == 0 and not seeded
+    result, seeded, loc = _scored_search(monkeypatch, proven, held_proven, 1.1)
+    assert result == (True, False) and loc.n_reseeds_ == 1
+    ((places, _),) = seeded
+    np.testing.assert_array_equal(places, [700])
 
 
 def test_a_track_at_full_speed_ending_10_places_short_of_the_candidate():

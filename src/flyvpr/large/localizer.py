@@ -102,9 +102,10 @@ class LargeLocalizer:
     filter_ : WindowedCANN
         The layer that answers.
     held_ : WindowedCANN or None
-        The layer a lost re-seed displaced (the more confident one, preferring one that had
-        been localized since its seed), stepped on beside ``filter_`` for at most ``hold``
-        frames while the answer is not localized; whichever is more confident answers.
+        The layer a lost re-seed displaced (of the displaced layers localized since their
+        seed, the more confident; a guess is not held), stepped on beside ``filter_`` for at
+        most ``hold`` frames while the answer is not localized; whichever is more confident
+        answers.
     n_frames_, n_searches_, n_reseeds_, n_full_searches_ : int
         Frames, codes sent to the index, re-seeds and searches of every place's track since
         :meth:`reset`.
@@ -130,19 +131,24 @@ class LargeLocalizer:
     towards 1/2 as if five more frames had scored 1/2): the layer's own adaptation, which
     keeps a place whose code resembles every query of these conditions from winning on all of
     them.  A lost layer re-seeds where the best track beats the layer's own (at its place) by
-    more than 3.5 standard errors of a mean similarity of unrelated codes.  The layer then
-    restarts around the candidates as they were at the oldest of these frames and steps
-    through them (the replay), so that it is ``localized`` as soon as their evidence allows
-    instead of after as many new frames.  The layer it displaces is not thrown away: a lost
-    layer is as often dipping on the right stretch, where a look-alike can match a few frames
-    better, as kidnapped, and only the frames that follow tell the two apart, so it is held
-    and integrated on and answers whenever it is the more confident.  A layer not localized
-    since its seed (a guess from the index) is searched again every ``reseed_after`` frames
-    instead of backing off, and on a map of at most ``full_search_places`` places its search
-    also scores the track of every place (the ends of the 50 best, 11 places apart or more,
-    join the index's candidates ahead of them): where no single frame of the stretch finds
-    the true place, its track over the frames still can.  On the 35,768-place benchmark this
+    more than 3.5 standard errors of a mean similarity of unrelated codes; where neither the
+    answering layer nor a held one has been localized since its seed (only guesses, with no
+    track to defend), wherever any track beats theirs, the guesses' own tracks weighed among
+    the candidates.  The layer then restarts around the candidates as they were at the
+    oldest of these frames and steps through them (the replay), so that it is ``localized``
+    as soon as their evidence allows instead of after as many new frames.  A displaced layer
+    that had been localized is not thrown away: a lost layer is as often dipping on the
+    right stretch, where a look-alike can match a few frames better, as kidnapped, and only
+    the frames that follow tell the two apart, so it is held and integrated on and answers
+    whenever it is the more confident.  A guess is searched again every ``reseed_after``
+    frames instead of backing off, and on a map of at most ``full_search_places`` places its
+    search also scores the track of every place (the ends of the 50 best, 11 places apart or
+    more, join the index's candidates ahead of them): where no single frame of the stretch
+    finds the true place, its track over the frames still can.  On the 35,768-place benchmark this
     brought frames 0-999 from 0.949-0.960 to 0.959-0.962 AUC (whole map 0.964-0.968).
+    Holding guesses to the margin too cost the exact scan 0.012 there (seed 0, frames
+    1000-1999, tolerance 20: a first-frame guess 1,266 places off answered for 24 frames,
+    while the true track beat its own by 0.024 at frames 8 and 20, under the margin's 0.035).
 
     Examples
     --------
@@ -293,7 +299,7 @@ class LargeLocalizer:
                 self._proven, self._held_proven = self._held_proven, self._proven
             self._held_frames += 1
             if self.filter_.state_ == LOCALIZED or self._held_frames >= self.hold:
-                self.held_ = None
+                self.held_, self._held_proven = None, False
         f = self.filter_
         place, confidence, state = f.place_, f.confidence_, f.state_
         self._proven |= state == LOCALIZED
@@ -370,8 +376,9 @@ class LargeLocalizer:
     def _reseed_lost(self, n_frames: int) -> tuple[bool, bool]:
         """A lost layer: search, and re-seed around the candidates whose tracks over the last
         ``n_frames`` frames beat the layer's own by more than chance (any candidate when the
-        layer has no place yet).  Returns whether it did, and whether the layer's own track
-        (the answering or the held layer's) was at least as good as every candidate's."""
+        layer has no place yet; any better one when the layers are guesses, never localized
+        since their seed).  Returns whether it did, and whether the layer's own track (the
+        answering or the held layer's) was at least as good as every candidate's."""
         places = self._candidates(n_frames)
         if places.size == 0:
             return False, True
@@ -388,9 +395,16 @@ class LargeLocalizer:
         self.search_s_ += time.perf_counter() - t0
         if own:
             mine = tracks[-len(own) :].max()
-            tracks, ends, speeds = tracks[: -len(own)], ends[: -len(own)], speeds[: -len(own)]
-            if tracks.max() <= mine + margin:
-                return False, bool(mine >= tracks.max())
+            theirs = tracks[: -len(own)].max()
+            if not (self._proven or self._held_proven):
+                # only guesses (no layer localized since its seed): no track to defend, so the
+                # best of all wins, and a re-seed weighs the guesses' tracks with the others
+                if theirs <= mine:
+                    return False, True
+            else:
+                tracks, ends, speeds = tracks[: -len(own)], ends[: -len(own)], speeds[: -len(own)]
+                if theirs <= mine + margin:
+                    return False, bool(mine >= theirs)
         # (a layer that never had a place, the first frame's, is no hypothesis to keep)
         self._replay(ends, tracks, speeds, n_frames, hold=self.n_frames_ > 0)
         return True, False
@@ -430,14 +444,15 @@ class LargeLocalizer:
             lo, hi = f.window_
             scores = hamming_similarity(self._recent[i][None], self.codes, lo, hi)[0]
             f.step(scores, None if i == -n_frames else self._velocities[i])
+        # a guess (never localized since its seed) is not kept: the search found a track
+        # at least as good as its own
         kept = [
-            (layer, proven)
+            layer
             for layer, proven in ((self.filter_, self._proven), (self.held_, self._held_proven))
-            if layer is not None
+            if layer is not None and proven
         ]
-        self.held_, self._held_proven = (
-            max(kept, key=lambda lp: (lp[1], lp[0].confidence_)) if hold else (None, False)
-        )
+        self.held_ = max(kept, key=lambda layer: layer.confidence_) if hold and kept else None
+        self._held_proven = self.held_ is not None
         self._held_frames = 0
         self._proven = False
         self.filter_ = f
