@@ -1065,3 +1065,24 @@ def test_a_map_shorter_than_the_fastest_track_is_searched(n):
     for t in range(12):
         fix = loc.update_code(_query(codes, min(t, n - 1), rng, flip=0.05))
     assert abs(fix.place - min(11, n - 1)) <= 2
+
+
+def test_a_map_smaller_than_k_offers_every_place():
+    # k (300 by default) above the map's 100 places: the index returns all of them
+    codes = _map(n=100)
+    rng = np.random.default_rng(21)
+    index = ExhaustiveIndex().build(codes)
+    asked = []
+    search = index.search
+
+    def spy(q, k):
+        asked.append(k)
+        places, dist = search(q, k)
+        assert all(sorted(row.tolist()) == list(range(100)) for row in places)
+        return places, dist
+
+    index.search = spy
+    loc = LargeLocalizer(codes, index, window=32)
+    fixes = _drive(loc, codes, 20 + np.arange(40), rng, flip=0.2)
+    assert asked and set(asked) == {100}
+    assert fixes[-1].state == "localized" and abs(fixes[-1].place - 59) <= 2

@@ -315,13 +315,14 @@ class LargeLocalizer:
         now = self.n_frames_
         frames = range(now - n_frames + 1, now + 1)
         new = [t for t in frames if t not in self._found][-self.reseed_after :]
+        k = min(self.k, self.n_places)  # (a map smaller than k: every place)
         t0 = time.perf_counter()
         if new:
             codes = np.stack([self._recent[t - now - 1] for t in new])
-            places, dist = self.index.search(codes, self.k)
+            places, dist = self.index.search(codes, k)
             self._found.update(zip(new, zip(places, dist, strict=True), strict=True))
             self.n_searches_ += len(new)
-        none = (np.full(self.k, -1, np.int64), np.full(self.k, self.n_bits + 1, np.int32))
+        none = (np.full(k, -1, np.int64), np.full(k, self.n_bits + 1, np.int32))
         answers = [self._found.get(t, none) for t in frames]
         pooled, scores = pool_candidates(
             np.stack([a[0] for a in answers]),
