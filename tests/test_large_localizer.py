@@ -534,6 +534,9 @@ def test_a_replay_seeds_the_tracks_starts_weighted_by_their_scores(monkeypatch):
     for proven, held_proven in ((True, True), (True, False), (False, True), (False, False)):
         loc._proven, loc._held_proven = proven, held_proven
         loc._held_frames = 5
+        # (the replays made equal layers: the held one the more confident, so that the
+        # choice between two localized layers shows)
+        loc.held_.confidence_ = loc.filter_.confidence_ + 0.1
         layers = [(loc.filter_, proven), (loc.held_, held_proven)]
         kept = [layer for layer, p in layers if p]
         expected = max(kept, key=lambda layer: layer.confidence_) if kept else None
@@ -966,10 +969,14 @@ def test_a_guess_gives_way_to_any_better_track(monkeypatch, held_proven):
 
 @pytest.mark.parametrize(("proven", "held_proven"), [(True, None), (False, True), (True, False)])
 def test_a_localized_layer_gives_way_only_beyond_the_margin(monkeypatch, proven, held_proven):
-    # a layer localized since its seed (answering or held): a better track within the margin
-    # does not re-seed, one beyond it does, from the candidates alone
-    result, seeded, loc = _scored_search(monkeypatch, proven, held_proven, 0.9)
-    assert result == (False, False) and loc.n_reseeds_ == 0 and not seeded
+    # a layer localized since its seed (answering or held): a better track within the margin,
+    # or exactly at it, does not re-seed, one beyond it does, from the candidates alone; a
+    # tie with the layers' own track counts as their own being the best
+    for lead in (0.9, 1.0):
+        result, seeded, loc = _scored_search(monkeypatch, proven, held_proven, lead)
+        assert result == (False, False) and loc.n_reseeds_ == 0 and not seeded
+    result, seeded, loc = _scored_search(monkeypatch, proven, held_proven, 0.0)
+    assert result == (False, True) and loc.n_reseeds_ == 0 and not seeded
     result, seeded, loc = _scored_search(monkeypatch, proven, held_proven, 1.1)
     assert result == (True, False) and loc.n_reseeds_ == 1
     ((places, _),) = seeded
@@ -1086,3 +1093,19 @@ def test_a_map_smaller_than_k_offers_every_place():
     fixes = _drive(loc, codes, 20 + np.arange(40), rng, flip=0.2)
     assert asked and set(asked) == {100}
     assert fixes[-1].state == "localized" and abs(fixes[-1].place - 59) <= 2
+
+
+def test_frames_never_searched_pool_as_no_candidates_on_a_map_smaller_than_k():
+    # 6 frames pooled, only the newest 2 searched (reseed_after=2): the 4 others give no
+    # candidate, padded to the index's width (every place of the 100)
+    codes = _map(n=100)
+    rng = np.random.default_rng(22)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=32, reseed_after=2)
+    for p in 40 + np.arange(6):
+        loc._recent.append(_query(codes, int(p), rng, flip=0.1))
+        loc._velocities.append(None)
+    loc.n_frames_ = 5
+    loc._proven = True  # the index's candidates only
+    places = loc._candidates(6)
+    assert loc.n_searches_ == 2 and sorted(loc._found) == [4, 5]
+    assert places.size > 0 and 45 in places[:10].tolist()
