@@ -129,9 +129,13 @@ def test_index_file_round_trip(tmp_path, codes):
     back = load_index(tmp_path / "m.mih", m)
     assert back.radius == 2 and isinstance(back.places_, np.memmap)
     np.testing.assert_array_equal(back.search(codes[:3], 2)[0], index.search(codes[:3], 2)[0])
-    other = open_large_map(write_large_map(tmp_path / "o.fvmap", codes))
+    other = open_large_map(write_large_map(tmp_path / "o.fvmap", codes[::-1]))
     with pytest.raises(MapFileError, match="another map"):
         load_index(tmp_path / "m.mih", other)
+    # the same map written again is the same map: its index fits
+    again = open_large_map(write_large_map(tmp_path / "a.fvmap", codes, chunk=7))
+    assert again.map_id == m.map_id
+    np.testing.assert_array_equal(load_index(tmp_path / "m.mih", again).places_, back.places_)
     with pytest.raises(MapFileError, match="expected a 'map' file"):
         open_large_map(tmp_path / "m.mih")
 

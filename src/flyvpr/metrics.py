@@ -45,6 +45,7 @@ __all__ = [
     "recall_at_100_precision",
     "extended_precision",
     "evaluate",
+    "evaluate_answers",
     "reliability",
     "reliability_counts",
 ]
@@ -135,7 +136,12 @@ def _best_match(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _curve(S: np.ndarray, gt: np.ndarray, n_pos: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     idx, conf = _best_match(S)
-    correct = gt[np.arange(S.shape[0]), idx]
+    return _answer_curve(conf, gt[np.arange(S.shape[0]), idx], n_pos)
+
+
+def _answer_curve(
+    conf: np.ndarray, correct: np.ndarray, n_pos: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     # Descending confidence; the order inside a tie does not matter because only the last
     # position of each run of equal confidences becomes a curve point.
     order = np.argsort(conf, kind="stable")[::-1]
@@ -508,6 +514,69 @@ def evaluate(S, gt, ks=(1, 5, 10)) -> dict:
         n_query_with_match=n_pos,
     )
     return result
+
+
+def evaluate_answers(confidence, correct, has_match) -> dict:
+    """:func:`evaluate`'s curve metrics from each query's answer alone, without a score matrix.
+
+    For a localizer on a map too large for score rows over every place (a
+    :class:`flyvpr.large.LargeLocalizer`): each query's answer, its confidence and whether it
+    is right give the same precision-recall curve as :func:`evaluate` on a score matrix whose
+    row maximum is that answer at that confidence.
+
+    Parameters
+    ----------
+    confidence : array_like of float, shape (n_query,)
+        Finite; higher = surer.
+    correct : array_like of bool, shape (n_query,)
+        Whether the answer is an acceptable match.
+    has_match : array_like of bool, shape (n_query,)
+        Whether the query has any acceptable match (recall's denominator counts these).
+
+    Returns
+    -------
+    dict
+        ``auc``, ``recall_at_1``, ``recall_at_100_precision``, ``extended_precision``,
+        ``n_query`` and ``n_query_with_match``.
+
+    Raises
+    ------
+    ValueError
+        For shapes that differ, a non-finite confidence, no query with a match, or a correct
+        answer for a query without one.
+
+    Examples
+    --------
+    >>> r = evaluate_answers([0.9, 0.8, 0.3], [True, False, True], [True, True, True])
+    >>> round(r["auc"], 4), round(r["recall_at_1"], 4)
+    (0.5278, 0.6667)
+    """
+    conf = np.asarray(confidence, dtype=np.float64)
+    right = np.asarray(correct)
+    match = np.asarray(has_match)
+    if conf.ndim != 1 or right.shape != conf.shape or match.shape != conf.shape:
+        raise ValueError(
+            "confidence, correct and has_match must be 1-d of one length; got shapes "
+            f"{conf.shape}, {right.shape} and {match.shape}"
+        )
+    if right.dtype != bool or match.dtype != bool:
+        raise ValueError(f"correct and has_match must be bool; got {right.dtype} and {match.dtype}")
+    if not np.isfinite(conf).all():
+        raise ValueError("confidence must be finite")
+    if (right & ~match).any():
+        raise ValueError("correct is True for a query whose has_match is False")
+    n_pos = int(np.count_nonzero(match))
+    if n_pos == 0:
+        raise ValueError("has_match is False for every query: recall is undefined")
+    precision, recall, _ = _answer_curve(conf, right, n_pos)
+    return {
+        "auc": _auc(precision, recall),
+        "recall_at_1": int(np.count_nonzero(right)) / n_pos,
+        "recall_at_100_precision": _recall_at_100_precision(precision, recall),
+        "extended_precision": _extended_precision(precision, recall),
+        "n_query": int(conf.size),
+        "n_query_with_match": n_pos,
+    }
 
 
 # --------------------------------------------------------------------------------------------

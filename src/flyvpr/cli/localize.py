@@ -41,7 +41,8 @@ def cmd_localize(args) -> int:
         raise UsageError("give --map MAP SOURCE (a recording) or --dataset (a benchmark layout)")
     for option in (
         "render", "ground_truth", "topic", "every", "positions", "position_topic", "no_odometry",
-        "mcap_thumbnails", "view", "view_save", "calibration", "fit_calibration", *LIVE_OPTIONS,
+        "mcap_thumbnails", "view", "view_save", "calibration", "fit_calibration", "index",
+        *LIVE_OPTIONS,
     ):  # fmt: skip
         if getattr(args, option):
             raise UsageError(f"{flag(option)} needs --map MAP SOURCE")
@@ -72,6 +73,27 @@ def _cmd_recording(args) -> int:
     for option in ("speed", "method", "param"):
         if getattr(args, option):
             raise UsageError(f"{flag(option)}: the map fixes the method; not with --map")
+    from ..large.recording import is_compact_map
+
+    if is_compact_map(args.map):
+        from ._compact import cmd_localize_compact
+
+        if is_live(args.source):
+            raise UsageError(
+                f"SOURCE {args.source}: a compact map ({args.map}) localizes recordings (image "
+                "folders, videos, ROS bags), not live streams or cameras"
+            )
+        for option in LIVE_OPTIONS:
+            if getattr(args, option) is not None:
+                raise UsageError(
+                    f"{flag(option)}: only for a live SOURCE (a stream URL or a camera)"
+                )
+        args.source = Path(args.source)
+        return cmd_localize_compact(args)
+    if args.index is not None:
+        raise UsageError(
+            f"--index: only with a compact map (`flyvpr map --compact`); {args.map} is not one"
+        )
     if is_live(args.source):
         from ._live import cmd_localize_live
 
@@ -158,6 +180,14 @@ def register(sub) -> None:
         "http://, udp://, tcp:// ...) or a camera (/dev/video0)",
     )
     p.add_argument("--map", type=Path, help="map file written by `flyvpr map`")
+    p.add_argument(
+        "--index",
+        choices=("exhaustive", "mih"),
+        help="with a compact map (`flyvpr map --compact`): how a lost frame's code is looked "
+        "up among the places: an exact scan of every code (default; about 10 ms per code at "
+        "10 million places) or multi-index hashing (the map's .mih file when there is one, "
+        "built at the start otherwise)",
+    )
     add_recording_args(p)
     p.add_argument(
         "--realtime", action="store_true", help="pace frames to the recording's timestamps"

@@ -9,7 +9,14 @@ from pathlib import Path
 
 from ..images import DEFAULT_SIZE
 from ..methods import DEFAULT_METHOD, METHODS
-from ._common import UsageError, add_method_args, check_outputs, parse_size, split_params
+from ._common import (
+    UsageError,
+    add_method_args,
+    check_outputs,
+    flag,
+    parse_size,
+    split_params,
+)
 
 __all__ = ["register", "add_recording_args", "recording_inputs"]
 
@@ -57,6 +64,14 @@ def recording_inputs(args) -> list:
 def cmd_map(args) -> int:
     from ..localization.maps import Map
 
+    if args.compact:
+        from ._compact import cmd_map_compact
+
+        return cmd_map_compact(args)
+    for option in ("bits", "fit_frames", "mih"):
+        if getattr(args, option):
+            raise UsageError(f"{flag(option)} needs --compact")
+    args.method = args.method or DEFAULT_METHOD
     if args.method not in METHODS:
         raise UsageError(f"--method: unknown method {args.method!r}")
     if args.positions is not None and args.position_topic is not None:
@@ -107,7 +122,7 @@ def register(sub) -> None:
     )
     p.add_argument("source", type=Path, metavar="SOURCE", help="image folder, video or ROS bag")
     p.add_argument("--out", type=Path, required=True, help="map file to write (atomically)")
-    add_method_args(p, default=DEFAULT_METHOD, note=f" (default {DEFAULT_METHOD})")
+    add_method_args(p, note=f" (default {DEFAULT_METHOD})")
     add_recording_args(p)
     p.add_argument(
         "--size",
@@ -134,6 +149,37 @@ def register(sub) -> None:
         metavar="ADDRESS",
         help="encode on a Dask cluster: its scheduler's address, e.g. tcp://host:8786 "
         "(pip install 'flyvpr[dask]')",
+    )
+    c = p.add_argument_group(
+        "compact map (millions of places)",
+        "With --compact the map keeps 32 bytes per place (256 bits: signs of the kenyon optic "
+        "lobe's principal directions), memory-mapped, instead of a fitted METHOD; `flyvpr "
+        "localize --map` then tracks a window of the CANN around the robot and relocates "
+        "through an index, so a frame's cost does not grow with the map (see the large-maps "
+        "guide). The recording is read twice: once to fit the encoder on a sample, once to "
+        "encode every frame.",
+    )
+    c.add_argument(
+        "--compact", action="store_true", help="write a compact map (conventionally MAP.fvmap)"
+    )
+    c.add_argument(
+        "--bits",
+        type=int,
+        choices=(64, 128, 192, 256, 320, 384, 448, 512),
+        metavar="B",
+        help="bits per place, a multiple of 64 up to 512 (default 256)",
+    )
+    c.add_argument(
+        "--fit-frames",
+        type=int,
+        metavar="N",
+        help="fit the encoder on at most N frames, evenly spaced (default 10000)",
+    )
+    c.add_argument(
+        "--mih",
+        action="store_true",
+        help="also write multi-index hash tables beside the map (MAP with the suffix .mih) "
+        "for `flyvpr localize --index mih`",
     )
     p.add_argument(
         "--quiet", "-q", action="store_true", help="no progress bar (shown only on a terminal)"

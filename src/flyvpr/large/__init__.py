@@ -7,6 +7,8 @@
 * :mod:`~flyvpr.large.mapfile`: map files written in chunks and opened memory-mapped;
 * :mod:`~flyvpr.large.localizer`: :class:`LargeLocalizer`, the windowed CANN with an index
   for relocation;
+* :mod:`~flyvpr.large.recording`: compact maps of a robot's own recording (``flyvpr map
+  --compact``) and a localizer on them (``flyvpr localize --map``);
 * :mod:`~flyvpr.large.synthetic`: huge tiled maps for benchmarks.
 
 See ``docs/guide/large-maps.md``.  Importing this package imports neither numba nor faiss.

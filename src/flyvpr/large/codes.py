@@ -329,6 +329,98 @@ class CompactEncoder(Encoder):
         enc._fit_projection(features - enc.feature_mean_)
         return enc
 
+    # -- saved state ------------------------------------------------------------
+    #: settings a map file keeps (``random_state`` is not needed to encode)
+    _SETTINGS = ("n_bits", "projection", *_LOBE)
+
+    def state(self) -> tuple[dict, dict]:
+        """The fitted encoder as JSON settings and arrays, for a map file: with
+        :meth:`from_state` they encode later frames exactly as the places were encoded.
+
+        Returns
+        -------
+        settings : dict
+            ``params`` (the constructor's, ``random_state`` left out) and ``image_shape``.
+        arrays : dict
+            ``valid_pixels`` (uint8 0/1), ``feature_mean`` and ``projection`` (float32).
+        """
+        self._check_fitted()
+        params = {name: getattr(self, name) for name in self._SETTINGS}
+        for name in self._LOBE:  # plain numbers for JSON
+            params[name] = (
+                float(params[name])
+                if name in ("lcn_sigma", "lcn_eps", "wavelength")
+                else int(params[name])
+            )
+        params["n_bits"] = int(params["n_bits"])
+        settings = {"params": params, "image_shape": [int(v) for v in self.image_shape_]}
+        arrays = {
+            "valid_pixels": np.asarray(self.valid_pixels_, dtype=np.uint8),
+            "feature_mean": np.asarray(self.feature_mean_, dtype=np.float32),
+            "projection": np.asarray(self.projection_, dtype=np.float32),
+        }
+        return settings, arrays
+
+    @classmethod
+    def from_state(cls, settings, arrays, reference_codes) -> CompactEncoder:
+        """A fitted encoder from :meth:`state`'s settings and arrays and the places' codes.
+
+        Raises
+        ------
+        ValueError
+            If anything is missing or does not fit (the message names the field).
+        """
+        if not isinstance(settings, dict) or set(settings) != {"params", "image_shape"}:
+            raise ValueError("encoder settings must hold exactly params and image_shape")
+        params, shape = settings["params"], settings["image_shape"]
+        if not isinstance(params, dict) or set(params) != set(cls._SETTINGS):
+            raise ValueError(f"encoder params must be exactly {', '.join(cls._SETTINGS)}")
+        if (
+            not isinstance(shape, list)
+            or len(shape) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in shape)
+        ):
+            raise ValueError(f"encoder image_shape must be two positive integers; got {shape!r}")
+        enc = cls(**params)
+        n_bits = enc._check_params()
+        for name in cls._LOBE:  # the optic lobe checks its own values
+            value = params[name]
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f"encoder params.{name} must be a number; got {value!r}")
+        try:
+            enc._optic_lobe = OpticLobe(*(params[name] for name in cls._LOBE))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"encoder params: {exc}") from None
+        h, w = shape
+        valid = np.asarray(arrays.get("valid_pixels"))
+        if valid.dtype != np.uint8 or valid.shape != (h, w) or not np.isin(valid, (0, 1)).all():
+            raise ValueError(f"encoder valid_pixels must be uint8 0/1 of shape ({h}, {w})")
+        enc.valid_pixels_ = valid.astype(bool)
+        if not enc.valid_pixels_.any():
+            raise ValueError("encoder valid_pixels has no valid pixel")
+        enc._setup_lobe()
+        n_features = enc._optic_lobe(np.zeros((1, h, w), np.float32), enc._valid).shape[1]
+        for name, want in (("feature_mean", (n_features,)), ("projection", (n_features, n_bits))):
+            a = np.asarray(arrays.get(name))
+            if a.dtype != np.float32 or a.shape != want or not np.isfinite(a).all():
+                raise ValueError(f"encoder {name} must be finite float32 of shape {want}")
+        codes = np.asarray(reference_codes)  # (a memory map's view: nothing read)
+        if (
+            codes.dtype != np.uint8
+            or codes.ndim != 2
+            or codes.shape[1] * 8 != n_bits
+            or not len(codes)
+        ):
+            raise ValueError(f"reference codes must be uint8 of shape (n, {n_bits // 8}), n >= 1")
+        enc.feature_mean_ = np.asarray(arrays["feature_mean"])
+        enc.projection_ = np.ascontiguousarray(arrays["projection"])
+        enc.n_features_ = int(n_features)
+        enc.reference_codes_ = codes
+        enc.image_shape_ = (h, w)
+        enc.n_reference_ = int(len(codes))
+        enc.train_accuracy_ = None
+        return enc
+
     # -- fitting ----------------------------------------------------------------
     def _check_params(self) -> int:
         n_bits = check_positive_int(self.n_bits, "n_bits", minimum=64)

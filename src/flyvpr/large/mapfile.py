@@ -15,7 +15,9 @@ used, so resident memory grows only with the pages a run touches.  Every field i
 file is refused with an error naming it.
 
 A map file (``kind="map"``) holds ``codes`` (uint8, (n_places, n_bytes)), optionally
-``positions`` (float64, (n_places, n_dims)) and free JSON ``metadata``.  An index file
+``positions`` (float64, (n_places, n_dims)), free JSON ``metadata`` and more named arrays
+(:meth:`LargeMapWriter.add_array`: a map built from a recording keeps its encoder and each
+place's timestamp and frame there, :mod:`flyvpr.large.recording`).  An index file
 (``kind="mih"``) holds the tables of a :class:`~flyvpr.large.index.MultiIndexHash` and the
 ``map_id`` of the map it indexes.  Both are written atomically (a temporary file renamed at
 the end).
@@ -23,10 +25,10 @@ the end).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import struct
-import uuid
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -174,9 +176,13 @@ class LargeMap:
     path : Path
     codes : numpy.memmap of uint8, shape (n_places, n_bytes)
     positions : numpy.memmap of float64, shape (n_places, n_dims), or None
+    arrays : dict of str to numpy.memmap
+        Every array of the file, ``codes`` and ``positions`` included.
     metadata : dict
     map_id : str
-        Random identifier written with the map (index files name it).
+        Identifier of the map's content (the first 32 hex digits of a SHA-256 of its
+        metadata and arrays as written): index files name it, and the same map written twice
+        has the same.
     n_places, n_bits : int
     """
 
@@ -184,6 +190,7 @@ class LargeMap:
         self.path = Path(path)
         self.codes = arrays["codes"]
         self.positions = arrays.get("positions")
+        self.arrays = dict(arrays)
         self.metadata = header.get("metadata", {})
         self.map_id = str(header.get("map_id", ""))
         self.n_places = int(self.codes.shape[0])
@@ -256,8 +263,13 @@ class LargeMapWriter:
             raise TypeError(f"metadata must be a dict; got {type(metadata).__name__}")
         json.dumps(metadata or {}, allow_nan=False)  # refuse what cannot be written, now
         self.path = Path(path)
-        self.map_id = uuid.uuid4().hex
-        self._file = _ArrayFile(path, "map", metadata, {"map_id": self.map_id})
+        # the map's identity: a digest of everything written, so that the same map written
+        # twice (by one process or by a cluster) is the same file, byte for byte
+        # (codes, positions, the other arrays, hashed apart: the chunking changes nothing)
+        self._digests = [hashlib.sha256() for _ in range(3)]
+        self._metadata_json = json.dumps(metadata or {}, sort_keys=True)
+        self.map_id: str | None = None  # set by close
+        self._file = _ArrayFile(path, "map", metadata, {"map_id": ""})
         self._codes_at = self._file.reserve("codes", np.uint8, (self.n_places, self.n_bytes))
         self._pos_at = None
         if self.n_dims is not None:
@@ -288,8 +300,32 @@ class LargeMapWriter:
                     f"positions must have shape ({m}, {self.n_dims}); got {positions.shape}"
                 )
             self._file.write_at(self._pos_at + self.n_written * self.n_dims * 8, positions)
+            self._digests[1].update(np.ascontiguousarray(positions).data)
         self._file.write_at(self._codes_at + self.n_written * self.n_bytes, codes)
+        self._digests[0].update(np.ascontiguousarray(codes).data)
         self.n_written += m
+
+    def add_array(self, name: str, array) -> None:
+        """Write one more named array (read back as ``LargeMap.arrays[name]``).
+
+        Raises
+        ------
+        ValueError
+            If ``name`` is empty or taken (``codes``, ``positions`` or an array added before),
+            or the array's dtype is not one a map file holds (uint8, uint16, uint32, int32,
+            int64, float32, float64).
+        """
+        array = np.asarray(array)
+        if not isinstance(name, str) or not name or name in self._file._arrays:
+            raise ValueError(f"name must be a new, non-empty array name; got {name!r}")
+        if array.dtype.str not in _DTYPES:
+            raise ValueError(
+                f"array {name!r}: dtype {array.dtype} cannot be written (uint8, uint16, uint32, "
+                "int32, int64, float32 or float64)"
+            )
+        self._file.add(name, array)
+        self._digests[2].update(f"{name} {array.dtype.str} {array.shape}".encode())
+        self._digests[2].update(np.ascontiguousarray(array).data)
 
     def close(self) -> Path:
         """Finish the file and rename it into place.
@@ -305,6 +341,11 @@ class LargeMapWriter:
             )
             self._file.abort(exc)
             raise exc
+        whole = hashlib.sha256(self._metadata_json.encode())
+        for d in self._digests:
+            whole.update(d.digest())
+        self.map_id = whole.hexdigest()[:32]
+        self._file._header["map_id"] = self.map_id
         self._file.close()
         return self.path
 

@@ -1,0 +1,275 @@
+"""``flyvpr map --compact`` and ``flyvpr localize --map MAP.fvmap``: maps of compact codes.
+
+A compact map keeps 32 bytes per place (256 bits; :mod:`flyvpr.large.recording`), memory-
+mapped, and is localized against by :class:`flyvpr.large.LargeLocalizer`: a window of the
+CANN around the packet and an index to relocate, so a frame's cost does not grow with the map.
+
+Nothing outside :mod:`flyvpr.cli` imports this module.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import time
+
+import numpy as np
+
+from ._common import UsageError, check_outputs, flag
+from ._records import open_records
+from .map import recording_inputs
+
+#: ``flyvpr localize`` options a compact map does not take (what they need: score rows over
+#: every place, thumbnails, the CANN's calibration hooks)
+_NOT_COMPACT = (
+    "render",
+    "view",
+    "view_save",
+    "mcap_thumbnails",
+    "calibration",
+    "fit_calibration",
+    "realtime",
+)
+
+
+def cmd_map_compact(args) -> int:
+    """``flyvpr map --compact``."""
+    from ..large.recording import FIT_FRAMES, build_compact_map, index_path
+
+    if args.fit_frames is not None and args.fit_frames < 2:
+        raise UsageError(f"--fit-frames: must be >= 2; got {args.fit_frames}")
+    for option in ("method", "param"):
+        if getattr(args, option):
+            raise UsageError(
+                f"{flag(option)}: a compact map has its own encoder (kenyon's optic lobe and "
+                "--bits signs); not with --compact"
+            )
+    if args.positions is not None and args.position_topic is not None:
+        raise UsageError("--positions and --position-topic: give one of them")
+    if args.jobs is not None and (args.jobs == 0 or args.jobs < -1):
+        raise UsageError(f"--jobs: must be >= 1 or -1 (all cores); got {args.jobs}")
+    check_outputs(args, recording_inputs(args), ("out",))
+    if args.mih:
+        sidecar = index_path(args.out)
+        if sidecar.resolve() in {p.resolve() for p in recording_inputs(args)}:
+            raise UsageError(f"--mih writes {sidecar}, which is an input of this run")
+    t0 = time.perf_counter()
+    cmap = build_compact_map(
+        args.source,
+        args.out,
+        n_bits=args.bits or 256,
+        size=args.size,
+        topic=args.topic,
+        every=args.every,
+        positions=args.positions,
+        position_topic=args.position_topic,
+        random_state=args.seed,
+        fit_frames=args.fit_frames or FIT_FRAMES,
+        index="mih" if args.mih else None,
+        progress=not args.quiet and sys.stderr.isatty(),
+        n_jobs=args.jobs,
+        scheduler=args.scheduler,
+    )
+    where = "with positions" if cmap.positions is not None else "without positions"
+    if cmap.place_spacing is not None:
+        where += f", {cmap.place_spacing:.3g} m per place"
+    print(
+        f"compact map of {cmap.n_places} places ({cmap.large_map.n_bits} bits, "
+        f"{cmap.large_map.codes.nbytes / 2**20:.3g} MiB of codes) from {cmap.info['source_kind']} "
+        f"{args.source} (every {cmap.info['every']}, {where}, size {args.size[0]}x"
+        f"{args.size[1]}, encoder fitted on {cmap.info['fit_frames']} frames, seed {args.seed}) "
+        f"in {time.perf_counter() - t0:.2f} s"
+    )
+    print(f"wrote {args.out}")
+    if args.mih:
+        print(f"wrote {index_path(args.out)}")
+    return 0
+
+
+def _velocities(xy: np.ndarray, last: np.ndarray, spacing: float) -> list:
+    """Places moved since the previous kept frame, from the recording's positions (None where
+    either position is unknown)."""
+    moved = xy - np.concatenate([last, xy[:-1]])
+    dist = np.hypot(moved[:, 0], moved[:, 1]) / spacing
+    return [float(d) if np.isfinite(d) else None for d in dist]
+
+
+def _truth(args, cmap, b, gt_positions, lookup):
+    """(whether each frame's answer can be right at all, a function of the answers);
+    ``lookup``: the map's frame numbers sorted, or a KD-tree of its positions."""
+    if args.ground_truth == "frames":
+        frames = lookup
+        lo = np.searchsorted(frames, b.indices - args.tolerance, side="left")
+        hi = np.searchsorted(frames, b.indices + args.tolerance, side="right")
+        return hi > lo, lambda places: np.abs(cmap.frames[places] - b.indices) <= args.tolerance
+    xy = gt_positions.at(b.indices, b.timestamps)
+    known = np.isfinite(xy).all(axis=1)
+    near = np.zeros(len(b), bool)
+    if known.any():
+        dist, _ = lookup.query(xy[known], k=1)
+        near[known] = dist <= args.radius
+
+    def right(places):
+        d = np.hypot(*(cmap.positions[places] - xy).T)
+        return np.isfinite(d) & (d <= args.radius)
+
+    return near, right
+
+
+def cmd_localize_compact(args) -> int:
+    """``flyvpr localize --map MAP SOURCE`` with a compact map."""
+    from tqdm.auto import tqdm
+
+    from ..large.recording import compact_localizer, open_compact_map
+    from ..metrics import evaluate_answers
+    from ..sources import RecordingError, open_source, read_positions
+
+    for option in _NOT_COMPACT:
+        if getattr(args, option):
+            raise UsageError(
+                f"{flag(option)}: not with a compact map ({args.map}); build the map without "
+                "--compact for it"
+            )
+    if args.size is not None:
+        raise UsageError("--size: a compact map fixes the image size (its encoder's)")
+    if args.ground_truth not in (None, "frames") and args.radius is None:
+        raise UsageError("--ground-truth CSV needs --radius (metres)")
+    if args.ground_truth == "frames" and args.tolerance is None:
+        raise UsageError("--ground-truth frames needs --tolerance (frames)")
+    inputs = recording_inputs(args) + [args.map]
+    if args.ground_truth not in (None, "frames"):
+        inputs.append(args.ground_truth)
+    check_outputs(args, inputs, ("out",))
+    t_open = time.perf_counter()
+    cmap = open_compact_map(args.map)
+    loc = compact_localizer(cmap, index=args.index or "exhaustive")
+    open_s = time.perf_counter() - t_open
+    source = open_source(args.source, topic=args.topic)
+    bag = source.path if source.kind == "bag" else None
+    positions = read_positions(args.positions, bag=bag, topic=args.position_topic)
+    gt_positions = lookup = None
+    if args.ground_truth == "frames":
+        lookup = np.sort(cmap.frames)
+    elif args.ground_truth is not None:
+        from scipy.spatial import cKDTree
+
+        if cmap.positions is None:
+            raise UsageError("--ground-truth CSV needs a map built with positions")
+        gt_positions = read_positions(args.ground_truth)
+        known = np.isfinite(cmap.positions).all(axis=1)
+        lookup = cKDTree(np.asarray(cmap.positions)[known])
+    spacing, note = None, None  # metres per place, when odometry drives the filter
+    if positions is not None:
+        where = (
+            f"--positions {args.positions}"
+            if args.positions is not None
+            else f"--position-topic {args.position_topic}"
+        )
+        if args.no_odometry:
+            note = "odometry: off (--no-odometry)"
+        elif cmap.place_spacing is None:
+            note = (
+                f"odometry: off, the map has no positions to turn the metres of {where} into "
+                "places (build it with --positions or --position-topic)"
+            )
+        else:
+            spacing = cmap.place_spacing
+            note = (
+                f"odometry: path integration from {where} (map spacing {spacing:.3g} m per place)"
+            )
+    columns = ["frame", "timestamp", "place", "confidence", "state", "relocated"]
+    if cmap.positions is not None:
+        columns += ["x", "y"]
+    if args.ground_truth is not None:
+        columns.append("correct")
+    show = not args.quiet and sys.stderr.isatty()
+    confidences, rights, matchable = [], [], []
+    n_frames = n_localized = 0
+    last_xy = np.full((1, 2), np.nan)
+    metadata = {
+        "map": str(args.map),
+        "method": f"compact {cmap.large_map.n_bits}-bit codes + windowed CANN",
+        "n_places": str(cmap.n_places),
+        "source": source.describe(),
+        "every": str(args.every or 1),
+    }
+    t0 = time.perf_counter()
+    records = (
+        open_records(args.out, columns, metadata=metadata)
+        if args.out is not None
+        else contextlib.nullcontext()
+    )
+    with records as out, tqdm(desc="localizing", unit="frame", disable=not show) as bar:
+        for b in source.batches(cmap.size, every=args.every, positions=positions):
+            velocity = [None] * len(b)
+            if spacing is not None and positions is not None:
+                xy = positions.at(b.indices, b.timestamps, interpolate=True)
+                velocity = _velocities(xy, last_xy, spacing)
+                last_xy = xy[-1:]
+            codes = cmap.encoder.encode(b.images)
+            places = np.empty(len(b), np.int64)
+            conf = np.empty(len(b))
+            states = []
+            relocated = []
+            for i in range(len(b)):
+                before = loc.n_reseeds_
+                fix = loc.update_code(codes[i], velocity[i])
+                places[i], conf[i] = fix.place, fix.confidence
+                states.append(fix.state)
+                relocated.append(int(loc.n_reseeds_ > before))
+            right = None
+            if args.ground_truth is not None:
+                can, judge = _truth(args, cmap, b, gt_positions, lookup)
+                right = judge(places)
+                rights.append(right)
+                matchable.append(can)
+            for i in range(len(b)):
+                row = {
+                    "frame": int(b.indices[i]),
+                    "timestamp": float(b.timestamps[i]),
+                    "place": int(places[i]),
+                    "confidence": float(conf[i]),
+                    "state": states[i],
+                    "relocated": relocated[i],
+                }
+                if cmap.positions is not None:
+                    row["x"], row["y"] = (float(v) for v in cmap.positions[places[i]])
+                if right is not None:
+                    row["correct"] = int(right[i])
+                if out is not None:
+                    out.write(row)
+            confidences.append(conf)
+            n_frames += len(b)
+            n_localized += sum(s == "localized" for s in states)
+            bar.update(len(b))
+        if n_frames == 0:  # inside the with: no output file is left behind
+            raise RecordingError(f"{source.describe()}: --every {args.every} keeps no frame")
+    elapsed = time.perf_counter() - t0
+    index = "multi-index hashing" if args.index == "mih" else "exact scan"
+    print(
+        f"compact map ({cmap.n_places} places, {cmap.large_map.n_bits} bits, opened in "
+        f"{open_s:.3f} s, relocation by {index}): {n_frames} frames of {source.describe()} "
+        f"(every {args.every or 1}): {n_frames / elapsed:.1f} frames/s, median confidence "
+        f"{float(np.median(np.concatenate(confidences))):.4g}, localized "
+        f"{100 * n_localized / n_frames:.1f}% of frames, {loc.n_reseeds_} re-seeds, "
+        f"{loc.n_searches_} codes searched"
+    )
+    if note is not None:
+        print(note)
+    if args.ground_truth is not None:
+        can = np.concatenate(matchable)
+        if not can.any():
+            raise ValueError(f"--ground-truth {args.ground_truth}: no frame has a true place")
+        r = evaluate_answers(np.concatenate(confidences), np.concatenate(rights), can)
+        rule = (
+            f"frames within {args.tolerance}"
+            if args.ground_truth == "frames"
+            else f"{args.ground_truth} within {args.radius:g} m"
+        )
+        print(
+            f"ground truth ({rule}): AUC {r['auc']:.4f}, R@1 {r['recall_at_1']:.4f}, "
+            f"R@100%P {r['recall_at_100_precision']:.4f} over {r['n_query']} frames"
+        )
+    if args.out is not None:
+        print(f"wrote {args.out}")
+    return 0

@@ -1,0 +1,384 @@
+"""Compact maps of a recording: ``flyvpr map --compact`` and ``flyvpr localize`` against one."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+import flyvpr._chunks
+from flyvpr.cli import main
+from flyvpr.large import CompactEncoder, LargeLocalizer, MapFileError, write_large_map
+from flyvpr.large.recording import (
+    build_compact_map,
+    compact_localizer,
+    index_path,
+    is_compact_map,
+    open_compact_map,
+)
+from flyvpr.metrics import evaluate, evaluate_answers
+
+N = 120
+
+
+@pytest.fixture(scope="module")
+def route(nordland_64x32, tmp_path_factory):
+    """The first N summer (map) and winter (query) frames, each in a folder of its own, and
+    positions 2 m apart for both."""
+    root = tmp_path_factory.mktemp("route")
+    out = {}
+    for season in ("summer", "winter"):
+        folder = root / season
+        folder.mkdir()
+        for path in sorted((nordland_64x32 / season).glob("*.png"))[:N]:
+            shutil.copy(path, folder / path.name)
+        out[season] = folder
+    xy = root / "xy.csv"
+    xy.write_text("frame,x,y\n" + "".join(f"{i},{2.0 * i},5\n" for i in range(N)))
+    out["xy"] = xy
+    return out
+
+
+@pytest.fixture(scope="module")
+def frames(route):
+    from flyvpr.images import list_images, load_images
+
+    return {s: load_images(list_images(route[s]), progress=False) for s in ("summer", "winter")}
+
+
+@pytest.fixture(scope="module")
+def built(route, tmp_path_factory):
+    path = tmp_path_factory.mktemp("maps") / "summer.fvmap"
+    build_compact_map(route["summer"], path, positions=route["xy"], index="mih")
+    return path
+
+
+def _run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+# -- the library -------------------------------------------------------------------------------
+def test_the_map_holds_the_encoders_codes_and_the_recordings_places(built, frames):
+    cmap = open_compact_map(built)
+    direct = CompactEncoder(random_state=0).fit(frames["summer"])
+    np.testing.assert_array_equal(cmap.large_map.codes, direct.encode(frames["summer"]))
+    q = frames["winter"][:7]
+    np.testing.assert_array_equal(cmap.encoder.encode(q), direct.encode(q))
+    np.testing.assert_array_equal(cmap.encoder.score(q), direct.score(q))
+    np.testing.assert_array_equal(cmap.frames, np.arange(N))
+    assert np.isnan(cmap.timestamps).all() and cmap.timestamps.dtype == np.float64
+    np.testing.assert_array_equal(cmap.positions, np.c_[2.0 * np.arange(N), np.full(N, 5.0)])
+    assert cmap.place_spacing == 2.0 and cmap.size == (32, 64) and cmap.n_places == N
+    assert cmap.info["fit_frames"] == N and cmap.info["seed"] == 0
+    assert cmap.info["source_kind"] == "image folder" and cmap.info["every"] == "1"
+    assert cmap.info["positions_from"] is not None and is_compact_map(built)
+    assert index_path(built).exists()
+
+
+def test_a_long_recording_fits_the_encoder_on_an_evenly_spaced_sample(route, frames, tmp_path):
+    # 120 frames, at most 50: the stride doubles to 4 (120 -> 60 -> 30 frames)
+    cmap = build_compact_map(route["summer"], tmp_path / "m.fvmap", fit_frames=50, n_bits=128)
+    direct = CompactEncoder(n_bits=128, random_state=0).fit(frames["summer"][::4])
+    np.testing.assert_array_equal(cmap.encoder.projection_, direct.projection_)
+    np.testing.assert_array_equal(cmap.large_map.codes, direct.encode(frames["summer"]))
+    assert cmap.info["fit_frames"] == 30 and cmap.large_map.n_bits == 128
+    # at most 60: stride 2
+    cmap = build_compact_map(route["summer"], tmp_path / "n.fvmap", fit_frames=60, every=2)
+    assert cmap.info["fit_frames"] == 60 and cmap.n_places == 60
+    np.testing.assert_array_equal(cmap.frames, np.arange(0, N, 2))
+
+
+@pytest.fixture
+def small_chunks(monkeypatch):
+    # 120 frames in chunks of 50 (batches of 16 chunks): three chunks, the last one short
+    monkeypatch.setattr(flyvpr._chunks, "CHUNK", 50)
+
+
+def test_jobs_write_the_one_process_file_byte_for_byte(route, tmp_path, small_chunks):
+    one = build_compact_map(route["summer"], tmp_path / "one.fvmap", positions=route["xy"])
+    two = build_compact_map(
+        route["summer"], tmp_path / "two.fvmap", positions=route["xy"], n_jobs=2
+    )
+    assert one.path.read_bytes() == two.path.read_bytes()
+    assert one.large_map.map_id == two.large_map.map_id
+
+
+def test_a_dask_cluster_writes_the_one_process_file_byte_for_byte(route, tmp_path, small_chunks):
+    distributed = pytest.importorskip("distributed")
+    one = build_compact_map(route["summer"], tmp_path / "one.fvmap")
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        two = build_compact_map(route["summer"], tmp_path / "two.fvmap", scheduler=client)
+    assert one.path.read_bytes() == two.path.read_bytes()
+
+
+def test_the_localizer_tracks_the_winter_frames(built, frames):
+    loc = compact_localizer(open_compact_map(built), window=64)
+    assert isinstance(loc, LargeLocalizer) and loc.n_places == N
+    fixes = [loc.update(image) for image in frames["winter"]]
+    right = np.array([abs(f.place - i) <= 2 for i, f in enumerate(fixes)])
+    assert right[40:].mean() > 0.9
+    assert any(f.state == "localized" for f in fixes[40:])
+
+
+def test_mih_reads_the_maps_index_file_and_builds_one_without_it(built, monkeypatch, tmp_path):
+    from flyvpr.large import MultiIndexHash
+
+    cmap = open_compact_map(built)
+
+    def no_build(self, codes):
+        raise AssertionError("built")
+
+    monkeypatch.setattr(MultiIndexHash, "build", no_build)
+    loc = compact_localizer(cmap, index="mih")
+    assert isinstance(loc.index, MultiIndexHash) and isinstance(loc.index.places_, np.memmap)
+    monkeypatch.undo()
+    copy = tmp_path / "copy.fvmap"
+    shutil.copy(built, copy)  # no .mih beside it
+    loc = compact_localizer(open_compact_map(copy), index="mih")
+    assert isinstance(loc.index, MultiIndexHash) and not isinstance(loc.index.places_, np.memmap)
+    with pytest.raises(ValueError, match="index must be 'exhaustive' or 'mih'; got 'faiss'"):
+        compact_localizer(cmap, index="faiss")
+
+
+def test_a_map_without_an_encoder_is_refused(tmp_path):
+    path = write_large_map(tmp_path / "bare.fvmap", np.zeros((4, 32), np.uint8))
+    with pytest.raises(MapFileError, match="bare.fvmap: a map of compact codes without an encoder"):
+        open_compact_map(path)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda s, a: s.pop("image_shape"), "exactly params and image_shape"),
+        (lambda s, a: s["params"].pop("pool_size"), "params must be exactly"),
+        (lambda s, a: s.update(image_shape=[32, 0]), "two positive integers"),
+        (lambda s, a: s["params"].update(n_bits=100), "multiple of 64"),
+        (lambda s, a: s["params"].update(wavelength="6"), "wavelength must be a number"),
+        (lambda s, a: a.update(valid_pixels=a["valid_pixels"] * 2), "valid_pixels must be"),
+        (lambda s, a: a.update(valid_pixels=a["valid_pixels"] * 0), "no valid pixel"),
+        (lambda s, a: a.update(feature_mean=a["feature_mean"][:-1]), "feature_mean must be"),
+        (lambda s, a: a["projection"].__setitem__((0, 0), np.nan), "projection must be finite"),
+        (lambda s, a: a.update(projection=a["projection"].astype(np.float64)), "projection must"),
+    ],
+)
+def test_a_saved_encoder_that_does_not_fit_is_refused(frames, change, message):
+    enc = CompactEncoder(random_state=0).fit(frames["summer"][:20])
+    settings, arrays = enc.state()
+    settings = json.loads(json.dumps(settings))
+    arrays = {k: v.copy() for k, v in arrays.items()}
+    change(settings, arrays)
+    with pytest.raises(ValueError, match=message):
+        CompactEncoder.from_state(settings, arrays, enc.reference_codes_)
+
+
+def test_reference_codes_of_another_width_are_refused(frames):
+    enc = CompactEncoder(random_state=0).fit(frames["summer"][:20])
+    settings, arrays = enc.state()
+    with pytest.raises(ValueError, match=r"reference codes must be uint8 of shape \(n, 32\)"):
+        CompactEncoder.from_state(settings, arrays, enc.reference_codes_[:, :16])
+    back = CompactEncoder.from_state(settings, arrays, enc.reference_codes_)
+    assert back.n_reference_ == 20 and back.image_shape_ == (32, 64)
+
+
+@pytest.mark.parametrize("fit_frames", [1, 0])
+def test_bad_build_parameters(route, tmp_path, fit_frames):
+    with pytest.raises(ValueError, match=f"fit_frames must be >= 2; got {fit_frames}"):
+        build_compact_map(route["summer"], tmp_path / "m.fvmap", fit_frames=fit_frames)
+    with pytest.raises(ValueError, match="index must be None or 'mih'; got 'hnsw'"):
+        build_compact_map(route["summer"], tmp_path / "m.fvmap", index="hnsw")
+    with pytest.raises(ValueError, match="n_bits must be a multiple of 64"):
+        build_compact_map(route["summer"], tmp_path / "m.fvmap", n_bits=100)
+    assert not list(tmp_path.iterdir())
+
+
+# -- metrics from answers ----------------------------------------------------------------------
+def test_evaluate_answers_equals_evaluate_on_the_answers_matrix():
+    rng = np.random.default_rng(0)
+    n, places = 200, 50
+    answer = rng.integers(0, places, n)
+    conf = rng.random(n).round(2)  # ties too
+    truth = rng.integers(0, places, n)
+    gt = np.abs(np.arange(places)[None, :] - truth[:, None]) <= 2
+    gt[:10] = False  # queries without a match
+    S = np.full((n, places), -1.0)
+    S[np.arange(n), answer] = conf
+    a = evaluate(S, gt, ks=(1,))
+    b = evaluate_answers(conf, gt[np.arange(n), answer], gt.any(axis=1))
+    for key in ("auc", "recall_at_1", "recall_at_100_precision", "extended_precision"):
+        assert b[key] == pytest.approx(a[key], abs=1e-12), key
+    assert b["n_query"] == n and b["n_query_with_match"] == a["n_query_with_match"] == n - 10
+
+
+def test_evaluate_answers_refusals():
+    with pytest.raises(ValueError, match="1-d of one length"):
+        evaluate_answers([0.5, 0.4], [True], [True, True])
+    with pytest.raises(ValueError, match="must be bool"):
+        evaluate_answers([0.5], [1], [True])
+    with pytest.raises(ValueError, match="confidence must be finite"):
+        evaluate_answers([np.nan], [True], [True])
+    with pytest.raises(ValueError, match="correct is True for a query whose has_match is False"):
+        evaluate_answers([0.5], [True], [False])
+    with pytest.raises(ValueError, match="has_match is False for every query"):
+        evaluate_answers([0.5], [False], [False])
+
+
+# -- the command line --------------------------------------------------------------------------
+def test_map_then_localize_from_the_command_line(route, tmp_path, capsys):
+    path = tmp_path / "s.fvmap"
+    code, out, err = _run(capsys, "map", route["summer"], "--out", path, "--compact", "--mih")
+    assert code == 0, err
+    assert out.startswith(f"compact map of {N} places (256 bits, ")
+    assert "encoder fitted on 120 frames, seed 0" in out and "without positions" in out
+    assert f"wrote {path}\nwrote {path.with_suffix('.mih')}\n" in out
+    records = tmp_path / "r.csv"
+    code, out, err = _run(
+        capsys, "localize", "--map", path, route["winter"], "--out", records,
+        "--ground-truth", "frames", "--tolerance", "2", "--index", "mih",
+    )  # fmt: skip
+    assert code == 0, err
+    assert f"compact map ({N} places, 256 bits, opened in " in out
+    assert "relocation by multi-index hashing" in out and f"{N} frames of image folder" in out
+    with open(records, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    columns = ["frame", "timestamp", "place", "confidence", "state", "relocated", "correct"]
+    assert list(rows[0]) == columns
+    assert [int(r["frame"]) for r in rows] == list(range(N))
+    correct = np.array([r["correct"] == "1" for r in rows])
+    np.testing.assert_array_equal(
+        correct, [abs(int(r["place"]) - int(r["frame"])) <= 2 for r in rows]
+    )
+    assert {r["state"] for r in rows} == {"localized", "lost"}
+    assert sum(int(r["relocated"]) for r in rows) >= 1
+    conf = np.array([float(r["confidence"]) for r in rows])
+    expected = evaluate_answers(conf, correct, np.ones(N, bool))
+    auc = float(re.search(r"AUC (\d\.\d+)", out).group(1))
+    assert auc == round(expected["auc"], 4) and correct[40:].mean() > 0.9
+    localized = float(re.search(r"localized (\d+\.\d)% of frames", out).group(1))
+    assert localized == round(100 * np.mean([r["state"] == "localized" for r in rows]), 1)
+
+
+def test_localize_records_the_maps_positions_and_drives_odometry(
+    built, route, tmp_path, capsys, monkeypatch
+):
+    seen = []
+    real = LargeLocalizer.update_code
+
+    def spy(self, code, velocity=None):
+        seen.append(velocity)
+        return real(self, code, velocity)
+
+    monkeypatch.setattr(LargeLocalizer, "update_code", spy)
+    query_xy = tmp_path / "q.csv"  # 3 m per frame from frame 4 on: 1.5 places per frame
+    query_xy.write_text("frame,x,y\n" + "".join(f"{i},{3.0 * i},0\n" for i in range(4, N)))
+    records = tmp_path / "r.jsonl"
+    code, out, err = _run(
+        capsys, "localize", "--map", built, route["winter"], "--positions", query_xy,
+        "--out", records,
+    )  # fmt: skip
+    assert code == 0, err
+    assert f"\nodometry: path integration from --positions {query_xy} (map spacing 2 m per " in out
+    assert seen == [None] * 5 + [1.5] * (N - 5)
+    rows = [json.loads(line) for line in records.read_text().splitlines()]
+    assert len(rows) == N and set(rows[0]) >= {"x", "y", "place", "state", "confidence"}
+    assert all(r["x"] == 2.0 * r["place"] and r["y"] == 5.0 for r in rows)
+    seen.clear()
+    code, out, err = _run(
+        capsys, "localize", "--map", built, route["winter"], "--positions", query_xy,
+        "--no-odometry", "--every", "2",
+    )  # fmt: skip
+    assert code == 0, err
+    assert "\nodometry: off (--no-odometry)\n" in out and seen == [None] * (N // 2)
+
+
+def test_ground_truth_by_positions(built, route, capsys):
+    code, out, err = _run(
+        capsys, "localize", "--map", built, route["winter"], "--ground-truth", route["xy"],
+        "--radius", "4",
+    )  # fmt: skip
+    assert code == 0, err
+    by_position = float(re.search(r"within 4 m\): AUC (\d\.\d+)", out).group(1))
+    code, out, err = _run(
+        capsys, "localize", "--map", built, route["winter"], "--ground-truth", "frames",
+        "--tolerance", "2",
+    )  # fmt: skip
+    assert code == 0, err
+    assert by_position == float(re.search(r"within 2\): AUC (\d\.\d+)", out).group(1))
+
+
+def test_odometry_off_when_the_map_has_no_positions(route, tmp_path, capsys):
+    path = tmp_path / "bare.fvmap"
+    assert _run(capsys, "map", route["summer"], "--out", path, "--compact", "-q")[0] == 0
+    code, out, err = _run(
+        capsys, "localize", "--map", path, route["winter"], "--positions", route["xy"]
+    )
+    assert code == 0, err
+    assert (
+        f"odometry: off, the map has no positions to turn the metres of --positions "
+        f"{route['xy']} into places (build it with --positions or --position-topic)"
+    ) in out
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["map", "{summer}", "--out", "{tmp}/m.fvmap", "--bits", "128"], "--bits needs --compact"),
+        (["map", "{summer}", "--out", "{tmp}/m.map", "--mih"], "--mih needs --compact"),
+        (["map", "{summer}", "--out", "{tmp}/m.fvmap", "--compact", "--method", "pixels"],
+         "--method: a compact map has its own encoder"),
+        (["map", "{summer}", "--out", "{tmp}/m.fvmap", "--compact", "--fit-frames", "1"],
+         "--fit-frames: must be >= 2; got 1"),
+        (["map", "{summer}", "--out", "{summer}", "--compact"], "--out"),
+        (["localize", "--map", "{map}", "{winter}", "--render", "{tmp}/t.html"],
+         "--render: not with a compact map"),
+        (["localize", "--map", "{map}", "{winter}", "--size", "16x32"],
+         "--size: a compact map fixes the image size"),
+        (["localize", "--map", "{map}", "{winter}", "--calibration", "{tmp}/c.json"],
+         "--calibration: not with a compact map"),
+        (["localize", "--map", "{map}", "rtsp://example.invalid/stream"],
+         "a compact map .* localizes recordings"),
+        (["localize", "--map", "{map}", "{winter}", "--out", "{map}"], "--out"),
+        (["localize", "--map", "{map}", "{winter}", "--ground-truth", "frames"],
+         "needs --tolerance"),
+        (["localize", "--dataset", "nordland", "--index", "mih"], "--index needs --map"),
+    ],
+)  # fmt: skip
+def test_usage_errors_exit_2_and_write_nothing(built, route, tmp_path, capsys, argv, message):
+    subs = {"summer": route["summer"], "winter": route["winter"], "tmp": tmp_path, "map": built}
+    before = sorted(p.name for p in tmp_path.iterdir())
+    code, out, err = _run(capsys, *[a.format(**subs) for a in argv])
+    assert code == 2 and re.search(message, err), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_index_with_a_map_that_is_not_compact(route, tmp_path, capsys):
+    path = tmp_path / "plain.map"
+    assert _run(capsys, "map", route["summer"], "--out", path, "--method", "pixels", "-q")[0] == 0
+    code, out, err = _run(capsys, "localize", "--map", path, route["winter"], "--index", "mih")
+    assert code == 2 and "--index: only with a compact map" in err
+
+
+def test_a_corrupt_or_foreign_map_exits_1_and_writes_nothing(built, route, tmp_path, capsys):
+    cut = tmp_path / "cut.fvmap"
+    cut.write_bytes(built.read_bytes()[:-100])
+    bare = write_large_map(tmp_path / "bare.fvmap", np.zeros((4, 32), np.uint8))
+    for path, message in ((cut, "truncated or corrupt"), (bare, "without an encoder")):
+        out_file = tmp_path / "r.csv"
+        code, out, err = _run(capsys, "localize", "--map", path, route["winter"], "--out", out_file)
+        assert code == 1 and str(path) in err and message in err, err
+        assert not out_file.exists()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    code, out, err = _run(capsys, "map", empty, "--out", tmp_path / "e.fvmap", "--compact")
+    assert code == 1 and str(empty) in err, err
+    assert not (tmp_path / "e.fvmap").exists()
