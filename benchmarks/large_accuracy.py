@@ -16,8 +16,9 @@ Protocol (written into the JSON):
 * **Whole map**: the CANN (defaults) over every frame's Hamming similarity to all 35,768
   places.  **Windowed**: :class:`flyvpr.large.LargeLocalizer` (window 2,048, multi-index
   hashing or, with ``--index exhaustive``, an exact scan; top 300, pooled over 10 frames;
-  the layer a re-seed displaces held for up to 30 frames while neither is localized; a lost
-  guess also scores every place's track, the map being under 2^20 places: the defaults),
+  a displaced layer that had been localized held for up to 30 frames while neither is
+  localized; a guess giving way to any better track; a lost guess also scoring every place's
+  track, the map being under 2^20 places: the defaults),
   one frame at a time from a fresh start: its answer
   and confidence per frame.  AUC of the precision-recall curve from each frame's answer and
   confidence (:func:`flyvpr.metrics.evaluate`).

@@ -26,9 +26,11 @@ Protocol:
   lost stretch searched at its 4th frame, then 4 frames after a re-seed or twice as late
   after a search that did not re-seed, each search sending the index at most 4 new codes
   for their top 300; the candidates of the stretch's last 10 frames pooled; a check every
-  1000 frames; the layer a lost re-seed displaces held beside the new one for at most 30
-  frames while neither is localized, the more confident answering; on maps of at most 2^20
-  places a lost guess also scores every place's track; the CANN's defaults).
+  1000 frames; a layer a lost re-seed displaces, if it had been localized since its seed,
+  held beside the new one for at most 30 frames while neither is localized, the more
+  confident answering; a guess, never localized since its seed, giving way to any better
+  track; on maps of at most 2^20 places a lost guess also scores every place's track; the
+  CANN's defaults).
   The frame at map place ``p`` is winter frame ``p mod 2400`` seen on tile ``p // 2400``
   (:func:`flyvpr.large.tile_queries`); its true place is ``p``.  Each frame is encoded from
   its pixels, then given to ``update_code``.
@@ -315,9 +317,10 @@ def protocol(args, index: str) -> dict:
         f"searched at its {RESEED_AFTER}th frame, then {RESEED_AFTER} frames after a re-seed or "
         f"twice as late after a search without one, each search sending at most {RESEED_AFTER} "
         f"new codes for the index's top {K}, the candidates of the stretch's last {POOL} frames "
-        f"pooled; the layer a lost re-seed displaces held for at most {HOLD} frames while "
-        "neither is localized, the more confident answering; a layer never localized since "
-        f"its seed searched every {RESEED_AFTER} frames, and on maps of at most "
+        f"pooled; a layer a lost re-seed displaces, if it had been localized since its seed, "
+        f"held for at most {HOLD} frames while neither is localized, the more confident "
+        "answering; a layer never localized since its seed (a guess) giving way to any better "
+        f"track and searched every {RESEED_AFTER} frames, and on maps of at most "
         f"{FULL_SEARCH_PLACES} places every place's track scored too; a check every "
         f"{CHECK_EVERY} frames",
         "lock_frames": f"frames from a cold start at a random place until the fix is "
