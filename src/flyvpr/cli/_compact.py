@@ -17,6 +17,7 @@ import numpy as np
 
 from ._common import UsageError, check_outputs, flag
 from ._records import open_records
+from ._stream import odometry_note
 from .map import recording_inputs
 
 #: ``flyvpr localize`` options a compact map does not take (what they need: score rows over
@@ -86,14 +87,6 @@ def cmd_map_compact(args) -> int:
     return 0
 
 
-def _velocities(xy: np.ndarray, last: np.ndarray, spacing: float) -> list:
-    """Places moved since the previous kept frame, from the recording's positions (None where
-    either position is unknown)."""
-    moved = xy - np.concatenate([last, xy[:-1]])
-    dist = np.hypot(moved[:, 0], moved[:, 1]) / spacing
-    return [float(d) if np.isfinite(d) else None for d in dist]
-
-
 def _truth(args, cmap, b, gt_positions, lookup):
     """(whether each frame's answer can be right at all, a function of the answers);
     ``lookup``: the map's frame numbers sorted, or a KD-tree of its positions."""
@@ -121,6 +114,7 @@ def cmd_localize_compact(args) -> int:
     from tqdm.auto import tqdm
 
     from ..large.recording import compact_localizer, open_compact_map
+    from ..localization.tracking import distances_moved
     from ..metrics import evaluate_answers
     from ..sources import RecordingError, open_source, read_positions
 
@@ -158,25 +152,8 @@ def cmd_localize_compact(args) -> int:
         gt_positions = read_positions(args.ground_truth)
         known = np.isfinite(cmap.positions).all(axis=1)
         lookup = cKDTree(np.asarray(cmap.positions)[known])
-    spacing, note = None, None  # metres per place, when odometry drives the filter
-    if positions is not None:
-        where = (
-            f"--positions {args.positions}"
-            if args.positions is not None
-            else f"--position-topic {args.position_topic}"
-        )
-        if args.no_odometry:
-            note = "odometry: off (--no-odometry)"
-        elif cmap.place_spacing is None:
-            note = (
-                f"odometry: off, the map has no positions to turn the metres of {where} into "
-                "places (build it with --positions or --position-topic)"
-            )
-        else:
-            spacing = cmap.place_spacing
-            note = (
-                f"odometry: path integration from {where} (map spacing {spacing:.3g} m per place)"
-            )
+    spacing = cmap.place_spacing
+    odometry, note = odometry_note(args, positions, cmap.positions is not None, spacing)
     columns = ["frame", "timestamp", "place", "confidence", "state", "relocated"]
     if cmap.positions is not None:
         columns += ["x", "y"]
@@ -201,11 +178,10 @@ def cmd_localize_compact(args) -> int:
     )
     with records as out, tqdm(desc="localizing", unit="frame", disable=not show) as bar:
         for b in source.batches(cmap.size, every=args.every, positions=positions):
-            velocity = [None] * len(b)
-            if spacing is not None and positions is not None:
-                xy = positions.at(b.indices, b.timestamps, interpolate=True)
-                velocity = _velocities(xy, last_xy, spacing)
-                last_xy = xy[-1:]
+            velocity: list = [None] * len(b)
+            if odometry and positions is not None and spacing is not None:
+                moved, last_xy = distances_moved(positions, b, last_xy)
+                velocity = [float(d) if np.isfinite(d) else None for d in moved / spacing]
             codes = cmap.encoder.encode(b.images)
             places = np.empty(len(b), np.int64)
             conf = np.empty(len(b))

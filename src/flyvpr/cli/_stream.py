@@ -32,8 +32,15 @@ def _ground_truth(args, m, step, gt_positions):
     return ground_truth_positions(xy, m.positions, args.radius)
 
 
-def _odometry(args, loc, positions) -> tuple[bool, str | None]:
-    """Whether to integrate the recording's motion, and the summary's line about it."""
+def odometry_note(
+    args, positions, map_positions: bool, spacing, takes_it: bool = True, name: str = ""
+) -> tuple[bool, str | None]:
+    """Whether to integrate the recording's motion, and the summary's line about it.
+
+    ``map_positions``: whether the map has positions; ``spacing``: its metres per place (None
+    where they give none); ``takes_it``: whether the map's filter takes odometry (``name``:
+    its method, for the line that says it does not).
+    """
     if positions is None:
         return False, None
     if args.no_odometry:
@@ -43,18 +50,16 @@ def _odometry(args, loc, positions) -> tuple[bool, str | None]:
         if args.positions is not None
         else f"--position-topic {args.position_topic}"
     )
-    if not loc.map_.has_positions:
+    if not map_positions:
         return False, (
             f"odometry: off, the map has no positions to turn the metres of {where} into places "
             "(build it with --positions or --position-topic)"
         )
-    if loc.place_spacing is None:
+    if spacing is None:
         return False, "odometry: off, the map's positions give no spacing between places"
-    if not loc.uses_odometry:
-        return False, f"odometry: off, {loc.map_.method.name} has no filter that takes it"
-    return True, (
-        f"odometry: path integration from {where} (map spacing {loc.place_spacing:.3g} m per place)"
-    )
+    if not takes_it:
+        return False, f"odometry: off, {name} has no filter that takes it"
+    return True, f"odometry: path integration from {where} (map spacing {spacing:.3g} m per place)"
 
 
 def cmd_localize_recording(args) -> int:
@@ -103,7 +108,9 @@ def cmd_localize_recording(args) -> int:
     gt_positions = None
     if args.ground_truth not in (None, "frames"):
         gt_positions = read_positions(args.ground_truth)
-    odometry, odometry_note = _odometry(args, loc, positions)
+    odometry, note = odometry_note(
+        args, positions, m.has_positions, loc.place_spacing, loc.uses_odometry, m.method.name
+    )
     columns = ["frame", "timestamp", "place", "confidence", "state", "relocated"]
     if m.has_positions:
         columns += ["x", "y"]
@@ -183,8 +190,8 @@ def cmd_localize_recording(args) -> int:
         f"median confidence {float(np.median(conf)):.4g}, localized "
         f"{100 * n_localized / n_frames:.1f}% of frames, {n_reloc} relocations"
     )
-    if odometry_note is not None:
-        print(odometry_note)
+    if note is not None:
+        print(note)
     if args.ground_truth is not None:
         _print_scores(args, np.concatenate(scores), np.concatenate(truth))
     if args.fit_calibration is not None:

@@ -19,7 +19,13 @@ import numpy as np
 from ..datasets import ground_truth_from_frames, ground_truth_from_positions
 from ..sources import Batch, Source
 
-__all__ = ["Step", "track", "ground_truth_frames", "ground_truth_positions"]
+__all__ = [
+    "Step",
+    "track",
+    "distances_moved",
+    "ground_truth_frames",
+    "ground_truth_positions",
+]
 
 
 @dataclass
@@ -102,10 +108,7 @@ def track(
                 time.sleep(delay)
         distances = None
         if odometry:
-            xy = positions.at(b.indices, b.timestamps, interpolate=True)
-            moved = xy - np.concatenate([last_xy, xy[:-1]])
-            distances = np.hypot(moved[:, 0], moved[:, 1])  # NaN where a position is unknown
-            last_xy = xy[-1:]
+            distances, last_xy = distances_moved(positions, b, last_xy)
         fixes = localizer.update_batch(b.images, distances=distances)
         xy = None
         if m is not None and m.positions is not None:
@@ -113,6 +116,16 @@ def track(
         yield Step(
             b, fixes.places, fixes.confidences, fixes.scores, fixes.relocated, fixes.states, xy
         )
+
+
+def distances_moved(positions, batch: Batch, last_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Metres each frame of ``batch`` moved since the previous kept frame, from the
+    recording's ``positions`` (interpolated between their rows; NaN where either position is
+    unknown), and the batch's last position (the next call's ``last_xy``, shape (1, 2); all
+    NaN before the first frame)."""
+    xy = positions.at(batch.indices, batch.timestamps, interpolate=True)
+    moved = xy - np.concatenate([last_xy, xy[:-1]])
+    return np.hypot(moved[:, 0], moved[:, 1]), xy[-1:]
 
 
 def ground_truth_frames(query_index, reference_index, tolerance: int) -> np.ndarray:
