@@ -486,15 +486,10 @@ def test_tracks_at_the_ends_of_the_map(frames, candidate, end, speed):
     np.testing.assert_allclose(scores[0], ref[0], atol=1e-6)
 
 
-def test_a_replay_seeds_the_tracks_starts_weighted_by_their_scores(monkeypatch):
+def _spy_on_reseeds(monkeypatch) -> list:
+    """The (places, weights) of every WindowedCANN.reseed from now on, in a list."""
     from flyvpr.temporal.cann import WindowedCANN
 
-    codes = _map(n=3000, n_bytes=8)
-    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=128)
-    rng = np.random.default_rng(8)
-    for p in 1000 + np.arange(6):
-        loc._recent.append(_query(codes, int(p), rng, flip=0.2))
-        loc._velocities.append(None)
     seeded = []
     real = WindowedCANN.reseed
 
@@ -503,6 +498,18 @@ def test_a_replay_seeds_the_tracks_starts_weighted_by_their_scores(monkeypatch):
         return real(self, places, weights)
 
     monkeypatch.setattr(WindowedCANN, "reseed", spy)
+    return seeded
+
+
+def test_a_replay_seeds_the_tracks_starts_weighted_by_their_scores(monkeypatch):
+
+    codes = _map(n=3000, n_bytes=8)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=128)
+    rng = np.random.default_rng(8)
+    for p in 1000 + np.arange(6):
+        loc._recent.append(_query(codes, int(p), rng, flip=0.2))
+        loc._velocities.append(None)
+    seeded = _spy_on_reseeds(monkeypatch)
     ends = np.array([1005, 20, 2999])
     tracks = np.array([0.30, 0.25, 0.10])
     speeds = np.array([1.0, 2.0, 0.5])
@@ -940,14 +947,7 @@ def _scored_search(monkeypatch, proven, held_proven, lead):
 
     monkeypatch.setattr(loc, "_candidates", lambda n: np.array([705]))
     monkeypatch.setattr(loc, "_track_scores", scores)
-    seeded = []
-    real = WindowedCANN.reseed
-
-    def spy(self, places, weights=None):
-        seeded.append((np.array(places), np.array(weights)))
-        return real(self, places, weights)
-
-    monkeypatch.setattr(WindowedCANN, "reseed", spy)
+    seeded = _spy_on_reseeds(monkeypatch)
     return loc._reseed_lost(6), seeded, loc
 
 
