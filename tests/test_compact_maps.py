@@ -199,6 +199,8 @@ def test_bad_build_parameters(route, tmp_path, fit_frames):
         build_compact_map(route["summer"], tmp_path / "m.fvmap", index="hnsw")
     with pytest.raises(ValueError, match="n_bits must be a multiple of 64"):
         build_compact_map(route["summer"], tmp_path / "m.fvmap", n_bits=100)
+    with pytest.raises(ValueError, match=r"fit_frames=10000000000000 \(a sample of 32x64"):
+        build_compact_map(route["summer"], tmp_path / "m.fvmap", fit_frames=10**13)
     assert not list(tmp_path.iterdir())
 
 

@@ -35,6 +35,7 @@ import numpy as np
 
 from .. import _chunks
 from .._chunks import ChunkRunner
+from .._validation import check_memory
 from .._version import __version__
 from ..images import DEFAULT_SIZE
 from ..sources import Positions, RecordingError, Source, open_source, parse_every, read_positions
@@ -243,6 +244,12 @@ def build_compact_map(
         raise ValueError(f"index must be None or 'mih'; got {index!r}")
     encoder = CompactEncoder(n_bits=n_bits, random_state=random_state)
     encoder._check_params()
+    h, w = size
+    # the sample, its optic-lobe features (about as large) and a batch of frames
+    check_memory(
+        (2 * int(fit_frames) + _batch()) * int(h) * int(w) * 4,
+        f"fit_frames={fit_frames} (a sample of {h}x{w} frames to fit the encoder on)",
+    )
     runner = ChunkRunner(n_jobs, scheduler)
     src = source if isinstance(source, Source) else open_source(source, topic=topic)
     every = parse_every(every)
