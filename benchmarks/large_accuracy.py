@@ -22,6 +22,10 @@ Protocol (written into the JSON):
   one frame at a time from a fresh start: its answer
   and confidence per frame.  AUC of the precision-recall curve from each frame's answer and
   confidence (:func:`flyvpr.metrics.evaluate`).
+* **Calibration** (``summary.calibration_tol2``): every frame's confidence against whether
+  its answer is within 2 places, pooled over the seeds and windows, in deciles
+  (:func:`flyvpr.metrics.reliability`), for both localizers; for the windowed one also its
+  ``lost`` frames' mean confidence and share right.
 """
 
 from __future__ import annotations
@@ -73,6 +77,9 @@ def run(data: Path, seeds, index_name: str = "mih", log=print) -> dict:
     summer, winter = load_frames(data)
     n_base = len(summer)
     rows = []
+    # every frame's confidence, whether it was right (within 2) and its state, for the
+    # reliability of each localizer's confidence
+    answers: dict[str, list] = {"windowed": [[], [], []], "whole_map": [[], [], []]}
     with tempfile.TemporaryDirectory() as tmp:
         for seed in seeds:
             enc = CompactEncoder(n_bits=N_BITS, random_state=seed).fit(summer)
@@ -97,6 +104,14 @@ def run(data: Path, seeds, index_name: str = "mih", log=print) -> dict:
                 places = np.array([f.place for f in fixes])
                 conf = np.array([f.confidence for f in fixes], np.float32)
                 windowed = _answers_matrix(places, conf, N_PLACES)
+                best = whole.argmax(axis=1)
+                for key, where, level, states in (
+                    ("windowed", places, conf, [f.state for f in fixes]),
+                    ("whole_map", best, whole[np.arange(len(q)), best], None),
+                ):
+                    answers[key][0] += np.asarray(level, np.float64).tolist()
+                    answers[key][1] += (np.abs(where - truth) <= TOLERANCES[0]).tolist()
+                    answers[key][2] += states or []
                 for tol in TOLERANCES:
                     gt = np.abs(np.arange(N_PLACES)[None, :] - truth[:, None]) <= tol
                     a = metrics.evaluate(whole, gt, ks=(1,))
@@ -132,6 +147,16 @@ def run(data: Path, seeds, index_name: str = "mih", log=print) -> dict:
             "windowed_auc_mean": float(np.mean([r["windowed_auc"] for r in sel])),
             "largest_drop": float(max(r["whole_map_auc"] - r["windowed_auc"] for r in sel)),
         }
+    calibration = {}
+    for key, (conf, right, states) in answers.items():
+        entry = {"reliability": metrics.reliability(np.array(conf), np.array(right, bool))}
+        if states:
+            lost = np.array(states) != "localized"
+            entry["lost_frames"] = int(lost.sum())
+            entry["lost_mean_confidence"] = float(np.mean(np.array(conf)[lost]))
+            entry["lost_right_share"] = float(np.mean(np.array(right)[lost]))
+        calibration[key] = entry
+    summary["calibration_tol2"] = calibration
     return {"rows": rows, "summary": summary}
 
 
@@ -151,6 +176,8 @@ def main(argv=None) -> int:
     out["protocol"] = __doc__.split("Protocol (written into the JSON):")[1].strip()
     out["command"] = ["large_accuracy.py", *(argv if argv is not None else sys.argv[1:])]
     for tol, s in out["summary"].items():
+        if not tol.startswith("tol"):
+            continue
         print(
             f"{tol}: whole-map AUC {s['whole_map_auc_mean']:.3f}, windowed "
             f"{s['windowed_auc_mean']:.3f}, largest drop {s['largest_drop']:+.3f}"

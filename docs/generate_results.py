@@ -442,6 +442,40 @@ def large_accuracy_table(mih: dict, exact: dict | None, tol: int = 20) -> str:
     return "\n".join(lines)
 
 
+def large_calibration_table(mih: dict, exact: dict | None) -> str:
+    """Reliability of each localizer's confidence at 35,768 places (tolerance 2): per decile
+    with answers, how many, their mean confidence and the share right; then the windowed
+    localizers' ``lost`` frames."""
+    runs = [("whole map", mih, "whole_map"), ("windowed, `mih`", mih, "windowed")]
+    if exact is not None:
+        runs.append(("windowed, exact scan", exact, "windowed"))
+    cal = [(name, data["summary"].get("calibration_tol2", {}).get(key)) for name, data, key in runs]
+    cal = [(name, c) for name, c in cal if c is not None]
+    if not cal:
+        return "(no calibration in these runs)"
+    bins = sorted({r["bin"] for _, c in cal for r in c["reliability"]})
+    head = "| confidence | " + " | ".join(f"{name}: answers, confidence, right" for name, _ in cal)
+    lines = [head + " |", "|---" * (len(cal) + 1) + "|"]
+    for b in bins:
+        cells = []
+        for _, c in cal:
+            r = next((r for r in c["reliability"] if r["bin"] == b), None)
+            cells.append(
+                "-" if r is None else f"{r['n']:,}, {r['confidence']:.2f}, {r['right']:.2f}"
+            )
+        lines.append(f"| {b} | " + " | ".join(cells) + " |")
+    lost = [(name, c) for name, c in cal if "lost_frames" in c]
+    if lost:
+        lines += ["", "| windowed localizer | `lost` frames | their mean confidence | right |"]
+        lines.append("|---|---|---|---|")
+        for name, c in lost:
+            lines.append(
+                f"| {name.removeprefix('windowed, ')} | {c['lost_frames']:,} "
+                f"| {c['lost_mean_confidence']:.2f} | {c['lost_right_share']:.2f} |"
+            )
+    return "\n".join(lines)
+
+
 def large_outputs() -> dict[Path, str]:
     """The large-maps guide with its generated tables, when the JSON files are there."""
     scale = ROOT / SCALE_JSON
@@ -450,12 +484,15 @@ def large_outputs() -> dict[Path, str]:
         return {}
     stream, kidnap = scale_tables(json.loads(scale.read_text()))
     exact = json.loads(acc[1].read_text()) if acc[1].is_file() else None
-    accuracy = large_accuracy_table(json.loads(acc[0].read_text()), exact)
+    mih = json.loads(acc[0].read_text())
+    accuracy = large_accuracy_table(mih, exact)
+    calibration = large_calibration_table(mih, exact)
     text = LARGE_FILE.read_text()
     for name, source, table in (
         ("scale-stream", SCALE_JSON, stream),
         ("scale-kidnap", SCALE_JSON, kidnap),
         ("large-accuracy", " and ".join(LARGE_ACCURACY_JSONS), accuracy),
+        ("large-calibration", " and ".join(LARGE_ACCURACY_JSONS), calibration),
     ):
         begin, end = _markers(name, source)
         if begin not in text or end not in text:

@@ -236,3 +236,38 @@ def test_scale_kidnap_table_gives_the_trials_and_the_interval(gen):
     # rows of runs before the interval was written: the share alone
     _, kidnap = gen.scale_tables([_scale_row(kidnap_trials=50)])
     assert "| 100,000 | mih | 50 | 0.88 | 12.0 |" in kidnap
+
+
+def test_large_calibration_table_lines_up_the_localizers(gen):
+    def cal(rows, lost=None):
+        entry = {
+            "reliability": [{"bin": b, "n": n, "confidence": c, "right": r} for b, n, c, r in rows]
+        }
+        if lost is not None:
+            entry.update(
+                lost_frames=lost[0], lost_mean_confidence=lost[1], lost_right_share=lost[2]
+            )
+        return entry
+
+    mih = {
+        "summary": {
+            "calibration_tol2": {
+                "whole_map": cal([("0.1-0.2", 10, 0.12, 0.1), ("0.9-1.0", 990, 0.99, 1.0)]),
+                "windowed": cal([("0.9-1.0", 1000, 0.98, 0.995)], (40, 0.61, 0.7)),
+            }
+        }
+    }
+    exact = {
+        "summary": {
+            "calibration_tol2": {"windowed": cal([("0.5-0.6", 3, 0.55, 1 / 3)], (3, 0.55, 0.333))}
+        }
+    }
+    table = gen.large_calibration_table(mih, exact)
+    lines = table.splitlines()
+    assert lines[0].count("answers, confidence, right") == 3
+    assert "| 0.1-0.2 | 10, 0.12, 0.10 | - | - |" in lines
+    assert "| 0.5-0.6 | - | - | 3, 0.55, 0.33 |" in lines
+    assert "| 0.9-1.0 | 990, 0.99, 1.00 | 1,000, 0.98, 0.99 | - |" in lines
+    assert "| `mih` | 40 | 0.61 | 0.70 |" in lines and "| exact scan | 3 | 0.55 | 0.33 |" in lines
+    # runs made before the calibration was written
+    assert gen.large_calibration_table({"summary": {}}, None) == "(no calibration in these runs)"
