@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import re
 import shutil
+import signal
+import threading
 
 import numpy as np
 import pytest
@@ -347,8 +350,10 @@ def test_odometry_off_when_the_map_has_no_positions(route, tmp_path, capsys):
          "--size: a compact map fixes the image size"),
         (["localize", "--map", "{map}", "{winter}", "--calibration", "{tmp}/c.json"],
          "--calibration: not with a compact map"),
-        (["localize", "--map", "{map}", "rtsp://example.invalid/stream"],
-         "a compact map .* localizes recordings"),
+        (["localize", "--map", "{map}", "rtsp://example.invalid/s", "--view-save", "{tmp}/v.rrd"],
+         "--view-save: not with a compact map"),
+        (["localize", "--map", "{map}", "rtsp://example.invalid/s", "--mcap-thumbnails"],
+         "--mcap-thumbnails: not with a compact map"),
         (["localize", "--map", "{map}", "{winter}", "--out", "{map}"], "--out"),
         (["localize", "--map", "{map}", "{winter}", "--ground-truth", "frames"],
          "needs --tolerance"),
@@ -384,3 +389,39 @@ def test_a_corrupt_or_foreign_map_exits_1_and_writes_nothing(built, route, tmp_p
     code, out, err = _run(capsys, "map", empty, "--out", tmp_path / "e.fvmap", "--compact")
     assert code == 1 and str(empty) in err, err
     assert not (tmp_path / "e.fvmap").exists()
+
+
+def test_a_live_stream_against_a_compact_map(built, frames, tmp_path, capsys):
+    av = pytest.importorskip("av")  # noqa: F841
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    from benchmarks.stream_servers import MjpegServer, jpeg_bytes
+
+    # the map's own frames at 4x its size, so each served frame has one right answer
+    big = np.repeat(np.repeat(frames["summer"], 4, axis=1), 4, axis=2)
+    jpegs = [jpeg_bytes(np.rint(im * 255).astype(np.uint8), quality=95) for im in big]
+    out = tmp_path / "live.csv"
+    timer = threading.Timer(3.5, os.kill, (os.getpid(), signal.SIGINT))
+    with MjpegServer(jpegs, fps=30, duration=30) as srv:  # 3.5 s: about 100 of the 120 frames
+        timer.start()
+        try:
+            code, stdout, err = _run(capsys, "localize", "--map", built, srv.url, "--out", out)
+        finally:
+            timer.cancel()
+    assert code == 130, err
+    assert stdout.startswith(f"compact 256-bit codes + windowed CANN: stream {srv.url} against ")
+    assert "ended by Ctrl-C" in stdout
+    with open(out, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == [
+        "frame", "timestamp", "place", "confidence", "state", "relocated", "x", "y", "latency_ms"
+    ]  # fmt: skip
+    assert len(rows) >= 60 and max(int(r["frame"]) for r in rows) < N  # no wrap to frame 0
+    late = [r for r in rows if int(r["frame"]) >= 40]
+    right = [abs(int(r["place"]) - int(r["frame"]) % N) <= 2 for r in late]
+    assert late and np.mean(right) > 0.9
+    assert all(float(r["x"]) == 2.0 * int(r["place"]) for r in rows)

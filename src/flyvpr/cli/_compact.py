@@ -17,7 +17,7 @@ import numpy as np
 
 from ._common import UsageError, check_outputs, flag
 from ._records import open_records
-from ._stream import odometry_note
+from ._stream import odometry_note, run_metadata
 from .map import recording_inputs
 
 #: ``flyvpr localize`` options a compact map does not take (what they need: score rows over
@@ -31,6 +31,11 @@ _NOT_COMPACT = (
     "fit_calibration",
     "realtime",
 )
+
+
+def compact_method_name(cmap) -> str:
+    """What a compact map localizes with, in words (records' metadata, summaries)."""
+    return f"compact {cmap.large_map.n_bits}-bit codes + windowed CANN"
 
 
 def cmd_map_compact(args) -> int:
@@ -163,13 +168,7 @@ def cmd_localize_compact(args) -> int:
     confidences, rights, matchable = [], [], []
     n_frames = n_localized = 0
     last_xy = np.full((1, 2), np.nan)
-    metadata = {
-        "map": str(args.map),
-        "method": f"compact {cmap.large_map.n_bits}-bit codes + windowed CANN",
-        "n_places": str(cmap.n_places),
-        "source": source.describe(),
-        "every": str(args.every or 1),
-    }
+    metadata = run_metadata(args, compact_method_name(cmap), cmap.n_places, source)
     t0 = time.perf_counter()
     records = (
         open_records(args.out, columns, metadata=metadata)

@@ -206,10 +206,57 @@ def _first_ctrl_c_stops(source):
         signal.signal(signal.SIGINT, previous)
 
 
+class _MapSteps:
+    """A live run's localizer on a map of ``flyvpr map``: one frame in, its answer out."""
+
+    def __init__(self, args):
+        from ..localization import Localizer
+
+        self.loc = Localizer.from_map(args.map, size=args.size)
+        if args.calibration is not None:
+            apply_table(self.loc, args.calibration)
+        self.map = self.loc.map_
+        self.size = tuple(self.loc.method.frontend.image_shape_)
+        self.name, self.n_places = self.map.method.name, self.map.n_places
+        self.positions, self.thumbnails = self.map.positions, self.map.thumbnails
+
+    def step(self, image):
+        """(place, confidence, state, relocated, the filter's score row)."""
+        fixes = self.loc.update_batch(image[None])
+        return (
+            int(fixes.places[0]),
+            float(fixes.confidences[0]),
+            str(fixes.states[0]),
+            bool(fixes.relocated[0]),
+            fixes.scores[0],
+        )
+
+
+class _CompactSteps:
+    """The same on a compact map (``flyvpr map --compact``): no score rows over the places."""
+
+    def __init__(self, args):
+        from ..large.recording import compact_localizer, open_compact_map
+        from ._compact import compact_method_name
+
+        cmap = open_compact_map(args.map)
+        self.loc = compact_localizer(cmap, index=args.index or "exhaustive")
+        self.map = None
+        self.size = cmap.size
+        self.name, self.n_places = compact_method_name(cmap), cmap.n_places
+        self.positions, self.thumbnails = cmap.positions, None
+
+    def step(self, image):
+        before = self.loc.n_reseeds_
+        fix = self.loc.update(image)
+        return fix.place, fix.confidence, fix.state, self.loc.n_reseeds_ > before, None
+
+
 def cmd_localize_live(args) -> int:
     from tqdm.auto import tqdm
 
-    from ..localization import LOCALIZED, Localizer
+    from ..large.recording import is_compact_map
+    from ..localization import LOCALIZED
     from ..sources import LiveSource, RecordingError
 
     for option in (
@@ -220,14 +267,23 @@ def cmd_localize_live(args) -> int:
             raise UsageError(
                 f"{flag(option)}: not with a live source ({args.source}); it needs a recording"
             )
+    compact = is_compact_map(args.map)
+    if compact:
+        for option in ("view", "view_save", "mcap_thumbnails", "calibration", "size"):
+            if getattr(args, option):
+                raise UsageError(
+                    f"{flag(option)}: not with a compact map ({args.map}); build the map "
+                    "without --compact for it"
+                )
+    elif args.index is not None:
+        raise UsageError(
+            f"--index: only with a compact map (`flyvpr map --compact`); {args.map} is not one"
+        )
     inputs = [args.map] + ([args.calibration] if args.calibration is not None else [])
     check_outputs(args, inputs, ("out",))
     check_view_args(args, inputs)
-    loc = Localizer.from_map(args.map, size=args.size)
-    if args.calibration is not None:
-        apply_table(loc, args.calibration)
-    m = loc.map_
-    size = loc.method.frontend.image_shape_
+    steps = _CompactSteps(args) if compact else _MapSteps(args)
+    size = steps.size
 
     def notify(message: str) -> None:
         print(f"flyvpr localize: {message}", file=sys.stderr, flush=True)
@@ -240,7 +296,7 @@ def cmd_localize_live(args) -> int:
         **{**_DEFAULTS, **given},
     )
     columns = ["frame", "timestamp", "place", "confidence", "state", "relocated"]
-    if m.has_positions:
+    if steps.positions is not None:
         columns += ["x", "y"]
     columns.append("latency_ms")
     show = not args.quiet and sys.stderr.isatty()
@@ -251,13 +307,13 @@ def cmd_localize_live(args) -> int:
     t0 = time.perf_counter()
     with ExitStack() as stack:
         stack.callback(source.close)
-        view = open_view(args, m, background=True)
+        view = None if steps.map is None else open_view(args, steps.map, background=True)
         if view is not None:
             stack.callback(view.close)
         out = None
         if args.out is not None:
             from ._records import open_records
-            from ._stream import _run_metadata
+            from ._stream import run_metadata
 
             out = stack.enter_context(
                 open_records(
@@ -265,32 +321,31 @@ def cmd_localize_live(args) -> int:
                     columns,
                     flush=True,
                     thumbnails=args.mcap_thumbnails,
-                    metadata=_run_metadata(args, m, source),
+                    metadata=run_metadata(args, steps.name, steps.n_places, source),
                 )
             )
         bar = stack.enter_context(tqdm(desc="localizing", unit="frame", disable=not show))
         ctrl_c = stack.enter_context(_first_ctrl_c_stops(source))
         try:
             for f in source.frames(size):
-                fixes = loc.update_batch(f.image[None])
-                place = int(fixes.places[0])
+                place, confidence, state, relocated, scores = steps.step(f.image)
                 row: dict = {
                     "frame": f.index,
                     "timestamp": f.timestamp,
                     "place": place,
-                    "confidence": float(fixes.confidences[0]),
-                    "state": str(fixes.states[0]),
-                    "relocated": int(fixes.relocated[0]),
+                    "confidence": confidence,
+                    "state": state,
+                    "relocated": int(relocated),
                 }
-                if m.positions is not None:
-                    row["x"], row["y"] = (float(v) for v in m.positions[place])
+                if steps.positions is not None:
+                    row["x"], row["y"] = (float(v) for v in steps.positions[place])
                 row["latency_ms"] = 1000.0 * (time.monotonic() - f.arrival)
                 if out is not None:
                     images = None
                     if args.mcap_thumbnails:
                         images = {"query": np.rint(f.image * 255.0).astype(np.uint8)}
-                        if m.thumbnails is not None:
-                            images["match"] = m.thumbnails[place]
+                        if steps.thumbnails is not None:
+                            images["match"] = steps.thumbnails[place]
                     out.write(row, images)
                 latencies.add(1000.0 * (time.monotonic() - f.arrival))
                 if view is not None:
@@ -301,9 +356,9 @@ def cmd_localize_live(args) -> int:
                         place,
                         row["confidence"],
                         row["state"],
-                        fixes.scores[0],
+                        scores,
                         model_input=f.image,
-                        relocated=bool(fixes.relocated[0]),
+                        relocated=relocated,
                     )
                 confidences.append(row["confidence"])
                 n_frames += 1
@@ -325,7 +380,7 @@ def cmd_localize_live(args) -> int:
         "wall": "the wall clock at arrival (Unix time)",
     }
     print(
-        f"{m.method.name}: {source.describe()} against {m.n_places} places, {ending} after "
+        f"{steps.name}: {source.describe()} against {steps.n_places} places, {ending} after "
         f"{elapsed:.1f} s: {source.n_received} frames received, {n_frames} localized, "
         f"{n_dropped} dropped (the localizer takes the newest frame), "
         f"{source.n_corrupt} damaged packets skipped, {source.n_reconnects} reconnections"

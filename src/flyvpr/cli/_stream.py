@@ -128,7 +128,7 @@ def cmd_localize_recording(args) -> int:
                     args.out,
                     columns,
                     thumbnails=args.mcap_thumbnails,
-                    metadata=_run_metadata(args, m, source),
+                    metadata=run_metadata(args, m.method.name, m.n_places, source),
                 )
             )
         tracers = [stack.enter_context(_tracer(path, m)) for path in renders]
@@ -211,12 +211,12 @@ def cmd_localize_recording(args) -> int:
     return 0
 
 
-def _run_metadata(args, m, source) -> dict:
+def run_metadata(args, method: str, n_places: int, source) -> dict:
     """What an MCAP records file says about its run (strings)."""
     return {
         "map": str(args.map),
-        "method": m.method.name,
-        "n_places": str(m.n_places),
+        "method": method,
+        "n_places": str(n_places),
         "source": source.describe(),
         "every": str(args.every or 1),
     }

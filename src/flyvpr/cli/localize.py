@@ -73,27 +73,6 @@ def _cmd_recording(args) -> int:
     for option in ("speed", "method", "param"):
         if getattr(args, option):
             raise UsageError(f"{flag(option)}: the map fixes the method; not with --map")
-    from ..large.recording import is_compact_map
-
-    if is_compact_map(args.map):
-        from ._compact import cmd_localize_compact
-
-        if is_live(args.source):
-            raise UsageError(
-                f"SOURCE {args.source}: a compact map ({args.map}) localizes recordings (image "
-                "folders, videos, ROS bags), not live streams or cameras"
-            )
-        for option in LIVE_OPTIONS:
-            if getattr(args, option) is not None:
-                raise UsageError(
-                    f"{flag(option)}: only for a live SOURCE (a stream URL or a camera)"
-                )
-        args.source = Path(args.source)
-        return cmd_localize_compact(args)
-    if args.index is not None:
-        raise UsageError(
-            f"--index: only with a compact map (`flyvpr map --compact`); {args.map} is not one"
-        )
     if is_live(args.source):
         from ._live import cmd_localize_live
 
@@ -102,6 +81,16 @@ def _cmd_recording(args) -> int:
         if getattr(args, option) is not None:
             raise UsageError(f"{flag(option)}: only for a live SOURCE (a stream URL or a camera)")
     args.source = Path(args.source)
+    from ..large.recording import is_compact_map
+
+    if is_compact_map(args.map):
+        from ._compact import cmd_localize_compact
+
+        return cmd_localize_compact(args)
+    if args.index is not None:
+        raise UsageError(
+            f"--index: only with a compact map (`flyvpr map --compact`); {args.map} is not one"
+        )
     return cmd_localize_recording(args)
 
 
