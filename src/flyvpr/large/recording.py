@@ -155,9 +155,7 @@ def _sample(src: Source, size, every, positions, fit_frames: int, progress: bool
     kept: list[np.ndarray] = []  # images of the kept frames, in order
     at: list[np.ndarray] = []  # their numbers among the recording's kept frames
     with tqdm(desc="reading frames (1 of 2)", unit="frame", disable=not progress) as bar:
-        for b in src.batches(
-            size, every=every, positions=positions, batch=_BATCH_CHUNKS * _chunks.CHUNK
-        ):
+        for b in src.batches(size, every=every, positions=positions, batch=_batch()):
             number = np.arange(n, n + len(b))
             pick = number % stride == 0
             kept.append(b.images[pick])
@@ -284,9 +282,7 @@ def build_compact_map(
             LargeMapWriter(path, n, n_bytes, None if pos is None else 2, meta) as writer,
             tqdm(desc="encoding (2 of 2)", unit="frame", total=n, disable=not progress) as bar,
         ):
-            for b in src.batches(
-                size, every=every, positions=pos, batch=_BATCH_CHUNKS * _chunks.CHUNK
-            ):
+            for b in src.batches(size, every=every, positions=pos, batch=_batch()):
                 if written + len(b) > n:
                     raise RecordingError(
                         f"{src.describe()}: more frames on the second pass than the {n} of "
