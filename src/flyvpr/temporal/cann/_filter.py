@@ -535,13 +535,7 @@ class CANN(OdometryFilter):
         self._p, self._spare = self._spare, self._p
         predicted = -1
         if t > 0:
-            # The predicted place: the most probable place of the window holding the most of
-            # the prediction (as the answer below).  Not the window's index alone: a packet on
-            # one place (odometry makes it that sharp) fills 2 * radius + 1 windows equally,
-            # and the first of them lies radius places short of it.
-            win = int(kernels["window_sums"](self._predicted, radius, self._box))
-            lo = max(win - radius, 0)
-            predicted = lo + int(np.argmax(self._predicted[lo : win + radius + 1]))
+            predicted = int(kernels["window_sums"](self._predicted, radius, self._box))
             self._support(x, predicted)
         # The window holding the most probability, and in it the most probable place: the
         # answer (its own window's probability is the confidence, at most the window's).
