@@ -42,12 +42,13 @@ TEST_SEEDS = (5, 6, 7, 8, 9)
 BINS = 10
 
 
-def _runs(data: Path, seeds, progress: bool):
-    """For each seed and held-out robot view: the front end's scores of the view's frames, its
-    odometry (or None) and its ground truth at ``TOLERANCE``."""
-    dataset = {d.key: d for d in DATASETS}[DATASET]
+def _runs(data: Path, seeds, progress: bool, dataset_key: str = DATASET):
+    """For each seed and robot view of the window ``dataset_key`` (default: the held-out one):
+    the front end's scores of the view's frames, its odometry (or None) and its ground truth
+    at ``TOLERANCE``."""
+    dataset = {d.key: d for d in DATASETS}[dataset_key]
     ref, qry, ref_ids, qry_ids, _ = load_dataset(dataset, data)
-    views = [v for v in ROBOT_VIEWS if v.dataset == DATASET]
+    views = [v for v in ROBOT_VIEWS if v.dataset == dataset_key]
     for seed in seeds:
         for view in views:
             keep = np.arange(len(ref)) if view.gap is None else gap_keep(len(ref), view.gap)
