@@ -159,7 +159,11 @@ def reference_filter(S, velocity=None, **params):
             mixed[-1] += change / 2 * moved[-1]
             floor_rate = q["relocation"] + q["recovery"] * (1 - support)
             layer = mixed * (1 - floor_rate) / moved.sum() + floor_rate * prior[:, None] / n
-            predicted = int(np.argmax(_windows(layer.sum(axis=0), tol)))
+            prior_marginal = layer.sum(axis=0)
+            predicted = int(np.argmax(_windows(prior_marginal, tol)))
+            if (shifts == shifts[0]).all():  # moved whole: the window's most probable place
+                lo = max(predicted - tol, 0)
+                predicted = lo + int(np.argmax(prior_marginal[lo : predicted + tol + 1]))
             # the sequence test
             sampled = z[::stride]
             u = max(np.sum(sampled >= z[predicted]), 1) / sampled.size
@@ -1666,3 +1670,72 @@ def test_a_lost_filter_shrinks_the_front_ends_confidence_towards_the_base_rate()
     assert trust > 0.5 and abs(confidence - model) < abs(confidence - 0.125)
     t, model, confidence, trust = lost[-1]
     assert trust < 0.1 and abs(confidence - 0.125) < 0.1 * abs(model - 0.125)
+
+
+def _predictions(f, S, velocity):
+    """The places the sequence test of ``f`` takes as predicted, frame by frame (from frame 1),
+    and the filter's state per frame."""
+    seen, states = [], []
+    real = f._support
+
+    def spy(x, predicted):
+        seen.append(predicted)
+        return real(x, predicted)
+
+    f._support = spy
+    f.reset()
+    for t in range(len(S)):
+        f.step(S[t], velocity=None if velocity is None or t == 0 else float(velocity[t]))
+        states.append(f.state_)
+    return seen, states
+
+
+def test_with_odometry_the_prediction_is_the_packets_own_place():
+    # Odometry moves every velocity row alike, so a confident packet sits on one place and
+    # 2 * tol + 1 windows hold almost the same probability: the sequence test must take the
+    # packet's own place as the prediction (not the first of those windows, tol places short
+    # of it), and the filter stays localized while its answers are right.
+    rng = np.random.default_rng(0)
+    n, T, start = 300, 120, 20
+    S = rng.normal(size=(T, n))
+    S[np.arange(T), start + np.arange(T)] += 3.0
+    seen, states = _predictions(CANN(), S, np.ones(T))
+    assert seen[30:] == list(start + np.arange(31, T))  # frame t's prediction: place 20 + t
+    assert states[30:] == ["localized"] * (T - 30)
+    # driving back to the route's first place: the windows are clipped there and the packet
+    # still found
+    back = 59 - np.arange(60)
+    S0 = rng.normal(size=(60, n))
+    S0[np.arange(60), back] += 3.0
+    seen0, states0 = _predictions(CANN(), S0, -np.ones(60))
+    assert seen0[30:] == list(back[31:]) and states0[-1] == "localized"
+    # the support of a higher tolerance's test follows its own window
+    seen4, _ = _predictions(CANN(tolerance=4), S, np.ones(T))
+    assert seen4[30:] == list(start + np.arange(31, T))
+
+
+def test_without_odometry_the_prediction_is_the_windows_centre():
+    # The filter's own velocities spread the prediction over several places: the predicted
+    # place is the centre of the window holding the most of it, as calibrated, even where
+    # that is not the prediction's most probable place.
+    rng = np.random.default_rng(1)
+    n, T = 300, 80
+    S = rng.normal(size=(T, n))
+    S[np.arange(T), 20 + np.arange(T)] += 3.0
+    f = CANN()
+    recorded = []
+    real = f._support
+
+    def spy(x, predicted):
+        prediction = f._predicted.astype(np.float64)
+        centre = int(np.argmax(_windows(prediction, f.tolerance)))
+        recorded.append((predicted, centre, int(np.argmax(prediction))))
+        return real(x, predicted)
+
+    f._support = spy
+    f.reset()
+    for t in range(T):
+        f.step(S[t])
+    assert len(recorded) == T - 1
+    assert all(p == c for p, c, _ in recorded)
+    assert any(c != m for _, c, m in recorded)  # the two rules differ on this run

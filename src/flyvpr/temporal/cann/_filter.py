@@ -536,6 +536,16 @@ class CANN(OdometryFilter):
         predicted = -1
         if t > 0:
             predicted = int(kernels["window_sums"](self._predicted, radius, self._box))
+            if (shifts == shifts[0]).all():
+                # Every velocity row moved alike (odometry, or a bank of one velocity), so the
+                # prediction is the posterior moved whole: a confident packet on one place
+                # fills 2 * radius + 1 windows almost equally, and the first of them lies
+                # radius places short of it.  The prediction is then the packet's most
+                # probable place in that window.  (Rows moved by different velocities spread
+                # the prediction over several places, and the window's centre is the
+                # packet's; that case is left as it was calibrated.)
+                lo = max(predicted - radius, 0)
+                predicted = lo + int(np.argmax(self._predicted[lo : predicted + radius + 1]))
             self._support(x, predicted)
         # The window holding the most probability, and in it the most probable place: the
         # answer (its own window's probability is the confidence, at most the window's).
