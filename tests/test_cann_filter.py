@@ -447,7 +447,7 @@ def test_defaults():
     forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0, 3.25, 3.5)
     assert LAYER_VELOCITIES == (-2.0, -1.5, -1.0, -0.5) + forward
     assert all(type(v) is float for v in LAYER_VELOCITIES)
-    table = (0.507, 0.838, 0.839, 0.844, 0.916, 0.917, 0.943, 0.956, 0.985, 0.999, 1.0)
+    table = (0.549, 0.667, 0.668, 0.772, 0.861, 0.872, 0.912, 0.943, 0.979, 0.999, 1.0)
     assert CALIBRATION == table
     assert np.all(np.diff(CALIBRATION) > 0)
     assert _FRONT_RATE == 0.05

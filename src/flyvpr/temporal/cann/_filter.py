@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.507, 0.838, 0.839, 0.844, 0.916, 0.917, 0.943, 0.956, 0.985, 0.999, 1.0)
+CALIBRATION = (0.549, 0.667, 0.668, 0.772, 0.861, 0.872, 0.912, 0.943, 0.979, 0.999, 1.0)
 #: learning rate of the front end's logistic model (per confident sequence answer)
 _FRONT_RATE = 0.05
 #: the least weight of the front end's model in a lost filter's answer (see _step)
