@@ -14,7 +14,7 @@ import pytest
 
 from flyvpr._validation import InsufficientMemoryError
 from flyvpr.temporal.cann import CANN, LAYER_VELOCITIES, _kernels
-from flyvpr.temporal.cann._filter import _FRONT_RATE, CALIBRATION
+from flyvpr.temporal.cann._filter import _FRONT_RATE, CALIBRATION, _shape
 
 KNOTS = np.linspace(0.0, 1.0, 11)
 
@@ -711,6 +711,7 @@ def test_reset_forgets_everything():
     f.reset()
     assert f.n_frames_ == 0 and f.n_relocations_ == 0
     assert math.isnan(f.velocity_) and f.confidence_ == 0.0 and f.support_ == 0.5
+    assert f.front_probability_ == 0.0 and f.probability_ == 0.0
     assert f.state_ == "lost" and f.source_ == "sequence" and f.compiled_ is False
     f.step(np.zeros(11))  # a new route length after reset
     assert f.n_frames_ == 1
@@ -1739,3 +1740,12 @@ def test_without_odometry_the_prediction_is_the_windows_centre():
     assert len(recorded) == T - 1
     assert all(p == c for p, c, _ in recorded)
     assert any(c != m for _, c, m in recorded)  # the two rules differ on this run
+
+
+def test_the_rank_models_exponent_is_the_inverse_mean_within_its_range():
+    # one over the mean of -log(rank), within [0.05, 1]: every rank 1 (a mean of 0) or ranks
+    # no better than uniform (a mean up to 1) give the flat model, 1
+    assert _shape(0.0) == 1.0 and _shape(1.0) == 1.0 and _shape(0.5) == 1.0
+    assert _shape(2.0) == 0.5 and _shape(4.0) == 0.25
+    assert _shape(19.0) == pytest.approx(1 / 19.0, rel=1e-15)
+    assert _shape(25.0) == 0.05 and _shape(1e6) == 0.05  # the floor

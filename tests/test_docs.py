@@ -271,3 +271,24 @@ def test_large_calibration_table_lines_up_the_localizers(gen):
     assert "| `mih` | 40 | 0.61 | 0.70 |" in lines and "| exact scan | 3 | 0.55 | 0.33 |" in lines
     # runs made before the calibration was written
     assert gen.large_calibration_table({"summary": {}}, None) == "(no calibration in these runs)"
+
+
+def test_the_localized_threshold_the_docs_state_is_the_tables():
+    # `localized` is a raw confidence of 0.5 or more, so a calibrated one of at least the
+    # default table's value at 0.5: the README, the robot guide and the Localizer's docstring
+    # say that number, and a refitted table must bring them along.
+    import numpy as np
+
+    from flyvpr.temporal.cann._filter import CALIBRATION
+
+    level = float(np.interp(0.5, np.linspace(0.0, 1.0, 11), CALIBRATION))
+    sources = [
+        ROOT / "README.md",
+        DOCS / "guide" / "robot.md",
+        ROOT / "src" / "flyvpr" / "localization" / "localizer.py",
+    ]
+    for path in sources:
+        text = " ".join(path.read_text(encoding="utf-8").split())
+        claims = re.findall(r"confidence (?:of )?(\d\.\d\d) or more", text)
+        assert claims, f"{path.name} no longer states the localized threshold"
+        assert set(claims) == {f"{level:.2f}"}, (path.name, claims, level)

@@ -388,6 +388,7 @@ class CANN(OdometryFilter):
         self.confidence_ = 0.0
         self.support_ = 0.5
         self.front_probability_ = 0.0
+        self.probability_ = 0.0
         self.state_ = "lost"
         self.source_ = "sequence"
 
