@@ -129,6 +129,7 @@ def run_task(task: Task) -> dict:
                 velocity = None
                 if view.odometry:
                     velocity = np.diff(qry_ids[idx], prepend=qry_ids[idx][0]).astype(np.float64)
+                    velocity *= view.odometry_scale
                 t0 = time.perf_counter()
                 filt = view_model.filter
                 states = None

@@ -131,6 +131,8 @@ class View:
     motion: str = ""
     #: pass the true places moved per frame to filters that take odometry
     odometry: bool = False
+    #: ... times this (odometry off by a map spacing or a wheel calibration: 1.2 reads 20% long)
+    odometry_scale: float = 1.0
     #: a detour: the reference places from ``gap[0] * n`` to ``gap[1] * n`` are not in the map
     gap: tuple[float, float] | None = None
 
@@ -160,6 +162,11 @@ class View:
             out["motion"] = MOTIONS[self.motion]
         if self.odometry:
             out["odometry"] = "true places moved per frame, given to filters that take it"
+            if self.odometry_scale != 1.0:
+                out["odometry"] = (
+                    f"true places moved per frame times {self.odometry_scale:g} (odometry off "
+                    "by that factor), given to filters that take it"
+                )
         if self.gap is not None:
             out["gap"] = (
                 f"reference places {self.gap[0]:g} n to {self.gap[1]:g} n left out of the map "
@@ -386,11 +393,15 @@ VIEWS: list[View] = [
 _ROBOT = (2, 20)
 
 
-def _motion(key, dataset, label, motion, odometry=False, **kw) -> View:
+def _motion(key, dataset, label, motion, odometry=False, odometry_scale=1.0, **kw) -> View:
     note = "with odometry" if odometry else ""
+    if odometry_scale != 1.0:
+        note = f"with odometry {abs(odometry_scale - 1):.0%} " + (
+            "long" if odometry_scale > 1 else "short"
+        )
     return View(
         key, dataset, label, "robot", _ROBOT, "motion", motion=motion, odometry=odometry,
-        note=note, **kw
+        odometry_scale=odometry_scale, note=note, **kw
     )  # fmt: skip
 
 
@@ -405,6 +416,22 @@ ROBOT_VIEWS: list[View] = [
     _motion("r-walk-odo", "n64-0", "0-999, random 0.4-1.6x, odometry", "walk", odometry=True),
     _motion("r-stopgo", "n64-0", "0-999, stop-and-go", "stopgo"),
     _motion("r-stopgo-odo", "n64-0", "0-999, stop-and-go, odometry", "stopgo", odometry=True),
+    _motion(
+        "r-walk-odo-long",
+        "n64-0",
+        "0-999, random 0.4-1.6x, odometry 20% long",
+        "walk",
+        odometry=True,
+        odometry_scale=1.2,
+    ),
+    _motion(
+        "r-stopgo-odo-short",
+        "n64-0",
+        "0-999, stop-and-go, odometry 20% short",
+        "stopgo",
+        odometry=True,
+        odometry_scale=0.8,
+    ),  # fmt: skip
     _motion("r-stop100", "n64-0", "0-999, one 100-frame stop", "stop100"),
     _motion("r-2.5x", "n64-0", "0-999 at 2.5x", "2.5x"),
     _motion("r-2.5x-odo", "n64-0", "0-999 at 2.5x, odometry", "2.5x", odometry=True),

@@ -141,6 +141,11 @@ def reference_filter(S, velocity=None, **params):
             if velocity is None:  # each row's position after t moves, rounded (halves up)
                 shifts = np.floor(t * vel + 0.5) - np.floor((t - 1) * vel + 0.5)
                 change, jump = q["velocity_change"], q["velocity_jump"]
+            elif q["odometry"] == "scaled":  # each row: the odometry times its scale
+                done = np.cumsum(velocity[1 : t + 1])
+                before = np.r_[0.0, done[:-1]]
+                shifts = np.floor(done[-1] * vel + 0.5) - np.floor(before[-1] * vel + 0.5)
+                change, jump = q["velocity_change"], 0.0
             else:
                 done = np.sum(velocity[1 : t + 1])
                 shifts = np.full(
@@ -241,7 +246,8 @@ def reference_filter(S, velocity=None, **params):
                 "probability_": probability if source == "sequence" else 0.0,
                 "state_": "localized" if localized else "lost",
                 "velocity_": float(layer.sum(axis=1) @ vel)
-                if velocity is None
+                * (1.0 if velocity is None else float(velocity[t]))
+                if velocity is None or q["odometry"] == "scaled"
                 else float(velocity[t]),
                 "n_relocations_": relocations,
                 "shape_": min(1.0, max(0.05, 1 / log_rank[0])),
@@ -391,8 +397,13 @@ def test_matches_reference_on_probability_rows(transform):
 def test_matches_reference_with_odometry():
     S = _scenario()
     velocity = np.r_[7.0, np.full(19, 1.25), np.full(10, -0.5), np.full(15, 0.75)]
-    frames = assert_matches_reference(S, velocity, **WIDE)
+    frames = assert_matches_reference(S, velocity, **WIDE, odometry="exact")
     assert [f["velocity_"] for f in frames] == velocity.tolist()
+    # scaled: each row moves the odometry times its velocity; the velocity is the odometry
+    # times the layer's mean scale
+    frames = assert_matches_reference(S, velocity, **WIDE)
+    scales = [f["velocity_"] / v for f, v in zip(frames, velocity, strict=True)]
+    assert all(0.0 < k < 3.5 for k in scales) and len(set(np.round(scales, 6))) > 1
 
 
 def test_matches_reference_sampling_every_other_place_on_long_routes(cann_kernel_mode):
@@ -438,6 +449,7 @@ DEFAULTS = {
     "fallback": True,
     "calibration": CALIBRATION,
     "recalibration": None,
+    "odometry": "scaled",
 }
 
 
@@ -447,7 +459,7 @@ def test_defaults():
     forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0, 3.25, 3.5)
     assert LAYER_VELOCITIES == (-2.0, -1.5, -1.0, -0.5) + forward
     assert all(type(v) is float for v in LAYER_VELOCITIES)
-    table = (0.549, 0.667, 0.668, 0.772, 0.861, 0.872, 0.912, 0.943, 0.979, 0.999, 1.0)
+    table = (0.557, 0.677, 0.678, 0.779, 0.872, 0.885, 0.925, 0.954, 0.982, 0.999, 1.0)
     assert CALIBRATION == table
     assert np.all(np.diff(CALIBRATION) > 0)
     assert _FRONT_RATE == 0.05
@@ -812,11 +824,11 @@ def test_filter_equals_step(odometry):
 
 
 def test_odometry_moves_every_row_by_it():
-    # With odometry every row of the bank moves alike, so a bank of speeds behaves like a
-    # single row at that speed (its own velocity unused) ...
+    # With exact odometry every row of the bank moves alike, so a bank of speeds behaves like
+    # a single row at that speed (its own velocity unused) ...
     pos = 4 + 1.25 * np.arange(40)
     S = bump_rows(pos, 60)
-    bank = CANN(velocities=(0.5, 1.0, 1.5, 2.0))
+    bank = CANN(velocities=(0.5, 1.0, 1.5, 2.0), odometry="exact")
     with_odometry = bank.filter(S, velocity=np.full(40, 1.25))
     single = CANN(velocities=(1.25,)).filter(S)
     np.testing.assert_allclose(with_odometry, single, rtol=1e-5, atol=1e-7)
@@ -831,7 +843,7 @@ def test_odometry_moves_every_row_by_it():
 def test_odometry_tracks_what_the_bank_cannot():
     pos = 4 + 2.75 * np.arange(30)  # beyond a bank of 0 and 0.5 places per frame
     S = bump_rows(pos, 90)
-    f = CANN(velocities=(0.0, 0.5), speed_prior=0.5)
+    f = CANN(velocities=(0.0, 0.5), speed_prior=0.5, odometry="exact")
     rows, frames = run(f, S, np.full(30, 2.75))
     err = np.abs(rows.argmax(axis=1) - pos)
     assert err[8:].max() <= 2.5 and all(fr["velocity_"] == 2.75 for fr in frames)
@@ -842,11 +854,14 @@ def test_odometry_tracks_what_the_bank_cannot():
 
 def test_odometry_of_integers():
     S = bump_rows(4 + 2 * np.arange(10.0), 30)
-    f = CANN()
-    np.testing.assert_array_equal(
-        f.filter(S, velocity=np.full(10, 2)), CANN().filter(S, velocity=np.full(10, 2.0))
-    )
-    assert f.velocity_ == 2.0 and type(f.velocity_) is float
+    for mode in ("scaled", "exact"):
+        f = CANN(odometry=mode)
+        np.testing.assert_array_equal(
+            f.filter(S, velocity=np.full(10, 2)),
+            CANN(odometry=mode).filter(S, velocity=np.full(10, 2.0)),
+        )
+        assert type(f.velocity_) is float
+    assert f.velocity_ == 2.0
 
 
 def test_odometry_first_entry_is_not_used():
@@ -859,7 +874,7 @@ def test_odometry_first_entry_is_not_used():
 def test_odometry_is_fractional_and_signed():
     pos = 40 - 0.75 * np.arange(40)
     S = bump_rows(pos, 50)
-    f = CANN(velocities=(0.0,), speed_prior=0.0, fallback=False)
+    f = CANN(velocities=(0.0,), speed_prior=0.0, fallback=False, odometry="exact")
     out = f.filter(S, velocity=np.full(40, -0.75))
     assert np.abs(out.argmax(axis=1) - pos)[6:].max() <= 2.0
     assert f.velocity_ == -0.75 and f.state_ == "localized"
@@ -894,7 +909,11 @@ def test_odometry_validation():
         f.step(np.zeros(6), velocity="1")
     assert f.n_frames_ == 0  # nothing was consumed
     f.step(np.zeros(6), velocity=np.int64(-2))
-    assert f.velocity_ == -2.0 and type(f.velocity_) is float
+    scale = float(f._row_mass @ f._params["velocities"])
+    assert f.velocity_ == -2.0 * scale and type(f.velocity_) is float
+    g = CANN(odometry="exact")
+    g.step(np.zeros(6), velocity=np.int64(-2))
+    assert g.velocity_ == -2.0 and type(g.velocity_) is float
 
 
 # -- shapes, dtypes, input ---------------------------------------------------------------------
@@ -1700,7 +1719,7 @@ def test_with_odometry_the_prediction_is_the_packets_own_place():
     n, T, start = 300, 120, 20
     S = rng.normal(size=(T, n))
     S[np.arange(T), start + np.arange(T)] += 3.0
-    seen, states = _predictions(CANN(), S, np.ones(T))
+    seen, states = _predictions(CANN(odometry="exact"), S, np.ones(T))
     assert seen[30:] == list(start + np.arange(31, T))  # frame t's prediction: place 20 + t
     assert states[30:] == ["localized"] * (T - 30)
     # driving back to the route's first place: the windows are clipped there and the packet
@@ -1708,10 +1727,10 @@ def test_with_odometry_the_prediction_is_the_packets_own_place():
     back = 59 - np.arange(60)
     S0 = rng.normal(size=(60, n))
     S0[np.arange(60), back] += 3.0
-    seen0, states0 = _predictions(CANN(), S0, -np.ones(60))
+    seen0, states0 = _predictions(CANN(odometry="exact"), S0, -np.ones(60))
     assert seen0[30:] == list(back[31:]) and states0[-1] == "localized"
     # the support of a higher tolerance's test follows its own window
-    seen4, _ = _predictions(CANN(tolerance=4), S, np.ones(T))
+    seen4, _ = _predictions(CANN(tolerance=4, odometry="exact"), S, np.ones(T))
     assert seen4[30:] == list(start + np.arange(31, T))
 
 
@@ -1749,3 +1768,85 @@ def test_the_rank_models_exponent_is_the_inverse_mean_within_its_range():
     assert _shape(2.0) == 0.5 and _shape(4.0) == 0.25
     assert _shape(19.0) == pytest.approx(1 / 19.0, rel=1e-15)
     assert _shape(25.0) == 0.05 and _shape(1e6) == 0.05  # the floor
+
+
+def test_scaled_odometry_is_the_bank_of_velocities_times_the_odometry():
+    # Each row moves the odometry times its velocity, read as a scale, and the scale is never
+    # redrawn: a bank (0.5, 1, 1.5, 2) given 1.25 places per frame is the filter without
+    # odometry over the velocities (0.625, 1.25, 1.875, 2.5) and no redraw (a flat prior on
+    # both, so that the two start alike).
+    pos = 4 + 1.25 * np.arange(40)
+    S = bump_rows(pos, 60)
+    flat = {"speed_prior_width": 1e6, "velocity_jump": 0.0}
+    scaled = CANN(velocities=(0.5, 1.0, 1.5, 2.0), **flat)
+    with_odometry = scaled.filter(S, velocity=np.full(40, 1.25))
+    moving = CANN(velocities=(0.625, 1.25, 1.875, 2.5), **flat)
+    np.testing.assert_allclose(with_odometry, moving.filter(S), rtol=1e-5, atol=1e-7)
+    assert scaled.velocity_ == pytest.approx(moving.velocity_, rel=1e-12)
+    np.testing.assert_allclose(scaled._row_mass, moving._row_mass, rtol=1e-5)
+    # with the default redraw the odometry does not redraw the scale; without it, it would
+    mixed = CANN(velocities=(0.5, 1.0, 1.5, 2.0), speed_prior_width=1e6)
+    np.testing.assert_allclose(mixed.filter(S, velocity=np.full(40, 1.25)), with_odometry)
+    redrawn = CANN(velocities=(0.625, 1.25, 1.875, 2.5), speed_prior_width=1e6).filter(S)
+    assert np.abs(redrawn - with_odometry).max() > 1e-3
+
+
+@pytest.mark.parametrize("scale", [0.8, 1.0, 1.25])
+def test_scaled_odometry_follows_a_robot_whose_odometry_is_off(scale):
+    # The robot moves 1 place per frame; its odometry says 1 / scale (a map spacing or wheel
+    # calibration off by that much).  Scaled odometry learns the ratio and follows; exact
+    # odometry falls behind or runs ahead.
+    rng = np.random.default_rng(3)
+    n, T = 400, 200
+    S = rng.normal(size=(T, n))
+    S[np.arange(T), 10 + np.arange(T)] += 2.5
+    odometry = np.full(T, 1.0 / scale)
+    scaled, frames = run(CANN(), S, odometry)
+    err = np.abs(scaled.argmax(axis=1) - (10 + np.arange(T)))
+    assert np.mean(err[40:] <= 2) > 0.95
+    assert np.mean([f["state_"] == "localized" for f in frames[40:]]) >= 0.85
+    assert frames[-1]["velocity_"] == pytest.approx(1.0, abs=0.1)
+    exact = CANN(odometry="exact").filter(S, velocity=odometry)
+    exact_right = np.mean(np.abs(exact.argmax(axis=1) - (10 + np.arange(T)))[40:] <= 2)
+    if scale == 1.0:
+        assert exact_right > 0.95
+    else:
+        assert exact_right < 0.9
+
+
+def test_scaled_odometry_reaches_beyond_the_bank_and_stops_with_it():
+    # 5 places per frame (beyond the bank's 3.5) and then standing still: the odometry moves
+    # the scale-1 row that far, and a standing robot's odometry of 0 stops every row.
+    pos = np.r_[4 + 5.0 * np.arange(20), np.full(20, 4 + 5.0 * 19)]
+    S = bump_rows(pos, 200)
+    odometry = np.r_[0.0, np.full(19, 5.0), np.zeros(20)]
+    rows, frames = run(CANN(), S, odometry)
+    err = np.abs(rows.argmax(axis=1) - pos)
+    assert err[6:].max() <= 2
+    assert frames[19]["velocity_"] == pytest.approx(5.0, abs=0.5)
+    assert all(f["velocity_"] == 0.0 for f in frames[20:])
+    assert frames[-1]["state_"] == "localized"
+
+
+def test_scaled_odometry_follows_a_robot_reversing_while_its_odometry_counts_distance():
+    # Positions give a distance moved, never its sign: a robot driving back along the map
+    # reports +1 place per frame; the backward rows read it as a scale of -1.
+    rng = np.random.default_rng(4)
+    T = 120
+    pos = 300 - np.arange(T)
+    S = rng.normal(size=(T, 400))
+    S[np.arange(T), pos] += 2.5
+    rows, frames = run(CANN(), S, np.ones(T))
+    assert np.mean(np.abs(rows.argmax(axis=1) - pos)[30:] <= 2) > 0.95
+    assert frames[-1]["velocity_"] < -0.8
+    assert np.mean([f["state_"] == "localized" for f in frames[30:]]) > 0.8
+    # exact odometry moves the packet forwards: the sequence is never found
+    _, exact = run(CANN(odometry="exact"), S, np.ones(T))
+    assert np.mean([f["state_"] == "localized" for f in exact[30:]]) < 0.2
+
+
+def test_odometry_mode_is_checked():
+    with pytest.raises(
+        ValueError, match=re.escape("odometry must be one of ('scaled', 'exact'); got 'wheel'")
+    ):
+        CANN(odometry="wheel").reset()

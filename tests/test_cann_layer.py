@@ -510,7 +510,7 @@ def test_exceedance_counts_at_least_one(kernels):
 # -- shifts: fractions accumulate --------------------------------------------------------------
 def test_shifts_accumulate_fractions():
     vel = (0.0, 0.125, 0.5, 1.0, 2.25, 2.5, 3.0)
-    f = CANN(velocities=vel, bidirectional=True)
+    f = CANN(velocities=vel, bidirectional=True, odometry="exact")
     f.step(np.zeros(12))  # allocates the state
     rows = f._params["velocities"]
     np.testing.assert_array_equal(rows, sorted({*vel, *(-v for v in vel)}))
@@ -528,6 +528,21 @@ def test_shifts_accumulate_fractions():
         np.testing.assert_array_equal(k, np.full(rows.size, k[0]))
         odometry += int(k[0])
         assert odometry == math.floor(0.75 * t + 0.5)
+
+
+def test_scaled_odometry_shifts_accumulate_with_the_rows_own():
+    # Scaled odometry moves each row the odometry times its velocity, on the row's own
+    # fractional position: frames with and without odometry add up.
+    vel = (0.0, 0.125, 0.5, 1.0, 2.25, 2.5, 3.0)
+    f = CANN(velocities=vel, bidirectional=True)
+    f.step(np.zeros(12))
+    rows = f._params["velocities"]
+    moved = np.zeros(rows.size, np.int64)
+    for t in range(1, 33):
+        moved += f._shifts(None)
+        moved += f._shifts(0.75)
+        # t frames at each row's velocity and t at 0.75 times it (binary fractions: exact)
+        np.testing.assert_array_equal(moved, np.floor(1.75 * t * rows + 0.5))
 
 
 @pytest.mark.parametrize(

@@ -413,7 +413,8 @@ def test_update_encodes_the_image_and_passes_the_odometry_on():
         b = by_code.update_code(enc.encode(images[100 + t][None])[0], velocity)
         assert (a.place, a.state, a.confidence) == (b.place, b.state, b.confidence)
         if velocity is not None:
-            assert by_image.filter_.cann_.velocity_ == 1.0
+            layer = by_image.filter_.cann_
+            assert layer.velocity_ == pytest.approx(1.0 * _scale(layer))  # the odometry, scaled
     with pytest.raises(
         ValueError, match=r"^update needs an encoder \(LargeLocalizer\(\.\.\., encoder=\.\.\.\)\)$"
     ):
@@ -621,7 +622,7 @@ def test_a_replay_steps_the_new_layer_with_the_frames_odometry():
         )
     assert loc.filter_.place_ == ref.place_
     assert loc.filter_.confidence_ == ref.confidence_
-    assert loc.filter_.cann_.velocity_ == 2.0
+    assert loc.filter_.cann_.velocity_ == pytest.approx(2.0 * _scale(loc.filter_.cann_))
 
 
 def test_the_first_frame_displaces_no_layer():
@@ -1109,3 +1110,8 @@ def test_frames_never_searched_pool_as_no_candidates_on_a_map_smaller_than_k():
     places = loc._candidates(6)
     assert loc.n_searches_ == 2 and sorted(loc._found) == [4, 5]
     assert places.size > 0 and 45 in places[:10].tolist()
+
+
+def _scale(cann) -> float:
+    """The layer's mean odometry scale: its velocity_ is the odometry times it."""
+    return float(cann._row_mass @ cann._params["velocities"])

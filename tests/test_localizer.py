@@ -43,7 +43,8 @@ def test_velocity_input_is_passed_to_the_filter(route):
     keep = np.arange(0, len(qry), 2)
     for i, k in enumerate(keep):
         loc.update(qry[k], velocity=None if i == 0 else 2.0)
-    assert loc.method.filter.velocity_ == 2.0
+    filt = loc.method.filter
+    assert filt.velocity_ == pytest.approx(2.0 * _scale(filt))  # the odometry, scaled
 
 
 def test_state_does_not_grow(route):
@@ -247,3 +248,8 @@ def test_from_map_takes_the_maps_spacing(ref):
     assert Localizer.from_map(bare).place_spacing is None
     assert Localizer.from_map(bare, place_spacing=1.5).place_spacing == 1.5
     assert Localizer("pixels").place_spacing is None
+
+
+def _scale(cann) -> float:
+    """The layer's mean odometry scale: its velocity_ is the odometry times it."""
+    return float(cann._row_mass @ cann._params["velocities"])

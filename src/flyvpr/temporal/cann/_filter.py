@@ -28,7 +28,9 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.549, 0.667, 0.668, 0.772, 0.861, 0.872, 0.912, 0.943, 0.979, 0.999, 1.0)
+CALIBRATION = (0.557, 0.677, 0.678, 0.779, 0.872, 0.885, 0.925, 0.954, 0.982, 0.999, 1.0)
+#: how odometry moves the layer (see the class's ``odometry`` parameter)
+ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
 _FRONT_RATE = 0.05
 #: the least weight of the front end's model in a lost filter's answer (see _step)
@@ -128,7 +130,8 @@ class CANN(OdometryFilter):
     A row of :meth:`step` or :meth:`filter`: entry ``i`` is the support times the probability
     of being within ``tolerance`` places of ``i`` (calibrated; the front end's scaled scores
     when it answers), its argmax the answer and its maximum the confidence.  With odometry
-    (``velocity``) every row of the layer moves by it instead of by its own velocity.
+    (``velocity``) every row of the layer moves by it times the row's velocity read as a scale
+    factor (``odometry="scaled"``), or by it alone (``"exact"``).
 
     Parameters
     ----------
@@ -201,6 +204,16 @@ class CANN(OdometryFilter):
         :func:`~flyvpr.temporal.cann.fit_calibration` fits it from a labelled run's
         confidences and whether each answer was right.  The ``state`` stays as it is, and
         the order of the answers too (to float32 resolution where the table is nearly flat).
+    odometry : {"scaled", "exact"}, default "scaled"
+        How a frame's odometry (``velocity``, places moved) moves the layer.  ``"scaled"``:
+        each row moves the odometry times the row's velocity, read as a scale factor (1: the
+        odometry is right in places), so the layer learns the ratio of places moved to the
+        odometry as it learns a speed without it: a map spacing or a wheel calibration that is
+        off, or a robot reversing along the map while its odometry counts distance, is
+        followed.  The scale drifts between neighbouring rows (``velocity_change``) but is
+        never drawn afresh: the odometry carries the stops and starts.  ``"exact"``: every row
+        moves by the odometry itself (the velocities stay as they are); right odometry then
+        follows a little closer, odometry 10% off falls behind the filter without it.
 
     Attributes
     ----------
@@ -216,7 +229,9 @@ class CANN(OdometryFilter):
         The front end's model's probability that its own best place is right, this frame
         (before the shrinking of a front-end answer's confidence).
     velocity_ : float
-        Mean velocity of the layer after the last step, or the odometry given to it.
+        Mean velocity of the layer after the last step, places per frame: with odometry,
+        the odometry times the layer's mean scale (``"scaled"``) or the odometry
+        (``"exact"``).
     source_ : str
         ``"sequence"`` or ``"front end"``: where the last answer came from.
     n_frames_, n_relocations_ : int
@@ -263,6 +278,7 @@ class CANN(OdometryFilter):
         fallback=True,
         calibration=CALIBRATION,
         recalibration=None,
+        odometry="scaled",
     ):
         self.velocities = velocities
         self.bidirectional = bidirectional
@@ -286,6 +302,7 @@ class CANN(OdometryFilter):
         self.fallback = fallback
         self.calibration = calibration
         self.recalibration = recalibration
+        self.odometry = odometry
 
     # -- parameters -------------------------------------------------------------
     def _check_params(self) -> dict:
@@ -336,6 +353,9 @@ class CANN(OdometryFilter):
                 f"input_transform must be one of {TRANSFORMS}; got {self.input_transform!r}"
             )
         p["input_transform"] = self.input_transform
+        if self.odometry not in ODOMETRY_MODES:
+            raise ValueError(f"odometry must be one of {ODOMETRY_MODES}; got {self.odometry!r}")
+        p["odometry"] = self.odometry
         p["calibration"] = _check_table(self.calibration, "calibration", "raw confidence")
         p["recalibration"] = _check_table(self.recalibration, "recalibration", "confidence")
         # Sorted, so that neighbouring rows are neighbouring speeds.
@@ -458,7 +478,9 @@ class CANN(OdometryFilter):
     def _shifts(self, velocity: float | None) -> np.ndarray:
         """Whole places each row moves this frame (fractions accumulate, halves round up)."""
         vel = self._params["velocities"]
-        if velocity is not None:
+        if velocity is not None and self._params["odometry"] == "scaled":
+            vel = velocity * vel  # each row: the odometry times its scale
+        elif velocity is not None:
             total = self._odometry_offset + velocity
             k = math.floor(total + 0.5)
             self._odometry_offset = total - k
@@ -508,7 +530,11 @@ class CANN(OdometryFilter):
             floor_rate = p["relocation"] + p["recovery"] * (1.0 - self.support_)
             if velocity is None:
                 change, jump = p["velocity_change"], p["velocity_jump"]
-            else:  # odometry moves every row alike; the velocities stay as they are
+            elif p["odometry"] == "scaled":
+                # The scale drifts as a velocity does; the odometry carries the stops and
+                # starts, so it is never drawn afresh.
+                change, jump = p["velocity_change"], 0.0
+            else:  # exact odometry moves every row alike; the velocities stay as they are
                 change = jump = 0.0
             shifts = self._shifts(velocity)
         else:  # the first frame: the prior as it is, weighed by the evidence
@@ -629,6 +655,8 @@ class CANN(OdometryFilter):
         self._localized_mean += rate * (float(localized) - self._localized_mean)
         if velocity is None:
             self.velocity_ = float(self._row_mass @ p["velocities"])
+        elif p["odometry"] == "scaled":
+            self.velocity_ = float(velocity) * float(self._row_mass @ p["velocities"])
         else:
             self.velocity_ = float(velocity)
         self.n_frames_ = t + 1
