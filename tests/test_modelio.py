@@ -157,3 +157,24 @@ def test_torch_frontend_roundtrip(tmp_path, data, name):
     S = model.score(qry)
     again = load_method(save_method(model, tmp_path / "m.npz"))
     np.testing.assert_allclose(again.score(qry), S, rtol=1e-6, atol=1e-7)
+
+
+def test_a_file_from_before_an_added_parameter_loads_with_its_default(tmp_path, data, monkeypatch):
+    # A map or model saved before the CANN's `odometry` existed has no such parameter: it
+    # loads with the default.  Any other parameter missing is still refused.
+    from flyvpr.temporal.cann import CANN
+
+    model = make_method("flyhash+cann", 0).fit(data[0])
+    older = [n for n in CANN._param_names() if n != "odometry"]
+    with monkeypatch.context() as m:
+        m.setattr(CANN, "_param_names", classmethod(lambda cls: older))
+        path = save_method(model, tmp_path / "old.npz")
+    again = load_method(path)
+    assert again.filter.odometry == "scaled"
+    np.testing.assert_array_equal(again.score(data[1]), model.score(data[1]))
+    fewer = [n for n in older if n != "tolerance"]
+    with monkeypatch.context() as m:
+        m.setattr(CANN, "_param_names", classmethod(lambda cls: fewer))
+        path = save_method(model, tmp_path / "older.npz")
+    with pytest.raises(ValueError, match=r"filter\.params\.tolerance: missing"):
+        load_method(path)

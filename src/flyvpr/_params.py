@@ -13,6 +13,10 @@ class ParamsMixin:
     As in scikit-learn, ``__init__`` only stores each argument under its own name.
     """
 
+    #: parameters added after model files were first written: a file without one loads with
+    #: the parameter's default (every other parameter must be in the file)
+    _added_params: tuple[str, ...] = ()
+
     @classmethod
     def _param_names(cls) -> list[str]:
         sig = inspect.signature(cls.__init__)

@@ -272,9 +272,9 @@ class _Reader:
             if key not in allowed:
                 raise self.error(f"{field}.params.{key}", f"not a parameter of {name}")
         for key in allowed:
-            if key not in params:
+            if key not in params and key not in cls._added_params:
                 raise self.error(f"{field}.params.{key}", "missing")
-        obj = cls(**params)
+        obj = cls(**params)  # (a parameter newer than the file: its default)
         if not isinstance(state, dict):
             raise self.error(f"{field}.state", f"must be a JSON object; got {state!r}")
         scalars = {}

@@ -254,6 +254,9 @@ class CANN(OdometryFilter):
 
     name = "cann"
 
+    #: maps and models saved before ``odometry`` existed load with its default
+    _added_params = ("odometry",)
+
     def __init__(
         self,
         velocities=LAYER_VELOCITIES,
