@@ -567,12 +567,12 @@ class CANN(OdometryFilter):
         if t > 0:
             predicted = int(kernels["window_sums"](self._predicted, radius, self._box))
             if (shifts == shifts[0]).all():
-                # Every velocity row moved alike (odometry, or a bank of one velocity), so the
-                # prediction is the posterior moved whole: a confident packet on one place
-                # fills 2 * radius + 1 windows almost equally, and the first of them lies
-                # radius places short of it.  The prediction is then the packet's most
-                # probable place in that window.  (Rows moved by different velocities spread
-                # the prediction over several places, and the window's centre is the
+                # Every velocity row moved alike (exact odometry, odometry 0, or a bank of one
+                # velocity), so the prediction is the posterior moved whole: a confident packet
+                # on one place fills 2 * radius + 1 windows almost equally, and the first of
+                # them lies radius places short of it.  The prediction is then the packet's
+                # most probable place in that window.  (Rows moved by different velocities
+                # spread the prediction over several places, and the window's centre is the
                 # packet's; that case is left as it was calibrated.)
                 lo = max(predicted - radius, 0)
                 predicted = lo + int(np.argmax(self._predicted[lo : predicted + radius + 1]))
@@ -656,11 +656,10 @@ class CANN(OdometryFilter):
         localized = self.source_ == "sequence" and self.support_ * self.probability_ >= 0.5
         self.state_ = "localized" if localized else "lost"
         self._localized_mean += rate * (float(localized) - self._localized_mean)
+        mean = float(self._row_mass @ p["velocities"])  # a velocity, or with odometry a scale
         if velocity is None:
-            self.velocity_ = float(self._row_mass @ p["velocities"])
-        elif p["odometry"] == "scaled":
-            self.velocity_ = float(velocity) * float(self._row_mass @ p["velocities"])
+            self.velocity_ = mean
         else:
-            self.velocity_ = float(velocity)
+            self.velocity_ = float(velocity) * (mean if p["odometry"] == "scaled" else 1.0)
         self.n_frames_ = t + 1
         return out
