@@ -153,16 +153,33 @@ def main(argv=None) -> int:
     p.add_argument("--jobs", type=int, default=2, help="mutants run side by side (default 2)")
     p.add_argument("--json", type=Path, help="also write every mutant's outcome as JSON")
     args = p.parse_args(argv)
+    if args.sample < 1:
+        p.error(f"--sample must be at least 1; got {args.sample}")
     path = ROOT / args.module
-    if not path.is_file():
-        print(f"module not found: {path}", file=sys.stderr)
+    if not path.is_file() or path.suffix != ".py":
+        print(f"module not found (a .py file under the repository): {path}", file=sys.stderr)
+        return 1
+    missing = [t for t in args.tests if not (ROOT / t.split("::")[0]).exists()]
+    if missing:
+        print(f"tests not found: {', '.join(missing)}", file=sys.stderr)
         return 1
     source = path.read_text(encoding="utf-8")
-    points = mutants(source)
+    try:
+        points = mutants(source)
+    except SyntaxError as exc:
+        print(f"{args.module} does not parse: {exc}", file=sys.stderr)
+        return 1
     chosen = random.Random(args.seed).sample(points, min(args.sample, len(points)))
     print(f"{args.module}: {len(points)} mutation points; running {len(chosen)} (seed {args.seed})")
     jobs = max(1, args.jobs)
     trees = [_copy_tree() for _ in range(jobs)]
+    # The tests must pass on the module as it is, or every mutant would count as killed.
+    baseline = Mutant(0, 0, "", 0)
+    if _run(trees[0], args.module, source, baseline, args.tests) != "survived":
+        for tree in trees:
+            shutil.rmtree(tree, ignore_errors=True)
+        print(f"the tests fail on {args.module} unchanged: fix them first", file=sys.stderr)
+        return 1
     outcomes: dict[int, str] = {}
 
     def worker(k: int) -> None:
