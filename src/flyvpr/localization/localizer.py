@@ -9,7 +9,9 @@ argmax), up to float rounding of the one-row versus many-row products.
 
 Odometry, when the robot has it, goes to the filter as the number of places moved since the
 previous frame (``velocity``), or as metres (``distance``), which the localizer divides by
-the map's spacing between places (``place_spacing``).
+the map's spacing between places (``place_spacing``).  The CANN does not take it as exact: it
+learns the ratio of places moved to the odometry (its ``odometry`` parameter), so a spacing
+that is a little off costs little.
 """
 
 from __future__ import annotations
