@@ -443,6 +443,21 @@ ROBOT_VIEWS: list[View] = [
     View("r-shuffled", "n64-0", "0-999, queries shuffled", "robot", _ROBOT, "shuffle"),
     _motion("r-reversed", "n64-0", "0-999 driven backwards", "reversed"),
     _motion("r-walk-2000", "n64-2000", "2000-2399 held out, random 0.4-1.6x", "walk"),
+    _motion(
+        "r-walk-odo-2000",
+        "n64-2000",
+        "2000-2399 held out, random 0.4-1.6x, odometry",
+        "walk",
+        odometry=True,
+    ),
+    _motion(
+        "r-walk-odo-long-2000",
+        "n64-2000",
+        "2000-2399 held out, random 0.4-1.6x, odometry 20% long",
+        "walk",
+        odometry=True,
+        odometry_scale=1.2,
+    ),
     _motion("r-stopgo-2000", "n64-2000", "2000-2399 held out, stop-and-go", "stopgo"),
     View(
         "r-detour-2000",
