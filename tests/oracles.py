@@ -21,3 +21,9 @@ def gabor_energy(images, bank) -> np.ndarray:
     r = s // 2
     full = sfft.ifft2(sfft.fft2(x, s=shape, axes=(1, 2))[:, None] * spectra[None], axes=(2, 3))
     return np.abs(full[:, :, r : r + h, r : r + w]).astype(np.float32)
+
+
+def odometry_scale(cann) -> float:
+    """A CANN's mean odometry scale after its last step (scaled odometry: its ``velocity_``
+    is the odometry times it), from its velocity rows' posterior mass."""
+    return float(cann._row_mass @ cann._params["velocities"])

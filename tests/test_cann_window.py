@@ -5,6 +5,7 @@ import pytest
 
 from flyvpr.temporal.cann import CANN, WindowedCANN
 from flyvpr.temporal.cann._window import _shift
+from oracles import odometry_scale
 
 
 def _route(n_query=200, n_places=3000, start=500, speed=1.0, strength=3.0, seed=0):
@@ -68,7 +69,7 @@ def test_odometry_moves_the_window_too():
     f.reseed([100])
     places, _ = _run(f, S, velocity=0.5)
     assert (np.abs(places - truth) <= 2)[10:].mean() > 0.97
-    assert f.cann_.velocity_ == pytest.approx(0.5 * _scale(f.cann_))  # the odometry, scaled
+    assert f.cann_.velocity_ == pytest.approx(0.5 * odometry_scale(f.cann_))  # the odometry, scaled
 
 
 def test_a_lost_filter_keeps_its_window_until_reseeded():
@@ -156,8 +157,3 @@ def test_errors():
         f.reseed([1, 2], weights=[0.0, 0.0])
     with pytest.raises(ValueError, match="weights"):
         f.reseed([1, 2], weights=[1.0])
-
-
-def _scale(cann) -> float:
-    """The layer's mean odometry scale: its velocity_ is the odometry times it."""
-    return float(cann._row_mass @ cann._params["velocities"])

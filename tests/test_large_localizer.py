@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from flyvpr.large import ExhaustiveIndex, LargeLocalizer, MultiIndexHash
+from oracles import odometry_scale
 
 
 def _map(n=20000, n_bytes=32, seed=0):
@@ -414,7 +415,7 @@ def test_update_encodes_the_image_and_passes_the_odometry_on():
         assert (a.place, a.state, a.confidence) == (b.place, b.state, b.confidence)
         if velocity is not None:
             layer = by_image.filter_.cann_
-            assert layer.velocity_ == pytest.approx(1.0 * _scale(layer))  # the odometry, scaled
+            assert layer.velocity_ == pytest.approx(odometry_scale(layer))  # 1 place, scaled
     with pytest.raises(
         ValueError, match=r"^update needs an encoder \(LargeLocalizer\(\.\.\., encoder=\.\.\.\)\)$"
     ):
@@ -622,7 +623,7 @@ def test_a_replay_steps_the_new_layer_with_the_frames_odometry():
         )
     assert loc.filter_.place_ == ref.place_
     assert loc.filter_.confidence_ == ref.confidence_
-    assert loc.filter_.cann_.velocity_ == pytest.approx(2.0 * _scale(loc.filter_.cann_))
+    assert loc.filter_.cann_.velocity_ == pytest.approx(2.0 * odometry_scale(loc.filter_.cann_))
 
 
 def test_the_first_frame_displaces_no_layer():
@@ -1110,8 +1111,3 @@ def test_frames_never_searched_pool_as_no_candidates_on_a_map_smaller_than_k():
     places = loc._candidates(6)
     assert loc.n_searches_ == 2 and sorted(loc._found) == [4, 5]
     assert places.size > 0 and 45 in places[:10].tolist()
-
-
-def _scale(cann) -> float:
-    """The layer's mean odometry scale: its velocity_ is the odometry times it."""
-    return float(cann._row_mass @ cann._params["velocities"])

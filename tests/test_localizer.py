@@ -7,6 +7,7 @@ from fake_filters import Scripted, Stateless
 from flyvpr.localization import LOCALIZED, LOST, Fix, Fixes, Localizer
 from flyvpr.localization.maps import Map
 from flyvpr.methods import Method, make_method
+from oracles import odometry_scale
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +45,7 @@ def test_velocity_input_is_passed_to_the_filter(route):
     for i, k in enumerate(keep):
         loc.update(qry[k], velocity=None if i == 0 else 2.0)
     filt = loc.method.filter
-    assert filt.velocity_ == pytest.approx(2.0 * _scale(filt))  # the odometry, scaled
+    assert filt.velocity_ == pytest.approx(2.0 * odometry_scale(filt))  # the odometry, scaled
 
 
 def test_state_does_not_grow(route):
@@ -248,8 +249,3 @@ def test_from_map_takes_the_maps_spacing(ref):
     assert Localizer.from_map(bare).place_spacing is None
     assert Localizer.from_map(bare, place_spacing=1.5).place_spacing == 1.5
     assert Localizer("pixels").place_spacing is None
-
-
-def _scale(cann) -> float:
-    """The layer's mean odometry scale: its velocity_ is the odometry times it."""
-    return float(cann._row_mass @ cann._params["velocities"])
