@@ -165,3 +165,26 @@ def test_datasets_says_what_is_read(capsys):
     assert main(["datasets"]) == 0
     out = capsys.readouterr().out
     assert "hidden" in out and ".gif" in out and "[0, 1]" in out
+
+
+@pytest.mark.parametrize(
+    "param, message",
+    [
+        ("tolerance=-1", "tolerance must be >= 0; got -1"),
+        ("odometry=wheel", "odometry must be one of ('scaled', 'exact'); got 'wheel'"),
+    ],
+)
+def test_a_bad_filter_parameter_is_refused_before_the_map_is_built(
+    data, tmp_path, capsys, monkeypatch, param, message
+):
+    # The CANN checks its parameters on reset; `flyvpr map` refuses them before fitting the
+    # front end and writes nothing (before, the map was written and could not be loaded).
+    from flyvpr.frontends.kenyon import KenyonEncoder
+
+    fitted = []
+    monkeypatch.setattr(KenyonEncoder, "_fit", lambda self, images: fitted.append(1), raising=True)
+    out = tmp_path / "x.map"
+    code = main(["map", str(data / "reference"), "--out", str(out), "--param", param, "-q"])
+    err = capsys.readouterr().err
+    assert code == 1 and message in err and len(err.strip().splitlines()) == 1
+    assert not out.exists() and not fitted

@@ -170,6 +170,13 @@ class Method:
         """:meth:`fit`, the front end's per-image work run through ``map_chunks`` when it is
         not None (see :meth:`flyvpr.frontends.base.Encoder._fit_chunks`)."""
         t0 = time.perf_counter()
+        filt = self.filter
+        if filt is not None and not getattr(filt, "needs_reference_scores", False):
+            # an online filter checks its parameters on reset: before the front end's fit
+            # (minutes on a long recording), not at the first query after the map is written
+            reset = getattr(filt, "reset", None)
+            if reset is not None:
+                reset()
         self.frontend._fit_checked(reference_images, map_chunks)
         if self.filter is not None and getattr(self.filter, "needs_reference_scores", False):
             self.filter.fit(self.frontend.score(reference_images))
