@@ -77,6 +77,19 @@ def test_code_overlap_matches_a_loop_serial_and_parallel(n_query):
     np.testing.assert_array_equal(code_overlap(q, r), expected)
 
 
+@pytest.mark.parametrize("n_query", [1, 8])
+def test_code_overlap_over_more_places_than_one_chunk_of_the_index(n_query):
+    # The inverted index stores places as uint16 offsets within chunks of its own size: a map
+    # of more than 65,536 places spans two chunks, and each must be scored at its own places.
+    rng = np.random.default_rng(7)
+    n_places = 70_000
+    q = rng.random((n_query, 24)) < 0.3
+    r = rng.random((n_places, 24)) < 0.3
+    expected = q.astype(np.int32) @ r.T.astype(np.int32)
+    got = code_overlap(q, r)
+    np.testing.assert_array_equal(got, expected)
+    assert (got[:, 65_536:] > 0).any()  # the second chunk is scored, not left at 0
+
 def test_code_overlap_bad_shapes():
     with pytest.raises(ValueError, match="same number of bits"):
         code_overlap(np.zeros((2, 8), bool), np.zeros((2, 9), bool))
@@ -360,11 +373,17 @@ def test_footprint_names_its_layers_and_fixed_connections(route):
     assert fp["neurons"] == enc.n_features_ + 1024
 
 
-def test_the_smallest_layout_fits(route):
-    # n_kenyon = 8 (one byte per place) is allowed
+def test_the_smallest_layout_fits(route, tmp_path):
+    # n_kenyon = 8 (one byte per place) is allowed, and so is one active cell, in a model file
     ref, qry = route
     enc = KenyonEncoder(n_kenyon=8, active_ratio=0.25, n_inputs=4, random_state=0).fit(ref)
     assert enc.encode(qry).shape == (len(qry), 1) and enc.n_active_ == 2
+    params = {"n_kenyon": 8, "active_ratio": 0.125, "n_inputs": 1}
+    one = make_method("kenyon", 0, frontend_params=params).fit(ref)
+    assert one.frontend.n_active_ == 1
+    again = load_method(save_method(one, tmp_path / "one.npz"))
+    assert again.frontend.n_active_ == 1
+    np.testing.assert_array_equal(again.score(qry), one.score(qry))
 
 
 def test_the_optic_lobe_is_built_once_and_the_fit_names_its_chunked_work(route):
