@@ -90,6 +90,7 @@ def test_code_overlap_over_more_places_than_one_chunk_of_the_index(n_query):
     np.testing.assert_array_equal(got, expected)
     assert (got[:, 65_536:] > 0).any()  # the second chunk is scored, not left at 0
 
+
 def test_code_overlap_bad_shapes():
     with pytest.raises(ValueError, match="same number of bits"):
         code_overlap(np.zeros((2, 8), bool), np.zeros((2, 9), bool))
