@@ -57,6 +57,7 @@ def run(f, S, velocity=None):
                 "source_": f.source_,
                 "confidence_": f.confidence_,
                 "support_": f.support_,
+                "novelty_": f.novelty_,
                 "probability_": f.probability_,
                 "state_": f.state_,
                 "velocity_": f.velocity_,
@@ -116,8 +117,18 @@ def reference_filter(S, velocity=None, **params):
     strengths, raws, weights = [], [], []
     stride = max(1, n // 4096)
     relocations = 0
+    likeness, last = None, None  # the running mean correlation of consecutive rows; the last row
     rows, frames = [], []
     for t, row in enumerate(np.asarray(S, np.float64)):
+        # how new the frame is: 1 - its correlation with the last row, over the usual
+        novelty = 1.0
+        if last is not None:
+            flat = row.std() == 0 or last.std() == 0
+            r = 0.0 if flat else float(np.clip(np.corrcoef(row, last)[0, 1], 0.0, 1.0))
+            usual = r if likeness is None else likeness
+            likeness = usual + max(1 / t, 1 / memory) * (r - usual)
+            novelty = min(1.0, (1 - r) / max(1 - usual, 1e-6))
+        last = row
         # input: log of probability rows, z-score, adapted per place, clipped
         x = row.copy()
         transform = q["input_transform"]
@@ -179,6 +190,7 @@ def reference_filter(S, velocity=None, **params):
             for rank, k in ((u, 0), (w, 1)):
                 shape = min(1.0, max(0.05, 1 / log_rank[k]))
                 on *= (1 - outlier) * shape * rank ** (shape - 1) + outlier
+            on = on**novelty
             before = support * (1 - q["sequence_break"]) + (1 - support) * q["sequence_start"]
             support = before * on / (before * on + 1 - before)
             if support >= 0.5:
@@ -243,6 +255,7 @@ def reference_filter(S, velocity=None, **params):
                 "source_": source,
                 "confidence_": confidence,
                 "support_": support,
+                "novelty_": novelty,
                 "probability_": probability if source == "sequence" else 0.0,
                 "state_": "localized" if localized else "lost",
                 "velocity_": float(layer.sum(axis=1) @ vel)
@@ -459,7 +472,7 @@ def test_defaults():
     forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0, 3.25, 3.5)
     assert LAYER_VELOCITIES == (-2.0, -1.5, -1.0, -0.5) + forward
     assert all(type(v) is float for v in LAYER_VELOCITIES)
-    table = (0.557, 0.677, 0.678, 0.779, 0.872, 0.885, 0.925, 0.954, 0.982, 0.999, 1.0)
+    table = (0.194, 0.559, 0.758, 0.833, 0.919, 0.976, 0.977, 0.99, 0.993, 0.999, 1.0)
     assert CALIBRATION == table
     assert np.all(np.diff(CALIBRATION) > 0)
     assert _FRONT_RATE == 0.05
@@ -1046,6 +1059,53 @@ def test_tracks_a_bump_that_stops_for_30_frames():
     assert frames[-1]["state_"] == "localized" and frames[-1]["source_"] == "sequence"
 
 
+@pytest.mark.parametrize("camera_noise", [0.0, 0.02])
+def test_a_robot_standing_off_the_route_is_not_localized(camera_noise):
+    # 60 frames off the route, then one frame seen 40 times (a robot standing off its map),
+    # its best place always the same: frames that repeat the last one test nothing new, so
+    # the same place's evidence repeated is no sequence (before, the support rose to 0.85
+    # and the filter was localized on the last 20 frames)
+    rng = np.random.default_rng(1)
+    S = np.r_[rng.normal(0.0, 1.0, (60, 80)), np.repeat(rng.normal(0.0, 1.0, (1, 80)), 40, 0)]
+    S[60:, 30] += 3.0
+    S[60:] += rng.normal(0.0, camera_noise, (40, 80))
+    _, frames = run(CANN(), S)
+    assert all(f["state_"] == "lost" for f in frames[60:])
+    # the support only relaxes towards its prior's even odds (and a chance support at the
+    # start of the stand does not last through it)
+    assert frames[-1]["support_"] < 0.55
+
+
+def test_a_repeated_frame_leaves_the_support_to_its_prior_drift():
+    # novelty 0: the test's likelihood ratio counts as 1, the support only drifts at the
+    # rates of leaving and joining the route
+    S = bump_rows(10 + np.arange(30.0), 60)
+    S = np.r_[S, S[-1:], S[-1:]]
+    f = CANN(sequence_break=0.07, sequence_start=0.03)
+    _, frames = run(f, S)
+    assert frames[30]["novelty_"] == frames[31]["novelty_"] == 0.0
+    for t in (30, 31):
+        s = frames[t - 1]["support_"]
+        assert frames[t]["support_"] == pytest.approx(s * 0.93 + (1 - s) * 0.03, rel=1e-9)
+    # the frame before, a new one, moved the support by its own evidence
+    s = frames[28]["support_"]
+    assert frames[29]["novelty_"] > 0.5
+    assert frames[29]["support_"] != pytest.approx(s * 0.93 + (1 - s) * 0.03, rel=1e-3)
+
+
+def test_a_frame_as_new_as_usual_counts_whole():
+    # frames of independent noise are all about as new as each other: none is discounted
+    # below half a frame, and the mean novelty is about 1
+    rng = np.random.default_rng(4)
+    f = CANN()
+    novelty = []
+    for row in rng.normal(0.0, 1.0, (200, 300)):
+        f.step(row)
+        novelty.append(f.novelty_)
+    assert novelty[0] == 1.0 and min(novelty) > 0.5
+    assert np.mean(novelty[1:]) == pytest.approx(1.0, abs=0.02)
+
+
 @pytest.mark.parametrize("params", [{}, {"bidirectional": True}, {"reverse_weight": 0.5}])
 def test_follows_a_bump_driven_backwards(params):
     # 1 place per frame backwards: the coarse backward bank follows it (the whole bank
@@ -1546,11 +1606,13 @@ def test_state_arrays_and_the_memory_check(monkeypatch):
     for name in ("_marginal", "_predicted", "_weight", "_mean", "_var", "_x"):
         assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (1000,)
     state = sum(v.nbytes for v in vars(f).values() if isinstance(v, np.ndarray) and v.size >= 1000)
-    assert state == 8 * 27 * 1000 + 32 * 1000  # float32 layer (twice) and per-place buffers
+    # float32 layer (twice), per-place buffers and the last frame's row (and this frame's)
+    assert f._last_row.dtype == np.float32 and f._last_row.shape == (2, 1000)
+    assert state == 8 * 27 * 1000 + 40 * 1000
     # the memory check asks for the layer and its per-place buffers before allocating them
     monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(state))
     CANN().step(np.zeros(1000))
-    monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(8 * 27 * 1000 + 16 * 1000))
+    monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(state - 1))
     with pytest.raises(
         InsufficientMemoryError,
         match=re.escape("n_reference=1000 places x 27 velocities (velocities, bidirectional)"),
@@ -1566,7 +1628,7 @@ def test_footprint_by_hand():
         "params": 30 + 40 + 30 + 30 + 60,
         "neurons": 31,
         "distinct_weights": 6,
-        "state_variables": 30 + 20 + 6,
+        "state_variables": 30 + 30 + 8,
     }
     # bidirectional: 0 is not doubled, so (0, 1) gives -1, 0, 1
     assert CANN(velocities=(0.0, 1.0), bidirectional=True).footprint(10) == CANN(
@@ -1578,7 +1640,7 @@ def test_footprint_by_hand():
         "params": 27000 * 5 + 2 * 26 * 1000,
         "neurons": 27001,
         "distinct_weights": 30,
-        "state_variables": 29006,
+        "state_variables": 30008,
     }
     assert CANN(velocities=(1.0,)).footprint(1)["params"] == 5  # no velocity neighbours
     with pytest.raises(ValueError, match="^n_reference must be >= 1; got 0"):
@@ -1698,9 +1760,9 @@ def _predictions(f, S, velocity):
     seen, states = [], []
     real = f._support
 
-    def spy(x, predicted):
+    def spy(x, predicted, novelty):
         seen.append(predicted)
-        return real(x, predicted)
+        return real(x, predicted, novelty)
 
     f._support = spy
     f.reset()
@@ -1746,11 +1808,11 @@ def test_without_odometry_the_prediction_is_the_windows_centre():
     recorded = []
     real = f._support
 
-    def spy(x, predicted):
+    def spy(x, predicted, novelty):
         prediction = f._predicted.astype(np.float64)
         centre = int(np.argmax(_windows(prediction, f.tolerance)))
         recorded.append((predicted, centre, int(np.argmax(prediction))))
-        return real(x, predicted)
+        return real(x, predicted, novelty)
 
     f._support = spy
     f.reset()

@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.557, 0.677, 0.678, 0.779, 0.872, 0.885, 0.925, 0.954, 0.982, 0.999, 1.0)
+CALIBRATION = (0.194, 0.559, 0.758, 0.833, 0.919, 0.976, 0.977, 0.99, 0.993, 0.999, 1.0)
 #: how odometry moves the layer (see the class's ``odometry`` parameter)
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
@@ -181,8 +181,8 @@ class CANN(OdometryFilter):
         Share of frames on the route whose evidence at the true place is no better than
         anywhere else (the sequence test's robustness).
     support_memory : float, default 100.0
-        Frames over which the support, the test's rank model and the statistics of the
-        front end's peaks are averaged.
+        Frames over which the support, the test's rank model, the statistics of the front
+        end's peaks and the usual likeness of consecutive frames are averaged.
     fallback : bool, default True
         Answer with the front end's best place when the front end's estimated probability of
         being right beats the sequence's (see "Output" on the guide page).  The front end's
@@ -225,6 +225,10 @@ class CANN(OdometryFilter):
         ``"lost"`` otherwise (the place is then a hint).
     support_ : float
         Probability that the query is following the route.
+    novelty_ : float
+        How much of a new frame the last one was to the sequence test, in [0, 1]: 1 for a
+        frame as unlike the one before as frames usually are, near 0 for a repeat of it (a
+        robot standing still); the test's evidence counts that much.
     front_probability_ : float
         The front end's model's probability that its own best place is right, this frame
         (before the shrinking of a front-end answer's confidence).
@@ -384,7 +388,8 @@ class CANN(OdometryFilter):
         neighbours (one at the bank's ends), the redrawn-velocity input from its place and
         the evidence input; every unit also feeds the normaliser and receives from it.
         ``distinct_weights``: stay, neighbour, redraw (one per velocity) and the evidence
-        gain.
+        gain.  ``state_variables``: the units, each place's running mean and variance of its
+        input and the last frame's row, and 8 running numbers.
         """
         n = check_positive_int(n_reference, "n_reference")
         p = self._check_params()
@@ -396,7 +401,7 @@ class CANN(OdometryFilter):
             "params": units + neighbours + units + units + 2 * units,
             "neurons": units + 1,
             "distinct_weights": 3 + n_v,
-            "state_variables": units + 2 * n + 6,
+            "state_variables": units + 3 * n + 8,
         }
 
     # -- online -----------------------------------------------------------------
@@ -410,6 +415,7 @@ class CANN(OdometryFilter):
         self.velocity_ = float("nan")
         self.confidence_ = 0.0
         self.support_ = 0.5
+        self.novelty_ = 1.0
         self.front_probability_ = 0.0
         self.probability_ = 0.0
         self.state_ = "lost"
@@ -419,7 +425,7 @@ class CANN(OdometryFilter):
         p = self._params
         n_v = p["velocities"].size
         check_memory(
-            8 * n_v * n + 32 * n,
+            8 * n_v * n + 40 * n,
             f"n_reference={n} places x {n_v} velocities (velocities, bidirectional)",
         )
         self._n = n
@@ -437,6 +443,11 @@ class CANN(OdometryFilter):
         self._var = np.ones(n, np.float32)
         self._x = np.empty(n, np.float32)
         self._offsets = np.zeros(n_v)
+        # The last frame's row, centred (two buffers: the last and this frame's), its norm,
+        # and the running mean correlation of consecutive rows (see _novelty).
+        self._last_row = np.empty((2, n), np.float32)
+        self._last_norm: float | None = None
+        self._likeness: float | None = None
         self._odometry_offset = 0.0
         self._stride = max(1, n // _SAMPLES)
         # The sequence test's rank model: the share u of places at least as good as the
@@ -493,7 +504,36 @@ class CANN(OdometryFilter):
         self._offsets = total - rounded
         return rounded.astype(np.int64)
 
-    def _support(self, x: np.ndarray, predicted: int) -> None:
+    def _novelty(self, row: np.ndarray, rate: float) -> float:
+        """How much of a new frame ``row`` is, in [0, 1], for the sequence test.
+
+        ``r``: the correlation of the row with the last row (clipped to [0, 1]; 0 where
+        either row is constant).  Consecutive frames of a moving robot correlate a little
+        (the route's neighbouring places look alike, ``r`` about 0.4-0.8 on Nordland); a
+        standing robot's frames almost entirely.  The novelty is ``(1 - r) / (1 - r_mean)``,
+        at most 1, where ``r_mean`` is the running mean of ``r`` (over ``support_memory``
+        frames, updated with ``rate``): a frame as new as usual counts whole, a repeat of the
+        last frame hardly at all.  Every frame's centred row is kept for the next.
+        """
+        centred = self._last_row
+        previous = self._last_norm
+        np.subtract(row, np.float32(row.mean()), out=centred[1], casting="unsafe")
+        norm = math.sqrt(float(np.dot(centred[1], centred[1])))
+        self._last_row = centred[::-1]
+        self._last_norm = norm
+        if previous is None:
+            return 1.0
+        r = 0.0
+        if norm > 0.0 and previous > 0.0:
+            r = float(np.dot(centred[0], centred[1])) / (norm * previous)
+            r = min(max(r, 0.0), 1.0)
+        if self._likeness is None:
+            self._likeness = r
+        usual = self._likeness
+        self._likeness += rate * (r - usual)
+        return min(1.0, (1.0 - r) / max(1.0 - usual, 1e-6))
+
+    def _support(self, x: np.ndarray, predicted: int, novelty: float = 1.0) -> None:
         """The sequence test: update ``support_`` with this frame's evidence at ``predicted``.
 
         Two ranks of the predicted place's evidence: ``u`` among all places (every
@@ -503,6 +543,10 @@ class CANN(OdometryFilter):
         frames the test already supports: the maximum-likelihood value, one over the mean of
         ``-log u``) on all but an ``outlier`` share of the frames.  Two states, on and off the
         route, switch with probabilities ``sequence_break`` and ``sequence_start`` per frame.
+        The test's outcome counts as ``novelty`` of a frame (its likelihood ratio is raised
+        to that power, see :meth:`_novelty`): a frame that repeats the last one tests little
+        new, and the support then relaxes towards its prior (time passes all the same: a
+        chance support at the start of a stand must not last through it).
         """
         p = self._params
         reach = 2 * p["tolerance"] + 1
@@ -514,6 +558,7 @@ class CANN(OdometryFilter):
         for rank, k in ((u, 0), (w, 1)):
             shape = _shape(self._log_rank[k])
             on *= (1.0 - p["outlier"]) * shape * rank ** (shape - 1.0) + p["outlier"]
+        on **= novelty
         s = self.support_
         before = s * (1.0 - p["sequence_break"]) + (1.0 - s) * p["sequence_start"]
         self.support_ = before * on / (before * on + (1.0 - before))
@@ -529,6 +574,8 @@ class CANN(OdometryFilter):
         t = self.n_frames_
         radius = p["tolerance"]
         x = self._input(row)
+        memory = p["support_memory"]
+        novelty = self.novelty_ = self._novelty(row, max(1.0 / max(t, 1), 1.0 / memory))
         if t > 0:
             floor_rate = p["relocation"] + p["recovery"] * (1.0 - self.support_)
             if velocity is None:
@@ -576,14 +623,13 @@ class CANN(OdometryFilter):
                 # packet's; that case is left as it was calibrated.)
                 lo = max(predicted - radius, 0)
                 predicted = lo + int(np.argmax(self._predicted[lo : predicted + radius + 1]))
-            self._support(x, predicted)
+            self._support(x, predicted, novelty)
         # The window holding the most probability, and in it the most probable place: the
         # answer (its own window's probability is the confidence, at most the window's).
         best = int(kernels["window_sums"](self._marginal, radius, self._box))
         lo = max(best - radius, 0)
         answer = lo + int(np.argmax(self._marginal[lo : best + radius + 1]))
         probability = float(self._box[answer])
-        memory = p["support_memory"]
         rate = max(1.0 / (t + 1), 1.0 / memory)
         self._support_mean += rate * (self.support_ - self._support_mean)
         # The window's probability times the support (calibrated below).
