@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.194, 0.559, 0.758, 0.833, 0.919, 0.976, 0.977, 0.99, 0.993, 0.999, 1.0)
+CALIBRATION = (0.149, 0.579, 0.599, 0.769, 0.824, 0.876, 0.899, 0.956, 0.989, 0.997, 1.0)
 #: how odometry moves the layer (see the class's ``odometry`` parameter)
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
@@ -174,9 +174,11 @@ class CANN(OdometryFilter):
         The answer is the place with the most probability within ``tolerance`` places; the
         confidence is that probability (times the support).
     sequence_break : float, default 0.05
-        Probability per frame that the query leaves the route (the support's prior decay).
+        Probability per new frame that the query leaves the route (the support's prior
+        decay); a frame counts as ``novelty_`` of a new one, the rest of it relaxes the
+        support at the same total rate towards its running mean.
     sequence_start : float, default 0.05
-        Probability per frame that a query off the route joins it.
+        Probability per new frame that a query off the route joins it.
     outlier : float, default 0.3
         Share of frames on the route whose evidence at the true place is no better than
         anywhere else (the sequence test's robustness).
@@ -228,7 +230,8 @@ class CANN(OdometryFilter):
     novelty_ : float
         How much of a new frame the last one was to the sequence test, in [0, 1]: 1 for a
         frame as unlike the one before as frames usually are, near 0 for a repeat of it (a
-        robot standing still); the test's evidence counts that much.
+        robot standing still); the test's evidence, and the chance of leaving or joining
+        the route, count that much.
     front_probability_ : float
         The front end's model's probability that its own best place is right, this frame
         (before the shrinking of a front-end answer's confidence).
@@ -543,10 +546,11 @@ class CANN(OdometryFilter):
         frames the test already supports: the maximum-likelihood value, one over the mean of
         ``-log u``) on all but an ``outlier`` share of the frames.  Two states, on and off the
         route, switch with probabilities ``sequence_break`` and ``sequence_start`` per frame.
-        The test's outcome counts as ``novelty`` of a frame (its likelihood ratio is raised
-        to that power, see :meth:`_novelty`): a frame that repeats the last one tests little
-        new, and the support then relaxes towards its prior (time passes all the same: a
-        chance support at the start of a stand must not last through it).
+        The frame counts as ``novelty`` of a new one (see :meth:`_novelty`): the test's
+        likelihood ratio is raised to that power, and the prior step is that mixture of the
+        switch between the states and a relaxation, at the same rate, towards the support's
+        running mean over ``support_memory`` frames.  A repeat of the last frame so tests
+        nothing and leaves the support to what the recent frames said.
         """
         p = self._params
         reach = 2 * p["tolerance"] + 1
@@ -560,7 +564,14 @@ class CANN(OdometryFilter):
             on *= (1.0 - p["outlier"]) * shape * rank ** (shape - 1.0) + p["outlier"]
         on **= novelty
         s = self.support_
-        before = s * (1.0 - p["sequence_break"]) + (1.0 - s) * p["sequence_start"]
+        # A new frame: the query may leave or join the route.  A repeat says nothing new, so
+        # the support relaxes at the same rate towards what the recent frames said (its running
+        # mean) rather than towards even odds: an established support is kept through a stand,
+        # a chance one at its start is not.
+        rate = p["sequence_break"] + p["sequence_start"]
+        new = s * (1.0 - p["sequence_break"]) + (1.0 - s) * p["sequence_start"]
+        held = s + rate * (self._support_mean - s)
+        before = novelty * new + (1.0 - novelty) * held
         self.support_ = before * on / (before * on + (1.0 - before))
         if self.support_ >= _LEARN_ABOVE:
             self._log_rank[0] += (-math.log(u) - self._log_rank[0]) / p["support_memory"]
