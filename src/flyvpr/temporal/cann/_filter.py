@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.149, 0.579, 0.599, 0.769, 0.824, 0.876, 0.899, 0.956, 0.989, 0.997, 1.0)
+CALIBRATION = (0.146, 0.58, 0.598, 0.767, 0.824, 0.875, 0.9, 0.955, 0.989, 0.997, 1.0)
 #: how odometry moves the layer (see the class's ``odometry`` parameter)
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
@@ -392,7 +392,7 @@ class CANN(OdometryFilter):
         the evidence input; every unit also feeds the normaliser and receives from it.
         ``distinct_weights``: stay, neighbour, redraw (one per velocity) and the evidence
         gain.  ``state_variables``: the units, each place's running mean and variance of its
-        input and the last frame's row, and 8 running numbers.
+        input and the last frame's row, and 7 running numbers.
         """
         n = check_positive_int(n_reference, "n_reference")
         p = self._check_params()
@@ -404,7 +404,7 @@ class CANN(OdometryFilter):
             "params": units + neighbours + units + units + 2 * units,
             "neurons": units + 1,
             "distinct_weights": 3 + n_v,
-            "state_variables": units + 3 * n + 8,
+            "state_variables": units + 3 * n + 7,
         }
 
     # -- online -----------------------------------------------------------------
@@ -446,10 +446,9 @@ class CANN(OdometryFilter):
         self._var = np.ones(n, np.float32)
         self._x = np.empty(n, np.float32)
         self._offsets = np.zeros(n_v)
-        # The last frame's row, centred (two buffers: the last and this frame's), its norm,
-        # and the running mean correlation of consecutive rows (see _novelty).
-        self._last_row = np.empty((2, n), np.float32)
-        self._last_norm: float | None = None
+        # The last frame's row and the running mean correlation of consecutive rows (see
+        # _novelty).
+        self._last_row = np.zeros(n, np.float64)
         self._likeness: float | None = None
         self._odometry_offset = 0.0
         self._stride = max(1, n // _SAMPLES)
@@ -516,20 +515,14 @@ class CANN(OdometryFilter):
         standing robot's frames almost entirely.  The novelty is ``(1 - r) / (1 - r_mean)``,
         at most 1, where ``r_mean`` is the running mean of ``r`` (over ``support_memory``
         frames, updated with ``rate``): a frame as new as usual counts whole, a repeat of the
-        last frame hardly at all.  Every frame's centred row is kept for the next.
+        last frame hardly at all.  Every frame's row is kept (float64) for the next.
         """
-        centred = self._last_row
-        previous = self._last_norm
-        np.subtract(row, np.float32(row.mean()), out=centred[1], casting="unsafe")
-        norm = math.sqrt(float(np.dot(centred[1], centred[1])))
-        self._last_row = centred[::-1]
-        self._last_norm = norm
-        if previous is None:
+        if row.dtype not in (np.float32, np.float64):  # (float16: not a numba type)
+            row = row.astype(np.float64)
+        r = float(self._kernels["likeness"](row, self._last_row))
+        if self.n_frames_ == 0:
             return 1.0
-        r = 0.0
-        if norm > 0.0 and previous > 0.0:
-            r = float(np.dot(centred[0], centred[1])) / (norm * previous)
-            r = min(max(r, 0.0), 1.0)
+        r = min(max(r, 0.0), 1.0)
         if self._likeness is None:
             self._likeness = r
         usual = self._likeness

@@ -4,12 +4,15 @@ The layer holds one unit per (velocity, place) pair; its activity ``P[j, i]`` is
 probability that the robot is at place ``i`` moving ``velocities[j]`` places per frame
 (see "The place-velocity layer" on the user guide's CANN page).  :func:`advance` moves it
 by one frame and weighs it by the evidence; :func:`window_sums` finds the window of places
-that holds the most probability, and :func:`exceedance` ranks the evidence at one place
-among all.  Each function is written once, as explicit loops over places, and runs compiled
-or as plain Python (``_kernels``).
+that holds the most probability, :func:`exceedance` ranks the evidence at one place
+among all, and :func:`likeness` correlates a frame's scores with the last frame's (the
+sequence test's novelty).  Each function is written once, as explicit loops over places,
+and runs compiled or as plain Python (``_kernels``).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -180,8 +183,38 @@ def advance(p, out, shifts, stay, neighbour, jump, redraw, prior, floor_rate, we
     return z
 
 
+def likeness(row, last):
+    """The correlation of the score ``row`` with the ``last`` one, in one pass; then ``row``
+    is copied into ``last``.  0 where either row is constant.  The sums are float64 sums of
+    each row less its first value (a shift that keeps the variances from cancelling when a
+    row's values are large and close together)."""
+    n = row.shape[0]
+    a0 = float(row[0])
+    b0 = float(last[0])
+    sa = 0.0
+    sb = 0.0
+    saa = 0.0
+    sbb = 0.0
+    sab = 0.0
+    for i in range(n):
+        a = float(row[i]) - a0
+        b = float(last[i]) - b0
+        sa += a
+        sb += b
+        saa += a * a
+        sbb += b * b
+        sab += a * b
+        last[i] = row[i]
+    va = saa - sa * sa / n
+    vb = sbb - sb * sb / n
+    if not (va > 0.0 and vb > 0.0):
+        return 0.0
+    return (sab - sa * sb / n) / math.sqrt(va * vb)
+
+
 PLAIN = {
     "advance": advance,
     "window_sums": window_sums,
     "exceedance": exceedance,
+    "likeness": likeness,
 }
