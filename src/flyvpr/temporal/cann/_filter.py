@@ -529,7 +529,7 @@ class CANN(OdometryFilter):
         self._likeness += rate * (r - usual)
         return min(1.0, (1.0 - r) / max(1.0 - usual, 1e-6))
 
-    def _support(self, x: np.ndarray, predicted: int, novelty: float = 1.0) -> None:
+    def _support(self, x: np.ndarray, predicted: int, novelty: float) -> None:
         """The sequence test: update ``support_`` with this frame's evidence at ``predicted``.
 
         Two ranks of the predicted place's evidence: ``u`` among all places (every
