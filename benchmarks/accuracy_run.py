@@ -126,6 +126,9 @@ def run_task(task: Task) -> dict:
                     keep = gap_keep(len(ref), view.gap)
                     view_model, view_S, _ = _fit(entry, task.seed, ref[keep], qry, shared, view.gap)
                     view_ref_ids = ref_ids[keep]
+                frames = view_S[idx]
+                if view.camera_noise:  # the front end scores the view's own noisy frames
+                    frames = view_model.frontend.score(view.frames(qry, idx))
                 velocity = None
                 if view.odometry:
                     velocity = np.diff(qry_ids[idx], prepend=qry_ids[idx][0]).astype(np.float64)
@@ -134,13 +137,13 @@ def run_task(task: Task) -> dict:
                 filt = view_model.filter
                 states = None
                 if filt is None:
-                    out = view_S[idx]
+                    out = frames
                 elif view.group == "robot" and _has_state(filt):
-                    out, states = _stream(filt, view_S[idx], velocity)
+                    out, states = _stream(filt, frames, velocity)
                 elif velocity is not None:
-                    out = filt.filter(view_S[idx], velocity=velocity)
+                    out = filt.filter(frames, velocity=velocity)
                 else:
-                    out = filt.filter(view_S[idx])
+                    out = filt.filter(frames)
                 filter_s = time.perf_counter() - t0
                 top_share = float(np.bincount(out.argmax(axis=1)).max() / len(idx))
                 for tol in view.tolerances:

@@ -94,6 +94,22 @@ def motion_places(kind: str, n: int, seed: int = 0) -> np.ndarray:
     raise ValueError(f"unknown motion profile {kind!r}; known: {sorted(MOTIONS)}")
 
 
+#: how a camera's noise is added (see View.camera_noise)
+CAMERA_NOISE = (
+    "every query frame plus its own Gaussian noise of sd {sd:g} gray levels (of 255), rounded "
+    "to 8 bits and clipped to [0, 1], drawn from numpy.random.default_rng([view_seed, 1]); a "
+    "repeated place is then a new frame, as a real camera standing still gives"
+)
+
+
+def camera_frames(images: np.ndarray, sd: float, seed: int) -> np.ndarray:
+    """``images`` (float, [0, 1]) as a camera with sensor noise would give them (see
+    CAMERA_NOISE): Gaussian noise of ``sd`` gray levels per pixel and frame, rounded to 8 bits."""
+    rng = np.random.default_rng([seed, 1])
+    noisy = images.astype(np.float64) * 255.0 + rng.normal(0.0, sd, images.shape)
+    return (np.clip(np.round(noisy), 0.0, 255.0) / 255.0).astype(images.dtype)
+
+
 def fisheye(images: np.ndarray) -> np.ndarray:
     """``images`` (N, 32, 64) with everything outside FISHEYE_DISC set to its value."""
     cy, ry, cx, rx, value = FISHEYE_DISC
@@ -135,6 +151,15 @@ class View:
     odometry_scale: float = 1.0
     #: a detour: the reference places from ``gap[0] * n`` to ``gap[1] * n`` are not in the map
     gap: tuple[float, float] | None = None
+    #: a camera with sensor noise: every query frame of the view gets its own Gaussian noise
+    #: of this many gray levels (of 255), rounded to 8 bits (see :func:`camera_frames`)
+    camera_noise: float = 0.0
+
+    def frames(self, qry: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """The query images the view feeds, in order: ``qry[idx]``, through its camera."""
+        if not self.camera_noise:
+            return qry[idx]
+        return camera_frames(qry[idx], self.camera_noise, self.view_seed)
 
     def indices(self, n_query: int) -> np.ndarray:
         """Positions of the kept query frames, in the order they are fed to the methods."""
@@ -167,6 +192,8 @@ class View:
                     f"true places moved per frame times {self.odometry_scale:g} (odometry off "
                     "by that factor), given to filters that take it"
                 )
+        if self.camera_noise:
+            out["camera_noise"] = CAMERA_NOISE.format(sd=self.camera_noise)
         if self.gap is not None:
             out["gap"] = (
                 f"reference places {self.gap[0]:g} n to {self.gap[1]:g} n left out of the map "
@@ -433,6 +460,14 @@ ROBOT_VIEWS: list[View] = [
         odometry_scale=0.8,
     ),  # fmt: skip
     _motion("r-stop100", "n64-0", "0-999, one 100-frame stop", "stop100"),
+    # the same motions through a camera with sensor noise: a stand is no longer a repeated frame
+    _motion("r-0.6x-noisy", "n64-0", "0-999 at 0.6x, camera noise", "0.6x", camera_noise=1.0),
+    _motion(
+        "r-walk-noisy", "n64-0", "0-999, random 0.4-1.6x, camera noise", "walk", camera_noise=1.0
+    ),
+    _motion(
+        "r-stopgo-noisy", "n64-0", "0-999, stop-and-go, camera noise", "stopgo", camera_noise=1.0
+    ),
     _motion("r-2.5x", "n64-0", "0-999 at 2.5x", "2.5x"),
     _motion("r-2.5x-odo", "n64-0", "0-999 at 2.5x, odometry", "2.5x", odometry=True),
     _motion("r-3.25x", "n64-0", "0-999 at 3.25x", "3.25x"),
@@ -459,6 +494,13 @@ ROBOT_VIEWS: list[View] = [
         odometry_scale=1.2,
     ),
     _motion("r-stopgo-2000", "n64-2000", "2000-2399 held out, stop-and-go", "stopgo"),
+    _motion(
+        "r-stopgo-noisy-2000",
+        "n64-2000",
+        "2000-2399 held out, stop-and-go, camera noise",
+        "stopgo",
+        camera_noise=1.0,
+    ),
     View(
         "r-detour-2000",
         "n64-2000",

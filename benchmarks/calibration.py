@@ -55,7 +55,7 @@ def _runs(data: Path, seeds, progress: bool, dataset_key: str = DATASET):
             method = make_method("kenyon+cann", seed, {}, {})
             method.frontend.fit(ref[keep])
             idx = view.indices(len(qry_ids))
-            S = method.frontend.score(qry[idx])
+            S = method.frontend.score(view.frames(qry, idx))
             moved = np.diff(qry_ids[idx], prepend=qry_ids[idx][0]) * view.odometry_scale
             gt = ground_truth_from_frames(qry_ids[idx], ref_ids[keep], TOLERANCE)
             if progress:

@@ -163,7 +163,7 @@ def _run(seed: int, view, ref, qry, ref_ids, qry_ids):
     method = make_method("kenyon+cann", seed, {}, {})
     method.frontend.fit(ref[keep])
     idx = view.indices(len(qry))
-    S = method.frontend.score(qry[idx])
+    S = method.frontend.score(view.frames(qry, idx))
     filt = method.filter
     filt.reset()
     out = np.empty(S.shape, np.float32)

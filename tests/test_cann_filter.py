@@ -467,6 +467,7 @@ DEFAULTS = {
     "calibration": CALIBRATION,
     "recalibration": None,
     "odometry": "scaled",
+    "hold_repeats": True,
 }
 
 
@@ -476,7 +477,7 @@ def test_defaults():
     forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0, 3.25, 3.5)
     assert LAYER_VELOCITIES == (-2.0, -1.5, -1.0, -0.5) + forward
     assert all(type(v) is float for v in LAYER_VELOCITIES)
-    table = (0.146, 0.58, 0.598, 0.767, 0.824, 0.875, 0.9, 0.955, 0.989, 0.997, 1.0)
+    table = (0.189, 0.658, 0.662, 0.823, 0.843, 0.914, 0.964, 0.969, 0.994, 0.998, 1.0)
     assert CALIBRATION == table
     assert np.all(np.diff(CALIBRATION) > 0)
     assert _FRONT_RATE == 0.05
@@ -1073,10 +1074,11 @@ def test_a_robot_standing_off_the_route_is_not_localized(camera_noise):
     S = np.r_[rng.normal(0.0, 1.0, (60, 80)), np.repeat(rng.normal(0.0, 1.0, (1, 80)), 40, 0)]
     S[60:, 30] += 3.0
     S[60:] += rng.normal(0.0, camera_noise, (40, 80))
-    _, frames = run(CANN(), S)
+    _, frames = run(CANN(hold_repeats=camera_noise > 0), S)
     assert all(f["state_"] == "lost" for f in frames[60:])
     # the support only relaxes towards what the frames before said (so a chance support at
-    # the start of the stand does not last through it)
+    # the start of the stand does not last through it; exact repeats, held, count the same
+    # without hold_repeats)
     assert frames[-1]["support_"] < 0.3
 
 
@@ -1099,7 +1101,7 @@ def test_a_repeated_frame_relaxes_the_support_towards_its_running_mean():
     # running mean at the rate it would otherwise move towards even odds (0.07 + 0.03)
     S = bump_rows(10 + np.arange(30.0), 60)
     S = np.r_[S, S[-1:], S[-1:]]
-    f = CANN(sequence_break=0.07, sequence_start=0.03)
+    f = CANN(sequence_break=0.07, sequence_start=0.03, hold_repeats=False)
     f.reset()
     for row in S[:30]:
         f.step(row)
@@ -1127,7 +1129,83 @@ def test_novelty_of_rows_of_any_numeric_type(dtype):
     f.step(rows[1])
     assert f.novelty_ > 0.5
     f.step(rows[1])
-    assert f.novelty_ < 1e-6
+    assert f.novelty_ < 1e-6 and f.n_held_ == 1  # held: the repeat is told whatever the type
+    g = CANN(hold_repeats=False)
+    for row in (rows[0], rows[1], rows[1]):
+        g.step(row)
+    assert g.novelty_ < 1e-6 and g.n_held_ == 0 and g.n_frames_ == 3
+
+
+def with_repeats(S, repeats):
+    """``S`` with row ``t`` repeated ``repeats[t]`` more times; and the positions of the
+    original rows."""
+    counts = np.ones(len(S), np.int64)
+    for t, k in repeats.items():
+        counts[t] += k
+    return np.repeat(S, counts, axis=0), np.cumsum(counts) - counts
+
+
+def test_repeated_frames_are_held_and_change_nothing():
+    # a frame that repeats the last one, place for place, is held: the same row again, the
+    # same state, velocity_ and novelty_ 0; the frames after it filter exactly as if the
+    # repeats had never come (nothing was learned from them, nothing moved)
+    S = bump_rows(10 + np.arange(40.0), 100).astype(np.float32)
+    S_rep, first = with_repeats(S, {0: 2, 5: 3, 20: 10, 39: 4})
+    rows, frames = run(CANN(), S)
+    f = CANN()
+    rows_rep, frames_rep = run(f, S_rep)
+    assert np.array_equal(rows_rep[first], rows)
+    assert f.n_held_ == 19 and f.n_frames_ == 40
+    for t in range(1, len(S_rep)):
+        if t in set(first):
+            continue
+        assert np.array_equal(rows_rep[t], rows_rep[t - 1])
+        held, last = frames_rep[t], frames_rep[t - 1]
+        assert held["velocity_"] == 0.0 and held["novelty_"] == 0.0
+        for name in ("answer", "source_", "confidence_", "support_", "state_", "probability_"):
+            assert held[name] == last[name]
+    for t, frame in zip(first, frames, strict=True):
+        assert frames_rep[t] == frame
+    # without hold_repeats the repeats are frames like any other
+    rows_off, _ = run(CANN(hold_repeats=False), S_rep)
+    assert not np.array_equal(rows_off[first], rows)
+
+
+def test_a_stand_of_repeated_frames_keeps_the_packet_at_the_stop():
+    # 1 place per frame to place 40, 30 repeats of that frame, then on at 1 place per frame:
+    # the answer stays at the stop through the stand and follows at once after it; a filter
+    # that takes the repeats as new frames runs on past the stop
+    pos = np.r_[10 + np.arange(31.0), 41 + np.arange(30.0)]
+    S, first = with_repeats(bump_rows(pos, 120), {30: 30})
+    truth = np.repeat(pos, np.diff(np.r_[first, len(S)]))
+    rows, _ = run(CANN(), S)
+    assert np.abs(rows.argmax(axis=1) - truth)[15:].max() <= 2
+    rows_off, frames_off = run(CANN(hold_repeats=False), S)
+    assert np.abs(rows_off.argmax(axis=1) - truth)[31:61].max() > 2
+
+
+def test_no_hold_where_the_map_repeats_a_frame():
+    # places 40-59 of the map show one frame (they score alike in every row, as a map of a
+    # robot that stood while mapping): a query repeating its frame there may still be
+    # running along their indices, so it is filtered; repeated elsewhere it is held
+    S = bump_rows(10 + np.arange(60.0), 100, width=3.0)
+    S[:, 40:60] = S[:, 50:51]
+    f = CANN()
+    run(f, np.r_[S[:45], np.repeat(S[44:45], 5, 0)])
+    assert f.n_held_ == 0 and f.n_frames_ == 50
+    assert f._tied.nonzero()[0].tolist() == list(range(41, 60))
+    run(f, np.r_[S[:25], np.repeat(S[24:25], 5, 0)])
+    assert f.n_held_ == 5 and f.n_frames_ == 25
+
+
+def test_no_hold_with_odometry():
+    # odometry says whether the robot moved: a repeated frame with it is a frame
+    S = bump_rows(10 + np.arange(20.0), 60)
+    S = np.r_[S, np.repeat(S[-1:], 5, 0)]
+    for velocity in (np.ones(25), np.r_[np.ones(20), np.zeros(5)]):
+        f = CANN()
+        run(f, S, velocity=velocity)
+        assert f.n_held_ == 0 and f.n_frames_ == 25
 
 
 def test_a_frame_as_new_as_usual_counts_whole():
@@ -1643,9 +1721,11 @@ def test_state_arrays_and_the_memory_check(monkeypatch):
     for name in ("_marginal", "_predicted", "_weight", "_mean", "_var", "_x"):
         assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (1000,)
     state = sum(v.nbytes for v in vars(f).values() if isinstance(v, np.ndarray) and v.size >= 1000)
-    # float32 layer (twice), per-place buffers and the last frame's row
+    # float32 layer (twice), per-place buffers, the last frame's row (float64), the last
+    # answer (float32) and the map's ties (bool)
     assert f._last_row.dtype == np.float64 and f._last_row.shape == (1000,)
-    assert state == 8 * 27 * 1000 + 40 * 1000
+    assert f._last_out.dtype == np.float32 and f._tied.dtype == np.bool_
+    assert state == 8 * 27 * 1000 + 45 * 1000
     # the memory check asks for the layer and its per-place buffers before allocating them
     monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(state))
     CANN().step(np.zeros(1000))
@@ -1665,7 +1745,8 @@ def test_footprint_by_hand():
         "params": 30 + 40 + 30 + 30 + 60,
         "neurons": 31,
         "distinct_weights": 6,
-        "state_variables": 30 + 30 + 7,
+        # units; mean, variance, last row, last answer, ties per place; 7 running numbers
+        "state_variables": 30 + 50 + 7,
     }
     # bidirectional: 0 is not doubled, so (0, 1) gives -1, 0, 1
     assert CANN(velocities=(0.0, 1.0), bidirectional=True).footprint(10) == CANN(
@@ -1677,7 +1758,7 @@ def test_footprint_by_hand():
         "params": 27000 * 5 + 2 * 26 * 1000,
         "neurons": 27001,
         "distinct_weights": 30,
-        "state_variables": 30007,
+        "state_variables": 32007,
     }
     assert CANN(velocities=(1.0,)).footprint(1)["params"] == 5  # no velocity neighbours
     with pytest.raises(ValueError, match="^n_reference must be >= 1; got 0"):

@@ -123,6 +123,31 @@ def test_moving_carries_the_state_and_fills_what_enters():
     np.testing.assert_array_equal(c._var[90:], 1.0)
     np.testing.assert_array_equal(c._p[:, :90], before[:, 10:])
     np.testing.assert_array_equal(c._p[:, 90:], np.repeat(before.min(axis=1)[:, None], 10, 1))
+    # the last frame's row and answer and the map's ties move with the places
+    c._last_row[:] = np.arange(100.0)
+    c._last_out[:] = np.arange(100, dtype=np.float32)
+    c._tied[:] = False
+    c._tied[[3, 15, 60]] = True
+    c._answer = 40
+    f._move(f.window_[0] - 5)
+    np.testing.assert_array_equal(c._last_row, np.r_[np.zeros(5), np.arange(95.0)])
+    np.testing.assert_array_equal(c._last_out, np.r_[np.zeros(5), np.arange(95.0)])
+    assert c._tied.nonzero()[0].tolist() == [1, 2, 3, 4, 8, 20, 65]
+    assert c._answer == 45
+    f._move(f.window_[0] + 60)
+    assert c._answer == 0 and c._tied.nonzero()[0].tolist() == [5, *range(40, 100)]
+
+
+def test_a_repeated_frame_is_held_in_the_window_too():
+    # the window moved along the route, then the robot stands: its repeated frame is held
+    S, truth = _route(n_query=200, n_places=3000, start=500)
+    S = np.r_[S, np.repeat(S[-1:], 20, 0)]
+    f = WindowedCANN(3000, window=256)
+    f.reseed([500])
+    places, states = _run(f, S)
+    assert f.n_moves_ > 3 and f.cann_.n_held_ == 20
+    assert (places[200:] == places[199]).all() and (states[200:] == states[199]).all()
+    assert abs(places[-1] - truth[-1]) <= 2
 
 
 @pytest.mark.parametrize("d", [-7, -1, 0, 1, 7, 10, 12, -12])

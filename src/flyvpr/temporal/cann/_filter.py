@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.146, 0.58, 0.598, 0.767, 0.824, 0.875, 0.9, 0.955, 0.989, 0.997, 1.0)
+CALIBRATION = (0.189, 0.658, 0.662, 0.823, 0.843, 0.914, 0.964, 0.969, 0.994, 0.998, 1.0)
 #: how odometry moves the layer (see the class's ``odometry`` parameter)
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
@@ -206,6 +206,17 @@ class CANN(OdometryFilter):
         :func:`~flyvpr.temporal.cann.fit_calibration` fits it from a labelled run's
         confidences and whether each answer was right.  The ``state`` stays as it is, and
         the order of the answers too (to float32 resolution where the table is nearly flat).
+    hold_repeats : bool, default True
+        A frame whose scores equal the last frame's, place for place, is the same image
+        again: no new observation, and a robot that has not moved (a stand or a slow stretch
+        recorded as repeated frames).  The filter then holds: the layer, its statistics and
+        the answer stay as they were (``velocity_`` 0, ``novelty_`` 0).  Not where the map
+        itself repeats a frame at the answer (places that have scored exactly alike in every
+        frame so far: there the place index runs on while the image stays), nor with odometry
+        (which says whether the robot moved).  A camera standing still gives frames that
+        differ by sensor noise; those are filtered as new frames (their novelty is small).
+        ``False``: a repeated frame is a new frame (a stream that repeats its last frame
+        while the robot moves).
     odometry : {"scaled", "exact"}, default "scaled"
         How a frame's odometry (``velocity``, places moved) moves the layer.  ``"scaled"``:
         each row moves the odometry times the row's velocity, read as a scale factor (1: the
@@ -238,12 +249,15 @@ class CANN(OdometryFilter):
     velocity_ : float
         Mean velocity of the layer after the last step, places per frame: with odometry,
         the odometry times the layer's mean scale (``"scaled"``) or the odometry
-        (``"exact"``).
+        (``"exact"``); 0 after a held frame (``hold_repeats``).
+    n_held_ : int
+        Frames since :meth:`reset` that repeated the last one and were held (not counted in
+        ``n_frames_``).
     source_ : str
         ``"sequence"`` or ``"front end"``: where the last answer came from.
     n_frames_, n_relocations_ : int
-        Frames since :meth:`reset`; frames whose answer landed more than ``2 * tolerance + 1``
-        places from the predicted place.
+        Frames filtered since :meth:`reset` (held ones aside); frames whose answer landed
+        more than ``2 * tolerance + 1`` places from the predicted place.
     compiled_ : bool
         Whether the per-frame updates run compiled by numba.
 
@@ -261,8 +275,9 @@ class CANN(OdometryFilter):
 
     name = "cann"
 
-    #: maps and models saved before ``odometry`` existed load with its default
-    _added_params = ("odometry",)
+    #: maps and models saved before ``odometry`` or ``hold_repeats`` existed load with its
+    #: default
+    _added_params = ("odometry", "hold_repeats")
 
     def __init__(
         self,
@@ -289,6 +304,7 @@ class CANN(OdometryFilter):
         calibration=CALIBRATION,
         recalibration=None,
         odometry="scaled",
+        hold_repeats=True,
     ):
         self.velocities = velocities
         self.bidirectional = bidirectional
@@ -313,6 +329,7 @@ class CANN(OdometryFilter):
         self.calibration = calibration
         self.recalibration = recalibration
         self.odometry = odometry
+        self.hold_repeats = hold_repeats
 
     # -- parameters -------------------------------------------------------------
     def _check_params(self) -> dict:
@@ -353,7 +370,7 @@ class CANN(OdometryFilter):
                 "sequence_break + sequence_start must be <= 1; got "
                 f"{p['sequence_break']} + {p['sequence_start']}"
             )
-        for flag in ("adapt_variance", "bidirectional", "fallback"):
+        for flag in ("adapt_variance", "bidirectional", "fallback", "hold_repeats"):
             value = getattr(self, flag)
             if not isinstance(value, (bool, np.bool_)):
                 raise TypeError(f"{flag} must be True or False; got {type(value).__name__}")
@@ -392,7 +409,8 @@ class CANN(OdometryFilter):
         the evidence input; every unit also feeds the normaliser and receives from it.
         ``distinct_weights``: stay, neighbour, redraw (one per velocity) and the evidence
         gain.  ``state_variables``: the units, each place's running mean and variance of its
-        input and the last frame's row, and 7 running numbers.
+        input, the last frame's row, the last answer's row and whether the place has tied with
+        the one before it in every frame (``hold_repeats``), and 7 running numbers.
         """
         n = check_positive_int(n_reference, "n_reference")
         p = self._check_params()
@@ -404,7 +422,7 @@ class CANN(OdometryFilter):
             "params": units + neighbours + units + units + 2 * units,
             "neurons": units + 1,
             "distinct_weights": 3 + n_v,
-            "state_variables": units + 3 * n + 7,
+            "state_variables": units + 5 * n + 7,
         }
 
     # -- online -----------------------------------------------------------------
@@ -416,6 +434,7 @@ class CANN(OdometryFilter):
         self.n_frames_ = 0
         self.n_relocations_ = 0
         self.velocity_ = float("nan")
+        self.n_held_ = 0
         self.confidence_ = 0.0
         self.support_ = 0.5
         self.novelty_ = 1.0
@@ -428,7 +447,7 @@ class CANN(OdometryFilter):
         p = self._params
         n_v = p["velocities"].size
         check_memory(
-            8 * n_v * n + 40 * n,
+            8 * n_v * n + 45 * n,
             f"n_reference={n} places x {n_v} velocities (velocities, bidirectional)",
         )
         self._n = n
@@ -450,6 +469,12 @@ class CANN(OdometryFilter):
         # _novelty).
         self._last_row = np.zeros(n, np.float64)
         self._likeness: float | None = None
+        # A repeated frame's answer (see hold_repeats): the last row returned, and which places
+        # have scored exactly as the place before them in every frame (the map repeats there).
+        self._last_out = np.zeros(n, np.float32)
+        self._tied = np.ones(n, np.bool_)
+        self._tied[0] = False
+        self._answer = 0
         self._odometry_offset = 0.0
         self._stride = max(1, n // _SAMPLES)
         # The sequence test's rank model: the share u of places at least as good as the
@@ -506,6 +531,21 @@ class CANN(OdometryFilter):
         self._offsets = total - rounded
         return rounded.astype(np.int64)
 
+    def _holds(self, row: np.ndarray) -> bool:
+        """Whether ``row`` repeats the last frame's and the map does not repeat a frame at the
+        last answer (see ``hold_repeats``)."""
+        if not self._kernels["repeats"](row, self._last_row):
+            return False
+        a = self._answer
+        return not (self._tied[a] or (a + 1 < row.shape[0] and self._tied[a + 1]))
+
+    def _hold(self) -> np.ndarray:
+        """A held frame: nothing changes but ``n_held_``; the last answer again."""
+        self.novelty_ = 0.0
+        self.velocity_ = 0.0
+        self.n_held_ += 1
+        return self._last_out.copy()
+
     def _novelty(self, row: np.ndarray, rate: float) -> float:
         """How much of a new frame ``row`` is, in [0, 1], for the sequence test.
 
@@ -515,11 +555,10 @@ class CANN(OdometryFilter):
         standing robot's frames almost entirely.  The novelty is ``(1 - r) / (1 - r_mean)``,
         at most 1, where ``r_mean`` is the running mean of ``r`` (over ``support_memory``
         frames, updated with ``rate``): a frame as new as usual counts whole, a repeat of the
-        last frame hardly at all.  Every frame's row is kept (float64) for the next.
+        last frame hardly at all.  Every frame's row is kept (float64) for the next, and the
+        places that score exactly as the one before them are marked (``_tied``).
         """
-        if row.dtype not in (np.float32, np.float64):  # (float16: not a numba type)
-            row = row.astype(np.float64)
-        r = float(self._kernels["likeness"](row, self._last_row))
+        r = float(self._kernels["likeness"](row, self._last_row, self._tied))
         if self.n_frames_ == 0:
             return 1.0
         r = min(max(r, 0.0), 1.0)
@@ -576,6 +615,10 @@ class CANN(OdometryFilter):
         n = row.shape[0]
         kernels = self._kernels
         t = self.n_frames_
+        if row.dtype not in (np.float32, np.float64):  # (float16: not a numba type)
+            row = row.astype(np.float64)
+        if p["hold_repeats"] and velocity is None and t > 0 and self._holds(row):
+            return self._hold()
         radius = p["tolerance"]
         x = self._input(row)
         memory = p["support_memory"]
@@ -712,4 +755,6 @@ class CANN(OdometryFilter):
         else:
             self.velocity_ = float(velocity) * (mean if p["odometry"] == "scaled" else 1.0)
         self.n_frames_ = t + 1
+        self._answer = answer
+        self._last_out[:] = out
         return out

@@ -5,9 +5,10 @@ probability that the robot is at place ``i`` moving ``velocities[j]`` places per
 (see "The place-velocity layer" on the user guide's CANN page).  :func:`advance` moves it
 by one frame and weighs it by the evidence; :func:`window_sums` finds the window of places
 that holds the most probability, :func:`exceedance` ranks the evidence at one place
-among all, and :func:`likeness` correlates a frame's scores with the last frame's (the
-sequence test's novelty).  Each function is written once, as explicit loops over places,
-and runs compiled or as plain Python (``_kernels``).
+among all, :func:`likeness` correlates a frame's scores with the last frame's (the
+sequence test's novelty) and :func:`repeats` tells a repeated frame.  Each function is
+written once, as explicit loops over places, and runs compiled or as plain Python
+(``_kernels``).
 """
 
 from __future__ import annotations
@@ -183,12 +184,16 @@ def advance(p, out, shifts, stay, neighbour, jump, redraw, prior, floor_rate, we
     return z
 
 
-def likeness(row, last):
+def likeness(row, last, tied):
     """The correlation of the score ``row`` with the ``last`` one, in one pass; then ``row``
     is copied into ``last``.  0 where either row is constant.  The sums are float64 sums of
     each row less its first value (a shift that keeps the variances from cancelling when a
-    row's values are large and close together)."""
+    row's values are large and close together).  In the same pass ``tied[i]`` (for ``i`` >= 1)
+    stays True only where place ``i`` scores exactly as place ``i - 1`` in ``row``."""
     n = row.shape[0]
+    for i in range(1, n):
+        if tied[i] and row[i] != row[i - 1]:
+            tied[i] = False
     a0 = float(row[0])
     b0 = float(last[0])
     sa = 0.0
@@ -212,9 +217,18 @@ def likeness(row, last):
     return (sab - sa * sb / n) / math.sqrt(va * vb)
 
 
+def repeats(row, last):
+    """Whether ``row`` equals ``last`` place for place (stops at the first difference)."""
+    for i in range(row.shape[0]):
+        if row[i] != last[i]:
+            return False
+    return True
+
+
 PLAIN = {
     "advance": advance,
     "window_sums": window_sums,
     "exceedance": exceedance,
     "likeness": likeness,
+    "repeats": repeats,
 }

@@ -150,6 +150,13 @@ class WindowedCANN:
             _shift(c._p, d, floor)
             _shift(c._mean, d, np.float32(0.0))
             _shift(c._var, d, np.float32(1.0))
+            # The last frame's row and answer move with the places (what enters is unknown: 0,
+            # and tied until a frame says otherwise).
+            _shift(c._last_row, d, 0.0)
+            _shift(c._last_out, d, np.float32(0.0))
+            _shift(c._tied, d, True)
+            c._tied[0] = False
+            c._answer = min(max(c._answer - d, 0), self.width - 1)
         self._lo = lo
         self.n_moves_ += 1
 
