@@ -508,23 +508,14 @@ def test_exceedance_counts_at_least_one(kernels):
 
 
 # -- likeness and repeats ----------------------------------------------------------------------
-def test_likeness_against_numpy_and_the_ties(kernels):
+def test_likeness_against_numpy(kernels):
     rng = np.random.default_rng(3)
     row, last = rng.normal(size=50).astype(np.float32), rng.normal(size=50)
-    row[10:14] = row[9]  # places 10-13 score as the one before them
-    tied = np.ones(50, np.bool_)
-    tied[0] = False
-    tied[30] = False  # once untied, a place stays untied
-    row[30] = row[29]
     keep = last.copy()
-    r = kernels["likeness"](row, last, tied)
+    r = kernels["likeness"](row, last)
     assert r == pytest.approx(np.corrcoef(row.astype(np.float64), keep)[0, 1], abs=1e-7)
     assert np.array_equal(last, row.astype(np.float64))  # the row is kept for the next frame
-    assert tied.nonzero()[0].tolist() == [10, 11, 12, 13]
-    # a constant row: 0, and every place ties with the one before
-    tied[:] = True
-    assert kernels["likeness"](np.ones(50, np.float32), last, tied) == 0.0
-    assert tied.all()
+    assert kernels["likeness"](np.ones(50, np.float32), last) == 0.0  # a constant row
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

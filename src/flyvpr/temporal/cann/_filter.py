@@ -447,7 +447,7 @@ class CANN(OdometryFilter):
         p = self._params
         n_v = p["velocities"].size
         check_memory(
-            8 * n_v * n + 45 * n,
+            8 * n_v * n + 48 * n,
             f"n_reference={n} places x {n_v} velocities (velocities, bidirectional)",
         )
         self._n = n
@@ -471,9 +471,10 @@ class CANN(OdometryFilter):
         self._likeness: float | None = None
         # A repeated frame's answer (see hold_repeats): the last row returned, and which places
         # have scored exactly as the place before them in every frame (the map repeats there).
+        # (``_tied``: the places i, ascending, whose score has equalled place i - 1's in every
+        # frame so far; it shrinks to the map's repeated frames within a few frames.)
         self._last_out = np.zeros(n, np.float32)
-        self._tied = np.ones(n, np.bool_)
-        self._tied[0] = False
+        self._tied = np.arange(1, n, dtype=np.int32)
         self._answer = 0
         self._odometry_offset = 0.0
         self._stride = max(1, n // _SAMPLES)
@@ -537,7 +538,8 @@ class CANN(OdometryFilter):
         if not self._kernels["repeats"](row, self._last_row):
             return False
         a = self._answer
-        return not (self._tied[a] or (a + 1 < row.shape[0] and self._tied[a + 1]))
+        tied = self._tied
+        return not bool(((tied == a) | (tied == a + 1)).any())
 
     def _hold(self) -> np.ndarray:
         """A held frame: nothing changes but ``n_held_``; the last answer again."""
@@ -555,10 +557,9 @@ class CANN(OdometryFilter):
         standing robot's frames almost entirely.  The novelty is ``(1 - r) / (1 - r_mean)``,
         at most 1, where ``r_mean`` is the running mean of ``r`` (over ``support_memory``
         frames, updated with ``rate``): a frame as new as usual counts whole, a repeat of the
-        last frame hardly at all.  Every frame's row is kept (float64) for the next, and the
-        places that score exactly as the one before them are marked (``_tied``).
+        last frame hardly at all.  Every frame's row is kept (float64) for the next.
         """
-        r = float(self._kernels["likeness"](row, self._last_row, self._tied))
+        r = float(self._kernels["likeness"](row, self._last_row))
         if self.n_frames_ == 0:
             return 1.0
         r = min(max(r, 0.0), 1.0)
@@ -622,6 +623,9 @@ class CANN(OdometryFilter):
         radius = p["tolerance"]
         x = self._input(row)
         memory = p["support_memory"]
+        if self._tied.size:
+            tied = self._tied
+            self._tied = tied[row[tied] == row[tied - 1]]
         novelty = self.novelty_ = self._novelty(row, max(1.0 / max(t, 1), 1.0 / memory))
         if t > 0:
             floor_rate = p["relocation"] + p["recovery"] * (1.0 - self.support_)

@@ -184,16 +184,12 @@ def advance(p, out, shifts, stay, neighbour, jump, redraw, prior, floor_rate, we
     return z
 
 
-def likeness(row, last, tied):
+def likeness(row, last):
     """The correlation of the score ``row`` with the ``last`` one, in one pass; then ``row``
     is copied into ``last``.  0 where either row is constant.  The sums are float64 sums of
     each row less its first value (a shift that keeps the variances from cancelling when a
-    row's values are large and close together).  In the same pass ``tied[i]`` (for ``i`` >= 1)
-    stays True only where place ``i`` scores exactly as place ``i - 1`` in ``row``."""
+    row's values are large and close together)."""
     n = row.shape[0]
-    for i in range(1, n):
-        if tied[i] and row[i] != row[i - 1]:
-            tied[i] = False
     a0 = float(row[0])
     b0 = float(last[0])
     sa = 0.0

@@ -154,8 +154,7 @@ class WindowedCANN:
             # and tied until a frame says otherwise).
             _shift(c._last_row, d, 0.0)
             _shift(c._last_out, d, np.float32(0.0))
-            _shift(c._tied, d, True)
-            c._tied[0] = False
+            c._tied = _shift_tied(c._tied, d, self.width)
             c._answer = min(max(c._answer - d, 0), self.width - 1)
         self._lo = lo
         self.n_moves_ += 1
@@ -208,6 +207,15 @@ class WindowedCANN:
         self.place_ = best
         self.confidence_ = 0.0
         self.state_ = "lost"
+
+
+def _shift_tied(tied: np.ndarray, d: int, n: int) -> np.ndarray:
+    """The tied places (ascending, each tied with the one before) after moving the window by
+    ``d``: those kept, moved, and every place entering (tied until a frame says otherwise)."""
+    kept = tied - d
+    kept = kept[(kept >= 1) & (kept < n)]
+    entering = np.arange(max(n - d, 1), n) if d > 0 else np.arange(1, min(-d, n - 1) + 1)
+    return np.union1d(kept, entering).astype(np.int32)
 
 
 def _shift(a: np.ndarray, d: int, fill) -> None:
