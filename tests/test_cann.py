@@ -743,3 +743,19 @@ def test_state_too_large_for_memory_is_refused(params, n, match, monkeypatch):
     with pytest.raises(InsufficientMemoryError, match=match):
         cann.reset()
         cann._allocate(n)
+
+
+def test_repeated_rows_are_held_only_behind_front_ends_that_never_repeat_on_noise():
+    # FlyNet's and FlyHash's binary codes repeat over frames that differ by sensor noise, so
+    # make_method leaves the hold off behind them unless it is asked for; the paper's
+    # attractor has no such parameter
+    from flyvpr.frontends import FRONTENDS
+    from flyvpr.methods import make_method
+
+    noisy = {name for name, cls in FRONTENDS.items() if cls.repeats_on_noise}
+    assert noisy == {"flynet", "flyhash"}
+    for front in ("kenyon", "pixels", "flynet", "flyhash"):
+        assert make_method(f"{front}+cann", 0).filter.hold_repeats is (front not in noisy)
+        given = make_method(f"{front}+cann", 0, filter_params={"hold_repeats": True})
+        assert given.filter.hold_repeats is True
+    assert "hold_repeats" not in make_method("flynet+cann-paper", 0).filter.get_params()

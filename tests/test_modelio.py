@@ -178,3 +178,23 @@ def test_a_file_from_before_an_added_parameter_loads_with_its_default(tmp_path, 
         path = save_method(model, tmp_path / "older.npz")
     with pytest.raises(ValueError, match=r"filter\.params\.tolerance: missing"):
         load_method(path)
+
+
+@pytest.mark.parametrize("name, held", [("flyhash+cann", False), ("pixels+cann", True)])
+def test_a_file_from_before_hold_repeats_takes_the_front_ends_default(
+    tmp_path, data, monkeypatch, name, held
+):
+    # without the parameter in the file, the filter holds repeated rows unless its front end's
+    # scores repeat on sensor noise (as make_method sets it); a saved value is kept as it is
+    from flyvpr.temporal.cann import CANN
+
+    model = make_method(name, 0).fit(data[0])
+    assert model.filter.hold_repeats is held
+    older = [n for n in CANN._param_names() if n != "hold_repeats"]
+    with monkeypatch.context() as m:
+        m.setattr(CANN, "_param_names", classmethod(lambda cls: older))
+        path = save_method(model, tmp_path / "old.npz")
+    assert load_method(path).filter.hold_repeats is held
+    model.filter.set_params(hold_repeats=not held)
+    again = load_method(save_method(model, tmp_path / "new.npz"))
+    assert again.filter.hold_repeats is (not held)

@@ -134,11 +134,25 @@ def make_method(name: str, random_state=None, frontend_params=None, filter_param
     filt = None
     if spec.filter is not None:
         filt = _construct(FILTERS[spec.filter], filter_params or {}, rng)
+        hold_default(frontend, filt, filter_params or {})
     elif filter_params:
         raise ValueError(
             f"method {name!r} has no temporal filter; got filter_params {filter_params}"
         )
     return Method(name, frontend, filt)
+
+
+def hold_default(frontend, filt, given) -> None:
+    """A filter that holds on repeated score rows (``hold_repeats``) does not, unless ``given``
+    says so, behind a front end whose scores repeat on frames that differ by sensor noise only
+    (``repeats_on_noise``): there a repeated row may be a robot standing where its map's robot
+    also stood, and the map's place index runs on while the image stays."""
+    if (
+        getattr(frontend, "repeats_on_noise", False)
+        and "hold_repeats" in filt.get_params()
+        and "hold_repeats" not in given
+    ):
+        filt.set_params(hold_repeats=False)
 
 
 def _construct(cls, params: dict, rng):

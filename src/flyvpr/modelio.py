@@ -40,7 +40,7 @@ from ._validation import ArraySpec, PartSpec, check_memory
 from ._version import __version__
 from .frontends import FRONTENDS
 from .images import DEFAULT_SIZE
-from .methods import METHODS, Method
+from .methods import METHODS, Method, hold_default
 from .temporal import FILTERS
 from .temporal.base import OnlineFilter
 
@@ -537,6 +537,7 @@ def _load(path, size, readers: dict):
             filt = r.part(
                 fm["name"], fm["params"], fm["state"], "filter", FILTERS, "filter", "filter/"
             )
+            hold_default(frontend, filt, fm["params"])  # (a file from before hold_repeats)
         found = {}
         for name in _SECTIONS:
             if name in meta and name not in readers:

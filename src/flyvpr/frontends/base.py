@@ -33,6 +33,10 @@ class Encoder(ParamsMixin):
 
     #: registry name, set by subclasses
     name = "encoder"
+    #: whether two camera frames that differ by sensor noise only can get exactly the same
+    #: scores (a binary hash of a small image: FlyHash, FlyNet).  A filter then cannot read a
+    #: repeated score row as a repeated frame (see ``CANN``'s ``hold_repeats``).
+    repeats_on_noise = False
 
     # -- public calls ---------------------------------------------------------
     def fit(self, reference_images) -> Encoder:

@@ -139,6 +139,9 @@ class FlyHash(Encoder):
     """
 
     name = "flyhash"
+    #: its 64-bit code of a 32x64 image stays the same over frames that differ by sensor noise
+    #: (on Nordland 0-999, 81 winter frames where the train stood repeat the last one's scores)
+    repeats_on_noise = True
 
     def __init__(self, n_hidden=64, sampling_ratio=0.1, wta_ratio=0.5, random_state=None):
         self.n_hidden = n_hidden

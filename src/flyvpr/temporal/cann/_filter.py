@@ -216,7 +216,10 @@ class CANN(OdometryFilter):
         (which says whether the robot moved).  A camera standing still gives frames that
         differ by sensor noise; those are filtered as new frames (their novelty is small).
         ``False``: a repeated frame is a new frame (a stream that repeats its last frame
-        while the robot moves).
+        while the robot moves).  :func:`~flyvpr.methods.make_method` and saved models turn it
+        off behind a front end whose scores repeat for frames that differ by sensor noise
+        only (``repeats_on_noise``: ``flynet``, ``flyhash``), unless it is given: there a
+        repeated row may be a robot standing where its map's robot also stood.
     odometry : {"scaled", "exact"}, default "scaled"
         How a frame's odometry (``velocity``, places moved) moves the layer.  ``"scaled"``:
         each row moves the odometry times the row's velocity, read as a scale factor (1: the
