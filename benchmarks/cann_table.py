@@ -7,9 +7,11 @@ Usage::
 Protocol: ``kenyon+cann`` with ``calibration=None`` (the raw confidence: the support times the
 window's probability) on the robot views of the dev window (Nordland 64x32 summer -> winter,
 frames 0-999: every view of ``benchmarks/accuracy.py`` on ``n64-0``, with and without
-odometry), seeds 0-2, tolerance 2.  Every frame whose answer comes from the sequence gives its
-raw confidence and whether the answer was right; :func:`flyvpr.temporal.cann.fit_calibration`
-(prior weight 1) turns them into the 11 values of the table, which the script prints as the
+odometry, with and without camera noise), seeds 0-2, tolerance 2.  Every frame whose answer
+comes from the sequence gives the square root of its raw confidence (the table is given there:
+finest where the lost answers lie) and whether the answer was right;
+:func:`flyvpr.temporal.cann.fit_calibration` (prior weight 1) turns them into the 11 values of
+the table, which the script prints as the
 Python tuple to paste into ``temporal/cann/_filter.py``.  It tunes on the dev window only; the
 held-out window's reliability is ``benchmarks/calibration.py``'s.
 """
@@ -38,7 +40,7 @@ def run(data: Path, progress: bool = True) -> dict:
     for _key, _seed, S, moved, gt in _runs(data, SEEDS, progress, DEV):
         for conf, ok, from_sequence in _stream(CANN(calibration=None), S, moved, gt):
             if from_sequence:
-                raw.append(conf)
+                raw.append(conf**0.5)  # the table is given at the raw confidence's square root
                 right.append(ok)
     table = fit_calibration(raw, right)
     return {

@@ -241,7 +241,7 @@ def reference_filter(S, velocity=None, **params):
             if predicted >= 0 and abs(answer - predicted) > 2 * tol + 1:
                 relocations += 1
             if q["calibration"] is not None:
-                calibrated = float(np.interp(confidence, KNOTS, q["calibration"]))
+                calibrated = float(np.interp(confidence**0.5, KNOTS, q["calibration"]))
                 out = out * calibrated / confidence if confidence > 0 else out
                 confidence = calibrated
         if q["recalibration"] is not None:  # every answer, after the sequence's table
@@ -477,7 +477,7 @@ def test_defaults():
     forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0, 3.25, 3.5)
     assert LAYER_VELOCITIES == (-2.0, -1.5, -1.0, -0.5) + forward
     assert all(type(v) is float for v in LAYER_VELOCITIES)
-    table = (0.189, 0.658, 0.662, 0.823, 0.843, 0.914, 0.964, 0.969, 0.994, 0.998, 1.0)
+    table = (0.017, 0.018, 0.449, 0.628, 0.633, 0.754, 0.835, 0.908, 0.967, 0.994, 1.0)
     assert CALIBRATION == table
     assert np.all(np.diff(CALIBRATION) > 0)
     assert _FRONT_RATE == 0.05
@@ -589,17 +589,20 @@ BAD_PARAMS = [
     (
         {"calibration": "abc"},
         TypeError,
-        "calibration must be None or 11 numbers (at raw confidence 0, 0.1, ..., 1); got 'abc'",
+        "calibration must be None or 11 numbers (at the square root of the raw confidence "
+        "0, 0.1, ..., 1); got 'abc'",
     ),
     (
         {"calibration": [0.0, 1.0]},
         ValueError,
-        "calibration must hold 11 values (at raw confidence 0, 0.1, ..., 1); got shape (2,)",
+        "calibration must hold 11 values (at the square root of the raw confidence 0, 0.1, "
+        "..., 1); got shape (2,)",
     ),
     (
         {"calibration": [_BAD_CALIBRATION]},
         ValueError,
-        "calibration must hold 11 values (at raw confidence 0, 0.1, ..., 1); got shape (1, 11)",
+        "calibration must hold 11 values (at the square root of the raw confidence 0, 0.1, "
+        "..., 1); got shape (1, 11)",
     ),
     (
         {"calibration": (-0.1,) + _BAD_CALIBRATION[1:]},
@@ -1313,15 +1316,18 @@ def test_sequence_confidence_is_calibrated_support_times_probability():
             n_sequence += 1
             value = b["support_"] * b["probability_"]
             assert b["confidence_"] == np.float32(value)
-            assert a["confidence_"] == np.float32(np.interp(value, KNOTS, CALIBRATION))
-            assert c["confidence_"] == np.float32(np.interp(value, KNOTS, table))
+            # (the tables are given at the raw confidence's square root)
+            assert a["confidence_"] == np.float32(np.interp(value**0.5, KNOTS, CALIBRATION))
+            assert c["confidence_"] == np.float32(np.interp(value**0.5, KNOTS, table))
         else:  # the front end's model's probability, whatever the table
             assert a["confidence_"] == b["confidence_"] == c["confidence_"]
     assert n_sequence >= 30
-    # the identity table leaves the sequence's answers as they are
-    rows_identity, _ = run(CANN(calibration=KNOTS), _mixed_scenario())
+    # the table of the knots' squares is the identity at the knots, and within the linear
+    # interpolation's error of x**2 (0.1**2 / 4) between them
+    rows_identity, _ = run(CANN(calibration=KNOTS**2), _mixed_scenario())
     sequence = [fr["source_"] == "sequence" for fr in raw]
-    np.testing.assert_allclose(rows_identity[sequence], rows_raw[sequence], rtol=1e-6, atol=1e-7)
+    gap = rows_identity[sequence].max(axis=1) - rows_raw[sequence].max(axis=1)
+    assert gap.min() >= -1e-6 and gap.max() <= 0.0025
 
 
 def test_calibration_scales_the_whole_sequence_row():
@@ -1333,7 +1339,8 @@ def test_calibration_scales_the_whole_sequence_row():
     for t in range(5, 15):
         assert frames[t]["source_"] == "sequence"
         c = raw[t].max()
-        expected = np.minimum(raw[t] * np.float32(np.interp(c, KNOTS, table) / c), rows[t].max())
+        scale = np.interp(np.sqrt(c), KNOTS, table) / c
+        expected = np.minimum(raw[t] * np.float32(scale), rows[t].max())
         np.testing.assert_allclose(rows[t], expected, rtol=2e-6, atol=1e-9)
 
 
@@ -1648,12 +1655,13 @@ def test_support_and_confidence_of_exactly_one_half():
     )
     f.reset()
     a = _logit(0.125)  # (0.5 ** (2 + 1))
+    level = np.float32(np.interp(0.5**0.5, KNOTS, CALIBRATION))  # (given at sqrt(raw))
     for t in range(5):
         out = f.step(np.zeros(2))
         assert f.source_ == "sequence" and f.state_ == "localized"
         assert f.support_ == 0.5 and f.probability_ == 1.0
-        assert f.confidence_ == np.float32(CALIBRATION[5])
-        np.testing.assert_array_equal(out, np.full(2, np.float32(CALIBRATION[5])))
+        assert f.confidence_ == level
+        np.testing.assert_array_equal(out, np.full(2, level))
         # the front end (place 0) agrees with each confident answer (place 0), its peak's
         # strength always 0: a rises by 0.05 times the model's miss, b stays 0 ...
         a += 0.05 * (1 - _sigmoid(a))
@@ -1670,7 +1678,7 @@ def test_a_tie_between_sequence_and_front_end_goes_to_the_sequence():
     out = f.step(np.zeros(4))
     assert f._front_model == [_logit(0.25), 0.0]
     assert f.source_ == "sequence" and f.probability_ == 0.25 and f.state_ == "lost"
-    level = np.float32(np.interp(0.125, KNOTS, CALIBRATION))
+    level = np.float32(np.interp(0.125**0.5, KNOTS, CALIBRATION))
     assert f.confidence_ == level
     np.testing.assert_array_equal(out, np.full(4, level))
 

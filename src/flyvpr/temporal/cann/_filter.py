@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.189, 0.658, 0.662, 0.823, 0.843, 0.914, 0.964, 0.969, 0.994, 0.998, 1.0)
+CALIBRATION = (0.017, 0.018, 0.449, 0.628, 0.633, 0.754, 0.835, 0.908, 0.967, 0.994, 1.0)
 #: how odometry moves the layer (see the class's ``odometry`` parameter)
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
@@ -39,7 +39,7 @@ _MIN_TRUST = 0.05
 _SAMPLES = 4096
 #: bounds of the learned exponent of the sequence test's rank model (see _support)
 _SHAPE_RANGE = (0.05, 1.0)
-#: raw confidences at which the calibration table is given
+#: confidences at which a table is given (for ``calibration``: square roots of raw ones)
 _KNOTS = np.linspace(0.0, 1.0, 11)
 #: the rank model learns from frames whose support reaches this
 _LEARN_ABOVE = 0.5
@@ -195,8 +195,9 @@ class CANN(OdometryFilter):
         frames over the last ``support_memory`` frames: a filter lost for long may be off
         the map, where the model (learned on the route) does not hold.
     calibration : sequence of 11 float or None, default CALIBRATION
-        The sequence's confidence at raw confidence (support times the window's
-        probability) 0, 0.1, ..., 1, linearly between (strictly increasing, in [0, 1]);
+        The sequence's confidence where the square root of its raw confidence (support times
+        the window's probability) is 0, 0.1, ..., 1 (raw 0, 0.01, 0.04, ..., 1: finest
+        where the lost answers lie), linearly between (strictly increasing, in [0, 1]);
         fitted on kenyon+cann's answers on the dev robot conditions (Nordland 0-999, seeds
         0-2, tolerance 2).  ``None``: the raw confidence.
     recalibration : sequence of 11 float or None, default None
@@ -386,7 +387,9 @@ class CANN(OdometryFilter):
         if self.odometry not in ODOMETRY_MODES:
             raise ValueError(f"odometry must be one of {ODOMETRY_MODES}; got {self.odometry!r}")
         p["odometry"] = self.odometry
-        p["calibration"] = _check_table(self.calibration, "calibration", "raw confidence")
+        p["calibration"] = _check_table(
+            self.calibration, "calibration", "the square root of the raw confidence"
+        )
         p["recalibration"] = _check_table(self.recalibration, "recalibration", "confidence")
         # Sorted, so that neighbouring rows are neighbouring speeds.
         vel = np.unique(_check_velocities(self.velocities, p["bidirectional"]))
@@ -737,8 +740,8 @@ class CANN(OdometryFilter):
         # increasing: the order of its answers stays); the front end's is its model's
         # probability already.
         calibrated = confidence
-        if self.source_ == "sequence":
-            calibrated = _calibrate(confidence, p["calibration"])
+        if self.source_ == "sequence" and p["calibration"] is not None:
+            calibrated = _calibrate(math.sqrt(confidence), p["calibration"])
         # Then every answer's through the route's own table, if given (also increasing).
         if p["recalibration"] is not None:
             calibrated = _calibrate(calibrated, p["recalibration"])
