@@ -23,7 +23,8 @@ GROUP_TITLES = {
     "speed": "Query driven faster than the reference (tolerance 20)",
     "synthetic": "Built-in synthetic route, hardest conditions",
     "viewpoint": "Nordland with a drifting viewpoint (nordland_64x32_viewpoint)",
-    "robot": "A robot's motion and camera: speeds, stops, a detour, odometry, a fisheye disc "
+    "robot": "A robot's motion and camera: speeds, stops, a detour, odometry, a fisheye disc, "
+    "camera noise "
     "(tolerance 2 and 20)",
     "control": "Control rows",
 }
