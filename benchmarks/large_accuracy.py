@@ -13,8 +13,9 @@ Protocol (written into the JSON):
 * **Queries**: the winter frames of a dev window (0-999 or 1000-1999), in order, seen on tile
   7 (:func:`flyvpr.large.tile_queries`): the true place of winter frame ``i`` is
   ``7 * 2400 + i``; ground truth within 2 and 20 places.
-* **Whole map**: the CANN (defaults) over every frame's Hamming similarity to all 35,768
-  places.  **Windowed**: :class:`flyvpr.large.LargeLocalizer` (window 2,048, multi-index
+* **Whole map**: the CANN (defaults, but ``hold_repeats=False`` as in the
+  ``LargeLocalizer``: compact codes repeat on sensor noise) over every frame's Hamming
+  similarity to all 35,768 places.  **Windowed**: :class:`flyvpr.large.LargeLocalizer` (window 2,048, multi-index
   hashing or, with ``--index exhaustive``, an exact scan; top 300, pooled over 10 frames;
   a displaced layer that had been localized held for up to 30 frames while neither is
   localized; a guess giving way to any better track; a lost guess also scoring every place's
@@ -93,7 +94,8 @@ def run(data: Path, seeds, index_name: str = "mih", log=print) -> dict:
                 q = tile_queries(enc.encode(winter[lo:hi]), TILE, TILE_FLIP, 0)
                 truth = TILE * n_base + np.arange(lo, hi)
                 t0 = time.perf_counter()
-                whole = CANN().filter(hamming_similarity(q, m.codes))
+                # (compact codes repeat on sensor noise: no hold, as in the LargeLocalizer)
+                whole = CANN(hold_repeats=False).filter(hamming_similarity(q, m.codes))
                 whole_s = time.perf_counter() - t0
                 loc = LargeLocalizer(m.codes, index, window=2048)
                 loc.update_code(q[0])  # compile the kernels (not timed)

@@ -1111,3 +1111,19 @@ def test_frames_never_searched_pool_as_no_candidates_on_a_map_smaller_than_k():
     places = loc._candidates(6)
     assert loc.n_searches_ == 2 and sorted(loc._found) == [4, 5]
     assert places.size > 0 and 45 in places[:10].tolist()
+
+
+def test_repeated_codes_are_not_held_unless_asked():
+    # a map's short codes repeat over frames that differ by sensor noise only, so the layer
+    # takes a repeated code as a new frame by default; hold_repeats=True holds it
+    codes = _map(n=3000)
+    rng = np.random.default_rng(2)
+    truth = 1000 + np.arange(60)
+    queries = [_query(codes, p, rng) for p in truth]
+    for hold, held in ((None, 0), (True, 10)):
+        params = {} if hold is None else {"hold_repeats": hold}
+        loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512, **params)
+        assert loc.filter_.cann_.hold_repeats is bool(hold)
+        fixes = [loc.update_code(q) for q in queries + [queries[-1]] * 10]
+        assert loc.filter_.cann_.n_held_ == held
+        assert abs(fixes[-1].place - truth[-1]) <= 2

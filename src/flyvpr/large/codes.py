@@ -255,6 +255,9 @@ class CompactEncoder(Encoder):
     """
 
     name = "compact"
+    #: 256 bits of signs repeat over frames that differ by sensor noise (see
+    #: ``Encoder.repeats_on_noise``; the LargeLocalizer does not hold repeated rows)
+    repeats_on_noise = True
 
     def __init__(
         self,

@@ -95,7 +95,10 @@ class LargeLocalizer:
         over several frames still can.  Its cost grows with the map (about 1 ms at 35,768
         places and 0.1 s at 10^6 on the 2-core machine of the benchmarks); 0: never.
     **params
-        The :class:`~flyvpr.temporal.cann.CANN`'s parameters.
+        The :class:`~flyvpr.temporal.cann.CANN`'s parameters.  ``hold_repeats`` is off unless
+        given: a map's short binary codes (256 bits in a compact map) repeat over frames that
+        differ by sensor noise only, so a repeated row is no sign of a repeated frame (held,
+        they cost the compact map of the Nordland traverses 0.984 -> 0.965 AUC, tolerance 2).
 
     Attributes
     ----------
@@ -209,7 +212,7 @@ class LargeLocalizer:
             full_search_places, "full_search_places", minimum=0
         )
         self.n_bits = codes.shape[1] * 8
-        self._layer = {"window": window, **params}
+        self._layer = {"window": window, "hold_repeats": False, **params}
         self.filter_ = WindowedCANN(n_places, **self._layer)
         self.reset()
 
