@@ -15,14 +15,14 @@ Protocol (written into the JSON):
   ``7 * 2400 + i``; ground truth within 2 and 20 places.
 * **Whole map**: the CANN (defaults, but ``hold_repeats=False`` as in the
   ``LargeLocalizer``: compact codes repeat on sensor noise) over every frame's Hamming
-  similarity to all 35,768 places.  **Windowed**: :class:`flyvpr.large.LargeLocalizer` (window 2,048, multi-index
-  hashing or, with ``--index exhaustive``, an exact scan; top 300, pooled over 10 frames;
-  a displaced layer that had been localized held for up to 30 frames while neither is
-  localized; a guess giving way to any better track; a lost guess also scoring every place's
-  track, the map being under 2^20 places: the defaults),
-  one frame at a time from a fresh start: its answer
-  and confidence per frame.  AUC of the precision-recall curve from each frame's answer and
-  confidence (:func:`flyvpr.metrics.evaluate`).
+  similarity to all 35,768 places.  **Windowed**: :class:`flyvpr.large.LargeLocalizer`
+  (window 2,048, multi-index hashing or, with ``--index exhaustive``, an exact scan; top
+  300, pooled over 10 frames; a displaced layer that had been localized held for up to 30
+  frames while neither is localized; a guess giving way to any better track; a lost guess
+  also scoring every place's track, the map being under 2^20 places: the defaults), one
+  frame at a time from a fresh start: its answer and confidence per frame.  AUC of the
+  precision-recall curve from each frame's answer and confidence
+  (:func:`flyvpr.metrics.evaluate`).
 * **Calibration** (``summary.calibration_tol2``): every frame's confidence against whether
   its answer is within 2 places, pooled over the seeds and windows, in deciles
   (:func:`flyvpr.metrics.reliability`), for both localizers; for the windowed one also its
