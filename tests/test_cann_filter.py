@@ -2042,3 +2042,17 @@ def test_odometry_mode_is_checked():
         ValueError, match=re.escape("odometry must be one of ('scaled', 'exact'); got 'wheel'")
     ):
         CANN(odometry="wheel").reset()
+
+
+def test_a_table_given_at_raw_confidences_resampled_at_their_square_roots():
+    # (model files saved before the table was read at the raw confidence's square root)
+    from flyvpr.temporal.cann._filter import table_at_square_roots
+
+    old = (0.146, 0.58, 0.598, 0.767, 0.824, 0.875, 0.9, 0.955, 0.989, 0.997, 1.0)
+    new = table_at_square_roots(old)
+    assert len(new) == 11 and np.all(np.diff(new) > 0)
+    for raw in KNOTS**2:  # the same mapping at the raw confidences the new knots stand for
+        assert np.interp(raw**0.5, KNOTS, new) == pytest.approx(np.interp(raw, KNOTS, old))
+    assert new[0] == old[0] and new[-1] == old[-1]
+    assert new[3] == pytest.approx(0.146 + 0.9 * (0.58 - 0.146))  # raw 0.09
+    assert new[5] == pytest.approx(0.598 + 0.5 * (0.767 - 0.598))  # raw 0.25

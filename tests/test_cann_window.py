@@ -181,3 +181,34 @@ def test_errors():
         f.reseed([1, 2], weights=[0.0, 0.0])
     with pytest.raises(ValueError, match="weights"):
         f.reseed([1, 2], weights=[1.0])
+
+
+def test_a_frame_held_just_after_the_window_moved_keeps_the_window():
+    # scores that are 0 away from the robot: the frame after a move can repeat the last one
+    # exactly (the places entering the window score 0 as they are filled); the held frame
+    # must not move the window again (its packet moved with the window)
+    rng = np.random.default_rng(1)
+    n, start = 3000, 500
+    truth = start + np.arange(400)
+    S = np.zeros((400, n))
+    for t, p in enumerate(truth):
+        idx = np.arange(p - 20, p + 21)
+        S[t, idx] = np.exp(-0.5 * ((idx - p) / 2.0) ** 2) + 0.3 * rng.random(idx.size)
+    f = WindowedCANN(n, window=256)
+    f.reseed([start])
+    t = 0
+    while True:
+        moves = f.n_moves_
+        lo, hi = f.window_
+        f.step(S[t, lo:hi])
+        if f.n_moves_ > moves and t > 100:
+            break
+        t += 1
+    window, place = f.window_, f.place_
+    for _ in range(5):
+        lo, hi = f.window_
+        assert f.step(S[t, lo:hi])[0] == place
+        assert f.window_ == window and f.state_ == "localized"
+    assert f.cann_.n_held_ == 5
+    lo, hi = f.window_
+    assert abs(f.step(S[t + 1, lo:hi])[0] - truth[t + 1]) <= 2

@@ -18,7 +18,7 @@ import pytest
 from flyvpr.cli import main
 from flyvpr.experiments import load_config, parse_config, run_experiment
 from flyvpr.experiments.config import KINDS, run_id_of
-from flyvpr.methods import METHODS
+from flyvpr.methods import METHODS, make_method
 
 REPO = Path(__file__).resolve().parents[1]
 N_PLACES = 30
@@ -668,3 +668,18 @@ def test_guide_example_config_is_valid(tmp_path):
     )
     with pytest.raises(ValueError, match=r"\('auc'\): 'epochs' is not a parameter of method 'pix"):
         parse_config(refused, base_dir=tmp_path)
+
+
+def test_full_params_take_the_front_ends_hold_default():
+    # a run's recorded filter arguments are those make_method would use: no hold behind
+    # front ends whose scores repeat on sensor noise, unless the config asks for it
+    from flyvpr.experiments.runs import full_params
+
+    for method, held in (("kenyon+cann", True), ("flynet+cann", False), ("flyhash+cann", False)):
+        _, filt = full_params(METHODS[method], {}, {})
+        assert filt["hold_repeats"] is held
+        assert make_method(method, 0, filter_params=filt).filter.hold_repeats is held
+    _, filt = full_params(METHODS["flynet+cann"], {}, {"hold_repeats": True})
+    assert filt["hold_repeats"] is True
+    _, filt = full_params(METHODS["flynet+cann-paper"], {}, {})
+    assert "hold_repeats" not in filt

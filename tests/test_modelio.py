@@ -195,6 +195,16 @@ def test_a_file_from_before_hold_repeats_takes_the_front_ends_default(
         m.setattr(CANN, "_param_names", classmethod(lambda cls: older))
         path = save_method(model, tmp_path / "old.npz")
     assert load_method(path).filter.hold_repeats is held
+    # its calibration table was given at raw confidences: resampled at their square roots,
+    # the loaded filter maps the raw confidences 0, 0.01, 0.04, ... as the old one did
+    from flyvpr.temporal.cann._filter import _KNOTS as _K
+    from flyvpr.temporal.cann._filter import table_at_square_roots
+
+    old = model.filter.calibration
+    loaded = load_method(path).filter.calibration
+    assert tuple(loaded) == table_at_square_roots(old)
+    np.testing.assert_allclose(loaded, np.interp(_K**2, _K, old), rtol=0, atol=1e-15)
     model.filter.set_params(hold_repeats=not held)
     again = load_method(save_method(model, tmp_path / "new.npz"))
     assert again.filter.hold_repeats is (not held)
+    assert tuple(again.filter.calibration) == tuple(old)  # a new file's table is kept

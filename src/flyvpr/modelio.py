@@ -43,6 +43,7 @@ from .images import DEFAULT_SIZE
 from .methods import METHODS, Method, hold_default
 from .temporal import FILTERS
 from .temporal.base import OnlineFilter
+from .temporal.cann._filter import table_at_square_roots
 
 __all__ = [
     "FORMAT",
@@ -537,7 +538,11 @@ def _load(path, size, readers: dict):
             filt = r.part(
                 fm["name"], fm["params"], fm["state"], "filter", FILTERS, "filter", "filter/"
             )
-            hold_default(frontend, filt, fm["params"])  # (a file from before hold_repeats)
+            if "hold_repeats" not in fm["params"]:  # a file from before repeated frames held
+                hold_default(frontend, filt, fm["params"])
+                if getattr(filt, "calibration", None) is not None:
+                    # its table was given at raw confidences, not at their square roots
+                    filt.set_params(calibration=table_at_square_roots(filt.calibration))
         found = {}
         for name in _SECTIONS:
             if name in meta and name not in readers:

@@ -140,8 +140,12 @@ def full_params(spec, front: dict, filt: dict) -> tuple[dict, dict]:
     from ..frontends import FRONTENDS
     from ..temporal import FILTERS
 
-    front = {**_defaults(FRONTENDS[spec.frontend]), **front}
+    front_cls = FRONTENDS[spec.frontend]
+    given = dict(filt)
+    front = {**_defaults(front_cls), **front}
     filt = {**_defaults(FILTERS[spec.filter]), **filt} if spec.filter else dict(filt)
+    if "hold_repeats" in filt and "hold_repeats" not in given and front_cls.repeats_on_noise:
+        filt["hold_repeats"] = False  # as make_method sets it (see methods.hold_default)
     return front, filt
 
 

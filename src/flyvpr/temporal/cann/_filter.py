@@ -76,11 +76,21 @@ def _sigmoid(x: float) -> float:
 
 
 def _calibrate(raw: float, table) -> float:
-    """``raw`` mapped through the calibration ``table`` (values at raw = 0, 0.1, ..., 1,
-    linearly between them); ``None``: ``raw`` itself."""
+    """``raw`` mapped through ``table`` (values at ``raw`` = 0, 0.1, ..., 1, linearly between
+    them; the sequence's table is given the square root of its raw confidence); ``None``:
+    ``raw`` itself."""
     if table is None:
         return raw
     return float(np.interp(raw, _KNOTS, table))
+
+
+def table_at_square_roots(table) -> tuple[float, ...]:
+    """A ``calibration`` table given at raw confidence 0, 0.1, ..., 1 (as model files saved
+    before it was given at the raw confidence's square root hold it) resampled at the raw
+    confidences 0, 0.01, 0.04, ..., 1 that the filter now reads it at: the same mapping at
+    those points, linear between them."""
+    values = np.interp(_KNOTS**2, _KNOTS, np.asarray(table, dtype=np.float64))
+    return tuple(float(v) for v in values)
 
 
 def _check_table(value, name: str, at: str) -> np.ndarray | None:

@@ -154,6 +154,7 @@ class WindowedCANN:
             # and tied until a frame says otherwise).
             _shift(c._last_row, d, 0.0)
             _shift(c._last_out, d, np.float32(0.0))
+            _shift(c._marginal, d, np.float32(0.0))  # (a held frame's packet, read by _follow)
             c._tied = _shift_tied(c._tied, d, self.width)
             c._answer = min(max(c._answer - d, 0), self.width - 1)
         self._lo = lo
