@@ -586,6 +586,8 @@ BAD_PARAMS = [
     ({"support_memory": None}, TypeError, "support_memory must be a number; got NoneType"),
     ({"fallback": None}, TypeError, "fallback must be True or False; got NoneType"),
     ({"fallback": "yes"}, TypeError, "fallback must be True or False; got str"),
+    ({"hold_repeats": None}, TypeError, "hold_repeats must be True or False; got NoneType"),
+    ({"hold_repeats": 1}, TypeError, "hold_repeats must be True or False; got int"),
     (
         {"calibration": "abc"},
         TypeError,

@@ -142,17 +142,19 @@ def make_method(name: str, random_state=None, frontend_params=None, filter_param
     return Method(name, frontend, filt)
 
 
+def holds_repeats(frontend) -> bool:
+    """Whether a filter behind ``frontend`` (an encoder or its class) holds repeated score rows
+    by default: not where its scores repeat on frames that differ by sensor noise only
+    (``repeats_on_noise``), for there a repeated row may be a robot standing where its map's
+    robot also stood, and the map's place index runs on while the image stays."""
+    return not getattr(frontend, "repeats_on_noise", False)
+
+
 def hold_default(frontend, filt, given) -> None:
-    """A filter that holds on repeated score rows (``hold_repeats``) does not, unless ``given``
-    says so, behind a front end whose scores repeat on frames that differ by sensor noise only
-    (``repeats_on_noise``): there a repeated row may be a robot standing where its map's robot
-    also stood, and the map's place index runs on while the image stays."""
-    if (
-        getattr(frontend, "repeats_on_noise", False)
-        and "hold_repeats" in filt.get_params()
-        and "hold_repeats" not in given
-    ):
-        filt.set_params(hold_repeats=False)
+    """``filt``'s ``hold_repeats`` (where it has one) as :func:`holds_repeats` says, unless
+    ``given`` (the parameters asked for) sets it."""
+    if "hold_repeats" in filt.get_params() and "hold_repeats" not in given:
+        filt.set_params(hold_repeats=holds_repeats(frontend))
 
 
 def _construct(cls, params: dict, rng):

@@ -138,15 +138,14 @@ def full_params(spec, front: dict, filt: dict) -> tuple[dict, dict]:
         The front end's and the filter's full arguments (no ``random_state``).
     """
     from ..frontends import FRONTENDS
+    from ..methods import holds_repeats
     from ..temporal import FILTERS
 
     front_cls = FRONTENDS[spec.frontend]
-    given = dict(filt)
-    front = {**_defaults(front_cls), **front}
-    filt = {**_defaults(FILTERS[spec.filter]), **filt} if spec.filter else dict(filt)
-    if "hold_repeats" in filt and "hold_repeats" not in given and front_cls.repeats_on_noise:
-        filt["hold_repeats"] = False  # as make_method sets it (see methods.hold_default)
-    return front, filt
+    defaults = _defaults(FILTERS[spec.filter]) if spec.filter else {}
+    if "hold_repeats" in defaults:  # as make_method sets it
+        defaults["hold_repeats"] = holds_repeats(front_cls)
+    return {**_defaults(front_cls), **front}, {**defaults, **filt}
 
 
 def route_params(spec, params: dict, where: str = "") -> tuple[dict, dict]:
