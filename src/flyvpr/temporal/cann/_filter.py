@@ -491,7 +491,6 @@ class CANN(OdometryFilter):
         # frame so far; it shrinks to the map's repeated frames within a few frames.)
         self._last_out = np.zeros(n, np.float32)
         self._tied = np.arange(1, n, dtype=np.int32)
-        self._answer = 0
         self._odometry_offset = 0.0
         self._stride = max(1, n // _SAMPLES)
         # The sequence test's rank model: the share u of places at least as good as the
@@ -553,7 +552,7 @@ class CANN(OdometryFilter):
         last answer (see ``hold_repeats``)."""
         if not self._kernels["repeats"](row, self._last_row):
             return False
-        a = self._answer
+        a = int(np.argmax(self._last_out))  # the last answer: its row's first maximum
         tied = self._tied
         return not bool(((tied == a) | (tied == a + 1)).any())
 
@@ -619,8 +618,8 @@ class CANN(OdometryFilter):
         # a chance one at its start is not.
         rate = p["sequence_break"] + p["sequence_start"]
         new = s * (1.0 - p["sequence_break"]) + (1.0 - s) * p["sequence_start"]
-        held = s + rate * (self._support_mean - s)
-        before = novelty * new + (1.0 - novelty) * held
+        relaxed = s + rate * (self._support_mean - s)
+        before = novelty * new + (1.0 - novelty) * relaxed
         self.support_ = before * on / (before * on + (1.0 - before))
         if self.support_ >= _LEARN_ABOVE:
             self._log_rank[0] += (-math.log(u) - self._log_rank[0]) / p["support_memory"]
@@ -775,6 +774,5 @@ class CANN(OdometryFilter):
         else:
             self.velocity_ = float(velocity) * (mean if p["odometry"] == "scaled" else 1.0)
         self.n_frames_ = t + 1
-        self._answer = answer
         self._last_out[:] = out
         return out

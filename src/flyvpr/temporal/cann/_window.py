@@ -156,7 +156,6 @@ class WindowedCANN:
             _shift(c._last_out, d, np.float32(0.0))
             _shift(c._marginal, d, np.float32(0.0))  # (a held frame's packet, read by _follow)
             c._tied = _shift_tied(c._tied, d, self.width)
-            c._answer = min(max(c._answer - d, 0), self.width - 1)
         self._lo = lo
         self.n_moves_ += 1
 
