@@ -60,7 +60,7 @@ from .._validation import (
     check_random_state,
 )
 from .base import Encoder
-from .optic_lobe import OpticLobe, _kernels, varying_pixels
+from .optic_lobe import OpticLobe, _kernels, _lcn, local_contrast_normalize, varying_pixels
 
 __all__ = ["KenyonEncoder", "balanced_connections", "code_overlap"]
 
@@ -193,6 +193,14 @@ class KenyonEncoder(Encoder):
         Independent Kenyon-cell populations, each with its own winner-take-all.
     lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size
         The optic lobe's settings, see ``flyvpr.frontends.optic_lobe.optic_lobe``.
+    intensity : bool, default False
+        Also feed the Kenyon cells the intensity channel: the contrast-normalised image
+        averaged over the valid pixels of each pooling cell (one feature per cell with a valid
+        pixel, 128 at 32x64), z-scored per image like the Gabor features.  It keeps the layout
+        of light and dark that the phase-blind, max-pooled Gabor energies lose.  Opt-in:
+        measured by ``benchmarks/kenyon_intensity.py`` (see the fly front-end guide), it costs
+        a second contrast normalisation per image; ``CompactEncoder.from_kenyon`` does not
+        take it.
     random_state : None, int or numpy.random.Generator
         Seed of the connections.
 
@@ -242,6 +250,8 @@ class KenyonEncoder(Encoder):
     """
 
     name = "kenyon"
+    #: model files written before the intensity channel load without it
+    _added_params = ("intensity",)
 
     def __init__(
         self,
@@ -255,6 +265,7 @@ class KenyonEncoder(Encoder):
         wavelength=6.0,
         kernel_size=11,
         pool_size=4,
+        intensity=False,
         random_state=None,
     ):
         self.n_kenyon = n_kenyon
@@ -267,6 +278,7 @@ class KenyonEncoder(Encoder):
         self.wavelength = wavelength
         self.kernel_size = kernel_size
         self.pool_size = pool_size
+        self.intensity = intensity
         self.random_state = random_state
 
     # -- set-up ---------------------------------------------------------------
@@ -290,11 +302,50 @@ class KenyonEncoder(Encoder):
             self.pool_size,
         )
 
+    def _check_intensity(self) -> bool:
+        if not isinstance(self.intensity, (bool, np.bool_)):
+            raise TypeError(f"intensity must be True or False; got {type(self.intensity).__name__}")
+        return bool(self.intensity)
+
     def _lobe(self, images: np.ndarray) -> np.ndarray:
         if getattr(self, "_optic_lobe", None) is None:
             self._optic_lobe = self._make_lobe()
             self._set_valid()
-        return self._optic_lobe(images, self._valid)
+        features = self._optic_lobe(images, self._valid)
+        if not self.intensity:
+            return features
+        return np.concatenate([features, self._intensity(images)], axis=1)
+
+    def _intensity_cells(self) -> np.ndarray | None:
+        """The pooling cells with a valid pixel (bool, row-major over the (H / pool, W / pool)
+        grid), or None where every pixel is valid."""
+        if self._valid is None:
+            return None
+        h, w = self.image_shape_
+        p = check_positive_int(self.pool_size, "pool_size")
+        return self._valid.reshape(h // p, p, w // p, p).any(axis=(1, 3)).ravel()
+
+    def _intensity(self, images: np.ndarray) -> np.ndarray:
+        """The intensity channel: the contrast-normalised image summed over each pooling cell
+        (0 at static pixels: a cell at the mask's edge weighs by the share it sees), z-scored
+        per image over the cells with a valid pixel (all 0 for a blank image)."""
+        lobe = self._optic_lobe
+        n, h, w = images.shape
+        p = lobe.pool
+        if self._valid is None:
+            x = _lcn(np.ascontiguousarray(images), lobe.lcn_sigma, lobe.lcn_eps, lobe._plan(h, w))
+        else:
+            x = local_contrast_normalize(
+                images, lobe.lcn_sigma, lobe.lcn_eps, valid_pixels=self._valid
+            )
+        cells = x.reshape(n, h // p, p, w // p, p).sum(axis=(2, 4), dtype=np.float64)
+        cells = cells.reshape(n, -1)
+        if self._cells is not None:
+            cells = cells[:, self._cells]
+        cells -= cells.mean(axis=1, keepdims=True)
+        spread = cells.std(axis=1, keepdims=True)
+        np.divide(cells, spread, out=cells, where=spread > 0)
+        return cells.astype(np.float32)
 
     _fits_in_chunks = True
 
@@ -340,12 +391,20 @@ class KenyonEncoder(Encoder):
         computation, bit for bit), else C-ordered."""
         valid = self.valid_pixels_
         self._valid = None if valid.all() else np.ascontiguousarray(valid)
+        self._cells = self._intensity_cells()
 
     def _n_kept(self) -> int:
-        """Optic-lobe features the Kenyon cells read under the mask."""
+        """Optic-lobe features the Kenyon cells read under the mask (with the intensity
+        channel's cells)."""
         if self._valid is None:
-            return self._optic_lobe.n_features(*self.image_shape_)
-        return len(self._optic_lobe.kept_features(self._valid))
+            n = self._optic_lobe.n_features(*self.image_shape_)
+        else:
+            n = len(self._optic_lobe.kept_features(self._valid))
+        if self._check_intensity():
+            h, w = self.image_shape_
+            p = self._optic_lobe.pool
+            n += (h // p) * (w // p) if self._cells is None else int(self._cells.sum())
+        return n
 
     def _prepare(self) -> None:
         """The connections as the compiled kernels read them: C-ordered uint32 (unsigned

@@ -308,12 +308,19 @@ class CompactEncoder(Encoder):
         ------
         TypeError
             If ``kenyon`` is not a KenyonEncoder, or ``params`` names an optic-lobe setting.
+        ValueError
+            If ``kenyon`` has the intensity channel (``intensity=True``).
         """
         from ..frontends.kenyon import KenyonEncoder
 
         if not isinstance(kenyon, KenyonEncoder):
             raise TypeError(f"kenyon must be a fitted KenyonEncoder; got {type(kenyon).__name__}")
         kenyon._check_fitted()
+        if kenyon.intensity:
+            raise ValueError(
+                "from_kenyon takes the optic lobe's Gabor features only; got a kenyon encoder "
+                "with intensity=True (fit one with intensity=False for compact codes)"
+            )
         fixed = sorted(set(params) & set(cls._LOBE))
         if fixed:
             raise TypeError(f"from_kenyon takes the optic lobe from kenyon; got {fixed}")
