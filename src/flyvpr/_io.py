@@ -300,6 +300,9 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
         if tmp is not None:
             _unlink(tmp)
         remove_folders(created)
+        # A Ctrl-C or SIGTERM that a failing clean-up replaced (a zip archive closed while the
+        # signal interrupted a member's close raises ValueError) is what ends the run.
+        raise_interruption(exc)
         # Errors of the write itself carry no file name (ENOSPC, EFBIG, EIO), those of the
         # temporary file or its folders name files the user never named: name the output.
         if isinstance(exc, OSError) and (
