@@ -115,6 +115,25 @@ def test_places_are_recognised_with_the_channel(route):
         assert np.mean(S.argmax(axis=1) == np.arange(40)) >= 0.9
 
 
+def test_low_contrast_frames_are_z_scored_too(route):
+    # below the contrast floor (lcn_eps) the normalised image is faint: the cells' spread is
+    # well below 1, and the channel is still scaled to unit spread
+    ref, _ = route
+    enc = KenyonEncoder(random_state=0, intensity=True).fit(ref)
+    faint = (0.4 + 0.004 * ref[:3]).astype(np.float32)
+    raw = _channel(faint, 4.0, 0.05, 4) * 1.0
+    channel = enc._lobe(faint)[:, 512:]
+    np.testing.assert_allclose(channel, raw, atol=2e-5)
+    np.testing.assert_allclose(channel.std(axis=1), 1.0, rtol=1e-5)
+    x = local_contrast_normalize(faint).astype(np.float64)
+    assert x.reshape(3, 8, 4, 16, 4).sum(axis=(2, 4)).reshape(3, -1).std(axis=1).max() < 0.5
+
+
+def test_pool_size_that_does_not_divide_the_frame(route):
+    with pytest.raises(ValueError, match="pool_size must divide the image size"):
+        KenyonEncoder(intensity=True, pool_size=5).fit(route[0])
+
+
 @pytest.mark.parametrize("value", [1, 0, None, "yes", 1.0])
 def test_intensity_must_be_a_bool(route, value):
     with pytest.raises(TypeError, match="intensity must be True or False; got"):

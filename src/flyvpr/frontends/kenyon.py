@@ -316,14 +316,14 @@ class KenyonEncoder(Encoder):
             return features
         return np.concatenate([features, self._intensity(images)], axis=1)
 
-    def _intensity_cells(self) -> np.ndarray | None:
-        """The pooling cells with a valid pixel (bool, row-major over the (H / pool, W / pool)
-        grid), or None where every pixel is valid."""
-        if self._valid is None:
-            return None
+    def _intensity_cells(self) -> np.ndarray:
+        """The pooling cells with a valid pixel: bool, row-major over the (H / pool, W / pool)
+        grid (all of them where every pixel is valid)."""
         h, w = self.image_shape_
-        p = check_positive_int(self.pool_size, "pool_size")
-        return self._valid.reshape(h // p, p, w // p, p).any(axis=(1, 3)).ravel()
+        self._optic_lobe.n_features(h, w)  # pool_size divides the image size
+        p = self._optic_lobe.pool
+        valid = np.ones((h, w), bool) if self._valid is None else self._valid
+        return valid.reshape(h // p, p, w // p, p).any(axis=(1, 3)).ravel()
 
     def _intensity(self, images: np.ndarray) -> np.ndarray:
         """The intensity channel: the contrast-normalised image summed over each pooling cell
@@ -339,9 +339,7 @@ class KenyonEncoder(Encoder):
                 images, lobe.lcn_sigma, lobe.lcn_eps, valid_pixels=self._valid
             )
         cells = x.reshape(n, h // p, p, w // p, p).sum(axis=(2, 4), dtype=np.float64)
-        cells = cells.reshape(n, -1)
-        if self._cells is not None:
-            cells = cells[:, self._cells]
+        cells = cells.reshape(n, -1)[:, self._cells]
         cells -= cells.mean(axis=1, keepdims=True)
         spread = cells.std(axis=1, keepdims=True)
         np.divide(cells, spread, out=cells, where=spread > 0)
@@ -401,9 +399,7 @@ class KenyonEncoder(Encoder):
         else:
             n = len(self._optic_lobe.kept_features(self._valid))
         if self._check_intensity():
-            h, w = self.image_shape_
-            p = self._optic_lobe.pool
-            n += (h // p) * (w // p) if self._cells is None else int(self._cells.sum())
+            n += int(self._cells.sum())
         return n
 
     def _prepare(self) -> None:
