@@ -275,3 +275,15 @@ def test_raise_interruption_walks_the_chain():
             raise ValueError("while handling it") from None
     except ValueError as exc:
         raise_interruption(exc)  # an Exception in the chain is no interruption: returns
+
+    def frames():
+        try:
+            yield 1
+        finally:
+            raise OSError(5, "Input/output error")  # a reader whose close fails
+
+    g = frames()
+    next(g)
+    with pytest.raises(OSError) as info:
+        g.close()
+    raise_interruption(info.value)  # a generator closed ends nothing: returns

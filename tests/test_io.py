@@ -88,35 +88,6 @@ def test_failure_inside_the_block_leaves_the_old_file(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
 
 
-class _Stop(BaseException):
-    """Stands for the CLI's SIGTERM exit (an interruption, not an Exception)."""
-
-
-@pytest.mark.parametrize("interruption", [KeyboardInterrupt, _Stop])
-def test_an_interruption_replaced_by_a_cleanup_error_still_ends_the_write(tmp_path, interruption):
-    # A signal inside a zip member's close leaves the archive's close to raise ValueError
-    # over it: the write must still end by the interruption, with nothing left behind.
-    target = tmp_path / "m.npz"
-    target.write_bytes(b"old")
-    with pytest.raises(interruption):
-        with atomic_open(target, "wb") as fh:
-            fh.write(b"new")
-            try:
-                raise interruption()
-            finally:
-                raise ValueError("Can't close the ZIP file while there is an open writing handle")
-    assert target.read_bytes() == b"old"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npz"]
-    # an error that replaced no interruption is raised as it is
-    with pytest.raises(ValueError, match="open writing handle"):
-        with atomic_open(target, "wb") as fh:
-            try:
-                raise RuntimeError("a failed write")
-            finally:
-                raise ValueError("Can't close the ZIP file while there is an open writing handle")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npz"]
-
-
 def test_full_disk_is_named_and_cleaned(tmp_path, monkeypatch):
     real_fdopen = os.fdopen
 

@@ -129,6 +129,26 @@ def test_low_contrast_frames_are_z_scored_too(route):
     assert x.reshape(3, 8, 4, 16, 4).sum(axis=(2, 4)).reshape(3, -1).std(axis=1).max() < 0.5
 
 
+def test_too_many_inputs_names_both_feature_kinds(route):
+    with pytest.raises(
+        ValueError,
+        match=r"^n_inputs must be <= .* features \(512 of 512 see .* traverse, plus 128 "
+        r"intensity cells\); got 700",
+    ):
+        KenyonEncoder(intensity=True, n_inputs=700).fit(route[0])
+
+
+def test_turning_the_channel_off_after_fit_is_refused(route):
+    ref, qry = route
+    enc = KenyonEncoder(random_state=0, intensity=True).fit(ref)
+    enc.set_params(intensity=False)
+    for fn in (enc.encode, enc.kenyon_activity):
+        with pytest.raises(ValueError, match="gives 512 features .* fitted on 640.* fit again"):
+            fn(qry)
+    enc.set_params(intensity=True)
+    assert enc.encode(qry).shape == (40, 512)
+
+
 def test_pool_size_that_does_not_divide_the_frame(route):
     with pytest.raises(ValueError, match="pool_size must divide the image size"):
         KenyonEncoder(intensity=True, pool_size=5).fit(route[0])

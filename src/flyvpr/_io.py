@@ -196,16 +196,17 @@ def make_folders(folder) -> list[Path]:
 def raise_interruption(exc: BaseException) -> None:
     """Re-raise the interruption that ``exc`` was raised while handling, if there is one.
 
-    An interruption is a ``BaseException`` that is not an ``Exception``: Ctrl-C, the CLI's
-    SIGTERM exit.  A clean-up that fails while one unwinds replaces it (a zip archive closed
-    while a member is still being written raises ``ValueError``), and a caller that tolerates
-    that error (an optional cache) would carry on as if nothing had happened.
+    An interruption is a ``BaseException`` that is neither an ``Exception`` nor a
+    ``GeneratorExit`` (a generator closed, which ends nothing): Ctrl-C, the CLI's SIGTERM exit.
+    A clean-up that fails while one unwinds replaces it (a zip archive closed while a member is
+    still being written raises ``ValueError``), and a caller that tolerates that error (an
+    optional cache) would carry on as if nothing had happened.
     """
     seen: set[int] = set()
     ctx = exc.__context__
     while ctx is not None and id(ctx) not in seen:
         seen.add(id(ctx))
-        if not isinstance(ctx, Exception):
+        if not isinstance(ctx, (Exception, GeneratorExit)):
             raise ctx
         ctx = ctx.__context__
 
@@ -300,9 +301,6 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
         if tmp is not None:
             _unlink(tmp)
         remove_folders(created)
-        # A Ctrl-C or SIGTERM that a failing clean-up replaced (a zip archive closed while the
-        # signal interrupted a member's close raises ValueError) is what ends the run.
-        raise_interruption(exc)
         # Errors of the write itself carry no file name (ENOSPC, EFBIG, EIO), those of the
         # temporary file or its folders name files the user never named: name the output.
         if isinstance(exc, OSError) and (

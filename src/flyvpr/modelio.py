@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import atomic_open
+from ._io import atomic_open, raise_interruption
 from ._npy import ArrayFileError, npz_member_header, read_npz_member
 from ._validation import ArraySpec, PartSpec, check_memory
 from ._version import __version__
@@ -214,11 +214,17 @@ def _write_archive(path: Path, meta: dict, arrays: dict) -> Path:
     blob = json.dumps(meta).encode()
     payload = {"__meta__": np.frombuffer(blob, dtype=np.uint8), **arrays}
     with atomic_open(path, "w+b") as fh:
-        with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
-            for key, value in payload.items():
-                with zf.open(key + ".npy", "w", force_zip64=True) as member:
-                    np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
-            zf.comment = b"0" * _TRAILER
+        try:
+            with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+                for key, value in payload.items():
+                    with zf.open(key + ".npy", "w", force_zip64=True) as member:
+                        np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
+                zf.comment = b"0" * _TRAILER
+        except Exception as exc:
+            # A Ctrl-C or SIGTERM inside a member's close leaves the archive's close to raise
+            # ValueError over it: the interruption is what ends the write.
+            raise_interruption(exc)
+            raise
         fh.flush()
         end = fh.seek(0, 2)
         digest = _file_digest(fh, end - _TRAILER)

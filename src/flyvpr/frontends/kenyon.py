@@ -60,7 +60,7 @@ from .._validation import (
     check_random_state,
 )
 from .base import Encoder
-from .optic_lobe import OpticLobe, _kernels, _lcn, local_contrast_normalize, varying_pixels
+from .optic_lobe import OpticLobe, _kernels, varying_pixels
 
 __all__ = ["KenyonEncoder", "balanced_connections", "code_overlap"]
 
@@ -194,9 +194,10 @@ class KenyonEncoder(Encoder):
     lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size
         The optic lobe's settings, see ``flyvpr.frontends.optic_lobe.optic_lobe``.
     intensity : bool, default False
-        Also feed the Kenyon cells the intensity channel: the contrast-normalised image
-        averaged over the valid pixels of each pooling cell (one feature per cell with a valid
-        pixel, 128 at 32x64), z-scored per image like the Gabor features.  It keeps the layout
+        Also feed the Kenyon cells the intensity channel: the contrast-normalised image summed
+        over each pooling cell (static pixels count 0, so a cell at the mask's edge weighs by
+        the share of it that varies; one feature per cell with a valid pixel, 128 at 32x64),
+        z-scored per image like the Gabor features.  It keeps the layout
         of light and dark that the phase-blind, max-pooled Gabor energies lose.  Opt-in:
         measured by ``benchmarks/kenyon_intensity.py`` (see the fly front-end guide), it costs
         a second contrast normalisation per image; ``CompactEncoder.from_kenyon`` does not
@@ -332,12 +333,7 @@ class KenyonEncoder(Encoder):
         lobe = self._optic_lobe
         n, h, w = images.shape
         p = lobe.pool
-        if self._valid is None:
-            x = _lcn(np.ascontiguousarray(images), lobe.lcn_sigma, lobe.lcn_eps, lobe._plan(h, w))
-        else:
-            x = local_contrast_normalize(
-                images, lobe.lcn_sigma, lobe.lcn_eps, valid_pixels=self._valid
-            )
+        x = lobe.normalise(images, self._valid)
         cells = x.reshape(n, h // p, p, w // p, p).sum(axis=(2, 4), dtype=np.float64)
         cells = cells.reshape(n, -1)[:, self._cells]
         cells -= cells.mean(axis=1, keepdims=True)
@@ -368,10 +364,12 @@ class KenyonEncoder(Encoder):
         self._set_valid()
         n_kept = self._n_kept()
         if n_in > n_kept:
+            n_cells = n_kept - self._n_gabor()
+            plus = f", plus {n_cells} intensity cells" if n_cells else ""
             raise ValueError(
-                f"n_inputs must be <= the number of optic-lobe features ({n_kept} of "
+                f"n_inputs must be <= the number of optic-lobe features ({self._n_gabor()} of "
                 f"{self._optic_lobe.n_features(*self.image_shape_)} see pixels that vary along "
-                f"the reference traverse); got {n_in}"
+                f"the reference traverse{plus}); got {n_in}"
             )
         features = map_chunks(self._lobe, images, "optic lobe")
         self.n_features_ = int(features.shape[1])
@@ -391,13 +389,16 @@ class KenyonEncoder(Encoder):
         self._valid = None if valid.all() else np.ascontiguousarray(valid)
         self._cells = self._intensity_cells()
 
-    def _n_kept(self) -> int:
-        """Optic-lobe features the Kenyon cells read under the mask (with the intensity
-        channel's cells)."""
+    def _n_gabor(self) -> int:
+        """Gabor features of the optic lobe that see a valid pixel."""
         if self._valid is None:
-            n = self._optic_lobe.n_features(*self.image_shape_)
-        else:
-            n = len(self._optic_lobe.kept_features(self._valid))
+            return self._optic_lobe.n_features(*self.image_shape_)
+        return len(self._optic_lobe.kept_features(self._valid))
+
+    def _n_kept(self) -> int:
+        """Features the Kenyon cells read: the Gabor features under the mask and the
+        intensity channel's cells."""
+        n = self._n_gabor()
         if self._check_intensity():
             n += int(self._cells.sum())
         return n
@@ -418,7 +419,17 @@ class KenyonEncoder(Encoder):
         features = self._lobe(check_images(images, "images", self.image_shape_))
         return self._activity(features)
 
+    def _check_width(self, features: np.ndarray) -> None:
+        # the compiled kernels index the features by the connections without a bounds check
+        if features.shape[1] != self.feature_mean_.shape[0]:
+            raise ValueError(
+                f"the optic lobe now gives {features.shape[1]} features and the Kenyon cells "
+                f"were fitted on {self.feature_mean_.shape[0]}: a setting changed since fit "
+                "(e.g. intensity); fit again"
+            )
+
     def _activity(self, features: np.ndarray) -> np.ndarray:
+        self._check_width(features)
         # float32 sums in the order of the sorted connections (as a CSR matrix product would)
         out = np.empty((len(features), self._connections.shape[0]), dtype=np.float32)
         return _kernels().kenyon_activity(features, self.feature_mean_, self._connections, out)
@@ -426,6 +437,7 @@ class KenyonEncoder(Encoder):
     def _codes(self, features: np.ndarray) -> np.ndarray:
         # activity, winner-take-all per population and bit packing in one compiled pass per
         # image: nothing of size (N, n_kenyon) is materialised
+        self._check_width(features)
         n_kenyon = self._connections.shape[0]
         n_proj = self.n_projections
         out = np.empty((len(features), n_kenyon // 8), dtype=np.uint8)

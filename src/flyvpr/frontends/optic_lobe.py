@@ -369,6 +369,17 @@ class OpticLobe:
             self._mask = (key, (_window_weight(valid, self.lcn_sigma), self.kept_features(valid)))
         return self._mask[1]
 
+    def normalise(self, x: np.ndarray, valid_pixels: np.ndarray | None = None) -> np.ndarray:
+        """The lobe's contrast normalisation of a validated float32 stack (N, H, W), with its
+        set-up cached (:func:`local_contrast_normalize` with the lobe's settings)."""
+        n, h, w = x.shape
+        x = np.ascontiguousarray(x)
+        if valid_pixels is None:
+            return _lcn(x, self.lcn_sigma, self.lcn_eps, self._plan(h, w))
+        out = np.empty((n, h, w), dtype=np.float32)
+        gm = self._masked(valid_pixels)[0]
+        return _kernels().lcn_masked(x, valid_pixels, gm, *self._plan(h, w), out)
+
     def __call__(self, x: np.ndarray, valid_pixels: np.ndarray | None = None) -> np.ndarray:
         n, h, w = x.shape
         n_features = self.n_features(h, w)
