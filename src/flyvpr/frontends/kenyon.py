@@ -197,11 +197,10 @@ class KenyonEncoder(Encoder):
         Also feed the Kenyon cells the intensity channel: the contrast-normalised image summed
         over each pooling cell (static pixels count 0, so a cell at the mask's edge weighs by
         the share of it that varies; one feature per cell with a valid pixel, 128 at 32x64),
-        z-scored per image like the Gabor features.  It keeps the layout
-        of light and dark that the phase-blind, max-pooled Gabor energies lose.  Opt-in:
-        measured by ``benchmarks/kenyon_intensity.py`` (see the fly front-end guide), it costs
-        a second contrast normalisation per image; ``CompactEncoder.from_kenyon`` does not
-        take it.
+        z-scored per image like the Gabor features.  It keeps the layout of light and dark
+        that the phase-blind, max-pooled Gabor energies lose.  Opt-in: measured by
+        ``benchmarks/kenyon_intensity.py`` (see the fly front-end guide), it costs a second
+        contrast normalisation per image; ``CompactEncoder.from_kenyon`` does not take it.
     random_state : None, int or numpy.random.Generator
         Seed of the connections.
 
