@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.017, 0.018, 0.449, 0.628, 0.633, 0.754, 0.835, 0.908, 0.967, 0.994, 1.0)
+CALIBRATION = (0.026, 0.027, 0.535, 0.638, 0.782, 0.852, 0.866, 0.935, 0.976, 0.994, 1.0)
 #: how odometry moves the layer (see the class's ``odometry`` parameter)
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
@@ -132,7 +132,8 @@ class CANN(OdometryFilter):
     Bayes filter over position and speed).  Each frame the activity of every velocity row is
     shifted by its velocity (the paper's *shift and copy*), spreads to neighbouring
     velocities, is multiplied by the evidence ``exp(evidence_gain * x)`` of the frame's
-    normalised scores ``x`` and divisively normalised (global inhibition).  A sequence test
+    normalised scores ``x`` (raised to the share of it that is new, ``evidence_share_``) and
+    divisively normalised (global inhibition).  A sequence test
     compares the evidence at the predicted place with the evidence at every other place; its
     outcome, the *support*, is the probability that the query is following the route.  See
     the user guide's CANN page (``docs/guide/cann.md``).
@@ -257,6 +258,11 @@ class CANN(OdometryFilter):
         frame as unlike the one before as frames usually are, near 0 for a repeat of it (a
         robot standing still); the test's evidence, and the chance of leaving or joining
         the route, count that much.
+    evidence_share_ : float
+        How much of the last frame's evidence the layer counted, in [0, 1]: its novelty,
+        and the rest of it where the map's places around the packet differ (a repeat there
+        says the robot has not moved on); near its novelty where they look alike (the map
+        stood there too: the same observation again, counted once).
     front_probability_ : float
         The front end's model's probability that its own best place is right, this frame
         (before the shrinking of a front-end answer's confidence).
@@ -454,6 +460,7 @@ class CANN(OdometryFilter):
         self.confidence_ = 0.0
         self.support_ = 0.5
         self.novelty_ = 1.0
+        self.evidence_share_ = 1.0
         self.front_probability_ = 0.0
         self.probability_ = 0.0
         self.state_ = "lost"
@@ -559,6 +566,7 @@ class CANN(OdometryFilter):
     def _hold(self) -> np.ndarray:
         """A held frame: nothing changes but ``n_held_``; the last answer again."""
         self.novelty_ = 0.0
+        self.evidence_share_ = 0.0
         self.velocity_ = 0.0
         self.n_held_ += 1
         return self._last_out.copy()
@@ -583,6 +591,30 @@ class CANN(OdometryFilter):
         usual = self._likeness
         self._likeness += rate * (r - usual)
         return min(1.0, (1.0 - r) / max(1.0 - usual, 1e-6))
+
+    def _evidence_share(self, row: np.ndarray, novelty: float) -> float:
+        """How much of a frame's evidence is new, in [0, 1]: its ``novelty``, plus the rest
+        of it in the measure that the map's places around the packet differ from each other.
+
+        A frame much like the last one observes the same thing again.  Where the map's places
+        around the packet differ as much as along the whole map (the mean absolute difference
+        of neighbouring places' scores, within ``2 * tolerance + 1`` places of the packet's
+        most probable place, against the whole row's), a repeat still tells where the robot
+        stands: had it moved on, the scores at its new place would differ; it counts whole.
+        Where the map's places there look alike (the map's drive stood too: a station, a
+        traffic light), a repeat tells nothing new, and counting the same evidence again
+        would drive the packet out of such a stretch whenever the front end does not
+        recognise it (an overlay or a fisheye disc); it counts only its novelty.
+        """
+        if novelty >= 1.0:
+            return 1.0
+        reach = 2 * self._params["tolerance"] + 1
+        packet = int(np.argmax(self._marginal))
+        lo = max(packet - reach, 0)
+        hi = min(packet + reach, row.shape[0] - 1)
+        whole, near = self._kernels["variation"](row, lo, hi)
+        differs = min(1.0, near / whole) if whole > 0.0 else 1.0
+        return novelty + (1.0 - novelty) * differs
 
     def _support(self, x: np.ndarray, predicted: int, novelty: float) -> None:
         """The sequence test: update ``support_`` with this frame's evidence at ``predicted``.
@@ -656,9 +688,10 @@ class CANN(OdometryFilter):
         else:  # the first frame: the prior as it is, weighed by the evidence
             floor_rate = change = jump = 0.0
             shifts = np.zeros(p["velocities"].size, np.int64)
+        share = self.evidence_share_ = self._evidence_share(row, novelty) if t > 0 else 1.0
         weight = self._weight
         np.subtract(x, x.max(), out=weight)
-        weight *= np.float32(p["evidence_gain"])
+        weight *= np.float32(p["evidence_gain"] * share)
         np.exp(weight, out=weight)
         kernels["advance"](
             self._p,

@@ -213,6 +213,22 @@ def likeness(row, last):
     return (sab - sa * sb / n) / math.sqrt(va * vb)
 
 
+def variation(row, lo, hi):
+    """How much neighbouring places' scores differ: the mean absolute difference between
+    consecutive places' scores over the whole ``row``, and over places ``lo`` to ``hi``
+    (inclusive); 0 where there is no pair."""
+    n = row.shape[0]
+    total = 0.0
+    for i in range(1, n):
+        total += abs(float(row[i]) - float(row[i - 1]))
+    local = 0.0
+    for i in range(lo + 1, hi + 1):
+        local += abs(float(row[i]) - float(row[i - 1]))
+    whole = total / (n - 1) if n > 1 else 0.0
+    near = local / (hi - lo) if hi > lo else 0.0
+    return whole, near
+
+
 def repeats(row, last):
     """Whether ``row`` equals ``last`` place for place (stops at the first difference)."""
     for i in range(row.shape[0]):
@@ -227,4 +243,5 @@ PLAIN = {
     "exceedance": exceedance,
     "likeness": likeness,
     "repeats": repeats,
+    "variation": variation,
 }
