@@ -1359,6 +1359,24 @@ def test_a_noisy_stand_where_the_map_moved_on_counts_whole(monkeypatch):
     assert np.array_equal(rows_whole.argmax(axis=1), rows.argmax(axis=1))
 
 
+def test_an_early_near_repeat_on_a_stand_of_the_map_counts_little():
+    # the first frame is new (its share 1, nothing to compare with); the third, a near-repeat
+    # of the second on the map's stand (places 20-59 score alike, the best of every row),
+    # counts about its novelty
+    rng = np.random.default_rng(6)
+    rows = rng.normal(0.0, 1.0, (2, 80))
+    rows[:, 20:60] = 3.0
+    rows[:, 40] = 3.01  # (the packet's peak in the stand's middle)
+    f = CANN(adaptation=None)  # (which would take out places that score alike in every row)
+    f.step(rows[0])
+    assert f.evidence_share_ == 1.0 and f.novelty_ == 1.0
+    f.step(rows[1])
+    assert f.evidence_share_ > 0.5
+    f.step(rows[1] + rng.normal(0.0, 1e-3, 80))
+    assert f.n_held_ == 0 and f.novelty_ < 0.01
+    assert f.evidence_share_ == pytest.approx(f.novelty_, abs=0.01)
+
+
 def test_a_held_frame_counts_no_evidence_and_reset_restores_a_whole_one():
     S = bump_rows(10 + np.arange(20.0), 60)
     f = CANN()

@@ -688,7 +688,7 @@ class CANN(OdometryFilter):
         else:  # the first frame: the prior as it is, weighed by the evidence
             floor_rate = change = jump = 0.0
             shifts = np.zeros(p["velocities"].size, np.int64)
-        share = self.evidence_share_ = self._evidence_share(row, novelty) if t > 0 else 1.0
+        share = self.evidence_share_ = self._evidence_share(row, novelty)  # (1 at first: new)
         weight = self._weight
         np.subtract(x, x.max(), out=weight)
         weight *= np.float32(p["evidence_gain"] * share)
