@@ -33,6 +33,7 @@ import numpy as np
 from flyvpr._io import write_json_atomic
 from flyvpr.datasets.nordland import load_nordland
 from flyvpr.frontends import Encoder, KenyonEncoder, PixelsEncoder
+from flyvpr.frontends.optic_lobe import varying_pixels
 from flyvpr.methods import Method
 from flyvpr.metrics import pr_auc, recall_at_k
 from flyvpr.temporal import FILTERS
@@ -59,6 +60,8 @@ class LobeCosine(KenyonEncoder):
 
     def _fit(self, images):
         self._optic_lobe = self._make_lobe()
+        self.valid_pixels_ = varying_pixels(images)  # (the lobe's mask, as the encoder's)
+        self._set_valid()
         self.reference_codes_ = self._unit(self._lobe(images))
 
     @staticmethod
