@@ -8,7 +8,7 @@ Protocol: ``kenyon+cann`` with ``calibration=None`` (the raw confidence: the sup
 window's probability) on the robot views of the dev window (Nordland 64x32 summer -> winter,
 frames 0-999: every view of ``benchmarks/accuracy.py`` on ``n64-0``, with and without
 odometry, with and without camera noise), seeds 0-2, tolerance 2.  Every frame whose answer
-comes from the sequence gives the square root of its raw confidence (the table is given there:
+comes from the sequence gives the fourth root of its raw confidence (the table is given there:
 finest where the lost answers lie) and whether the answer was right;
 :func:`flyvpr.temporal.cann.fit_calibration` (prior weight 1) turns them into the 11 values of
 the table, which the script prints as the
@@ -30,6 +30,7 @@ if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``ben
 from benchmarks._common import DEFAULT_DATA, machine  # noqa: E402
 from benchmarks.calibration import _runs, _stream  # noqa: E402
 from flyvpr.temporal.cann import CANN, fit_calibration  # noqa: E402
+from flyvpr.temporal.cann._filter import CALIBRATION_ROOT  # noqa: E402
 
 DEV = "n64-0"
 SEEDS = (0, 1, 2)
@@ -40,7 +41,7 @@ def run(data: Path, progress: bool = True) -> dict:
     for _key, _seed, S, moved, gt in _runs(data, SEEDS, progress, DEV):
         for conf, ok, from_sequence in _stream(CANN(calibration=None), S, moved, gt):
             if from_sequence:
-                raw.append(conf**0.5)  # the table is given at the raw confidence's square root
+                raw.append(conf ** (1.0 / CALIBRATION_ROOT))  # (where the table is given)
                 right.append(ok)
     table = fit_calibration(raw, right)
     return {

@@ -21,8 +21,8 @@ KNOTS = np.linspace(0.0, 1.0, 11)
 
 def lost_confidence(probability, tolerance=2, trust=0.05):
     """A front-end answer's confidence: the model's ``probability`` shrunk towards the base
-    rate 0.5 ** (1 + tolerance) by ``trust`` (the share of localized frames, at least 0.05;
-    0.05 in a filter never localized)."""
+    rate 0.5 ** (1 + tolerance) by ``trust`` (the share of localized frames or the support,
+    the lesser, at least 0.05; 0.05 in a filter never localized)."""
     base = 0.5 ** (1 + tolerance)
     return base + trust * (probability - base)
 
@@ -237,8 +237,9 @@ def reference_filter(S, velocity=None, **params):
             a, b = a + _FRONT_RATE * error, b + _FRONT_RATE * error * feature
         front_confidence = min(1.0, front_confidence * (1 + 1e-3 * math.tanh(raw_z)))
         if q["fallback"] and support_mean * probability < front_confidence * (1 - support_mean):
-            # shrunk towards the base rate 0.5 ** (1 + tol) by the share of localized frames
-            trust = max(localized_mean, 0.05)
+            # shrunk towards the base rate 0.5 ** (1 + tol) by the share of localized frames,
+            # or by the support if that is less
+            trust = max(min(localized_mean, support), 0.05)
             base = 0.5 ** (1 + tol)
             confidence = base + trust * (front_confidence - base)
             source, answer = "front end", front
@@ -253,7 +254,7 @@ def reference_filter(S, velocity=None, **params):
             if predicted >= 0 and abs(answer - predicted) > 2 * tol + 1:
                 relocations += 1
             if q["calibration"] is not None:
-                calibrated = float(np.interp(confidence**0.5, KNOTS, q["calibration"]))
+                calibrated = float(np.interp(confidence**0.25, KNOTS, q["calibration"]))
                 out = out * calibrated / confidence if confidence > 0 else out
                 confidence = calibrated
         if q["recalibration"] is not None:  # every answer, after the sequence's table
@@ -513,8 +514,11 @@ def test_defaults():
     forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0, 3.25, 3.5)
     assert LAYER_VELOCITIES == (-2.0, -1.5, -1.0, -0.5) + forward
     assert all(type(v) is float for v in LAYER_VELOCITIES)
-    table = (0.026, 0.027, 0.535, 0.638, 0.782, 0.852, 0.866, 0.935, 0.976, 0.994, 1.0)
+    table = (0.0, 0.083, 0.084, 0.085, 0.298, 0.611, 0.725, 0.846, 0.892, 0.984, 1.0)
     assert CALIBRATION == table
+    from flyvpr.temporal.cann._filter import CALIBRATION_ROOT
+
+    assert CALIBRATION_ROOT == 4
     assert np.all(np.diff(CALIBRATION) > 0)
     assert _FRONT_RATE == 0.05
     assert CANN.name == "cann"
@@ -627,19 +631,19 @@ BAD_PARAMS = [
     (
         {"calibration": "abc"},
         TypeError,
-        "calibration must be None or 11 numbers (at the square root of the raw confidence "
+        "calibration must be None or 11 numbers (at the fourth root of the raw confidence "
         "0, 0.1, ..., 1); got 'abc'",
     ),
     (
         {"calibration": [0.0, 1.0]},
         ValueError,
-        "calibration must hold 11 values (at the square root of the raw confidence 0, 0.1, "
+        "calibration must hold 11 values (at the fourth root of the raw confidence 0, 0.1, "
         "..., 1); got shape (2,)",
     ),
     (
         {"calibration": [_BAD_CALIBRATION]},
         ValueError,
-        "calibration must hold 11 values (at the square root of the raw confidence 0, 0.1, "
+        "calibration must hold 11 values (at the fourth root of the raw confidence 0, 0.1, "
         "..., 1); got shape (1, 11)",
     ),
     (
@@ -1478,18 +1482,18 @@ def test_sequence_confidence_is_calibrated_support_times_probability():
             n_sequence += 1
             value = b["support_"] * b["probability_"]
             assert b["confidence_"] == np.float32(value)
-            # (the tables are given at the raw confidence's square root)
-            assert a["confidence_"] == np.float32(np.interp(value**0.5, KNOTS, CALIBRATION))
-            assert c["confidence_"] == np.float32(np.interp(value**0.5, KNOTS, table))
+            # (the tables are given at the raw confidence's fourth root)
+            assert a["confidence_"] == np.float32(np.interp(value**0.25, KNOTS, CALIBRATION))
+            assert c["confidence_"] == np.float32(np.interp(value**0.25, KNOTS, table))
         else:  # the front end's model's probability, whatever the table
             assert a["confidence_"] == b["confidence_"] == c["confidence_"]
     assert n_sequence >= 30
-    # the table of the knots' squares is the identity at the knots, and within the linear
-    # interpolation's error of x**2 (0.1**2 / 4) between them
-    rows_identity, _ = run(CANN(calibration=KNOTS**2), _mixed_scenario())
+    # the table of the knots' fourth powers is the identity at the knots, and within the
+    # linear interpolation's error of x**4 (at most 12 x**2 0.1**2 / 8 <= 0.015) between them
+    rows_identity, _ = run(CANN(calibration=KNOTS**4), _mixed_scenario())
     sequence = [fr["source_"] == "sequence" for fr in raw]
     gap = rows_identity[sequence].max(axis=1) - rows_raw[sequence].max(axis=1)
-    assert gap.min() >= -1e-6 and gap.max() <= 0.0025
+    assert gap.min() >= -1e-6 and gap.max() <= 0.015
 
 
 def test_calibration_scales_the_whole_sequence_row():
@@ -1501,7 +1505,7 @@ def test_calibration_scales_the_whole_sequence_row():
     for t in range(5, 15):
         assert frames[t]["source_"] == "sequence"
         c = raw[t].max()
-        scale = np.interp(np.sqrt(c), KNOTS, table) / c
+        scale = np.interp(c**0.25, KNOTS, table) / c
         expected = np.minimum(raw[t] * np.float32(scale), rows[t].max())
         np.testing.assert_allclose(rows[t], expected, rtol=2e-6, atol=1e-9)
 
@@ -1817,7 +1821,7 @@ def test_support_and_confidence_of_exactly_one_half():
     )
     f.reset()
     a = _logit(0.125)  # (0.5 ** (2 + 1))
-    level = np.float32(np.interp(0.5**0.5, KNOTS, CALIBRATION))  # (given at sqrt(raw))
+    level = np.float32(np.interp(0.5**0.25, KNOTS, CALIBRATION))  # (given at raw ** 0.25)
     for t in range(5):
         out = f.step(np.zeros(2))
         assert f.source_ == "sequence" and f.state_ == "localized"
@@ -1840,7 +1844,7 @@ def test_a_tie_between_sequence_and_front_end_goes_to_the_sequence():
     out = f.step(np.zeros(4))
     assert f._front_model == [_logit(0.25), 0.0]
     assert f.source_ == "sequence" and f.probability_ == 0.25 and f.state_ == "lost"
-    level = np.float32(np.interp(0.125**0.5, KNOTS, CALIBRATION))
+    level = np.float32(np.interp(0.125**0.25, KNOTS, CALIBRATION))
     assert f.confidence_ == level
     np.testing.assert_array_equal(out, np.full(4, level))
 
@@ -2019,7 +2023,8 @@ def test_a_lost_filter_shrinks_the_front_ends_confidence_towards_the_base_rate()
     # 80 frames followed at 1 place per frame, then 300 of bumps at random places (off the
     # route): the front end answers, its confidence is the model's probability shrunk
     # towards 0.5 ** 3 by the share of localized frames so far (a running mean over
-    # support_memory frames), which falls as the filter stays lost.
+    # support_memory frames), which falls as the filter stays lost, or by the support (the
+    # probability that the query follows the route) where that is less.
     rng = np.random.default_rng(5)
     pos = np.r_[10 + np.arange(80.0), rng.integers(0, 300, 300).astype(float)]
     S = bump_rows(pos, 300, seed=5)
@@ -2029,9 +2034,10 @@ def test_a_lost_filter_shrinks_the_front_ends_confidence_towards_the_base_rate()
     for t, row in enumerate(S):
         f.step(row)
         if f.source_ == "front end":
-            expected = lost_confidence(f.front_probability_, 2, max(share, 0.05))
+            trust = max(min(share, f.support_), 0.05)
+            expected = lost_confidence(f.front_probability_, 2, trust)
             assert f.confidence_ == np.float32(expected), t
-            answers.append((t, f.front_probability_, f.confidence_, share))
+            answers.append((t, f.front_probability_, f.confidence_, trust, share))
         rate = max(1.0 / (t + 1), 1.0 / 100.0)
         share += rate * (float(f.state_ == "localized") - share)
         assert f._localized_mean == pytest.approx(share, rel=1e-12, abs=1e-15)
@@ -2039,10 +2045,13 @@ def test_a_lost_filter_shrinks_the_front_ends_confidence_towards_the_base_rate()
     assert shares[79] > 0.6 and shares[-1] < 0.1  # localized on the route, lost after it
     lost = [a for a in answers if a[0] >= 80]
     assert len(lost) > 100
-    # early in the lost stretch the model's probability mostly stands; late, the base rate
-    t, model, confidence, trust = lost[0]
-    assert trust > 0.5 and abs(confidence - model) < abs(confidence - 0.125)
-    t, model, confidence, trust = lost[-1]
+    # early in the lost stretch the support, not the share, shrinks the model's probability
+    # (the frames no longer follow the route while most recent ones were localized); late,
+    # both are small and the base rate stands
+    early = [a for a in lost if a[0] < 120]
+    assert early and all(a[4] > 0.5 for a in early)
+    assert sum(a[3] < 0.5 * a[4] for a in early) >= len(early) // 2
+    t, model, confidence, trust, _ = lost[-1]
     assert trust < 0.1 and abs(confidence - 0.125) < 0.1 * abs(model - 0.125)
 
 
@@ -2206,15 +2215,28 @@ def test_odometry_mode_is_checked():
         CANN(odometry="wheel").reset()
 
 
-def test_a_table_given_at_raw_confidences_resampled_at_their_square_roots():
-    # (model files saved before the table was read at the raw confidence's square root)
-    from flyvpr.temporal.cann._filter import table_at_square_roots
+def test_a_table_given_at_raw_confidences_resampled_at_their_fourth_roots():
+    # (model files saved before the table was read at the raw confidence's fourth root)
+    from flyvpr.temporal.cann._filter import table_at_roots
 
     old = (0.146, 0.58, 0.598, 0.767, 0.824, 0.875, 0.9, 0.955, 0.989, 0.997, 1.0)
-    new = table_at_square_roots(old)
+    new = table_at_roots(old, 1)
     assert len(new) == 11 and np.all(np.diff(new) > 0)
-    for raw in KNOTS**2:  # the same mapping at the raw confidences the new knots stand for
-        assert np.interp(raw**0.5, KNOTS, new) == pytest.approx(np.interp(raw, KNOTS, old))
+    for raw in KNOTS**4:  # the same mapping at the raw confidences the new knots stand for
+        assert np.interp(raw**0.25, KNOTS, new) == pytest.approx(np.interp(raw, KNOTS, old))
     assert new[0] == old[0] and new[-1] == old[-1]
-    assert new[3] == pytest.approx(0.146 + 0.9 * (0.58 - 0.146))  # raw 0.09
-    assert new[5] == pytest.approx(0.598 + 0.5 * (0.767 - 0.598))  # raw 0.25
+    assert new[3] == pytest.approx(0.146 + 0.081 * (0.58 - 0.146))  # raw 0.3 ** 4 = 0.0081
+    assert new[5] == pytest.approx(0.146 + 0.625 * (0.58 - 0.146))  # raw 0.0625
+    assert new[9] == pytest.approx(0.9 + 0.561 * (0.955 - 0.9))  # raw 0.6561
+
+
+def test_a_table_given_at_square_roots_resampled_at_fourth_roots():
+    from flyvpr.temporal.cann._filter import table_at_roots
+
+    old = (0.026, 0.027, 0.535, 0.638, 0.782, 0.852, 0.866, 0.935, 0.976, 0.994, 1.0)
+    new = table_at_roots(old, 2)
+    for raw in KNOTS**4:  # the same mapping at the raw confidences the new knots stand for
+        assert np.interp(raw**0.25, KNOTS, new) == pytest.approx(np.interp(raw**0.5, KNOTS, old))
+    assert new[3] == pytest.approx(0.026 + 0.9 * (0.027 - 0.026))  # sqrt(raw) 0.09
+    assert new[5] == pytest.approx(0.535 + 0.5 * (0.638 - 0.535))  # sqrt(raw) 0.25
+    assert table_at_roots(old, 4) == old

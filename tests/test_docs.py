@@ -275,14 +275,14 @@ def test_large_calibration_table_lines_up_the_localizers(gen):
 
 def test_the_localized_threshold_the_docs_state_is_the_tables():
     # `localized` is a raw confidence of 0.5 or more, so a calibrated one of at least the
-    # default table's value at sqrt(0.5) (the table is given at the raw confidence's square
-    # root): the README, the robot guide and the Localizer's docstring
+    # default table's value at 0.5 ** 0.25 (the table is given at the raw confidence's
+    # fourth root): the README, the robot guide and the Localizer's docstring
     # say that number, and a refitted table must bring them along.
     import numpy as np
 
     from flyvpr.temporal.cann._filter import CALIBRATION
 
-    level = float(np.interp(0.5**0.5, np.linspace(0.0, 1.0, 11), CALIBRATION))
+    level = float(np.interp(0.5**0.25, np.linspace(0.0, 1.0, 11), CALIBRATION))
     sources = [
         ROOT / "README.md",
         DOCS / "guide" / "robot.md",

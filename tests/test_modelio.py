@@ -4,9 +4,10 @@ import zipfile
 import numpy as np
 import pytest
 
+from flyvpr import modelio
 from flyvpr.cli import main
 from flyvpr.methods import METHODS, make_method, method_names
-from flyvpr.modelio import FORMAT_VERSION, load_method, save_method
+from flyvpr.modelio import FORMAT_VERSION, ModelFileError, load_method, save_method
 
 CORE = [m for m in method_names(available_only=True) if not METHODS[m].extras]
 
@@ -193,18 +194,52 @@ def test_a_file_from_before_hold_repeats_takes_the_front_ends_default(
     older = [n for n in CANN._param_names() if n != "hold_repeats"]
     with monkeypatch.context() as m:
         m.setattr(CANN, "_param_names", classmethod(lambda cls: older))
+        m.setattr(modelio, "_filter_extra", lambda filt: {})  # (files then said no root)
         path = save_method(model, tmp_path / "old.npz")
     assert load_method(path).filter.hold_repeats is held
-    # its calibration table was given at raw confidences: resampled at their square roots,
-    # the loaded filter maps the raw confidences 0, 0.01, 0.04, ... as the old one did
+    # its calibration table was given at raw confidences (such files say no root): resampled
+    # at their fourth roots, the loaded filter maps the raw confidences 0, 0.1 ** 4, ... as
+    # the old one did
     from flyvpr.temporal.cann._filter import _KNOTS as _K
-    from flyvpr.temporal.cann._filter import table_at_square_roots
+    from flyvpr.temporal.cann._filter import table_at_roots
 
     old = model.filter.calibration
     loaded = load_method(path).filter.calibration
-    assert tuple(loaded) == table_at_square_roots(old)
-    np.testing.assert_allclose(loaded, np.interp(_K**2, _K, old), rtol=0, atol=1e-15)
+    assert tuple(loaded) == table_at_roots(old, 1)
+    np.testing.assert_allclose(loaded, np.interp(_K**4, _K, old), rtol=0, atol=1e-15)
     model.filter.set_params(hold_repeats=not held)
     again = load_method(save_method(model, tmp_path / "new.npz"))
     assert again.filter.hold_repeats is (not held)
     assert tuple(again.filter.calibration) == tuple(old)  # a new file's table is kept
+    # a file with hold_repeats but no root gave it at the raw confidence's square root
+    with monkeypatch.context() as m:
+        m.setattr(modelio, "_filter_extra", lambda filt: {})
+        path = save_method(model, tmp_path / "square.npz")
+    loaded = load_method(path).filter.calibration
+    assert tuple(loaded) == table_at_roots(old, 2)
+    np.testing.assert_allclose(loaded, np.interp(_K**2, _K, old), rtol=0, atol=1e-15)
+    for bad in (3, "4", True, None):
+        with monkeypatch.context() as m:
+            m.setattr(modelio, "_filter_extra", lambda filt, bad=bad: {"calibration_root": bad})
+            path = save_method(model, tmp_path / "bad.npz")
+        with pytest.raises(ModelFileError, match=r"filter\.calibration_root: .*1, 2 or 4 expected"):
+            load_method(path)
+    # a filter section with anything else in it is refused, naming what it may hold
+    with monkeypatch.context() as m:
+        m.setattr(modelio, "_filter_extra", lambda filt: {"calibration_rot": 4})
+        path = save_method(model, tmp_path / "typo.npz")
+    with pytest.raises(
+        ModelFileError,
+        match=r"filter: must hold exactly name, params and state \(and may hold calibration_root\)",
+    ):
+        load_method(path)
+    # a filter without a table (the paper's attractor) says no root and loads as it was
+    from flyvpr.temporal import FILTERS
+
+    assert modelio._filter_extra(FILTERS["cann-paper"]()) == {}
+    assert modelio._filter_extra(CANN()) == {"calibration_root": 4}
+    paper = make_method("flyhash+cann-paper", 0).fit(data[0])
+    again = load_method(save_method(paper, tmp_path / "paper.npz"))
+    assert again.filter.get_params().keys() == paper.filter.get_params().keys()
+    S = paper.score(data[1])
+    np.testing.assert_array_equal(again.filter.filter(S), paper.filter.filter(S))

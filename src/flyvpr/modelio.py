@@ -43,7 +43,7 @@ from .images import DEFAULT_SIZE
 from .methods import METHODS, Method, hold_default
 from .temporal import FILTERS
 from .temporal.base import OnlineFilter
-from .temporal.cann._filter import table_at_square_roots
+from .temporal.cann._filter import CALIBRATION_ROOT, table_at_roots
 
 __all__ = [
     "FORMAT",
@@ -198,6 +198,7 @@ def save_method(method: Method, path, *, size=DEFAULT_SIZE, sections=None) -> Pa
             "name": method.filter.name,
             "params": _json_params(method.filter.get_params()),
             "state": _flatten(method.filter, "filter/", arrays),
+            **_filter_extra(method.filter),
         }
     for name, (section, section_arrays) in (sections or {}).items():
         if name not in _SECTIONS or not all(k.startswith(name + "/") for k in section_arrays):
@@ -385,6 +386,13 @@ def _read_meta(r: _Reader) -> dict:
     return meta
 
 
+def _filter_extra(filt) -> dict:
+    """What a filter's section holds besides its name, params and state: for a filter with a
+    ``calibration`` table, the root of the raw confidence the table is given at (files
+    without it gave it at the raw confidence or its square root: see ``load_method``)."""
+    return {"calibration_root": CALIBRATION_ROOT} if "calibration" in filt.get_params() else {}
+
+
 def _trailer_ok(path: Path) -> bool:
     """Whether the file ends with the SHA-256 (hex) of every byte before it."""
     size = path.stat().st_size
@@ -449,9 +457,11 @@ def _check_fields(r: _Reader, meta: dict, size) -> tuple[int, int]:
             + (f"+{spec.filter}" if spec.filter else "")
             + f", but the file holds front end {front!r} and filter {filt!r}",
         )
-    for part in ("frontend", "filter"):
-        if meta[part] is not None and set(meta[part]) != {"name", "params", "state"}:
-            raise r.error(part, "must hold exactly name, params and state")
+    fields = {"name", "params", "state"}
+    for part, optional in (("frontend", set()), ("filter", {"calibration_root"})):
+        if meta[part] is not None and not fields <= set(meta[part]) <= fields | optional:
+            may = f" (and may hold {', '.join(sorted(optional))})" if optional else ""
+            raise r.error(part, f"must hold exactly name, params and state{may}")
     return tuple(saved)
 
 
@@ -546,9 +556,16 @@ def _load(path, size, readers: dict):
             )
             if "hold_repeats" not in fm["params"]:  # a file from before repeated frames held
                 hold_default(frontend, filt, fm["params"])
-                if getattr(filt, "calibration", None) is not None:
-                    # its table was given at raw confidences, not at their square roots
-                    filt.set_params(calibration=table_at_square_roots(filt.calibration))
+            if getattr(filt, "calibration", None) is not None:
+                # Files from before the root was saved gave the table at the raw confidence
+                # (before repeated frames held) or at its square root.
+                root = fm.get("calibration_root", 2 if "hold_repeats" in fm["params"] else 1)
+                if type(root) is not int or root not in (1, 2, CALIBRATION_ROOT):
+                    raise r.error(
+                        "filter.calibration_root", f"{root!r}: 1, 2 or {CALIBRATION_ROOT} expected"
+                    )
+                if root != CALIBRATION_ROOT:
+                    filt.set_params(calibration=table_at_roots(filt.calibration, root))
         found = {}
         for name in _SECTIONS:
             if name in meta and name not in readers:

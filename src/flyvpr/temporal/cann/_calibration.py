@@ -45,7 +45,7 @@ def fit_calibration(raw, right, prior_weight: float = 1.0) -> tuple[float, ...]:
     raw : array-like of float in [0, 1]
         Confidences of a labelled run: ``confidence_`` of a
         :class:`~flyvpr.temporal.cann.CANN` after each frame (for its ``recalibration``),
-        or, for its ``calibration`` (the sequence's own table), the square root of that of a
+        or, for its ``calibration`` (the sequence's own table), the fourth root of that of a
         ``CANN(calibration=None)`` after each frame whose ``source_`` is ``"sequence"``.
     right : array-like of bool, same length
         Whether each of those answers was right (within the filter's ``tolerance``).

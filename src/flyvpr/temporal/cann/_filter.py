@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.026, 0.027, 0.535, 0.638, 0.782, 0.852, 0.866, 0.935, 0.976, 0.994, 1.0)
+CALIBRATION = (0.0, 0.083, 0.084, 0.085, 0.298, 0.611, 0.725, 0.846, 0.892, 0.984, 1.0)
 #: how odometry moves the layer (see the class's ``odometry`` parameter)
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
@@ -39,8 +39,10 @@ _MIN_TRUST = 0.05
 _SAMPLES = 4096
 #: bounds of the learned exponent of the sequence test's rank model (see _support)
 _SHAPE_RANGE = (0.05, 1.0)
-#: confidences at which a table is given (for ``calibration``: square roots of raw ones)
+#: confidences at which a table is given (for ``calibration``: fourth roots of raw ones)
 _KNOTS = np.linspace(0.0, 1.0, 11)
+#: ``calibration`` is given at the raw confidence to the power ``1 / CALIBRATION_ROOT``
+CALIBRATION_ROOT = 4
 #: the rank model learns from frames whose support reaches this
 _LEARN_ABOVE = 0.5
 
@@ -77,19 +79,22 @@ def _sigmoid(x: float) -> float:
 
 def _calibrate(raw: float, table) -> float:
     """``raw`` mapped through ``table`` (values at ``raw`` = 0, 0.1, ..., 1, linearly between
-    them; the sequence's table is given the square root of its raw confidence); ``None``:
+    them; the sequence's table is given the fourth root of its raw confidence); ``None``:
     ``raw`` itself."""
     if table is None:
         return raw
     return float(np.interp(raw, _KNOTS, table))
 
 
-def table_at_square_roots(table) -> tuple[float, ...]:
-    """A ``calibration`` table given at raw confidence 0, 0.1, ..., 1 (as model files saved
-    before it was given at the raw confidence's square root hold it) resampled at the raw
-    confidences 0, 0.01, 0.04, ..., 1 that the filter now reads it at: the same mapping at
-    those points, linear between them."""
-    values = np.interp(_KNOTS**2, _KNOTS, np.asarray(table, dtype=np.float64))
+def table_at_roots(table, root: int) -> tuple[float, ...]:
+    """A ``calibration`` table given at the raw confidence's ``root``-th root 0, 0.1, ..., 1
+    (model files saved before it was given at the fourth root hold one at the raw confidence,
+    ``root`` 1, or at its square root, 2) resampled at the raw confidences 0, 0.1 ** 4,
+    0.2 ** 4, ..., 1 that the filter now reads it at: the same mapping at those points,
+    linear between them."""
+    values = np.interp(
+        _KNOTS ** (CALIBRATION_ROOT / root), _KNOTS, np.asarray(table, dtype=np.float64)
+    )
     return tuple(float(v) for v in values)
 
 
@@ -202,12 +207,14 @@ class CANN(OdometryFilter):
         probability is a logistic model of the strength of its peak (its z-score), learned
         at run time from whether it agrees with the sequence's confident answers; before
         any, ``0.5 ** (2 + tolerance)``.  The confidence of a front-end answer is that
-        probability shrunk towards ``0.5 ** (1 + tolerance)`` by the share of localized
-        frames over the last ``support_memory`` frames: a filter lost for long may be off
-        the map, where the model (learned on the route) does not hold.
+        probability shrunk towards ``0.5 ** (1 + tolerance)`` by the lesser of the share of
+        localized frames over the last ``support_memory`` frames and ``support_`` (the
+        probability that the query follows the route): a filter lost for long, or whose
+        frames no longer follow the route, may be off the map, where the model (learned on
+        the route) does not hold.
     calibration : sequence of 11 float or None, default CALIBRATION
-        The sequence's confidence where the square root of its raw confidence (support times
-        the window's probability) is 0, 0.1, ..., 1 (raw 0, 0.01, 0.04, ..., 1: finest
+        The sequence's confidence where the fourth root of its raw confidence (support times
+        the window's probability) is 0, 0.1, ..., 1 (raw 0, 0.0001, 0.0016, ..., 1: finest
         where the lost answers lie), linearly between (strictly increasing, in [0, 1]);
         fitted on kenyon+cann's answers on the dev robot conditions (Nordland 0-999, seeds
         0-2, tolerance 2).  ``None``: the raw confidence.
@@ -404,7 +411,7 @@ class CANN(OdometryFilter):
             raise ValueError(f"odometry must be one of {ODOMETRY_MODES}; got {self.odometry!r}")
         p["odometry"] = self.odometry
         p["calibration"] = _check_table(
-            self.calibration, "calibration", "the square root of the raw confidence"
+            self.calibration, "calibration", "the fourth root of the raw confidence"
         )
         p["recalibration"] = _check_table(self.recalibration, "recalibration", "confidence")
         # Sorted, so that neighbouring rows are neighbouring speeds.
@@ -758,10 +765,11 @@ class CANN(OdometryFilter):
             self.source_ = "front end"
             # The model learned on the route; a filter lost for long may be off the map,
             # where the front end is never right.  Its probability is shrunk towards a base
-            # rate by the share of recent frames that were localized (a twentieth of it
-            # kept, so that the front end's own order of answers survives).
+            # rate by the share of recent frames that were localized, or by the probability
+            # that the query follows the route if that is less (a twentieth of it kept, so
+            # that the front end's own order of answers survives).
             base = 0.5 ** (1 + p["tolerance"])
-            trust = max(self._localized_mean, _MIN_TRUST)
+            trust = max(min(self._localized_mean, self.support_), _MIN_TRUST)
             confidence = base + trust * (front_confidence - base)
             z = row.astype(np.float64) - float(row.mean())
             top = float(z[front])
@@ -783,7 +791,7 @@ class CANN(OdometryFilter):
         # probability already.
         calibrated = confidence
         if self.source_ == "sequence" and p["calibration"] is not None:
-            calibrated = _calibrate(math.sqrt(confidence), p["calibration"])
+            calibrated = _calibrate(confidence ** (1.0 / CALIBRATION_ROOT), p["calibration"])
         # Then every answer's through the route's own table, if given (also increasing).
         if p["recalibration"] is not None:
             calibrated = _calibrate(calibrated, p["recalibration"])
