@@ -2240,3 +2240,20 @@ def test_a_table_given_at_square_roots_resampled_at_fourth_roots():
     assert new[3] == pytest.approx(0.026 + 0.9 * (0.027 - 0.026))  # sqrt(raw) 0.09
     assert new[5] == pytest.approx(0.535 + 0.5 * (0.638 - 0.535))  # sqrt(raw) 0.25
     assert table_at_roots(old, 4) == old
+
+
+def test_the_first_frame_is_the_prior_weighed_by_its_evidence():
+    # Nothing moves, drifts or is redrawn before the first frame: the posterior over
+    # velocities is the speed prior as it is, and every velocity row holds the same profile
+    # over places (the evidence's weights: flat, as the first frame's input is all 0 against
+    # statistics that start at its own values), scaled by its prior.
+    rng = np.random.default_rng(3)
+    f = CANN()
+    f.reset()
+    f.step(rng.normal(size=60))
+    prior = f._params["prior"]
+    np.testing.assert_allclose(f._row_mass, prior, rtol=1e-5, atol=1e-12)
+    rows = np.asarray(f._p, np.float64)
+    profile = rows / rows.sum(axis=1, keepdims=True)
+    np.testing.assert_allclose(profile, np.broadcast_to(f._marginal, profile.shape), rtol=1e-4)
+    np.testing.assert_allclose(f._marginal, 1 / 60, rtol=1e-5)
