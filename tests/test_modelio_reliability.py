@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from flyvpr.cli import main
 from flyvpr.methods import make_method
 from flyvpr.modelio import ModelFileError, _write_archive, load_method, save_method
+from flyvpr.temporal.cann._filter import table_at_roots
 
 
 def _read(path):
@@ -58,9 +59,8 @@ def test_every_dropped_key_is_refused_naming_the_file(tiny, tmp_path):
             assert load_method(out).filter.hold_repeats is False
             continue
         if key_path[-2:] == ("filter", "calibration_root"):  # the same (its table resampled)
-            assert load_method(out).filter.calibration != tuple(
-                meta["filter"]["params"]["calibration"]
-            )
+            saved = meta["filter"]["params"]["calibration"]
+            assert load_method(out).filter.calibration == table_at_roots(saved, 2)
             continue
         with pytest.raises(ModelFileError, match=r"model file .*x\.npz") as info:
             load_method(out)
@@ -308,3 +308,27 @@ def test_a_model_that_fails_on_a_test_frame_is_refused(
     monkeypatch.setattr(cls, "score", lambda self, frames: scores(self.n_reference_))
     with pytest.raises(ModelFileError, match=rf"fails on a test frame \({problem}\)"):
         load_method(path)
+
+
+@pytest.mark.parametrize("root", [1, 2, 4])
+def test_the_recorded_root_decides_how_the_table_is_read(tiny, tmp_path, root):
+    # (not the presence of hold_repeats, which only guesses it for files without a root)
+    path, _, _ = tiny
+    meta, arrays = _read(path)
+    assert "hold_repeats" in meta["filter"]["params"]
+    meta["filter"]["calibration_root"] = root
+    saved = meta["filter"]["params"]["calibration"]
+    loaded = load_method(_write_archive(tmp_path / "x.npz", meta, arrays)).filter.calibration
+    assert tuple(loaded) == table_at_roots(saved, root)
+    assert (tuple(loaded) == tuple(saved)) is (root == 4)
+
+
+def test_a_bad_root_is_refused_with_no_table_too(tiny, tmp_path):
+    path, _, _ = tiny
+    meta, arrays = _read(path)
+    meta["filter"]["params"]["calibration"] = None
+    meta["filter"]["calibration_root"] = 3
+    with pytest.raises(ModelFileError, match=r"x\.npz: filter\.calibration_root: 3: 1, 2 or 4"):
+        load_method(_write_archive(tmp_path / "x.npz", meta, arrays))
+    meta["filter"]["calibration_root"] = 2  # (a good one: nothing to resample)
+    assert load_method(_write_archive(tmp_path / "y.npz", meta, arrays)).filter.calibration is None

@@ -556,16 +556,15 @@ def _load(path, size, readers: dict):
             )
             if "hold_repeats" not in fm["params"]:  # a file from before repeated frames held
                 hold_default(frontend, filt, fm["params"])
-            if getattr(filt, "calibration", None) is not None:
-                # Files from before the root was saved gave the table at the raw confidence
-                # (before repeated frames held) or at its square root.
-                root = fm.get("calibration_root", 2 if "hold_repeats" in fm["params"] else 1)
-                if type(root) is not int or root not in (1, 2, CALIBRATION_ROOT):
-                    raise r.error(
-                        "filter.calibration_root", f"{root!r}: 1, 2 or {CALIBRATION_ROOT} expected"
-                    )
-                if root != CALIBRATION_ROOT:
-                    filt.set_params(calibration=table_at_roots(filt.calibration, root))
+            # Files from before the root was saved gave the table at the raw confidence
+            # (before repeated frames held) or at its square root.
+            root = fm.get("calibration_root", 2 if "hold_repeats" in fm["params"] else 1)
+            if type(root) is not int or root not in (1, 2, CALIBRATION_ROOT):
+                raise r.error(
+                    "filter.calibration_root", f"{root!r}: 1, 2 or {CALIBRATION_ROOT} expected"
+                )
+            if getattr(filt, "calibration", None) is not None and root != CALIBRATION_ROOT:
+                filt.set_params(calibration=table_at_roots(filt.calibration, root))
         found = {}
         for name in _SECTIONS:
             if name in meta and name not in readers:

@@ -51,7 +51,9 @@ def fit_calibration(raw, right, prior_weight: float = 1.0) -> tuple[float, ...]:
         Whether each of those answers was right (within the filter's ``tolerance``).
     prior_weight : float, default 1.0
         Weight, in answers, of the identity (a table equal to the raw confidence) at every
-        knot: where few answers fall the table stays near the raw confidence.
+        knot: where few answers fall the table stays near the raw confidence (for a
+        ``calibration`` table, near the fourth root of the raw confidence it is given at,
+        which is more than the raw confidence: fit it on enough answers).
 
     Returns
     -------
