@@ -332,3 +332,15 @@ def test_a_bad_root_is_refused_with_no_table_too(tiny, tmp_path):
         load_method(_write_archive(tmp_path / "x.npz", meta, arrays))
     meta["filter"]["calibration_root"] = 2  # (a good one: nothing to resample)
     assert load_method(_write_archive(tmp_path / "y.npz", meta, arrays)).filter.calibration is None
+
+
+@pytest.mark.parametrize("shape, fill", [((2, 3), np.nan), ((3, 3), 0.0)])
+def test_a_filter_that_fails_on_the_test_frames_is_refused(
+    tiny, tmp_path, monkeypatch, shape, fill
+):
+    path, _, _ = tiny
+    cls = type(load_method(path).filter)
+    monkeypatch.setattr(cls, "filter", lambda self, S: np.full(shape, fill, np.float32))
+    expected = rf"fails on a test frame \(filtered scores of shape \({shape[0]}, 3\)\)"
+    with pytest.raises(ModelFileError, match=expected):
+        load_method(path)
