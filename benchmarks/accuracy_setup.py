@@ -59,6 +59,10 @@ MOTIONS = {
     "walk": "speed v = clip(1 + cumsum(N(0, 0.05)), 0.4, 1.6) per frame from "
     "numpy.random.default_rng(view_seed); frame k shows place floor(sum(v[:k+1]))",
     "stopgo": "1 place per frame, standing 30 frames after every 150 moving frames",
+    "uneven": "a speed drawn afresh every frame, uniform in 0-2 places (mean 1), from "
+    "numpy.random.default_rng(view_seed); frame k shows place floor(sum(v[:k+1]))",
+    "drops": "1 place per frame, each frame of the recording dropped with probability 0.2 "
+    "(numpy.random.default_rng(view_seed)): a step of 1 + Geometric(0.8) - 1 places",
     "stop100": "1 place per frame with one stop of 100 frames at place floor(0.3 n)",
     "reversed": "the places in decreasing order, 1 per frame",
 }
@@ -76,6 +80,14 @@ def motion_places(kind: str, n: int, seed: int = 0) -> np.ndarray:
         rng = np.random.default_rng(seed)
         v = np.clip(1.0 + np.cumsum(rng.normal(0.0, 0.05, 4 * n)), 0.4, 1.6)
         places = np.floor(np.cumsum(v)).astype(np.int64)
+        return places[places < n]
+    if kind in ("uneven", "drops"):
+        rng = np.random.default_rng(seed)
+        if kind == "uneven":
+            steps = rng.uniform(0.0, 2.0, 4 * n)
+        else:
+            steps = rng.geometric(0.8, 4 * n).astype(np.float64)
+        places = np.floor(np.cumsum(steps)).astype(np.int64)
         return places[places < n]
     if kind == "stopgo":
         out, place = [], 0
@@ -179,7 +191,7 @@ class View:
         out = {"kind": self.kind, "tolerances": list(self.tolerances), "group": self.group}
         if self.kind == "speed":
             out["speed"] = list(self.speed) if isinstance(self.speed, tuple) else self.speed
-        if self.kind in ("speed", "shuffle") or self.motion == "walk":
+        if self.kind in ("speed", "shuffle") or self.motion in ("walk", "uneven", "drops"):
             out["view_seed"] = self.view_seed
         if self.kind == "from":
             out["start"] = self.start
@@ -460,6 +472,9 @@ ROBOT_VIEWS: list[View] = [
         odometry_scale=0.8,
     ),  # fmt: skip
     _motion("r-stop100", "n64-0", "0-999, one 100-frame stop", "stop100"),
+    # uneven frames: a speed drawn afresh every frame, and a recording that drops frames
+    _motion("r-uneven", "n64-0", "0-999, uneven speed 0-2x per frame", "uneven"),
+    _motion("r-drops", "n64-0", "0-999 at 1x, 20% of frames dropped", "drops"),
     # the same motions through a camera with sensor noise: a stand is no longer a repeated frame
     _motion("r-0.6x-noisy", "n64-0", "0-999 at 0.6x, camera noise", "0.6x", camera_noise=1.0),
     _motion(

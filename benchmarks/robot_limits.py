@@ -24,6 +24,10 @@ of the robot views of ``benchmarks/accuracy.py``; ``kenyon+cann`` with its defau
   end's rank of the true place (places scoring strictly higher) over the 30 frames after it.
 * **Cold start at 1x** (``r-1x``): the first frame ``localized`` and right, the query's first
   same-image stretch, and the first frame whose true place the front end ranks first.
+* **Uneven frames** (``r-uneven``: a speed drawn afresh every frame, uniform in 0-2 places;
+  ``r-drops``: 1 place per frame with a fifth of the frames dropped; and steady views for
+  the cost): kenyon+cann's AUC with the CANN's ``jitter`` at each of ``JITTERS`` (0 is the
+  default), on the same front-end scores.
 * **Parked** (not a view of the accuracy benchmark): the query drives at 1 place per frame to
   place ``a``, stands there ``PARK_FRAMES`` frames (its one winter frame repeated, as a
   robot's camera sees a parked scene), then drives on ``PARK_AFTER`` frames.  ``PARK_PLACES``
@@ -56,6 +60,10 @@ SEEDS = (0, 1, 2)
 TOLERANCE = 2
 #: consecutive frames are the same image below this mean absolute gray difference
 SAME = 0.01
+#: the CANN's jitter values compared on uneven and steady frames (0: the default)
+JITTERS = (0.0, 0.15, 0.3)
+#: the views they are compared on: uneven frames first, then steady ones (what it costs)
+JITTER_VIEWS = ("r-uneven", "r-drops", "r-1x", "r-2.5x", "r-walk", "r-stopgo")
 #: frames after the rejoin that the detour's figures cover (the must-show's bound)
 AFTER = 30
 #: parked robot: stand lengths (frames), stop places, the seed that draws them, frames after
@@ -175,6 +183,27 @@ def _run(seed: int, view, ref, qry, ref_ids, qry_ids):
     return out, localized, S, gt, ref_ids[keep], qry_ids[idx]
 
 
+def _jitter_rows(seed: int, S: np.ndarray, qry_ids, ref_ids) -> list[dict]:
+    """kenyon+cann's AUC on each of JITTER_VIEWS with each of JITTERS, from the front end's
+    scores ``S`` of every query frame (a motion view's frames are query frames)."""
+    rows = []
+    for key in JITTER_VIEWS:
+        idx = _view(key).indices(len(S))
+        gt = ground_truth_from_frames(qry_ids[idx], ref_ids, TOLERANCE)
+        for jitter in JITTERS:
+            filt = make_method("kenyon+cann", seed, {}, {"jitter": jitter}).filter
+            out = filt.filter(S[idx])
+            rows.append(
+                {
+                    "seed": seed,
+                    "view": key,
+                    "jitter": jitter,
+                    "auc": metrics.evaluate(out, gt, ks=(1,))["auc"],
+                }
+            )
+    return rows
+
+
 def _true_rank(S: np.ndarray, truth: np.ndarray, map_ids: np.ndarray) -> np.ndarray:
     """Per frame, the number of map places scoring strictly higher than the true place (-1
     where the true place is not in the map)."""
@@ -197,7 +226,7 @@ def run(data: Path, progress: bool = True) -> dict:
     for first, last in map_stretches:
         in_stretch[first : last + 1] = True
 
-    stopgo, detour, cold, parked = [], [], [], []
+    stopgo, detour, cold, parked, uneven = [], [], [], [], []
     park_stops = stop_places(in_stretch, PARK_PLACES, PARK_SEED)
     for seed in SEEDS:
         if progress:
@@ -246,6 +275,7 @@ def run(data: Path, progress: bool = True) -> dict:
             }
         )
         parked += _parked(seed, ref, qry, park_stops)
+        uneven += _jitter_rows(seed, S, qry_ids, ref_ids)
     back = int(_view("r-detour").gap[1] * len(ref))
     return {
         "benchmark": "robot-limits",
@@ -273,6 +303,7 @@ def run(data: Path, progress: bool = True) -> dict:
         "cold_start": cold,
         "parked_stops": park_stops,
         "parked": parked,
+        "jitter": uneven,
     }
 
 
@@ -322,6 +353,30 @@ def _parked_table(data: dict) -> list[str]:
             f"{_share(r['right_front_wrong'])} / {_share(r['localized_front_wrong'])} | "
             f"{r['right_after']:.2f} |"
         )
+    return lines
+
+
+def _jitter_table(data: dict) -> list[str]:
+    """Mean AUC over the seeds per view (rows) and jitter (columns)."""
+    rows = data["jitter"]
+    jitters = sorted({r["jitter"] for r in rows})
+    views = list(dict.fromkeys(r["view"] for r in rows))
+    labels = {v.key: v.label for v in ROBOT_VIEWS}
+    lines = [
+        "",
+        "## Uneven frames: the CANN's jitter",
+        "",
+        "AUC, mean over the seeds, kenyon+cann with `jitter` at each value (0: the default).",
+        "",
+        "| view | " + " | ".join(f"jitter {j:g}" for j in jitters) + " |",
+        "|---|" + "---|" * len(jitters),
+    ]
+    for view in views:
+        cells = []
+        for j in jitters:
+            aucs = [r["auc"] for r in rows if r["view"] == view and r["jitter"] == j]
+            cells.append(f"{np.mean(aucs):.3f}")
+        lines.append(f"| {labels.get(view, view)} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -386,6 +441,8 @@ def render_markdown(data: dict) -> str:
         )
     if data.get("parked"):
         lines += _parked_table(data)
+    if data.get("jitter"):
+        lines += _jitter_table(data)
     lines.append("")
     if machine_sentence(data):
         lines.append(machine_sentence(data))

@@ -585,3 +585,39 @@ def test_shifts_by_hand(velocity, expected):
     f = CANN(velocities=(1.0,))
     f.step(np.zeros(5))
     assert [int(f._shifts(velocity)[0]) for _ in expected] == expected
+
+
+# -- jitter ----------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("row", "share", "expected"),
+    [
+        ([0, 0, 4, 0, 0], 0.5, [0, 1, 2, 1, 0]),  # a quarter of it each way
+        ([4, 0, 0, 0], 0.5, [2, 1, 0, 0]),  # what leaves at the route's start is lost
+        ([0, 0, 0, 4], 0.5, [0, 0, 1, 2]),  # and at its end
+        ([2, 4, 6], 0.0, [2, 4, 6]),  # no share: unchanged
+        ([8], 0.5, [4]),  # one place: half of it leaves
+        ([1, 3], 0.25, [1.125, 2.375]),  # two places: each is the other's neighbour
+    ],
+)
+def test_jitter_by_hand(kernels, row, share, expected):
+    p = np.array([row], np.float32)
+    out = np.full_like(p, np.nan)
+    kernels["jitter"](p, out, np.array([share]))
+    np.testing.assert_allclose(out[0], expected, rtol=1e-6)
+    np.testing.assert_array_equal(p, [row])  # only read
+
+
+def test_jitter_each_row_by_its_share(kernels):
+    rng = np.random.default_rng(4)
+    p = rng.random((3, 9)).astype(np.float32)
+    shares = np.array([0.0, 0.1, 2.0 / 3.0])
+    out = np.empty_like(p)
+    kernels["jitter"](p, out, shares)
+    padded = np.pad(p.astype(np.float64), ((0, 0), (1, 1)))
+    s = shares[:, None]
+    expected = (1 - s) * p + s / 2 * (padded[:, :-2] + padded[:, 2:])
+    np.testing.assert_allclose(out, expected, rtol=1e-6)
+    np.testing.assert_array_equal(out[0], p[0])
+    # inside the route the mass is kept; at the ends, half a share of the end places leaves
+    lost = shares / 2 * (p[:, 0] + p[:, -1])
+    np.testing.assert_allclose(out.sum(axis=1), p.sum(axis=1) - lost, rtol=1e-6)

@@ -181,6 +181,23 @@ def test_a_file_from_before_an_added_parameter_loads_with_its_default(tmp_path, 
         load_method(path)
 
 
+def test_a_file_from_before_jitter_loads_with_the_default_and_a_saved_one_is_kept(
+    tmp_path, data, monkeypatch
+):
+    from flyvpr.temporal.cann import CANN
+
+    model = make_method("flyhash+cann", 0).fit(data[0])
+    model.filter.set_params(jitter=0.2)
+    older = [n for n in CANN._param_names() if n != "jitter"]
+    with monkeypatch.context() as m:
+        m.setattr(CANN, "_param_names", classmethod(lambda cls: older))
+        path = save_method(model, tmp_path / "old.npz")
+    assert load_method(path).filter.jitter == CANN().jitter == 0.0
+    again = load_method(save_method(model, tmp_path / "new.npz"))
+    assert again.filter.jitter == 0.2
+    np.testing.assert_array_equal(again.score(data[1]), model.score(data[1]))
+
+
 @pytest.mark.parametrize("name, held", [("flyhash+cann", False), ("pixels+cann", True)])
 def test_a_file_from_before_hold_repeats_takes_the_front_ends_default(
     tmp_path, data, monkeypatch, name, held

@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.0, 0.083, 0.084, 0.085, 0.298, 0.611, 0.725, 0.846, 0.892, 0.984, 1.0)
+CALIBRATION = (0.0, 0.079, 0.08, 0.081, 0.345, 0.562, 0.687, 0.841, 0.86, 0.975, 1.0)
 #: how odometry moves the layer (see the class's ``odometry`` parameter)
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
@@ -168,6 +168,13 @@ class CANN(OdometryFilter):
         Probability per frame that the velocity moves to a neighbouring candidate.
     velocity_jump : float, default 0.02
         Probability per frame that the velocity is redrawn from the prior (stops, starts).
+    jitter : float, default 0.0
+        Uneven motion: probability per frame that a moving robot's frame lands one place
+        ahead of or behind where its velocity takes it (half each way).  For recordings whose
+        frames are not evenly spaced along the path (uneven frame timing, dropped frames); a
+        standing robot (velocity 0) does not jitter.  0: every row moves exactly by its
+        velocity (a steady robot; the default: see "Uneven frames" on the CANN page for what
+        0.3 gains on such recordings and costs on steady ones).
     evidence_gain : float, default 0.4
         Gain of the normalised scores in the evidence ``exp(evidence_gain * x)``: lower
         integrates over more frames.
@@ -302,9 +309,9 @@ class CANN(OdometryFilter):
 
     name = "cann"
 
-    #: maps and models saved before ``odometry`` or ``hold_repeats`` existed load with its
-    #: default
-    _added_params = ("odometry", "hold_repeats")
+    #: maps and models saved before ``odometry``, ``hold_repeats`` or ``jitter`` existed load
+    #: with its default
+    _added_params = ("odometry", "hold_repeats", "jitter")
 
     def __init__(
         self,
@@ -315,6 +322,7 @@ class CANN(OdometryFilter):
         speed_prior_width=0.25,
         velocity_change=0.02,
         velocity_jump=0.02,
+        jitter=0.0,
         evidence_gain=0.4,
         adaptation=50.0,
         adapt_variance=True,
@@ -340,6 +348,7 @@ class CANN(OdometryFilter):
         self.speed_prior_width = speed_prior_width
         self.velocity_change = velocity_change
         self.velocity_jump = velocity_jump
+        self.jitter = jitter
         self.evidence_gain = evidence_gain
         self.adaptation = adaptation
         self.adapt_variance = adapt_variance
@@ -366,6 +375,7 @@ class CANN(OdometryFilter):
             "reverse_weight": _probability(self.reverse_weight, "reverse_weight"),
             "velocity_change": _probability(self.velocity_change, "velocity_change"),
             "velocity_jump": _probability(self.velocity_jump, "velocity_jump"),
+            "jitter": _probability(self.jitter, "jitter"),
             "evidence_gain": check_real(self.evidence_gain, "evidence_gain"),
             "adaptation": None
             if self.adaptation is None
@@ -435,9 +445,11 @@ class CANN(OdometryFilter):
         ``neurons``: one unit per place and velocity, plus the global normaliser.  ``params``
         counts connections: each unit receives its shifted predecessor, its two velocity
         neighbours (one at the bank's ends), the redrawn-velocity input from its place and
-        the evidence input; every unit also feeds the normaliser and receives from it.
-        ``distinct_weights``: stay, neighbour, redraw (one per velocity) and the evidence
-        gain.  ``state_variables``: the units, each place's running mean and variance of its
+        the evidence input; every unit also feeds the normaliser and receives from it.  With
+        ``jitter``, each unit of a moving row also receives from its two neighbouring places
+        (one at the route's ends).  ``distinct_weights``: stay, neighbour, redraw (one per
+        velocity) and the evidence gain, and the jitter's two (kept, passed on).
+        ``state_variables``: the units, each place's running mean and variance of its
         input, the last frame's row, the last answer's row and whether the place has tied with
         the one before it in every frame (``hold_repeats``), and 7 running numbers.
         """
@@ -446,11 +458,12 @@ class CANN(OdometryFilter):
         n_v = p["velocities"].size
         units = n_v * n
         neighbours = 2 * (n_v - 1) * n
+        jittered = 0 if p["jitter"] == 0.0 else int(np.count_nonzero(p["velocities"]))
         return {
             "layers": 1,
-            "params": units + neighbours + units + units + 2 * units,
+            "params": units + neighbours + units + units + 2 * units + 2 * jittered * (n - 1),
             "neurons": units + 1,
-            "distinct_weights": 3 + n_v,
+            "distinct_weights": 3 + n_v + (2 if jittered else 0),
             "state_variables": units + 5 * n + 7,
         }
 
@@ -486,6 +499,8 @@ class CANN(OdometryFilter):
         self._p = np.repeat(prior[:, None] / np.float32(n), n, axis=1)
         self._spare = np.empty_like(self._p)
         self._redraw = p["redraw"]
+        # Each row's share that ends a frame a place off (see ``jitter``): the rows that move.
+        self._jitter = np.where(p["velocities"] != 0.0, p["jitter"], 0.0)
         self._marginal = np.empty(n, np.float32)  # the posterior over places
         self._predicted = np.empty(n, np.float32)  # the prior over places, before the evidence
         self._weight = np.empty(n, np.float32)  # the evidence exp(gain * (x - max x))
@@ -692,6 +707,13 @@ class CANN(OdometryFilter):
             else:  # exact odometry moves every row alike; the velocities stay as they are
                 change = jump = 0.0
             shifts = self._shifts(velocity)
+            if p["jitter"] > 0.0 and (
+                velocity is None or (p["odometry"] == "scaled" and velocity != 0.0)
+            ):
+                # Uneven motion of every moving row (exact odometry is the motion itself:
+                # none; odometry 0 says that the robot stands).
+                kernels["jitter"](self._p, self._spare, self._jitter)
+                self._p, self._spare = self._spare, self._p
         else:  # the first frame: the prior as it is, weighed by the evidence
             floor_rate = change = jump = 0.0
             shifts = np.zeros(p["velocities"].size, np.int64)

@@ -3,7 +3,8 @@
 The layer holds one unit per (velocity, place) pair; its activity ``P[j, i]`` is the
 probability that the robot is at place ``i`` moving ``velocities[j]`` places per frame
 (see "The place-velocity layer" on the user guide's CANN page).  :func:`advance` moves it
-by one frame and weighs it by the evidence; :func:`window_sums` finds the window of places
+by one frame and weighs it by the evidence, after :func:`jitter` has moved a share of every
+row one place ahead or behind (uneven motion); :func:`window_sums` finds the window of places
 that holds the most probability, :func:`exceedance` ranks the evidence at one place
 among all, :func:`likeness` correlates a frame's scores with the last frame's (the
 sequence test's novelty) and :func:`repeats` tells a repeated frame.  Each function is
@@ -184,6 +185,32 @@ def advance(p, out, shifts, stay, neighbour, jump, redraw, prior, floor_rate, we
     return z
 
 
+def jitter(p, out, shares):
+    """Row by row, ``out[j, i] = (1 - s) p[j, i] + s / 2 (p[j, i - 1] + p[j, i + 1])`` with
+    ``s = shares[j]`` (nothing beyond the route's ends: what would come from there is 0, and
+    what leaves is lost, as in the move).  The layer before the move: a share ``s`` of row
+    ``j`` ends the frame one place ahead of or behind where its velocity takes it, half each
+    way (moving then blurring is blurring then moving, away from the ends).  ``p`` is only
+    read."""
+    n_v, n = p.shape
+    for j in range(n_v):
+        src = p[j]
+        dst = out[j]
+        keep = np.float32(1.0 - shares[j])
+        side = np.float32(0.5 * shares[j])
+        if n == 1:
+            dst[0] = keep * src[0]
+            continue
+        dst[0] = keep * src[0] + side * src[1]
+        dst[n - 1] = keep * src[n - 1] + side * src[n - 2]
+        mid = dst[1 : n - 1]
+        left = src[: n - 2]
+        own = src[1 : n - 1]
+        right = src[2:]
+        for i in range(n - 2):
+            mid[i] = keep * own[i] + side * (left[i] + right[i])
+
+
 def likeness(row, last):
     """The correlation of the score ``row`` with the ``last`` one, in one pass; then ``row``
     is copied into ``last``.  0 where either row is constant.  The sums are float64 sums of
@@ -239,6 +266,7 @@ def repeats(row, last):
 
 PLAIN = {
     "advance": advance,
+    "jitter": jitter,
     "window_sums": window_sums,
     "exceedance": exceedance,
     "likeness": likeness,
