@@ -827,6 +827,7 @@ def test_reset_forgets_everything():
     assert math.isnan(f.velocity_) and f.confidence_ == 0.0 and f.support_ == 0.5
     assert f.front_probability_ == 0.0 and f.probability_ == 0.0
     assert f.state_ == "lost" and f.source_ == "sequence" and f.compiled_ is False
+    assert f.novelty_ == 1.0 and f.evidence_share_ == 1.0 and f.n_held_ == 0  # nothing seen
     f.step(np.zeros(11))  # a new route length after reset
     assert f.n_frames_ == 1
     np.testing.assert_array_equal(f.filter(S), first)  # filter starts afresh

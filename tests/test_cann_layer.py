@@ -518,6 +518,50 @@ def test_likeness_against_numpy(kernels):
     assert kernels["likeness"](np.ones(50, np.float32), last) == 0.0  # a constant row
 
 
+@pytest.mark.parametrize("offset, scale", [(1e8, 1.0), (0.0, 1e-3), (-3.0, 10.0)])
+def test_likeness_of_large_close_or_small_scores(kernels, offset, scale):
+    # scores of 1e8 +- 1 (no cancellation of the sums: each row less its first value), and
+    # rows whose variances are far below 1 (still correlated, not "constant")
+    rng = np.random.default_rng(8)
+    base = rng.normal(size=60)
+    row = offset + scale * (base + 0.5 * rng.normal(size=60))
+    last = offset + scale * base
+    expected = np.corrcoef(row - offset, last - offset)[0, 1]
+    assert 0.5 < expected < 0.99
+    assert kernels["likeness"](row, last.copy()) == pytest.approx(expected, abs=1e-9)
+
+
+def ref_variation(row, lo, hi):
+    diffs = np.abs(np.diff(np.asarray(row, np.float64)))
+    whole = diffs.mean() if diffs.size else 0.0
+    near = diffs[lo:hi].mean() if hi > lo else 0.0
+    return whole, near
+
+
+@pytest.mark.parametrize(
+    ("row", "lo", "hi", "expected"),
+    [
+        ([0, 1, 3, 6], 1, 3, (2.0, 2.5)),  # |3 - 1| and |6 - 3| near; 1, 2, 3 over the row
+        ([0, 1, 3, 6], 0, 1, (2.0, 1.0)),
+        ([5, 1, 1, 4], 1, 2, (7 / 3, 0.0)),  # absolute differences; a flat pair
+        ([2, 2], 0, 0, (0.0, 0.0)),  # no pair near
+        ([7], 0, 0, (0.0, 0.0)),  # no pair at all
+    ],
+)
+def test_variation_by_hand(kernels, row, lo, hi, expected):
+    whole, near = kernels["variation"](np.array(row, np.float32), lo, hi)
+    assert (whole, near) == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize(("lo", "hi"), [(0, 29), (3, 9), (10, 11), (28, 29), (5, 5)])
+def test_variation_against_reference(kernels, lo, hi):
+    row = np.random.default_rng(6).normal(size=30)
+    whole, near = kernels["variation"](row, lo, hi)
+    expected = ref_variation(row, lo, hi)
+    assert whole == pytest.approx(expected[0], rel=1e-12)
+    assert near == pytest.approx(expected[1], rel=1e-12)
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_repeats_is_exact(kernels, dtype):
     last = np.linspace(0.0, 1.0, 30)

@@ -174,7 +174,7 @@ class CANN(OdometryFilter):
         frames are not evenly spaced along the path (uneven frame timing, dropped frames); a
         standing robot (velocity 0) does not jitter.  0: every row moves exactly by its
         velocity (a steady robot; the default: see "Uneven frames" on the CANN page for what
-        0.3 gains on such recordings and costs on steady ones).
+        0.15 and 0.3 gain on such recordings and cost on steady ones).
     evidence_gain : float, default 0.4
         Gain of the normalised scores in the evidence ``exp(evidence_gain * x)``: lower
         integrates over more frames.
