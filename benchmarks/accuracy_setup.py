@@ -62,7 +62,8 @@ MOTIONS = {
     "uneven": "a speed drawn afresh every frame, uniform in 0-2 places (mean 1), from "
     "numpy.random.default_rng(view_seed); frame k shows place floor(sum(v[:k+1]))",
     "drops": "1 place per frame, each frame of the recording dropped with probability 0.2 "
-    "(numpy.random.default_rng(view_seed)): a step of 1 + Geometric(0.8) - 1 places",
+    "(numpy.random.default_rng(view_seed)): steps of Geometric(0.8) places (1, or 2 after a "
+    "dropped frame, 3 after two)",
     "stop100": "1 place per frame with one stop of 100 frames at place floor(0.3 n)",
     "reversed": "the places in decreasing order, 1 per frame",
 }

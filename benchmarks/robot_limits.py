@@ -275,6 +275,8 @@ def run(data: Path, progress: bool = True) -> dict:
             }
         )
         parked += _parked(seed, ref, qry, park_stops)
+        # (the 1x view's scores: every query frame, in order, against the whole map)
+        assert S.shape == (len(qry), len(ref))
         uneven += _jitter_rows(seed, S, qry_ids, ref_ids)
     back = int(_view("r-detour").gap[1] * len(ref))
     return {

@@ -362,6 +362,17 @@ def test_motion_profiles_give_the_true_place_of_every_frame():
     steps = np.diff(walk)
     assert walk[0] >= 0 and walk[-1] < 500 and steps.min() >= 0 and steps.max() <= 2
     np.testing.assert_array_equal(walk, motion_places("walk", 500, seed=3))
+    uneven = motion_places("uneven", 2000, seed=4)  # a speed of 0-2 drawn every frame
+    steps = np.diff(uneven)
+    assert uneven[0] in (0, 1) and uneven[-1] < 2000 and steps.min() >= 0 and steps.max() <= 2
+    assert uneven.size > 1900 and abs(steps.mean() - 1.0) < 0.05 and (steps == 0).mean() > 0.1
+    np.testing.assert_array_equal(uneven, motion_places("uneven", 2000, seed=4))
+    assert not np.array_equal(uneven[:100], motion_places("uneven", 2000, seed=5)[:100])
+    drops = motion_places("drops", 2000, seed=4)  # 1 place per frame, a fifth of them dropped
+    steps = np.diff(drops)
+    assert drops[0] >= 1 and steps.min() >= 1 and (steps > 1).mean() == pytest.approx(0.2, abs=0.03)
+    assert abs(steps.mean() - 1.25) < 0.05
     assert set(MOTIONS) >= {"0.6x", "0.8x", "2.5x", "3.25x", "walk", "stopgo", "reversed"}
+    assert {"uneven", "drops"} <= set(MOTIONS)
     with pytest.raises(ValueError, match="unknown motion profile"):
         motion_places("9x", 10)

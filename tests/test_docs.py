@@ -290,6 +290,6 @@ def test_the_localized_threshold_the_docs_state_is_the_tables():
     ]
     for path in sources:
         text = " ".join(path.read_text(encoding="utf-8").split())
-        claims = re.findall(r"confidence (?:of )?(\d\.\d\d) or more", text)
+        claims = re.findall(r"confidence (?:of )?(\d\.\d\d\d?) or more", text)
         assert claims, f"{path.name} no longer states the localized threshold"
-        assert set(claims) == {f"{level:.2f}"}, (path.name, claims, level)
+        assert set(claims) == {f"{level:.3f}"}, (path.name, claims, level)

@@ -105,3 +105,27 @@ def test_parked_summary_pools_the_seeds_by_their_stops():
         )
     )
     assert "| 100 | 0 / - / - | 4 / 0.50 / 0.25 | 0.50 |" in table
+
+
+def test_jitter_table_is_the_mean_over_seeds_per_view_and_value():
+    rows = [
+        {"seed": s, "view": v, "jitter": j, "auc": a}
+        for s, v, j, a in [
+            (0, "r-drops", 0.0, 0.6),
+            (1, "r-drops", 0.0, 0.8),
+            (0, "r-drops", 0.3, 0.9),
+            (1, "r-drops", 0.3, 0.8),
+            (0, "r-1x", 0.0, 0.97),
+            (1, "r-1x", 0.0, 0.95),
+            (0, "r-1x", 0.3, 0.96),
+            (1, "r-1x", 0.3, 0.90),
+        ]
+    ]
+    lines = robot_limits._jitter_table({"jitter": rows})
+    assert "| view | jitter 0 | jitter 0.3 |" in lines
+    assert "| 0-999 at 1x, 20% of frames dropped | 0.700 | 0.850 |" in lines
+    assert "| 0-999 at 1x | 0.960 | 0.930 |" in lines
+    # the views in the order they came, uneven ones first
+    assert lines.index("| 0-999 at 1x, 20% of frames dropped | 0.700 | 0.850 |") < lines.index(
+        "| 0-999 at 1x | 0.960 | 0.930 |"
+    )

@@ -169,12 +169,14 @@ class CANN(OdometryFilter):
     velocity_jump : float, default 0.02
         Probability per frame that the velocity is redrawn from the prior (stops, starts).
     jitter : float, default 0.0
-        Uneven motion: probability per frame that a moving robot's frame lands one place
-        ahead of or behind where its velocity takes it (half each way).  For recordings whose
-        frames are not evenly spaced along the path (uneven frame timing, dropped frames); a
-        standing robot (velocity 0) does not jitter.  0: every row moves exactly by its
-        velocity (a steady robot; the default: see "Uneven frames" on the CANN page for what
-        0.15 and 0.3 gain on such recordings and cost on steady ones).
+        Uneven motion: probability per frame that a robot moving a place or more per frame
+        lands one place ahead of or behind where its velocity takes it (half each way; a
+        slower row in proportion to its speed, so a standing robot does not jitter).  For
+        recordings that drop frames.  With scaled odometry the distance the odometry reports
+        sets the speed; exact odometry is the motion itself and turns it off.  What would go
+        past the route's ends is lost, as in the move.  0: every row moves exactly by its
+        velocity (the default: see "Uneven frames" on the CANN page for what 0.15 and 0.3
+        gain on such recordings and cost on steady ones).
     evidence_gain : float, default 0.4
         Gain of the normalised scores in the evidence ``exp(evidence_gain * x)``: lower
         integrates over more frames.
@@ -499,8 +501,9 @@ class CANN(OdometryFilter):
         self._p = np.repeat(prior[:, None] / np.float32(n), n, axis=1)
         self._spare = np.empty_like(self._p)
         self._redraw = p["redraw"]
-        # Each row's share that ends a frame a place off (see ``jitter``): the rows that move.
-        self._jitter = np.where(p["velocities"] != 0.0, p["jitter"], 0.0)
+        # Each row's share that ends a frame a place off (see ``jitter``): in proportion to its
+        # speed up to a place per frame, the whole share from there.
+        self._jitter = p["jitter"] * np.minimum(np.abs(p["velocities"]), 1.0)
         self._marginal = np.empty(n, np.float32)  # the posterior over places
         self._predicted = np.empty(n, np.float32)  # the prior over places, before the evidence
         self._weight = np.empty(n, np.float32)  # the evidence exp(gain * (x - max x))
@@ -712,7 +715,12 @@ class CANN(OdometryFilter):
             ):
                 # Uneven motion of every moving row (exact odometry is the motion itself:
                 # none; odometry 0 says that the robot stands).
-                kernels["jitter"](self._p, self._spare, self._jitter)
+                if velocity is None:
+                    shares = self._jitter
+                else:  # each row moves the odometry times its scale
+                    speed = np.minimum(abs(velocity) * np.abs(p["velocities"]), 1.0)
+                    shares = p["jitter"] * speed
+                kernels["jitter"](self._p, self._spare, shares)
                 self._p, self._spare = self._spare, self._p
         else:  # the first frame: the prior as it is, weighed by the evidence
             floor_rate = change = jump = 0.0
