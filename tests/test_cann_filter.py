@@ -836,6 +836,19 @@ def test_reset_forgets_everything():
     np.testing.assert_array_equal(f.filter(S), first)  # filter starts afresh
 
 
+def test_a_blank_first_frame_is_filtered_not_held():
+    # the first frame has no last frame to repeat, even where it equals the empty last row
+    f = CANN()
+    out = f.step(np.zeros(20))
+    assert f.n_held_ == 0 and f.n_frames_ == 1
+    np.testing.assert_array_equal(out, CANN(hold_repeats=False).filter(np.zeros((1, 20)))[0])
+    row = np.r_[1.0, np.zeros(19)]
+    g = CANN()
+    g.step(row)
+    g.step(row)  # a second frame that repeats the first is held
+    assert g.n_held_ == 1 and g.n_frames_ == 1
+
+
 def test_first_call_without_reset():
     S = bump_rows(4 + np.arange(5.0), 20)
     f = CANN()
