@@ -1989,6 +1989,9 @@ def test_footprint_by_hand():
     assert jittery["params"] == 30 + 40 + 30 + 30 + 60 + 2 * 2 * 9
     assert jittery["distinct_weights"] == 8
     assert CANN(velocities=(0.0,), jitter=0.03).footprint(10)["distinct_weights"] == 4  # none moves
+    # the default bank: shares for 1/8, ..., 7/8 (the backward 0.5 shares 0.5's) and for the
+    # rows of a place or more per frame
+    assert CANN(jitter=0.1).footprint(10)["distinct_weights"] == 30 + 2 * 8
     # bidirectional: 0 is not doubled, so (0, 1) gives -1, 0, 1
     assert CANN(velocities=(0.0, 1.0), bidirectional=True).footprint(10) == CANN(
         velocities=(-1.0, 0.0, 1.0)

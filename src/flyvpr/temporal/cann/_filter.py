@@ -450,7 +450,8 @@ class CANN(OdometryFilter):
         the evidence input; every unit also feeds the normaliser and receives from it.  With
         ``jitter``, each unit of a moving row also receives from its two neighbouring places
         (one at the route's ends).  ``distinct_weights``: stay, neighbour, redraw (one per
-        velocity) and the evidence gain, and the jitter's two (kept, passed on).
+        velocity) and the evidence gain, and the jitter's two (kept, passed on) for each
+        share it takes (one per speed below a place per frame, one for the rest).
         ``state_variables``: the units, each place's running mean and variance of its
         input, the last frame's row, the last answer's row and whether the place has tied with
         the one before it in every frame (``hold_repeats``), and 7 running numbers.
@@ -460,12 +461,14 @@ class CANN(OdometryFilter):
         n_v = p["velocities"].size
         units = n_v * n
         neighbours = 2 * (n_v - 1) * n
-        jittered = 0 if p["jitter"] == 0.0 else int(np.count_nonzero(p["velocities"]))
+        speeds = np.minimum(np.abs(p["velocities"]), 1.0)  # a row's jitter share, over jitter
+        jittered = 0 if p["jitter"] == 0.0 else int(np.count_nonzero(speeds))
+        shares = 0 if p["jitter"] == 0.0 else np.unique(speeds[speeds > 0]).size
         return {
             "layers": 1,
             "params": units + neighbours + units + units + 2 * units + 2 * jittered * (n - 1),
             "neurons": units + 1,
-            "distinct_weights": 3 + n_v + (2 if jittered else 0),
+            "distinct_weights": 3 + n_v + 2 * shares,
             "state_variables": units + 5 * n + 7,
         }
 
