@@ -70,6 +70,13 @@ def _split(weights: np.ndarray, backward: np.ndarray, share: float) -> np.ndarra
     return out / out.sum()
 
 
+def _jitter_shares(jitter: float, speeds: np.ndarray) -> np.ndarray:
+    """Each row's share that ends a frame a place off (see ``jitter``), for rows moving
+    ``speeds`` places per frame: in proportion to the speed up to a place per frame, the whole
+    share from there (a standing row: none)."""
+    return jitter * np.minimum(np.abs(speeds), 1.0)
+
+
 def _sigmoid(x: float) -> float:
     if x >= 0:
         return 1.0 / (1.0 + math.exp(-x))
@@ -461,9 +468,9 @@ class CANN(OdometryFilter):
         n_v = p["velocities"].size
         units = n_v * n
         neighbours = 2 * (n_v - 1) * n
-        speeds = np.minimum(np.abs(p["velocities"]), 1.0)  # a row's jitter share, over jitter
-        jittered = 0 if p["jitter"] == 0.0 else int(np.count_nonzero(speeds))
-        shares = 0 if p["jitter"] == 0.0 else np.unique(speeds[speeds > 0]).size
+        share = _jitter_shares(p["jitter"], p["velocities"])
+        jittered = int(np.count_nonzero(share))
+        shares = np.unique(share[share > 0]).size
         return {
             "layers": 1,
             "params": units + neighbours + units + units + 2 * units + 2 * jittered * (n - 1),
@@ -504,9 +511,7 @@ class CANN(OdometryFilter):
         self._p = np.repeat(prior[:, None] / np.float32(n), n, axis=1)
         self._spare = np.empty_like(self._p)
         self._redraw = p["redraw"]
-        # Each row's share that ends a frame a place off (see ``jitter``): in proportion to its
-        # speed up to a place per frame, the whole share from there.
-        self._jitter = p["jitter"] * np.minimum(np.abs(p["velocities"]), 1.0)
+        self._jitter = _jitter_shares(p["jitter"], p["velocities"])
         self._marginal = np.empty(n, np.float32)  # the posterior over places
         self._predicted = np.empty(n, np.float32)  # the prior over places, before the evidence
         self._weight = np.empty(n, np.float32)  # the evidence exp(gain * (x - max x))
@@ -721,8 +726,7 @@ class CANN(OdometryFilter):
                 if velocity is None:
                     shares = self._jitter
                 else:  # each row moves the odometry times its scale
-                    speed = np.minimum(abs(velocity) * np.abs(p["velocities"]), 1.0)
-                    shares = p["jitter"] * speed
+                    shares = _jitter_shares(p["jitter"], velocity * p["velocities"])
                 kernels["jitter"](self._p, self._spare, shares)
                 self._p, self._spare = self._spare, self._p
         else:  # the first frame: the prior as it is, weighed by the evidence
