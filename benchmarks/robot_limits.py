@@ -28,6 +28,15 @@ of the robot views of ``benchmarks/accuracy.py``; ``kenyon+cann`` with its defau
   ``r-drops``: 1 place per frame with a fifth of the frames dropped; and steady views for
   the cost): kenyon+cann's AUC with the CANN's ``jitter`` at each of ``JITTERS`` (0 is the
   default), on the same front-end scores.
+* **Sequence matchers on the same scores**: how many frames each needs before its answers
+  are right, on the cold start at 1x (``r-1x``, from the first frame), the same through the
+  fisheye disc (``r-fisheye``) and the detour (``r-detour``, from the rejoin).  A matcher is
+  *right from* frame ``t`` when its answers at ``t`` and the ``RUN - 1`` frames after it are
+  all within the tolerance; the figure is ``t`` minus the first frame.  On the front end's
+  scores of each seed: kenyon+cann (its defaults), kenyon+cann given the true motion as
+  exact odometry (1 place per frame), and causal SeqSLAM-60 (``SEQ_LENGTH``) told the speed
+  exactly (1 place per frame: a matcher that knows what the CANN must find out), with
+  OpenSeqSLAM's 0.8-1.2 and with the robot speeds 0.25-3 of the accuracy benchmark.
 * **Parked** (not a view of the accuracy benchmark): the query drives at 1 place per frame to
   place ``a``, stands there ``PARK_FRAMES`` frames (its one winter frame repeated, as a
   robot's camera sees a parked scene), then drives on ``PARK_AFTER`` frames.  ``PARK_PLACES``
@@ -50,10 +59,16 @@ if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``ben
 
 from benchmarks._common import machine, machine_sentence, run_page_benchmark  # noqa: E402
 from benchmarks.accuracy_run import gap_keep, load_dataset  # noqa: E402
-from benchmarks.accuracy_setup import DATASETS, ROBOT_VIEWS  # noqa: E402
+from benchmarks.accuracy_setup import (  # noqa: E402
+    DATASETS,
+    ROBOT_SPEEDS,
+    ROBOT_VIEWS,
+    fisheye,
+)
 from flyvpr import metrics  # noqa: E402
 from flyvpr.datasets import ground_truth_from_frames  # noqa: E402
 from flyvpr.methods import make_method  # noqa: E402
+from flyvpr.temporal.seqslam import SeqSLAM  # noqa: E402
 
 DATASET = "n64-0"
 SEEDS = (0, 1, 2)
@@ -66,6 +81,17 @@ JITTERS = (0.0, 0.15, 0.3)
 JITTER_VIEWS = ("r-uneven", "r-drops", "r-1x", "r-2.5x", "r-walk", "r-stopgo")
 #: frames after the rejoin that the detour's figures cover (the must-show's bound)
 AFTER = 30
+#: a matcher is right from a frame when that frame and the RUN - 1 after it are all right
+RUN = 10
+#: SeqSLAM's sequence length in the matcher comparison (the accuracy benchmark's best)
+SEQ_LENGTH = 60
+#: the SeqSLAM speed ranges compared (places per frame): the true speed, OpenSeqSLAM's range
+#: and the accuracy benchmark's robot range
+SEQ_SPEEDS = {
+    "exact speed (1)": {"v_min": 1.0, "v_max": 1.0, "v_step": 0.125},
+    "0.8-1.2": {"v_min": 0.8, "v_max": 1.2, "v_step": 0.1},
+    "0.25-3": ROBOT_SPEEDS,
+}
 #: parked robot: stand lengths (frames), stop places, the seed that draws them, frames after
 PARK_FRAMES = (30, 100, 300, 1000)
 PARK_PLACES = 12
@@ -204,6 +230,37 @@ def _jitter_rows(seed: int, S: np.ndarray, qry_ids, ref_ids) -> list[dict]:
     return rows
 
 
+def right_from(right: np.ndarray, start: int = 0, run: int = RUN) -> int | None:
+    """Frames from ``start`` to the first frame ``t >= start`` whose answer and the ``run - 1``
+    answers after it are all right (``right``: bool per frame); None if there is none."""
+    if run < 1:
+        raise ValueError(f"run must be >= 1; got {run}")
+    ok = np.asarray(right, bool)[start:]
+    if ok.size < run:
+        return None
+    window = np.convolve(ok.astype(np.int64), np.ones(run, np.int64), mode="valid")
+    hits = np.flatnonzero(window == run)
+    return int(hits[0]) if hits.size else None
+
+
+def _matchers(seed: int, key: str, start: int, S: np.ndarray, gt: np.ndarray, out) -> dict:
+    """Frames until each matcher of the comparison is right (see ``right_from``), on the
+    front end's scores ``S`` of one view (``out``: kenyon+cann's rows on them)."""
+    frames = np.arange(len(S))
+
+    def from_rows(rows) -> int | None:
+        return right_from(gt[frames, np.asarray(rows).argmax(axis=1)], start)
+
+    row = {"seed": seed, "view": key, "start": start, "kenyon+cann": from_rows(out)}
+    odo = make_method("kenyon+cann", seed, {}, {"odometry": "exact"}).filter
+    odo.reset()
+    row["kenyon+cann, exact odometry"] = from_rows([odo.step(s, velocity=1.0) for s in S])
+    for label, speeds in SEQ_SPEEDS.items():
+        seq = SeqSLAM(sequence_length=SEQ_LENGTH, **speeds)
+        row[f"SeqSLAM-{SEQ_LENGTH}, {label}"] = from_rows(seq.filter(S.astype(np.float64)))
+    return row
+
+
 def _true_rank(S: np.ndarray, truth: np.ndarray, map_ids: np.ndarray) -> np.ndarray:
     """Per frame, the number of map places scoring strictly higher than the true place (-1
     where the true place is not in the map)."""
@@ -226,7 +283,8 @@ def run(data: Path, progress: bool = True) -> dict:
     for first, last in map_stretches:
         in_stretch[first : last + 1] = True
 
-    stopgo, detour, cold, parked, uneven = [], [], [], [], []
+    stopgo, detour, cold, parked, uneven, matchers = [], [], [], [], [], []
+    fish_ref, fish_qry = fisheye(ref), fisheye(qry)
     park_stops = stop_places(in_stretch, PARK_PLACES, PARK_SEED)
     for seed in SEEDS:
         if progress:
@@ -251,6 +309,7 @@ def run(data: Path, progress: bool = True) -> dict:
         right = gt[np.arange(len(out)), out.argmax(axis=1)]
         hit = np.flatnonzero(localized[back:] & right[back:])
         rank = _true_rank(S[back : back + AFTER], truth[back : back + AFTER], map_ids)
+        matchers.append(_matchers(seed, "r-detour", back, S, gt, out))
         detour.append(
             {
                 "seed": seed,
@@ -266,6 +325,7 @@ def run(data: Path, progress: bool = True) -> dict:
         right = gt[np.arange(len(out)), out.argmax(axis=1)]
         hit = np.flatnonzero(localized & right)
         rank = _true_rank(S, truth, map_ids)
+        matchers.append(_matchers(seed, "r-1x", 0, S, gt, out))
         cold.append(
             {
                 "seed": seed,
@@ -274,6 +334,9 @@ def run(data: Path, progress: bool = True) -> dict:
                 "right_share": float(right.mean()),
             }
         )
+        # the same cold start through the fisheye disc
+        fish_run = _run(seed, _view("r-fisheye"), fish_ref, fish_qry, ref_ids, qry_ids)
+        matchers.append(_matchers(seed, "r-fisheye", 0, fish_run[2], fish_run[3], fish_run[0]))
         parked += _parked(seed, ref, qry, park_stops)
         # (the 1x view's scores: every query frame, in order, against the whole map)
         assert S.shape == (len(qry), len(ref))
@@ -287,7 +350,9 @@ def run(data: Path, progress: bool = True) -> dict:
             "seeds": list(SEEDS),
             "tolerance": TOLERANCE,
             "same_image": f"consecutive frames with a mean absolute gray difference below {SAME}",
-            "views": ["r-stopgo", "r-detour", "r-1x"],
+            "views": ["r-stopgo", "r-detour", "r-1x", "r-fisheye"],
+            "matchers": f"right from a frame: it and the {RUN - 1} frames after it right; "
+            f"SeqSLAM-{SEQ_LENGTH} causal, on kenyon's scores of the seed",
             "detour_after": f"the {AFTER} frames after the rejoin (frame {back})",
             "parked": f"1 place per frame to a stop, stand, then {PARK_AFTER} frames on; "
             f"{PARK_PLACES} stops drawn with seed {PARK_SEED} from places 200-799 at least 4 "
@@ -306,6 +371,7 @@ def run(data: Path, progress: bool = True) -> dict:
         "parked_stops": park_stops,
         "parked": parked,
         "jitter": uneven,
+        "matchers": matchers,
     }
 
 
@@ -382,6 +448,39 @@ def _jitter_table(data: dict) -> list[str]:
     return lines
 
 
+_MATCHER_VIEWS = {
+    "r-1x": "cold start at 1x",
+    "r-fisheye": "cold start at 1x, fisheye disc",
+    "r-detour": "detour, from the rejoin",
+}
+
+
+def _matcher_table(data: dict) -> list[str]:
+    """Per view and matcher, the frames until it is right, per seed."""
+    rows = data["matchers"]
+    seeds = sorted({r["seed"] for r in rows})
+    names = [k for k in rows[0] if k not in ("seed", "view", "start")]
+    lines = [
+        "",
+        "## Sequence matchers on the same scores",
+        "",
+        f"Frames from the first frame (the rejoin, for the detour) until the answers are right "
+        f"({data['protocol']['matchers']}), per seed.  Every matcher reads the same front-end "
+        "scores; the rows given the exact speed know what the CANN must find out.",
+        "",
+        "| view | matcher | " + " | ".join(f"seed {s}" for s in seeds) + " |",
+        "|---|---|" + "---|" * len(seeds),
+    ]
+    for key, label in _MATCHER_VIEWS.items():
+        mine = {r["seed"]: r for r in rows if r["view"] == key}
+        if not mine:
+            continue
+        for name in names:
+            cells = ["never" if mine[s][name] is None else str(mine[s][name]) for s in seeds]
+            lines.append(f"| {label} | {name} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def render_markdown(data: dict) -> str:
     """The protocol, the stretches and the three tables (headings from level 2)."""
     p = data["protocol"]
@@ -441,6 +540,8 @@ def render_markdown(data: dict) -> str:
             f"| {r['seed']} | {r['first_localized_right']} | {r['first_front_top1']} | "
             f"{r['right_share']:.3f} |"
         )
+    if data.get("matchers"):
+        lines += _matcher_table(data)
     if data.get("parked"):
         lines += _parked_table(data)
     if data.get("jitter"):

@@ -129,3 +129,68 @@ def test_jitter_table_is_the_mean_over_seeds_per_view_and_value():
     assert lines.index("| 0-999 at 1x, 20% of frames dropped | 0.700 | 0.850 |") < lines.index(
         "| 0-999 at 1x | 0.960 | 0.930 |"
     )
+
+
+@pytest.mark.parametrize(
+    "pattern, start, run, expected",
+    [
+        ("0011111", 0, 3, 2),  # right from frame 2 on
+        ("0110111", 0, 3, 4),  # a run of 2 is not enough
+        ("0110111", 0, 2, 1),
+        ("1111000", 0, 3, 0),  # right at once
+        ("1111011", 2, 2, 0),  # counted from start
+        ("1111011", 3, 2, 2),
+        ("0101010", 0, 2, None),  # never
+        ("11", 0, 3, None),  # fewer frames than the run
+        ("0", 0, 1, None),
+        ("01", 0, 1, 1),
+    ],
+)
+def test_right_from_is_the_first_run_of_right_answers(pattern, start, run, expected):
+    right = np.array([c == "1" for c in pattern])
+    assert robot_limits.right_from(right, start, run) == expected
+
+
+def test_right_from_needs_a_run_of_at_least_one():
+    with pytest.raises(ValueError, match="run must be >= 1; got 0"):
+        robot_limits.right_from(np.ones(4, bool), 0, 0)
+
+
+def test_matchers_on_a_diagonal_find_it_and_count_from_the_start():
+    # scores with a clear diagonal from frame 5 on (noise before): every matcher is right
+    # within a few frames of it; counted from frame 20, all are right at once
+    rng = np.random.default_rng(0)
+    n = 120
+    S = rng.normal(0.0, 1.0, (n, n)).astype(np.float32)
+    S[np.arange(5, n), np.arange(5, n)] += 6.0
+    gt = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :]) <= 2
+    out = np.zeros((n, n), np.float32)
+    out[np.arange(n), np.arange(n)] = 1.0  # a perfect kenyon+cann: right from frame 0
+    row = robot_limits._matchers(0, "r-1x", 0, S, gt, out)
+    assert row["kenyon+cann"] == 0
+    names = [k for k in row if k.startswith("SeqSLAM")]
+    assert len(names) == len(robot_limits.SEQ_SPEEDS)
+    for name in names + ["kenyon+cann, exact odometry"]:
+        assert row[name] is not None and 5 <= row[name] <= 20, (name, row[name])
+    later = robot_limits._matchers(0, "r-1x", 20, S, gt, out)
+    assert all(later[k] == 0 for k in names + ["kenyon+cann", "kenyon+cann, exact odometry"])
+    wrong = np.roll(out, 10, axis=1)  # answers 10 places off: never right
+    assert robot_limits._matchers(0, "r-1x", 0, S, gt, wrong)["kenyon+cann"] is None
+
+
+def test_matcher_table_lists_every_view_and_matcher_per_seed():
+    rows = [
+        {"seed": s, "view": v, "start": 0, "kenyon+cann": a, "SeqSLAM-60, 0.8-1.2": b}
+        for s, v, a, b in [
+            (0, "r-1x", 33, 26),
+            (1, "r-1x", 29, None),
+            (0, "r-detour", 44, 39),
+            (1, "r-detour", 43, 32),
+        ]
+    ]
+    lines = robot_limits._matcher_table({"matchers": rows, "protocol": {"matchers": "m"}})
+    assert "| view | matcher | seed 0 | seed 1 |" in lines
+    assert "| cold start at 1x | kenyon+cann | 33 | 29 |" in lines
+    assert "| cold start at 1x | SeqSLAM-60, 0.8-1.2 | 26 | never |" in lines
+    assert "| detour, from the rejoin | SeqSLAM-60, 0.8-1.2 | 39 | 32 |" in lines
+    assert not any("fisheye" in line for line in lines)  # no rows: no view
