@@ -131,7 +131,9 @@ def run_task(task: Task) -> dict:
                     frames = view_model.frontend.score(view.frames(qry, idx))
                 velocity = None
                 if view.odometry:
-                    velocity = np.diff(qry_ids[idx], prepend=qry_ids[idx][0]).astype(np.float64)
+                    # places moved, unsigned: a distance, as flyvpr localize passes it
+                    velocity = np.abs(np.diff(qry_ids[idx], prepend=qry_ids[idx][0]))
+                    velocity = velocity.astype(np.float64)
                     velocity *= view.odometry_scale
                 t0 = time.perf_counter()
                 filt = view_model.filter

@@ -158,7 +158,7 @@ class View:
     note: str = ""
     #: kind "motion": the profile's name (see :func:`motion_places`)
     motion: str = ""
-    #: pass the true places moved per frame to filters that take odometry
+    #: pass the true places moved per frame (unsigned: a distance) to filters that take odometry
     odometry: bool = False
     #: ... times this (odometry off by a map spacing or a wheel calibration: 1.2 reads 20% long)
     odometry_scale: float = 1.0
@@ -199,10 +199,10 @@ class View:
         if self.kind == "motion":
             out["motion"] = MOTIONS[self.motion]
         if self.odometry:
-            out["odometry"] = "true places moved per frame, given to filters that take it"
+            out["odometry"] = "true places moved per frame (unsigned), to filters that take it"
             if self.odometry_scale != 1.0:
                 out["odometry"] = (
-                    f"true places moved per frame times {self.odometry_scale:g} (odometry off "
+                    f"true places moved per frame (unsigned) times {self.odometry_scale:g} (off "
                     "by that factor), given to filters that take it"
                 )
         if self.camera_noise:
@@ -450,6 +450,7 @@ def _motion(key, dataset, label, motion, odometry=False, odometry_scale=1.0, **k
 ROBOT_VIEWS: list[View] = [
     View("r-1x", "n64-0", "0-999 at 1x", "robot", _ROBOT),
     _motion("r-0.8x", "n64-0", "0-999 at 0.8x", "0.8x"),
+    _motion("r-0.8x-odo", "n64-0", "0-999 at 0.8x, odometry", "0.8x", odometry=True),
     _motion("r-0.6x", "n64-0", "0-999 at 0.6x", "0.6x"),
     _motion("r-0.6x-odo", "n64-0", "0-999 at 0.6x, odometry", "0.6x", odometry=True),
     _motion("r-walk", "n64-0", "0-999, random 0.4-1.6x", "walk"),
@@ -476,6 +477,20 @@ ROBOT_VIEWS: list[View] = [
     # uneven frames: a speed drawn afresh every frame, and a recording that drops frames
     _motion("r-uneven", "n64-0", "0-999, uneven speed 0-2x per frame", "uneven"),
     _motion("r-drops", "n64-0", "0-999 at 1x, 20% of frames dropped", "drops"),
+    _motion(
+        "r-uneven-odo",
+        "n64-0",
+        "0-999, uneven speed 0-2x per frame, odometry",
+        "uneven",
+        odometry=True,
+    ),
+    _motion(
+        "r-drops-odo",
+        "n64-0",
+        "0-999 at 1x, 20% of frames dropped, odometry",
+        "drops",
+        odometry=True,
+    ),
     # the same motions through a camera with sensor noise: a stand is no longer a repeated frame
     _motion("r-0.6x-noisy", "n64-0", "0-999 at 0.6x, camera noise", "0.6x", camera_noise=1.0),
     _motion(
@@ -490,9 +505,31 @@ ROBOT_VIEWS: list[View] = [
     View(
         "r-detour", "n64-0", "0-999, detour off the map (400-699)", "robot", _ROBOT, gap=(0.4, 0.7)
     ),
+    View(
+        "r-detour-odo",
+        "n64-0",
+        "0-999, detour off the map (400-699), odometry",
+        "robot",
+        _ROBOT,
+        gap=(0.4, 0.7),
+        odometry=True,
+        note="with odometry",
+    ),
     View("r-fisheye", "n64-0-fish", "0-999 through a fisheye disc", "robot", _ROBOT),
+    View(
+        "r-fisheye-odo",
+        "n64-0-fish",
+        "0-999 through a fisheye disc, odometry",
+        "robot",
+        _ROBOT,
+        odometry=True,
+        note="with odometry",
+    ),
     View("r-shuffled", "n64-0", "0-999, queries shuffled", "robot", _ROBOT, "shuffle"),
     _motion("r-reversed", "n64-0", "0-999 driven backwards", "reversed"),
+    _motion(
+        "r-reversed-odo", "n64-0", "0-999 driven backwards, odometry", "reversed", odometry=True
+    ),
     _motion("r-walk-2000", "n64-2000", "2000-2399 held out, random 0.4-1.6x", "walk"),
     _motion(
         "r-walk-odo-2000",

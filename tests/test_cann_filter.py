@@ -553,7 +553,7 @@ def test_defaults():
     forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0, 3.25, 3.5)
     assert LAYER_VELOCITIES == (-2.0, -1.5, -1.0, -0.5) + forward
     assert all(type(v) is float for v in LAYER_VELOCITIES)
-    table = (0.0, 0.079, 0.08, 0.081, 0.345, 0.562, 0.687, 0.841, 0.86, 0.975, 1.0)
+    table = (0.0, 0.07, 0.071, 0.076, 0.233, 0.491, 0.616, 0.83, 0.864, 0.978, 1.0)
     assert CALIBRATION == table
     from flyvpr.temporal.cann._filter import CALIBRATION_ROOT
 

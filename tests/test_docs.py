@@ -111,6 +111,39 @@ def test_which_method_table_from_a_benchmark_document(gen):
     assert "mean over 2 seeds, the worst seed in brackets; one value: one run" in table
 
 
+def test_odometry_table_pairs_each_view_with_its_odometry_twin(gen):
+    def row(condition, method, seeds, mean):
+        return {"condition": condition, "method": method, "seeds": seeds, "auc_mean": mean}
+
+    conditions = [
+        {"view_key": "r-drops", "label": "dropped frames (±2)"},  # shown without the (±2)
+        {"view_key": "r-drops-odo", "label": "dropped frames, odometry"},
+        {"view_key": "r-walk", "label": "random walk"},
+        {"view_key": "r-walk-odo", "label": "random walk, odometry"},
+        {"view_key": "r-1x", "label": "1x"},  # no twin: no row
+        {"view_key": "r-uneven", "label": "uneven"},  # a twin with no rows: no row
+        {"view_key": "r-uneven-odo", "label": "uneven, odometry"},
+    ]
+    summary = [
+        row("r-drops@2", "kenyon+cann", [0, 1], 0.6944),
+        row("r-drops-odo@2", "kenyon+cann", [0, 1], 0.9702),
+        row("r-drops@20", "kenyon+cann", [0, 1], 0.5),  # another tolerance: not shown
+        row("r-drops@2", "pixels+cann", [0], 0.656),
+        row("r-walk@2", "flynet+cann", [0, 1], 0.681),
+        row("r-walk-odo@2", "flynet+cann", [0, 1], 0.923),
+        row("r-1x@2", "kenyon+cann", [0, 1], 0.97),
+        row("r-uneven@2", "kenyon+cann", [0, 1], 0.89),
+    ]
+    table = gen.odometry_table({"conditions": conditions, "summary": summary})
+    rows = [line for line in table.splitlines() if line.startswith("| ") and "---" not in line]
+    assert rows[1:] == [
+        "| dropped frames | 0.694 / 0.970 | 0.656 / - | - / - |",
+        "| random walk | - / - | - / - | 0.681 / 0.923 |",
+    ]
+    assert rows[0].startswith("| query | `kenyon+cann`: without / with |")
+    assert "AUC at tolerance 2, mean over the seeds (2 for the methods with a seed)" in table
+
+
 def test_which_method_table_links_relative_to_its_file(gen):
     data = json.loads((ROOT / "benchmarks" / "accuracy.json").read_text())
     assert "(docs/results/accuracy.md)" in gen.which_method_table(data, ROOT / "README.md")

@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.0, 0.079, 0.08, 0.081, 0.345, 0.562, 0.687, 0.841, 0.86, 0.975, 1.0)
+CALIBRATION = (0.0, 0.07, 0.071, 0.076, 0.233, 0.491, 0.616, 0.83, 0.864, 0.978, 1.0)
 #: how odometry moves the layer (see the class's ``odometry`` parameter)
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
