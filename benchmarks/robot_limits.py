@@ -235,6 +235,8 @@ def right_from(right: np.ndarray, start: int = 0, run: int = RUN) -> int | None:
     answers after it are all right (``right``: bool per frame); None if there is none."""
     if run < 1:
         raise ValueError(f"run must be >= 1; got {run}")
+    if start < 0:
+        raise ValueError(f"start must be >= 0; got {start}")
     ok = np.asarray(right, bool)[start:]
     if ok.size < run:
         return None
@@ -254,7 +256,9 @@ def _matchers(seed: int, key: str, start: int, S: np.ndarray, gt: np.ndarray, ou
     row = {"seed": seed, "view": key, "start": start, "kenyon+cann": from_rows(out)}
     odo = make_method("kenyon+cann", seed, {}, {"odometry": "exact"}).filter
     odo.reset()
-    row["kenyon+cann, exact odometry"] = from_rows([odo.step(s, velocity=1.0) for s in S])
+    # (no odometry for the first frame, as the accuracy benchmark streams it)
+    steps = [odo.step(s, velocity=None if t == 0 else 1.0) for t, s in enumerate(S)]
+    row["kenyon+cann, exact odometry"] = from_rows(steps)
     for label, speeds in SEQ_SPEEDS.items():
         seq = SeqSLAM(sequence_length=SEQ_LENGTH, **speeds)
         row[f"SeqSLAM-{SEQ_LENGTH}, {label}"] = from_rows(seq.filter(S.astype(np.float64)))
@@ -476,7 +480,10 @@ def _matcher_table(data: dict) -> list[str]:
         if not mine:
             continue
         for name in names:
-            cells = ["never" if mine[s][name] is None else str(mine[s][name]) for s in seeds]
+            cells = [
+                "-" if s not in mine else "never" if mine[s][name] is None else str(mine[s][name])
+                for s in seeds
+            ]
             lines.append(f"| {label} | {name} | " + " | ".join(cells) + " |")
     return lines
 

@@ -280,33 +280,37 @@ ODOMETRY_TOLERANCE = 2
 
 
 def odometry_table(data: dict) -> str:
-    """Per robot view that has a twin with odometry (its key plus ``-odo``), the mean AUC of
-    each of ODOMETRY_METHODS without and with it, at ODOMETRY_TOLERANCE, from the JSON."""
+    """Per robot view that has a twin with odometry (the view labelled as it is plus
+    ``", odometry"``), the mean AUC of each of ODOMETRY_METHODS without and with it, at
+    ODOMETRY_TOLERANCE, from the JSON."""
     cells = accuracy_cells(data)
     labels = {  # the view's label without its tolerance
         c["view_key"]: re.sub(r" \(±\d+\)$", "", c["label"]) for c in data.get("conditions", [])
     }
+    by_label = {label: key for key, label in labels.items()}
     tol = ODOMETRY_TOLERANCE
-    twins = [
-        key
-        for key in labels
-        if f"{key}-odo" in labels
-        and any((f"{key}@{tol}", m) in cells and (f"{key}-odo@{tol}", m) in cells
-                for m, _ in ODOMETRY_METHODS)
-    ]  # fmt: skip
+    twins = []  # (view, its twin with odometry) where some method ran on both
+    for key, label in labels.items():
+        odo = by_label.get(f"{label}, odometry")
+        if odo is not None and any(
+            (f"{key}@{tol}", m) in cells and (f"{odo}@{tol}", m) in cells
+            for m, _ in ODOMETRY_METHODS
+        ):
+            twins.append((key, odo))
     lines = [
         "| query | "
         + " | ".join(f"{shown}: without / with" for _, shown in ODOMETRY_METHODS)
         + " |",
         "|---|" + "---|" * len(ODOMETRY_METHODS),
     ]
-    for key in twins:
+    seeds = set()
+    for key, odo in twins:
         row = []
         for m, _ in ODOMETRY_METHODS:
-            pair = [cells.get((f"{k}@{tol}", m)) for k in (key, f"{key}-odo")]
+            pair = [cells.get((f"{k}@{tol}", m)) for k in (key, odo)]
+            seeds |= {v[2] for v in pair if v is not None}
             row.append(" / ".join("-" if v is None else f"{v[0]:.3f}" for v in pair))
         lines.append(f"| {labels[key]} | " + " | ".join(row) + " |")
-    seeds = sorted({v[2] for v in cells.values()})
     lines += [
         "",
         f"AUC at tolerance {tol}, mean over the seeds ({max(seeds, default=1)} for the "

@@ -151,9 +151,11 @@ def test_right_from_is_the_first_run_of_right_answers(pattern, start, run, expec
     assert robot_limits.right_from(right, start, run) == expected
 
 
-def test_right_from_needs_a_run_of_at_least_one():
+def test_right_from_needs_a_run_of_at_least_one_and_a_start_on_the_frames():
     with pytest.raises(ValueError, match="run must be >= 1; got 0"):
         robot_limits.right_from(np.ones(4, bool), 0, 0)
+    with pytest.raises(ValueError, match="start must be >= 0; got -1"):
+        robot_limits.right_from(np.ones(4, bool), -1, 1)
 
 
 def test_matchers_on_a_diagonal_find_it_and_count_from_the_start():
@@ -194,3 +196,9 @@ def test_matcher_table_lists_every_view_and_matcher_per_seed():
     assert "| cold start at 1x | SeqSLAM-60, 0.8-1.2 | 26 | never |" in lines
     assert "| detour, from the rejoin | SeqSLAM-60, 0.8-1.2 | 39 | 32 |" in lines
     assert not any("fisheye" in line for line in lines)  # no rows: no view
+    rows.append(
+        {"seed": 2, "view": "r-1x", "start": 0, "kenyon+cann": 30, "SeqSLAM-60, 0.8-1.2": 27}
+    )
+    lines = robot_limits._matcher_table({"matchers": rows, "protocol": {"matchers": "m"}})
+    assert "| cold start at 1x | kenyon+cann | 33 | 29 | 30 |" in lines
+    assert "| detour, from the rejoin | kenyon+cann | 44 | 43 | - |" in lines  # no seed 2 run
