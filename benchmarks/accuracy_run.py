@@ -129,12 +129,7 @@ def run_task(task: Task) -> dict:
                 frames = view_S[idx]
                 if view.camera_noise:  # the front end scores the view's own noisy frames
                     frames = view_model.frontend.score(view.frames(qry, idx))
-                velocity = None
-                if view.odometry:
-                    # places moved, unsigned: a distance, as flyvpr localize passes it
-                    velocity = np.abs(np.diff(qry_ids[idx], prepend=qry_ids[idx][0]))
-                    velocity = velocity.astype(np.float64)
-                    velocity *= view.odometry_scale
+                velocity = view.odometry_steps(qry_ids[idx])
                 t0 = time.perf_counter()
                 filt = view_model.filter
                 states = None

@@ -174,6 +174,15 @@ class View:
             return qry[idx]
         return camera_frames(qry[idx], self.camera_noise, self.view_seed)
 
+    def odometry_steps(self, ids: np.ndarray) -> np.ndarray | None:
+        """The odometry of the view's frames, whose positions are ``ids`` in order: places
+        moved since the last frame, unsigned (a distance, as ``flyvpr localize`` passes it;
+        0 for the first), times ``odometry_scale``; None for a view without odometry."""
+        if not self.odometry:
+            return None
+        ids = np.asarray(ids)
+        return np.abs(np.diff(ids, prepend=ids[:1])).astype(np.float64) * self.odometry_scale
+
     def indices(self, n_query: int) -> np.ndarray:
         """Positions of the kept query frames, in the order they are fed to the methods."""
         if self.kind == "all":

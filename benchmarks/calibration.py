@@ -56,11 +56,10 @@ def _runs(data: Path, seeds, progress: bool, dataset_key: str = DATASET):
             method.frontend.fit(ref[keep])
             idx = view.indices(len(qry_ids))
             S = method.frontend.score(view.frames(qry, idx))
-            moved = np.abs(np.diff(qry_ids[idx], prepend=qry_ids[idx][0])) * view.odometry_scale
             gt = ground_truth_from_frames(qry_ids[idx], ref_ids[keep], TOLERANCE)
             if progress:
                 print(f"  seed {seed} {view.key}", file=sys.stderr, flush=True)
-            yield view.key, seed, S, moved if view.odometry else None, gt
+            yield view.key, seed, S, view.odometry_steps(qry_ids[idx]), gt
 
 
 def _stream(filt: CANN, S, moved, gt):

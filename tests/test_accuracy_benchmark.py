@@ -376,3 +376,12 @@ def test_motion_profiles_give_the_true_place_of_every_frame():
     assert {"uneven", "drops"} <= set(MOTIONS)
     with pytest.raises(ValueError, match="unknown motion profile"):
         motion_places("9x", 10)
+
+
+def test_odometry_steps_are_unsigned_places_moved_times_the_scale():
+    views = {v.key: v for v in accuracy_setup.ROBOT_VIEWS}
+    assert views["r-walk"].odometry_steps(np.array([0, 1, 3])) is None  # no odometry
+    steps = views["r-reversed-odo"].odometry_steps(np.array([9, 8, 6, 6]))
+    assert steps.dtype == np.float64 and steps.tolist() == [0.0, 1.0, 2.0, 0.0]
+    long = views["r-walk-odo-long"].odometry_steps(np.array([4, 5, 7]))
+    assert long.tolist() == pytest.approx([0.0, 1.2, 2.4])
