@@ -370,6 +370,22 @@ DATASETS: list[Dataset] = [
         mask="fisheye",
         tuning="the fly front end's static-pixel mask was checked here",
     ),
+    _nordland(
+        "n64-2000-fish",
+        "Nordland 64x32 summer->winter 2000-2399 (held out) through a fisheye disc",
+        2000,
+        400,
+        mask="fisheye",
+        tuning="held out: tuned nothing",
+    ),
+    Dataset(
+        "sub-sw-fish",
+        "subset100 summer->winter through a fisheye disc",
+        "nordland",
+        folder="nordland_flynet_subset100",
+        mask="fisheye",
+        tuning="not used for tuning (added after the defaults were chosen)",
+    ),
     Dataset(
         "blank",
         "blank frames (500 constant frames, value 0.5)",
@@ -392,6 +408,7 @@ VIEWS: list[View] = [
     View("n64-ws-0", "n64-ws-0", "N64 w->s 0-999", "reverse", (20, 10, 2)),
     View("sub-sf", "sub-sf", "subset100 s->f", "subset", (2,)),
     View("sub-sw", "sub-sw", "subset100 s->w", "subset", (2,)),
+    View("sub-sw-fish", "sub-sw-fish", "subset100 s->w, fisheye disc", "subset", (2, 20)),
     *(
         View(f"{k}-{s}", k, f"N64 s->w {w} at {s}", "speed", (20,), "speed", v)
         for s, v in _SPEEDS
@@ -538,6 +555,13 @@ ROBOT_VIEWS: list[View] = [
     _motion("r-reversed", "n64-0", "0-999 driven backwards", "reversed"),
     _motion(
         "r-reversed-odo", "n64-0", "0-999 driven backwards, odometry", "reversed", odometry=True
+    ),
+    View(
+        "r-fisheye-2000",
+        "n64-2000-fish",
+        "2000-2399 held out, through a fisheye disc",
+        "robot",
+        _ROBOT,
     ),
     _motion("r-walk-2000", "n64-2000", "2000-2399 held out, random 0.4-1.6x", "walk"),
     _motion(
