@@ -303,6 +303,42 @@ def _robot_lines(data: dict) -> list[str]:
     return lines
 
 
+def _unmasked_twin(condition: dict) -> tuple:
+    """What a condition's frames are, less a camera mask: the protocol without ``mask``, the
+    view without its group and tolerances, and the tolerance."""
+    protocol = {k: v for k, v in condition.get("protocol", {}).items() if k != "mask"}
+    view = {k: v for k, v in condition.get("view", {}).items() if k not in ("group", "tolerances")}
+    return repr(sorted(protocol.items())), repr(sorted(view.items())), condition.get("tolerance")
+
+
+def _mask_lines(data: dict) -> list[str]:
+    """For every condition seen through a camera mask (its protocol has ``mask``) whose frames
+    are also run without it: each filtered method's AUC mean without the mask minus through it
+    (the mask's cost; the fisheye disc's target is at most 0.01)."""
+    conditions = _conditions(data)
+    unmasked: dict[tuple, str] = {}
+    for key, c in conditions.items():
+        if "mask" not in c.get("protocol", {}):
+            unmasked.setdefault(_unmasked_twin(c), key)
+    by = {(s["condition"], s["method"]): s["auc_mean"] for s in _summary(data)}
+    lines = []
+    for key, c in conditions.items():
+        twin = unmasked.get(_unmasked_twin(c)) if "mask" in c.get("protocol", {}) else None
+        if twin is None:
+            continue
+        gaps = [
+            f"{method} {by[(twin, method)] - by[(key, method)]:+.4f}"
+            for method in _method_order(data)
+            if "+" in method and (key, method) in by and (twin, method) in by
+        ]
+        if gaps:
+            lines.append(
+                f"{c['label']}: AUC mean on the same frames without the mask "
+                f"({conditions[twin]['label']}) minus through it: " + ", ".join(gaps) + "."
+            )
+    return lines
+
+
 def _protocol_lines(data: dict) -> list[str]:
     lines = []
     for c in data.get("conditions", []):
@@ -420,7 +456,7 @@ def render_markdown(data: dict) -> str:
     checks = _control_checks(data)
     if checks:
         parts += ["### Control verdicts", "", *(f"- {c}" for c in checks), ""]
-    robot = _robot_lines(data)
+    robot = _robot_lines(data) + _mask_lines(data)
     if robot:
         parts += ["### Robot verdicts", "", *(f"- {line}" for line in robot), ""]
     for method in dict.fromkeys(x["method"] for x in data.get("reliability", [])):
@@ -485,6 +521,7 @@ def render_text(data: dict) -> str:
         parts += ["Bytes per reference place", _text_table(header, rows), ""]
     parts += _control_checks(data)
     parts += _robot_lines(data)
+    parts += _mask_lines(data)
     for method in dict.fromkeys(x["method"] for x in data.get("reliability", [])):
         for key, what in RELIABILITY_SETS:
             rows = reliability_table(data, method, key)

@@ -349,6 +349,54 @@ def test_reliability_tables_keep_dev_and_held_out_apart():
     assert "on the held-out views" in text
 
 
+def test_mask_lines_pair_masked_frames_with_the_same_frames_unmasked():
+    frames = {"root": "/d/n64", "first": 0, "count": 10}
+    masked = {**frames, "mask": "fisheye disc"}
+
+    def cond(key, protocol, tolerance=2, **view):
+        return {"key": key, "label": key.upper(), "group": "robot", "tolerance": tolerance,
+                "view": {"kind": "all", "group": "robot", "tolerances": [2, 20], **view},
+                "protocol": protocol}  # fmt: skip
+
+    data = {
+        "methods": [{"label": "a+cann"}, {"label": "a"}, {"label": "b+cann"}],
+        "conditions": [
+            cond("full@2", frames, group="nordland", tolerances=[20, 2]),  # a twin all the same
+            cond("fish@2", masked),
+            cond("fish@20", masked, 20),  # no unmasked twin at this tolerance
+            cond("fish-odo@2", masked, odometry=True),  # nor with odometry
+            cond("other@2", {**masked, "first": 100}),  # nor of other frames
+        ],
+        "summary": [
+            {"condition": c, "method": m, "auc_mean": v}
+            for c, m, v in [
+                ("full@2", "a+cann", 0.97), ("fish@2", "a+cann", 0.955),
+                ("full@2", "a", 0.1), ("fish@2", "a", 0.05),
+                ("full@2", "b+cann", 0.9), ("fish@20", "b+cann", 0.5),
+                ("fish-odo@2", "a+cann", 0.5), ("other@2", "a+cann", 0.5),
+            ]
+        ],
+    }  # fmt: skip
+    lines = accuracy_report._mask_lines(data)
+    assert lines == [
+        "FISH@2: AUC mean on the same frames without the mask (FULL@2) minus through it: "
+        "a+cann +0.0150."
+    ]
+    # a method with a worse score unmasked shows a negative cost; the report carries the lines
+    data["summary"].append({"condition": "fish@2", "method": "b+cann", "auc_mean": 0.95})
+    assert accuracy_report._mask_lines(data)[0].endswith("a+cann +0.0150, b+cann -0.0500.")
+    doc = _document()
+    doc["conditions"] += data["conditions"]
+    doc["methods"] += data["methods"]
+    doc["rows"] += [
+        {**_rows()[0], "condition": x["condition"], "method": x["method"], "auc": x["auc_mean"]}
+        for x in data["summary"]
+    ]
+    doc["summary"] = accuracy_report.summarise(doc["rows"])
+    assert "minus through it: a+cann +0.0150" in accuracy_report.render_markdown(doc)
+    assert "minus through it: a+cann +0.0150" in accuracy_report.render_text(doc)
+
+
 def test_motion_profiles_give_the_true_place_of_every_frame():
     from benchmarks.accuracy_setup import MOTIONS, motion_places
 
