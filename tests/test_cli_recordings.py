@@ -89,7 +89,7 @@ def test_map_then_localize_scores_like_evaluate(
     assert code == 0, err
     assert re.search(
         rf"{N} frames .* frames/s, median confidence .*, localized \d+\.\d% of frames, "
-        r"\d+ relocations\n",
+        r"\d+ relocations?\n",
         out,
     )
     assert "odometry" not in out  # the query has no positions
@@ -127,6 +127,32 @@ def test_positions_from_the_bag_and_every(recordings, tmp_path, capsys):
     rows = list(csv.DictReader((tmp_path / "p.csv").open()))
     assert [int(r["frame"]) for r in rows] == list(range(0, N, 2))
     assert float(rows[3]["x"]) == 3.0 * 2 * int(rows[3]["place"])
+
+
+def test_map_summary_counts_places_without_a_position(recordings, tmp_path, capsys):
+    rec = recordings["png"]
+    short = tmp_path / "short.csv"
+    short.write_text("frame,x,y\n" + "".join(f"{i},{3.0 * i},0\n" for i in range(10)))
+    code, out, err = _run(
+        capsys, "map", rec["summer"], "--positions", short, "--out", tmp_path / "s.map"
+    )
+    assert code == 0, err
+    assert f"with positions (none for {N - 10} of {N} places: not in {short})" in out
+    full = tmp_path / "full.csv"
+    full.write_text("frame,x,y\n" + "".join(f"{i},{3.0 * i},0\n" for i in range(N)))
+    code, out, err = _run(
+        capsys, "map", rec["summer"], "--positions", full, "--out", tmp_path / "f.map"
+    )
+    assert code == 0, err
+    assert "with positions, 3 m per place" in out and "none for" not in out
+    code, out, err = _run(capsys, "map", rec["summer"], "--out", tmp_path / "n.map")
+    assert code == 0 and "without positions" in out
+
+
+def test_counted_says_one_thing_or_several():
+    from flyvpr.cli._common import counted
+
+    assert [counted(n, "frame") for n in (0, 1, 2)] == ["0 frames", "1 frame", "2 frames"]
 
 
 def test_render_video_and_page(recordings, tmp_path, capsys):
@@ -272,9 +298,47 @@ def test_realtime_paces_to_the_timestamps(tmp_path, capsys):
     bag = write_bag(tmp_path / "r.bag", frames, version=1, fps=10)
     assert main(["map", str(bag), "--out", str(tmp_path / "r.map"), "--size", "8x16"]) == 0
     t0 = time.perf_counter()
-    code, _, err = _run(capsys, "localize", "--map", tmp_path / "r.map", bag, "--realtime")
+    code, out, err = _run(capsys, "localize", "--map", tmp_path / "r.map", bag, "--realtime")
     assert code == 0, err
     assert time.perf_counter() - t0 >= 0.5  # 6 frames at 10 fps: the last is due after 0.5 s
+    assert "were not paced" not in out
+
+
+def test_realtime_says_when_a_folder_has_no_timestamps(recordings, tmp_path, capsys):
+    rec = recordings["png"]
+    m = tmp_path / "f.map"
+    assert main(["map", str(rec["summer"]), "--out", str(m)]) == 0
+    code, out, err = _run(capsys, "localize", "--map", m, rec[QUERY], "--realtime")
+    assert code == 0, err
+    assert f"--realtime: image folder {rec[QUERY]}" in out
+    assert "has no timestamps" in out and "were not paced" in out
+    # without --realtime there is nothing to say
+    code, out, err = _run(capsys, "localize", "--map", m, rec[QUERY])
+    assert code == 0 and "--realtime" not in out
+
+
+def test_seed_speed_method_and_param_are_refused_with_a_map(recordings, tmp_path, capsys):
+    rec = recordings["png"]
+    m = tmp_path / "f.map"
+    assert main(["map", str(rec["summer"]), "--out", str(m)]) == 0
+    out_csv = tmp_path / "never.csv"
+    for extra, says in [
+        (["--seed", "0"], "--seed: the map fixes the method and its seed"),
+        (["--seed", "3"], "--seed: the map fixes the method and its seed"),
+        (["--method", "pixels+cann"], "--method: the map fixes the method"),
+        (["--param", "tolerance=3"], "--param: the map fixes the method"),
+        (["--speed", "2"], "--speed simulates a robot speed on a --dataset benchmark"),
+    ]:
+        code, _, err = _run(capsys, "localize", "--map", m, rec[QUERY], *extra, "--out", out_csv)
+        assert code == 2 and says in err, (extra, err)
+        assert not out_csv.exists()
+    # with --dataset, --seed still seeds the method (0 when not given)
+    code, out, err = _run(
+        capsys, "localize", "--dataset", "generic", "--root", rec["summer"].parent,
+        "--reference", "summer", "--query", QUERY, "--tolerance", TOL, "--no-cache",
+        "--method", "pixels+cann",
+    )  # fmt: skip
+    assert code == 0 and "seed=0" in out, err
 
 
 def test_video_speed_benchmark_runs_small():

@@ -139,6 +139,47 @@ def test_positions_csv_by_frame_and_timestamp(tmp_path):
         read_positions(bad)
 
 
+@pytest.mark.parametrize(
+    ("row", "message"),
+    [
+        ("5.5,1,2", r"line 3: frame must be a whole number >= 0 .*; got 5.5"),
+        ("-5,1,2", r"line 3: frame must be a whole number >= 0 .*; got -5"),
+        ("nan,1,2", r"line 3: not a finite frame,x,y"),
+        ("4,inf,2", r"line 3: not a finite frame,x,y"),
+    ],
+)
+def test_positions_csv_frames_are_indices(tmp_path, row, message):
+    bad = tmp_path / "b.csv"
+    bad.write_text(f"frame,x,y\n0,0,0\n{row}\n")
+    with pytest.raises(ValueError, match=message):
+        read_positions(bad)
+    # a timestamp may be fractional or negative (seconds on any clock)
+    ok = tmp_path / "t.csv"
+    ok.write_text("timestamp,x,y\n-5,0,0\n5.5,1,2\n")
+    assert read_positions(ok).keys.tolist() == [-5.0, 5.5]
+
+
+def test_every_metres_says_how_many_frames_had_no_position(route, tmp_path, caplog):
+    # positions for the first 5 frames only: a metres rule keeps from those and says it
+    # skipped the rest
+    folder = tmp_path / "f"
+    save_route(route, folder)
+    src = open_source(folder / "summer")
+    short = tmp_path / "short.csv"
+    short.write_text("frame,x,y\n" + "".join(f"{i},{2.0 * i},0\n" for i in range(5)))
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        got = src.read_all(SIZE, every="4m", positions=read_positions(short))
+    assert got.indices.tolist() == [0, 2, 4]
+    (record,) = [r for r in caplog.records if "no position" in r.getMessage()]
+    assert f"skipped {N - 5} of {N} frames that have no position in {short}" in record.getMessage()
+    caplog.clear()
+    full = tmp_path / "full.csv"
+    full.write_text("frame,x,y\n" + "".join(f"{i},{2.0 * i},0\n" for i in range(N)))
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        src.read_all(SIZE, every="4m", positions=read_positions(full))
+    assert not [r for r in caplog.records if "no position" in r.getMessage()]
+
+
 def test_positions_interpolated_between_rows(tmp_path):
     by_frame = tmp_path / "f.csv"
     by_frame.write_text("frame,x,y\n2,0,10\n6,8,2\n")

@@ -79,8 +79,8 @@ FOLDER_RULES = (
     "- frames: regular files (or links to them) ending in "
     + " ".join(IMAGE_EXTENSIONS)
     + " (any case), in natural name order (2.png before 10.png);\n"
-    "- skipped, counted at --verbose: hidden entries, whose name starts with '.' (.DS_Store, "
-    "._* AppleDouble files);\n"
+    "- skipped, counted with `flyvpr --verbose COMMAND`: hidden entries, whose name starts "
+    "with '.' (.DS_Store, ._* AppleDouble files);\n"
     "- refused: anything else (another extension such as .gif, .webp or .txt, a sub-folder, a "
     "dangling link, a link loop, a FIFO, a device, an unreadable file).\n"
     "Pixels: 8/16-bit integers are scaled by 255/65535; float images must lie in [0, 1] (other "

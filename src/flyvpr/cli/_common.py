@@ -12,6 +12,8 @@ import math
 import re
 from pathlib import Path
 
+import numpy as np
+
 from .._io import OutputPathError, check_output_path
 from .._validation import check_memory
 from ..datasets import DATASETS
@@ -248,8 +250,11 @@ def add_dataset_args(p: argparse.ArgumentParser, required: bool = True) -> None:
             g.add_argument(flag, dest=opt, type=kind, default=None, help=help_text)
 
 
-def add_method_args(p, required: bool = False, default=None, note: str = "") -> None:
-    """--method (choices from the registry), --seed and --param, shared by several commands."""
+def add_method_args(
+    p, required: bool = False, default=None, note: str = "", seed_default: int | None = 0
+) -> None:
+    """--method (choices from the registry), --seed and --param, shared by several commands
+    (``seed_default`` None: the command tells a given --seed from none, and sets 0 itself)."""
     p.add_argument(
         "--method",
         required=required,
@@ -261,7 +266,7 @@ def add_method_args(p, required: bool = False, default=None, note: str = "") -> 
     p.add_argument(
         "--seed",
         type=nonnegative_int,
-        default=0,
+        default=seed_default,
         help="random_state of every random part, an integer >= 0 (default 0)",
     )
     p.add_argument(
@@ -273,6 +278,22 @@ def add_method_args(p, required: bool = False, default=None, note: str = "") -> 
         help="constructor parameter of the front end or filter (JSON value), e.g. epochs=100; "
         "prefix with frontend. or filter. to disambiguate",
     )
+
+
+def counted(n: int, noun: str) -> str:
+    """``n`` and ``noun``, plural unless ``n`` is 1: ``counted(1, "frame") == "1 frame"``."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
+def positions_words(positions, origin) -> str:
+    """A map's positions in a summary: with or without them, and how many of its places
+    have none (frames the positions file or topic does not cover)."""
+    if positions is None:
+        return "without positions"
+    unplaced = int(np.isnan(np.asarray(positions, np.float64)).any(axis=1).sum())
+    if not unplaced:
+        return "with positions"
+    return f"with positions (none for {unplaced} of {len(positions)} places: not in {origin})"
 
 
 def flag(option: str) -> str:

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from ._common import UsageError, check_outputs, flag
+from ._common import UsageError, check_outputs, counted, flag, positions_words
 from ._records import open_records
 from ._stream import odometry_note, run_metadata
 from .map import recording_inputs
@@ -76,7 +76,7 @@ def cmd_map_compact(args) -> int:
         n_jobs=args.jobs,
         scheduler=args.scheduler,
     )
-    where = "with positions" if cmap.positions is not None else "without positions"
+    where = positions_words(cmap.positions, cmap.info["positions_from"])
     if cmap.place_spacing is not None:
         where += f", {cmap.place_spacing:.3g} m per place"
     print(
@@ -223,11 +223,12 @@ def cmd_localize_compact(args) -> int:
     index = "multi-index hashing" if args.index == "mih" else "exact scan"
     print(
         f"compact map ({cmap.n_places} places, {cmap.large_map.n_bits} bits, opened in "
-        f"{open_s:.3f} s, relocation by {index}): {n_frames} frames of {source.describe()} "
+        f"{open_s:.3f} s, relocation by {index}): {counted(n_frames, 'frame')} of "
+        f"{source.describe()} "
         f"(every {args.every or 1}): {n_frames / elapsed:.1f} frames/s, median confidence "
         f"{float(np.median(np.concatenate(confidences))):.4g}, localized "
-        f"{100 * n_localized / n_frames:.1f}% of frames, {loc.n_reseeds_} re-seeds, "
-        f"{loc.n_searches_} codes searched"
+        f"{100 * n_localized / n_frames:.1f}% of frames, {counted(loc.n_reseeds_, 're-seed')}, "
+        f"{counted(loc.n_searches_, 'code')} searched"
     )
     if note is not None:
         print(note)

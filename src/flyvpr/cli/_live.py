@@ -22,7 +22,15 @@ from pathlib import Path
 import numpy as np
 
 from ._calibrate import apply_table
-from ._common import UsageError, check_outputs, flag, nonnegative_int, positive_float, positive_int
+from ._common import (
+    UsageError,
+    check_outputs,
+    counted,
+    flag,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
 
 #: live runs: the latency histogram's bin (ms) and its last bin (everything slower lands there)
 _LATENCY_BIN_MS = 0.01
@@ -381,9 +389,10 @@ def cmd_localize_live(args) -> int:
     }
     print(
         f"{steps.name}: {source.describe()} against {steps.n_places} places, {ending} after "
-        f"{elapsed:.1f} s: {source.n_received} frames received, {n_frames} localized, "
+        f"{elapsed:.1f} s: {counted(source.n_received, 'frame')} received, {n_frames} localized, "
         f"{n_dropped} dropped (the localizer takes the newest frame), "
-        f"{source.n_corrupt} damaged packets skipped, {source.n_reconnects} reconnections"
+        f"{counted(source.n_corrupt, 'damaged packet')} skipped, "
+        f"{counted(source.n_reconnects, 'reconnection')}"
     )
     if n_frames:
         conf = np.asarray(confidences)
@@ -391,7 +400,8 @@ def cmd_localize_live(args) -> int:
             f"latency from a frame's arrival to its record: median "
             f"{latencies.quantile(0.5):.2f} ms, 95% {latencies.quantile(0.95):.2f} ms, max "
             f"{latencies.max:.2f} ms; median confidence {float(np.median(conf)):.4g}, "
-            f"localized {100 * n_localized / n_frames:.1f}% of frames, {n_reloc} relocations; "
+            f"localized {100 * n_localized / n_frames:.1f}% of frames, "
+            f"{counted(n_reloc, 'relocation')}; "
             f"timestamps: {clock.get(source.clock, 'none')}"
         )
     print_view_summary(view)

@@ -14,7 +14,7 @@ import numpy as np
 from .._io import OutputPathError, check_output_path
 from .._validation import check_memory
 from ._calibrate import apply_table, check_calibration_args, fit_and_write
-from ._common import UsageError, check_outputs
+from ._common import UsageError, check_outputs, counted
 from ._live import check_view_args, open_view, print_view_summary
 from ._records import open_records
 from .map import recording_inputs
@@ -119,6 +119,7 @@ def cmd_localize_recording(args) -> int:
     show = not args.quiet and sys.stderr.isatty()
     confidences, scores, truth, correct = [], [], [], []
     n_frames = n_reloc = n_localized = 0
+    timed = False  # whether a frame had a timestamp (--realtime paces only those)
     t0 = time.perf_counter()
     with ExitStack() as stack:
         out = None
@@ -139,6 +140,7 @@ def cmd_localize_recording(args) -> int:
         for step in track(loc, source, every=args.every, positions=positions,
                           odometry=odometry, realtime=args.realtime):  # fmt: skip
             b = step.batch
+            timed = timed or bool(np.isfinite(b.timestamps).any())
             gt = None
             if args.ground_truth is not None:
                 gt = _ground_truth(args, m, step, gt_positions)
@@ -185,13 +187,18 @@ def cmd_localize_recording(args) -> int:
     elapsed = time.perf_counter() - t0
     conf = np.concatenate(confidences)
     print(
-        f"{m.method.name}: {n_frames} frames of {source.describe()} (every "
+        f"{m.method.name}: {counted(n_frames, 'frame')} of {source.describe()} (every "
         f"{args.every or 1}) against {m.n_places} places: {n_frames / elapsed:.1f} frames/s, "
         f"median confidence {float(np.median(conf)):.4g}, localized "
-        f"{100 * n_localized / n_frames:.1f}% of frames, {n_reloc} relocations"
+        f"{100 * n_localized / n_frames:.1f}% of frames, {counted(n_reloc, 'relocation')}"
     )
     if note is not None:
         print(note)
+    if args.realtime and not timed:
+        print(
+            f"--realtime: {source.describe()} has no timestamps (an image folder has none; "
+            "videos and ROS bags have them), so the frames were not paced"
+        )
     if args.ground_truth is not None:
         _print_scores(args, np.concatenate(scores), np.concatenate(truth))
     if args.fit_calibration is not None:

@@ -55,6 +55,7 @@ def cmd_localize(args) -> int:
         raise UsageError("--realtime needs --map MAP SOURCE")
     args.size = args.size or DEFAULT_SIZE
     args.method = args.method or DEFAULT_METHOD
+    args.seed = 0 if args.seed is None else args.seed
     return _cmd_benchmark(args)
 
 
@@ -70,9 +71,17 @@ def _cmd_recording(args) -> int:
             "--odometry: with --map, odometry comes from the recording's own positions "
             "(--positions or --position-topic) and is on by default; --no-odometry turns it off"
         )
-    for option in ("speed", "method", "param"):
-        if getattr(args, option):
-            raise UsageError(f"{flag(option)}: the map fixes the method; not with --map")
+    if args.speed is not None:
+        raise UsageError(
+            "--speed simulates a robot speed on a --dataset benchmark; with --map the "
+            "recording is localized as it was driven (--every thins it)"
+        )
+    for option in ("method", "param", "seed"):
+        if getattr(args, option) not in (None, []):
+            raise UsageError(
+                f"{flag(option)}: the map fixes the method and its seed; not with --map "
+                "(build another map with `flyvpr map`)"
+            )
     if is_live(args.source):
         from ._live import cmd_localize_live
 
@@ -212,13 +221,15 @@ def register(sub) -> None:
         "must have the CANN filter",
     )
     add_dataset_args(p, required=False)
-    add_method_args(p, note=f" (an online filter; default {DEFAULT_METHOD})")
+    add_method_args(
+        p, note=f" (with --dataset: an online filter; default {DEFAULT_METHOD})", seed_default=None
+    )
     p.add_argument(
         "--speed",
         type=parse_speed,
         metavar="S",
-        help="simulate another robot speed: keep query frames at S places per frame "
-        "(e.g. 2) or a seeded random profile LOW-HIGH (e.g. 1-1.5)",
+        help="with --dataset: simulate another robot speed, keeping query frames at S places "
+        "per frame (e.g. 2) or a seeded random profile LOW-HIGH (e.g. 1-1.5)",
     )
     p.add_argument(
         "--odometry",

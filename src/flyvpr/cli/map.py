@@ -15,6 +15,7 @@ from ._common import (
     check_outputs,
     flag,
     parse_size,
+    positions_words,
     split_params,
 )
 
@@ -97,7 +98,7 @@ def cmd_map(args) -> int:
         scheduler=args.scheduler,
     )
     m.save(args.out)
-    where = "with positions" if m.has_positions else "without positions"
+    where = positions_words(m.positions, m.info["positions_from"])
     if m.place_spacing is not None:
         where += f", {m.place_spacing:.3g} m per place"
     print(

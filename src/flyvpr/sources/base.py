@@ -8,6 +8,7 @@ the recording.
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 from collections.abc import Callable, Iterator
@@ -20,6 +21,8 @@ import numpy as np
 from ..images import DEFAULT_SIZE, _check_size
 
 __all__ = ["Batch", "Every", "RecordingError", "Source", "parse_every", "require_extra"]
+
+logger = logging.getLogger(__name__)
 
 #: frames per batch unless a caller asks for another number
 DEFAULT_BATCH = 32
@@ -122,6 +125,7 @@ class _Thinner:
         self.positions = positions
         self.last_t: float | None = None
         self.last_xy: np.ndarray | None = None
+        self.unplaced = 0  # frames a metres rule skipped for want of a position
         if every.unit == "metres" and positions is None:
             raise ValueError(
                 f"every={every}: keeping frames by distance needs positions "
@@ -143,6 +147,7 @@ class _Thinner:
             return True
         xy = self.positions.at(np.array([index]), np.array([timestamp]))[0]
         if not np.isfinite(xy).all():
+            self.unplaced += 1
             return False
         if self.last_xy is not None and np.hypot(*(xy - self.last_xy)) < e.value:
             return False
@@ -208,6 +213,11 @@ class Source:
                 n = 0
         if seen == 0:
             raise RecordingError(f"{self.describe()}: the recording holds no frame")
+        if thin.unplaced:
+            logger.warning(
+                "%s: every=%s skipped %d of %d frames that have no position in %s",
+                self.describe(), thin.every, thin.unplaced, seen, positions.origin,
+            )  # fmt: skip
         if n:
             yield Batch(images[:n].copy(), stamps[:n].copy(), idx[:n].copy())
 

@@ -97,8 +97,13 @@ def _read_csv(path: Path) -> Positions:
                 f"positions CSV {path}, line {line}: {key}, x and y must be numbers; got "
                 f"{row.get(key)!r}, {row.get('x')!r}, {row.get('y')!r}"
             ) from None
-        if not all(math.isfinite(v) for v in (k, x, y)) or (key == "frame" and k != int(k)):
+        if not all(math.isfinite(v) for v in (k, x, y)):
             raise ValueError(f"positions CSV {path}, line {line}: not a finite {key},x,y")
+        if key == "frame" and (k != int(k) or k < 0):
+            raise ValueError(
+                f"positions CSV {path}, line {line}: frame must be a whole number >= 0 (the "
+                f"frame's index in the recording); got {row[key].strip()}"
+            )
         keys.append(k)
         xy.append((x, y))
     if not keys:
