@@ -291,6 +291,34 @@ def test_map_round_trip_and_from_map(route, tmp_path):
         load_method(path)
 
 
+def test_map_errors_call_it_a_map_file(route, tmp_path):
+    from flyvpr.modelio import save_method
+
+    bag = write_bag(tmp_path / "m.bag", route.images["summer"], version=1)
+    m = Map.build(bag)
+    path = m.save(tmp_path / "r.map")
+    model = save_method(m.method, tmp_path / "bare.npz")
+    with pytest.raises(ModelFileError, match=r"^map file .*bare\.npz: map: missing: not a flyvpr "
+                       r"map file \(a bare model, as `flyvpr fit` writes; build one with "
+                       r"`flyvpr map`\)"):  # fmt: skip
+        Map.load(model)
+    truncated = tmp_path / "cut.map"
+    truncated.write_bytes(path.read_bytes()[:1000])
+    with pytest.raises(ModelFileError, match=r"^map file .*cut\.map is not a readable \.npz"):
+        Map.load(truncated)
+    flipped = tmp_path / "flip.map"
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    flipped.write_bytes(bytes(data))
+    with pytest.raises(ModelFileError, match=r"^map file .*flip\.map failed its file checksum"):
+        Map.load(flipped)
+    with pytest.raises(FileNotFoundError, match=r"^map file not found: .*none\.map"):
+        Map.load(tmp_path / "none.map")
+    # the model itself is still a model file
+    with pytest.raises(ModelFileError, match=r"^model file .*cut\.map is not a readable"):
+        load_method(truncated)
+
+
 def test_map_of_another_version_is_refused(route, tmp_path, monkeypatch):
     import flyvpr.localization.maps as maps
 

@@ -240,13 +240,14 @@ def _write_archive(path: Path, meta: dict, arrays: dict) -> Path:
 class _Reader:
     """State of one load: the open archive and the arrays read so far."""
 
-    def __init__(self, path: Path, zf: zipfile.ZipFile):
+    def __init__(self, path: Path, zf: zipfile.ZipFile, what: str = "model file"):
         self.path = path
         self.zf = zf
+        self.what = what  # what the file is to the user: "model file" or "map file"
         self.arrays: dict = {}
 
     def error(self, field: str | None, problem: str) -> ModelFileError:
-        where = f"model file {self.path}" + (f": {field}" if field else "")
+        where = f"{self.what} {self.path}" + (f": {field}" if field else "")
         return ModelFileError(f"{where}: {problem}")
 
     def array(self, key: str, field: str, spec: ArraySpec | None) -> np.ndarray:
@@ -254,7 +255,7 @@ class _Reader:
             arr = read_npz_member(
                 self.zf,
                 key,
-                f"model file {self.path}",
+                f"{self.what} {self.path}",
                 dtype=None if spec is None else spec.dtype,
                 shape=None if spec is None else spec.shape,
             )
@@ -355,7 +356,7 @@ def _lookup(declared: dict | None, key: str):
 
 def _read_meta(r: _Reader) -> dict:
     try:
-        shape, _, dtype, info = npz_member_header(r.zf, "__meta__", f"model file {r.path}")
+        shape, _, dtype, info = npz_member_header(r.zf, "__meta__", f"{r.what} {r.path}")
     except ArrayFileError:
         raise r.error(None, "has no flyvpr metadata: not a flyvpr model") from None
     if dtype != np.uint8 or len(shape) != 1 or info.file_size > _MAX_META:
@@ -404,8 +405,8 @@ def _trailer_ok(path: Path) -> bool:
         return fh.read(_TRAILER) == digest.encode("ascii")
 
 
-def _damaged(path: Path) -> str:
-    return f"model file {path} failed its file checksum: it was modified or is damaged"
+def _damaged(path: Path, what: str = "model file") -> str:
+    return f"{what} {path} failed its file checksum: it was modified or is damaged"
 
 
 def _check_fields(r: _Reader, meta: dict, size) -> tuple[int, int]:
@@ -510,33 +511,34 @@ def load_method(path, *, size=None) -> Method:
     return _load(path, size, {})[0]
 
 
-def _load(path, size, readers: dict):
+def _load(path, size, readers: dict, what: str = "model file"):
     """Load a model file and its sections: ``readers`` maps a section name to a function
     ``(reader, section_dict) -> object`` that reads (and checks) that section's arrays.
 
     A section present in the file without a reader is refused, so ``load_method`` never
-    accepts a file with more in it than it understands.
+    accepts a file with more in it than it understands.  ``what`` names the file in messages
+    (a map is a model file with a map section, but to its user a "map file").
     """
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"model file not found: {path}")
+        raise FileNotFoundError(f"{what} not found: {path}")
     if not path.is_file():
-        raise ModelFileError(f"model file {path} is not a regular file")
+        raise ModelFileError(f"{what} {path} is not a regular file")
     sealed = _trailer_ok(path)
     try:
         zf = zipfile.ZipFile(path)
     except Exception as exc:  # zipfile raises many kinds on damaged directories
         raise ModelFileError(
-            f"model file {path} is not a readable .npz archive ({type(exc).__name__}: {exc})"
+            f"{what} {path} is not a readable .npz archive ({type(exc).__name__}: {exc})"
         ) from None
     with zf:
-        r = _Reader(path, zf)
+        r = _Reader(path, zf, what)
         meta = _read_meta(r)  # says why a file is not a model of this format version
         if not sealed:
-            raise ModelFileError(_damaged(path))
+            raise ModelFileError(_damaged(path, what))
         image_shape = _check_fields(r, meta, size)
         check_memory(
-            sum(info.file_size for info in zf.infolist()), f"model file {path} (its arrays)"
+            sum(info.file_size for info in zf.infolist()), f"{what} {path} (its arrays)"
         )
         front = meta["frontend"]
         frontend = r.part(
@@ -573,7 +575,11 @@ def _load(path, size, readers: dict):
                 )
             if name in readers:
                 if not isinstance(meta.get(name), dict):
-                    raise r.error(name, f"missing: not a flyvpr {name} file")
+                    raise r.error(
+                        name,
+                        f"missing: not a flyvpr {name} file (a bare model, as `flyvpr fit` "
+                        f"writes; build one with `flyvpr {name}`)",
+                    )
                 found[name] = readers[name](r, meta[name])
         expected = {"__meta__.npy"} | {key + ".npy" for key in r.arrays}
         extra = sorted(set(zf.namelist()) - expected)

@@ -248,7 +248,7 @@ class Map:
             For anything wrong with the model part (another format version, image size, a
             failed checksum ...), and for a bare model file without a map.
         """
-        method, found = _load(path, size, {"map": _read_section})
+        method, found = _load(path, size, {"map": _read_section}, "map file")
         section = found["map"]
         n = method.frontend.n_reference_
         if section["n_places"] != n:
