@@ -537,9 +537,7 @@ def _load(path, size, readers: dict, what: str = "model file"):
         if not sealed:
             raise ModelFileError(_damaged(path, what))
         image_shape = _check_fields(r, meta, size)
-        check_memory(
-            sum(info.file_size for info in zf.infolist()), f"{what} {path} (its arrays)"
-        )
+        check_memory(sum(info.file_size for info in zf.infolist()), f"{what} {path} (its arrays)")
         front = meta["frontend"]
         frontend = r.part(
             front["name"], front["params"], front["state"], "frontend", FRONTENDS, "front end",

@@ -62,7 +62,7 @@ class VideoSource(Source):
             stream = container.streams.video[0]
             if self.threads:
                 stream.thread_type = "AUTO"
-            expected = _expected_frames(container, stream)
+            expected, says = _expected_frames(container, stream)
             index = 0
             try:
                 for frame in container.decode(stream):
@@ -76,21 +76,21 @@ class VideoSource(Source):
                 ) from None
             if expected is not None and index < expected:
                 raise RecordingError(
-                    f"video {self.path}: truncated: its header announces {expected} frames, "
+                    f"video {self.path}: truncated: its header {says} {expected} frames, "
                     f"{index} could be decoded"
                 )
 
 
-def _expected_frames(container, stream) -> int | None:
-    """The frame count the header announces (or its duration implies), less one frame of slack
-    for rounding; None when the header says neither."""
+def _expected_frames(container, stream) -> tuple[int | None, str]:
+    """The frame count the header announces, or the one its duration implies less one frame of
+    slack for rounding (None when the header says neither), and how to say it."""
     if stream.frames:
-        return int(stream.frames)
+        return int(stream.frames), "announces"
     rate = stream.average_rate or stream.guessed_rate
     if container.duration and rate:
         # container.duration is in microseconds (AV_TIME_BASE)
-        return int(container.duration * float(rate) / 1_000_000) - 1
-    return None
+        return int(container.duration * float(rate) / 1_000_000) - 1, "implies at least"
+    return None, ""
 
 
 #: 8-bit YUV formats whose first plane is the luma, one byte per pixel
