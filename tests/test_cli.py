@@ -353,3 +353,46 @@ def test_library_parameters_are_shown_as_options(route_folder, tmp_path, capsys)
     assert as_options("topic=/a; position_topic=/b; n_every=3; my-topic=4") == (
         "--topic /a; --position-topic /b; n_every=3; my-topic=4"
     )
+
+
+def test_evaluate_load_names_the_model_and_checks_its_window(route_dir, tmp_path, capsys, caplog):
+    model = tmp_path / "m.npz"
+    common = [*_eval_args(route_dir)[1:], "--count", "30"]
+    fit = ["fit", *[a for a in common if a not in ("--query", "winter", "--tolerance", "2")]]
+    assert main([*fit, "--method", "pixels", "--first", "0", "--save", str(model)]) == 0
+    capsys.readouterr()
+    out = tmp_path / "r.json"
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        assert (
+            main(["evaluate", *common, "--first", "0", "--load", str(model), "--out", str(out)])
+            == 0
+        )
+    assert f"model={model}" in capsys.readouterr().out
+    data = json.loads(out.read_text())
+    assert data["seed"] is None and data["model_file"] == str(model)
+    assert not [r for r in caplog.records if "find their own place" in r.getMessage()]
+    # another window of the route: the model's places are not these frames
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        assert main(["evaluate", *common, "--first", "30", "--load", str(model)]) == 0
+    (warning,) = [r for r in caplog.records if "find their own place" in r.getMessage()]
+    assert str(model) in warning.getMessage() and "--first" in warning.getMessage()
+    # the seed was the fit's: refused with --load, as --param is
+    capsys.readouterr()
+    assert main(["evaluate", *common, "--load", str(model), "--seed", "3"]) == 2
+    assert "--seed: a model loaded with --load is fitted already" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "option",
+    [
+        ["--method", "pixels", "--method", "seqslam"],
+        ["--method", "pixels", "--seed", "1", "--seed", "2"],
+    ],
+)
+def test_an_option_given_twice_is_refused(route_dir, capsys, option):
+    assert main(_eval_args(route_dir, *option)) == 2
+    err = capsys.readouterr().err
+    assert (
+        f"{option[-2]} given twice ({option[-3] if option[-2] == '--seed' else 'pixels'}, " in err
+    )
+    assert ("flyvpr experiment" in err) == (option[-2] == "--method")

@@ -336,8 +336,8 @@ def test_nordland_window_uses_positions_not_file_numbers(tmp_path):
     "first, count, match",
     [
         (10, None, r"first=10, count=None \(to the end\) lies beyond the data: .* 10 frames"),
-        (8, 3, "first=8, count=3 lies beyond the data: .* 10 frames"),
-        (0, 11, "first=0, count=11 lies beyond"),
+        (8, 3, "first=8, count=3, ending at position 10, lies beyond the data: .* 10 frames"),
+        (0, 11, "first=0, count=11, ending at position 10, lies beyond"),
     ],
 )
 def test_nordland_window_beyond_data(tmp_path, first, count, match):
@@ -461,7 +461,7 @@ def test_nordland_64x32_paper_window(shared_data):
     assert (p["first"], p["count"], p["tolerance"]) == (0, 1000, {"frames": 20})
     last = load_nordland(root, first=1400, count=1000)
     assert last.reference.paths[-1].name == "images-24000.png"
-    with pytest.raises(ValueError, match="first=1401, count=1000 .* 2400 frames"):
+    with pytest.raises(ValueError, match="first=1401, count=1000, .* 2400 frames"):
         load_nordland(root, first=1401, count=1000)
 
 

@@ -55,7 +55,9 @@ def test_generic_window(folders):
     np.testing.assert_array_equal(b.reference.frame_ids, [2, 3, 4, 5])
     i, j = np.indices((4, 4))
     np.testing.assert_array_equal(b.ground_truth, np.abs(i - j) <= 1)
-    with pytest.raises(ValueError, match="first=5, count=4 lies beyond the data: .*night has 7"):
+    with pytest.raises(
+        ValueError, match="first=5, count=4, ending at position 8, lies beyond the data: .*night: 7"
+    ):
         load_generic(folders, "day", "night", first=5, count=4)
 
 

@@ -194,7 +194,7 @@ def test_robotcar_window(two_runs):
     assert b.n_reference == b.n_query == 10
     np.testing.assert_array_equal(b.reference.positions, full.reference.positions[5:15])
     assert (b.protocol()["first"], b.protocol()["count"]) == (5, 10)
-    beyond = "first=35, count=10 lies beyond the data: run .* 40 frames"
+    beyond = "first=35, count=10, ending at position 44, lies beyond the data: run .* 40 frames"
     with pytest.raises(ValueError, match=beyond):
         load_robotcar(two_runs, "2014-12-09-13-21-02", "2014-12-16-18-44-24", first=35, count=10)
 

@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from flyvpr.evaluation import RESULT_FIELDS, evaluate_method, speed_profile
+from flyvpr.evaluation import RESULT_FIELDS, evaluate_method, self_match_share, speed_profile
+from flyvpr.methods import make_method
 
 
 def test_speed_profile_constant():
@@ -57,3 +58,23 @@ def test_evaluate_method_extended_precision_matches_metrics(random_images):
     res, S = evaluate_method("pixels", ref, qry, gt, return_scores=True)
     assert res["extended_precision"] == metrics.extended_precision(S, gt)
     assert res["recall_at_100_precision"] == metrics.recall_at_100_precision(S, gt)
+
+
+def test_self_match_share_tells_a_models_own_frames(random_images):
+    ref = random_images(50)
+    model = make_method("pixels").fit(ref)
+    assert self_match_share(model, ref) == 1.0  # every image is its own best place
+    other = random_images(50)
+    assert self_match_share(model, other) <= 0.2  # chance: 5 of 50 places within 2
+    # the first 40 images, then the first 10 again: only the first 40 find themselves
+    mixed = np.concatenate([ref[:40], ref[:10]])
+    assert self_match_share(model, mixed) == pytest.approx(0.8)
+    # evenly sampled, the ends included: 5 of [0, 12, 24, 37, 49] are 0, 12, 24, 37 (own) and
+    # 49 (not)
+    assert self_match_share(model, mixed, sample=5) == pytest.approx(0.8)
+    # within radius places: images shifted by 3 places find their own only with radius >= 3
+    shifted = np.concatenate([ref[3:], ref[:3]])
+    assert self_match_share(model, shifted, radius=2) <= 0.1
+    assert self_match_share(model, shifted, radius=3) >= 0.9
+    with pytest.raises(ValueError, match="empty"):
+        self_match_share(model, ref[:0])

@@ -13,7 +13,7 @@ import numpy as np
 from . import metrics
 from .methods import Method, make_method
 
-__all__ = ["evaluate_method", "RESULT_FIELDS"]
+__all__ = ["evaluate_method", "RESULT_FIELDS", "self_match_share"]
 
 #: fields every result dict carries (the JSON written by ``flyvpr evaluate``)
 RESULT_FIELDS = (
@@ -133,6 +133,20 @@ def evaluate_method(
     if return_scores:
         return result, S
     return result
+
+
+def self_match_share(model: Method, reference_images, *, radius: int = 2, sample: int = 200):
+    """Share of (up to ``sample``, evenly spaced) reference images whose best place under
+    ``model``'s front end lies within ``radius`` places of their own: near 1 for the images a
+    model was fitted on (a classifier's training accuracy, with the tolerance), near 0 for
+    another stretch of the route.  A check that a loaded model belongs to a reference window.
+    """
+    n = len(reference_images)
+    if n == 0:
+        raise ValueError("reference_images is empty")
+    idx = np.unique(np.linspace(0, n - 1, min(sample, n)).round().astype(np.int64))
+    best = np.asarray(model.frontend.score(reference_images[idx])).argmax(axis=1)
+    return float(np.mean(np.abs(best - idx) <= radius))
 
 
 def _plain(params: dict, seed) -> dict:

@@ -250,6 +250,25 @@ def add_dataset_args(p: argparse.ArgumentParser, required: bool = True) -> None:
             g.add_argument(flag, dest=opt, type=kind, default=None, help=help_text)
 
 
+class _Once(argparse.Action):
+    """An option that may be given once: a second value is a usage error (argparse would keep
+    the last one silently, and a user listing several methods would get only that one)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        given = getattr(namespace, self.dest, None)
+        if getattr(namespace, f"_{self.dest}_given", False):
+            parser.error(
+                f"{option_string} given twice ({given}, {values}): one per run"
+                + (
+                    "; `flyvpr experiment` runs several methods and tables them"
+                    if self.dest == "method"
+                    else ""
+                )
+            )
+        setattr(namespace, f"_{self.dest}_given", True)
+        setattr(namespace, self.dest, values)
+
+
 def add_method_args(
     p, required: bool = False, default=None, note: str = "", seed_default: int | None = 0
 ) -> None:
@@ -260,6 +279,7 @@ def add_method_args(
         required=required,
         default=default,
         choices=list(METHODS),
+        action=_Once,
         metavar="METHOD",
         help="one of: " + ", ".join(METHODS) + note,
     )
@@ -267,6 +287,7 @@ def add_method_args(
         "--seed",
         type=nonnegative_int,
         default=seed_default,
+        action=_Once,
         help="random_state of every random part, an integer >= 0 (default 0)",
     )
     p.add_argument(
@@ -373,7 +394,9 @@ def print_protocol(protocol: dict, args) -> None:
     if tol is not None:
         parts.append(f"tolerance={tolerance_value(tol)} {tolerance_unit(tol) or ''}".rstrip())
     size = getattr(args, "size", DEFAULT_SIZE)
-    print(" ".join(parts) + f" size={size[0]}x{size[1]} seed={args.seed}")
+    load = getattr(args, "load", None)
+    fitted = f"model={load}" if load is not None else f"seed={args.seed}"
+    print(" ".join(parts) + f" size={size[0]}x{size[1]} {fitted}")
 
 
 def parse_speed(text: str):

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
 from .._io import write_json_atomic
 from .._version import __version__
 from ..datasets import load_benchmark
-from ..evaluation import evaluate_method
+from ..evaluation import evaluate_method, self_match_share
 from ._common import (
     RESULT_COLUMNS,
     UsageError,
@@ -27,12 +28,19 @@ from ._common import (
     tolerance_value,
 )
 
+logger = logging.getLogger(__name__)
+
 
 def cmd_evaluate(args) -> int:
     kwargs = dataset_kwargs(args)
     if args.load is not None:
         if args.param:
             raise UsageError("--param cannot change a model loaded with --load")
+        if args.seed is not None:
+            raise UsageError(
+                "--seed: a model loaded with --load is fitted already (its seed was given to "
+                "`flyvpr fit`)"
+            )
         from ..modelio import load_method
 
         model = load_method(args.load, size=args.size)
@@ -45,6 +53,7 @@ def cmd_evaluate(args) -> int:
     else:
         model = args.method
         front_params, filt_params = split_params(args.method, args.param)
+        args.seed = 0 if args.seed is None else args.seed
     bench = load_benchmark(args.dataset, **kwargs)
     loaded = [args.load] if args.load is not None else []
     check_outputs(args, [*bench.input_files(), *loaded], ("out",))
@@ -52,6 +61,8 @@ def cmd_evaluate(args) -> int:
     t0 = time.perf_counter()
     ref, qry = bench.load_images(size=args.size, **image_options(args))
     load_s = time.perf_counter() - t0
+    if args.load is not None:
+        _check_fitted_here(model, ref, args.load)
     result = evaluate_method(
         model,
         ref,
@@ -74,7 +85,8 @@ def cmd_evaluate(args) -> int:
         "n_query": result["n_query"],
         "tolerance": tolerance_value(protocol.get("tolerance")),
         "tolerance_unit": tolerance_unit(protocol.get("tolerance")),
-        "seed": args.seed,
+        "seed": args.seed,  # None for a loaded model (see model_file)
+        "model_file": None if args.load is None else str(args.load),
         "image_size": list(args.size),
         **{
             k: v for k, v in result.items() if k not in ("method", "seed", "n_reference", "n_query")
@@ -88,6 +100,19 @@ def cmd_evaluate(args) -> int:
         write_json_atomic(args.out, out)
         print(f"wrote {args.out}")
     return 0
+
+
+def _check_fitted_here(model, ref, path) -> None:
+    """Warn when a loaded model's front end does not recognise the reference window's own
+    images (a model fitted on another window: the ground truth would not be its places)."""
+    share = self_match_share(model, ref)
+    if share < 0.5:
+        logger.warning(
+            "%s: only %.0f%% of the reference frames (evenly sampled) find their own place "
+            "within 2 places: the model was likely fitted on other reference frames (check "
+            "--reference, --first and --count against those given to `flyvpr fit`)",
+            path, 100 * share,
+        )  # fmt: skip
 
 
 def cmd_fit(args) -> int:
@@ -124,7 +149,7 @@ def register(sub) -> None:
         ),
     )
     add_dataset_args(p)
-    add_method_args(p, required=False, note=" (required unless --load)")
+    add_method_args(p, required=False, note=" (required unless --load)", seed_default=None)
     p.add_argument("--out", type=Path, help="write the result as JSON (atomically)")
     p.add_argument(
         "--load",

@@ -75,8 +75,9 @@ def _check_window(first, count, n_available: int, what: str) -> tuple[int, int]:
     stop = n_available if count is None else first + count
     if first >= n_available or stop > n_available:
         shown = "None (to the end)" if count is None else count
+        ends = "" if count is None else f", ending at position {stop - 1},"
         raise ValueError(
-            f"window first={first}, count={shown} lies beyond the data: {what} has "
+            f"window first={first}, count={shown}{ends} lies beyond the data: {what}: "
             f"{n_available} frames (valid positions 0..{n_available - 1})"
         )
     return first, stop - first
