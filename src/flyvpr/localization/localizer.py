@@ -5,7 +5,10 @@ temporal filter (if any) is online.  Each :meth:`Localizer.update` encodes one
 frame, scores it against the reference places and advances the filter by one
 step, so time and memory per frame do not grow with the number of frames seen.
 It gives the same answers as the batch path (``Method.score`` then the row
-argmax), up to float rounding of the one-row versus many-row products.
+argmax) where the front end scores one row as it scores many (``kenyon``, ``pixels``,
+``flyhash``: bit for bit); FlyNet's float32 products differ in the last bits, and a filter
+can carry that across a near-tie into another answer on a few frames (see the streaming
+guide).
 
 Odometry, when the robot has it, goes to the filter as the number of places moved since the
 previous frame (``velocity``), or as metres (``distance``), which the localizer divides by
