@@ -683,3 +683,28 @@ def test_full_params_take_the_front_ends_hold_default():
     assert filt["hold_repeats"] is True
     _, filt = full_params(METHODS["flynet+cann-paper"], {}, {})
     assert "hold_repeats" not in filt
+
+
+def test_loky_worker_restarts_are_not_warned_of_other_warnings_are(monkeypatch, recwarn):
+    # loky recycles a worker whose memory grew past its leak threshold and warns; the runs go
+    # on, so the runner leaves that warning out, and only that one
+    import warnings
+
+    from flyvpr.experiments import runner
+
+    def fake_run(run):
+        warnings.warn(
+            runner._LOKY_RESTART + ". This can be caused by ...", UserWarning, stacklevel=1
+        )
+        warnings.warn("something else", UserWarning, stacklevel=1)
+        return {"run_id": run}
+
+    monkeypatch.setattr(runner, "execute_run", fake_run)
+    records = list(runner._run_parallel(["a", "b"], 1, "sequential"))
+    assert [r["run_id"] for r in records] == ["a", "b"]
+    messages = [str(w.message) for w in recwarn]
+    assert messages.count("something else") >= 1
+    assert not [m for m in messages if m.startswith(runner._LOKY_RESTART)]
+    # outside the runner the filter is gone
+    with pytest.warns(UserWarning, match="A worker stopped"):
+        warnings.warn(runner._LOKY_RESTART, UserWarning, stacklevel=1)

@@ -42,6 +42,7 @@ import sys
 import threading
 import time
 import traceback
+import warnings
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -337,13 +338,21 @@ def _backend_context(backend: str):
             yield
 
 
+#: loky restarts a worker whose memory grew by more than 300 MB since it started (its "memory
+#: leak" check): a worker that has loaded a few data sets and compiled the numba kernels
+#: does, and loky then warns of a stopped worker.  The runs go on in a fresh worker; nothing
+#: is lost, so the warning is left out.
+_LOKY_RESTART = "A worker stopped while some jobs were given to the executor"
+
+
 def _run_parallel(runs: list[RunSpec], n_jobs: int, backend: str):
     """Yield run records as they finish."""
     from joblib import Parallel, delayed, effective_n_jobs
 
     if not runs:
         return
-    with _backend_context(backend):
+    with _backend_context(backend), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=_LOKY_RESTART, category=UserWarning)
         tasks = (delayed(execute_run)(run) for run in runs)
         try:
             parallel = Parallel(n_jobs=n_jobs, return_as="generator_unordered")
