@@ -14,6 +14,7 @@ from __future__ import annotations
 import http.server
 import io
 import socket
+import struct
 import threading
 import time
 from pathlib import Path
@@ -75,6 +76,14 @@ class _Handler(http.server.BaseHTTPRequestHandler):
                 break
             srv.sent.append(sent)
             i += 1
+        if srv.reset_first and not srv.was_reset:
+            # the first connection ends in a reset (RST), as when the camera's server or the
+            # network drops it; later ones end as the others
+            srv.was_reset = True
+            self.connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            self.connection.close()
+            srv.finished.set()
+            return
         if srv.stall_after:
             # keep the connection open and silent: a camera that hangs (and stays hung for
             # every later connection)
@@ -100,6 +109,9 @@ class MjpegServer:
         After the last frame, keep the connection open without sending for so many seconds.
     garbage : bool
         Send random bytes under the MJPEG content type instead of frames (for ``duration`` s).
+    reset_first : bool
+        End the first connection with a reset (RST) instead of an orderly close (later
+        connections: as without).
 
     Attributes
     ----------
@@ -109,9 +121,18 @@ class MjpegServer:
     """
 
     def __init__(
-        self, jpegs, fps=30.0, *, n_frames=None, duration=None, stall_after=None, garbage=False
+        self,
+        jpegs,
+        fps=30.0,
+        *,
+        n_frames=None,
+        duration=None,
+        stall_after=None,
+        garbage=False,
+        reset_first=False,
     ):
         self.jpegs, self.fps = list(jpegs), fps
+        self.reset_first, self.was_reset = reset_first, False
         self.n_frames, self.duration = n_frames, duration
         self.stall_after, self.garbage = stall_after, garbage
         if garbage and duration is None:

@@ -88,7 +88,53 @@ def test_stall_ends_with_exit_1_and_every_record_kept(route, tmp_path, capsys):
     received = int(stdout.split(" frames received")[0].rsplit(" ", 1)[-1])
     assert received == N
     assert f"{len(rows)} localized, {N - len(rows)} dropped" in stdout
-    assert "ended: the stream stalled" in stdout and "wall clock" in stdout
+    assert "ended: the stream stalled or broke, and reopening it failed" in stdout
+    assert "wall clock" in stdout
+
+
+def test_a_stream_the_server_ends_and_a_damaged_frame_add_up(route, tmp_path, capsys):
+    # frame 5 is not a JPEG; the server then ends the stream: exit 0, and the frames
+    # received are the ones localized, dropped and damaged, each counted once
+    jpegs = list(route["jpegs"])
+    jpegs[5] = b"not a jpeg" * 50
+    out = tmp_path / "where.csv"
+    with MjpegServer(jpegs, fps=30, n_frames=N) as srv:
+        code, stdout, err = _run(
+            capsys, "localize", "--map", route["map"], srv.url, "--out", out, "--retries", 0
+        )
+    assert code == 0, err
+    assert "ended: the stream ended" in stdout and "reconnecting" not in err
+    rows = _records(out)
+    assert "5" not in [r["frame"] for r in rows]
+    dropped = int(stdout.split(" dropped")[0].rsplit(" ", 1)[-1])
+    assert f"{N} frames received, {len(rows)} localized, " in stdout
+    assert "1 damaged packet skipped" in stdout
+    assert len(rows) + dropped + 1 == N
+
+
+def test_the_same_ctrl_c_delivered_twice_stops_once(monkeypatch):
+    # rerun's own handler (with --view and --view-save) passes a Ctrl-C on: two SIGINTs at
+    # once are one Ctrl-C (the run finishes its frame and writes its summary); a second one
+    # a moment later interrupts at once
+    from flyvpr.cli import _live
+
+    class Source:
+        stops = 0
+
+        def stop(self):
+            self.stops += 1
+
+    src = Source()
+    with _live._first_ctrl_c_stops(src) as state:
+        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        assert state["interrupted"] and src.stops == 1
+        time.sleep(_live._SECOND_CTRL_C + 0.05)
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.5)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def test_ctrl_c_ends_with_exit_130_and_every_processed_frame_written(route, tmp_path, capsys):

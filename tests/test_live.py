@@ -133,6 +133,34 @@ def test_a_stall_is_retried_then_raises():
     assert time.monotonic() - t0 < 15
 
 
+def test_an_http_server_closing_the_stream_ends_it():
+    # FFmpeg reports an orderly close of an MJPEG-over-HTTP stream as EIO: the end, as the
+    # end of a file, not a broken connection to reopen
+    messages = []
+    with MjpegServer(_gray_jpegs(), fps=None, n_frames=12) as srv:
+        src = LiveSource(srv.url, stall_timeout=2, retries=3, notify=messages.append)
+        got = []
+        for f in src.frames((8, 16)):
+            got.append(f)
+            if len(got) > 30:  # the server serves the stream again at each reconnection
+                break
+    assert src.ended and src.n_received == 12 and src.n_reconnects == 0
+    assert len(got) + src.n_dropped == 12 and messages == []
+
+
+def test_a_reset_connection_is_reopened():
+    # a reset (RST) is a broken connection: reopened, and the stream read on to its end
+    messages = []
+    with MjpegServer(_gray_jpegs(), fps=None, n_frames=12, reset_first=True) as srv:
+        src = LiveSource(srv.url, stall_timeout=2, retries=1, notify=messages.append)
+        for n, _ in enumerate(src.frames((8, 16))):
+            if n > 40:
+                break
+    assert src.ended and src.n_reconnects == 1
+    assert 12 < src.n_received <= 24  # the first connection's frames may be cut by the reset
+    assert len(messages) == 1 and "the connection broke" in messages[0]
+
+
 def test_stop_ends_the_frames_promptly():
     with MjpegServer(_gray_jpegs(), fps=30, duration=20) as srv:
         src = LiveSource(srv.url, stall_timeout=5, retries=0)

@@ -192,6 +192,10 @@ class _Latencies:
         return (k + 1) * _LATENCY_BIN_MS
 
 
+#: a Ctrl-C later than this (seconds) after the first is a second one: it interrupts at once
+_SECOND_CTRL_C = 0.3
+
+
 @contextmanager
 def _first_ctrl_c_stops(source):
     """Ctrl-C (SIGINT) asks the source to stop: the frame in hand is finished and written,
@@ -203,9 +207,14 @@ def _first_ctrl_c_stops(source):
         return
 
     def stop(signum, frame):
-        state["interrupted"] = True
-        source.stop()
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        now = time.monotonic()
+        if not state["interrupted"]:
+            state.update(interrupted=True, at=now)
+            source.stop()
+        elif now - state["at"] > _SECOND_CTRL_C:
+            raise KeyboardInterrupt
+        # else: the same Ctrl-C delivered again (rerun's handler, with --view and
+        # --view-save, passes it on), not a second one
 
     previous = signal.signal(signal.SIGINT, stop)
     try:
@@ -379,10 +388,12 @@ def cmd_localize_live(args) -> int:
     if ctrl_c["interrupted"]:
         ending = "ended by Ctrl-C"
     elif failure is not None:
-        ending = "ended: the stream stalled"
+        ending = "ended: the stream stalled or broke, and reopening it failed"
     else:
         ending = "ended: the stream ended"
-    n_dropped = source.n_received - n_frames
+    # received, not localized, and not damaged: replaced by a newer frame before the
+    # localizer took it (or left when the run stopped)
+    n_dropped = source.n_received - n_frames - source.n_undecodable
     clock: dict[str | None, str] = {
         "stream": "the stream's clock",
         "wall": "the wall clock at arrival (Unix time)",

@@ -190,6 +190,9 @@ class LiveSource:
         self.notify = notify or logger.warning
         self.clock: str | None = None
         self.n_received = self.n_dropped = self.n_corrupt = self.n_reconnects = 0
+        # received MJPEG frames that did not decode (counted in n_corrupt too; other
+        # streams' damaged packets never become frames)
+        self.n_undecodable = 0
         self.ended = False
         self._av = require_extra("av")
         self._cond = threading.Condition()
@@ -231,7 +234,8 @@ class LiveSource:
             )
         except av.ExitError:
             raise _OpenFailed(
-                f"no answer within {self.open_timeout:g} s (expected a {self._expected()})"
+                f"no answer within {self.open_timeout:g} s (no data, or no frame after the "
+                f"headers; expected a {self._expected()})"
             ) from None
         except av.InvalidDataError:
             raise _OpenFailed(
@@ -321,9 +325,19 @@ class LiveSource:
         except av.ExitError:
             return f"stalled: no data for {self.stall_timeout:g} s"
         except (av.FFmpegError, OSError) as exc:
+            if self._closed_by_server(exc):
+                return "stop" if self._stopping else "end"
             reason = getattr(exc, "strerror", None) or _reason(exc)
             return f"the connection broke ({reason})"
         return "stop" if self._stopping else "end"
+
+    def _closed_by_server(self, exc) -> bool:
+        """Whether a read error is an HTTP server closing the stream: FFmpeg's multipart
+        (MJPEG) reader reports the connection's orderly close as EIO, where a broken one
+        raises ECONNRESET or stalls (a timeout)."""
+        return self.url.lower().startswith(("http://", "https://")) and (
+            getattr(exc, "errno", None) == errno.EIO
+        )
 
     def _run(self) -> None:
         container = self._container
@@ -445,6 +459,7 @@ class LiveSource:
             frames = []
         if not frames:
             self.n_corrupt += 1
+            self.n_undecodable += 1
             return None
         return frames[-1]
 
