@@ -252,7 +252,7 @@ def test_map_then_localize_from_the_command_line(route, tmp_path, capsys):
         "--ground-truth", "frames", "--tolerance", "2", "--index", "mih",
     )  # fmt: skip
     assert code == 0, err
-    assert f"compact map ({N} places, 256 bits, opened in " in out
+    assert f"compact map ({N} places, 256 bits, ready in " in out
     assert "relocation by multi-index hashing" in out and f"{N} frames of image folder" in out
     with open(records, newline="") as fh:
         rows = list(csv.DictReader(fh))

@@ -222,7 +222,7 @@ def cmd_localize_compact(args) -> int:
     elapsed = time.perf_counter() - t0
     index = "multi-index hashing" if args.index == "mih" else "exact scan"
     print(
-        f"compact map ({cmap.n_places} places, {cmap.large_map.n_bits} bits, opened in "
+        f"compact map ({cmap.n_places} places, {cmap.large_map.n_bits} bits, ready in "
         f"{open_s:.3f} s, relocation by {index}): {counted(n_frames, 'frame')} of "
         f"{source.describe()} "
         f"(every {args.every or 1}): {n_frames / elapsed:.1f} frames/s, median confidence "
