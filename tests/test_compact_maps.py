@@ -379,7 +379,17 @@ def test_a_corrupt_or_foreign_map_exits_1_and_writes_nothing(built, route, tmp_p
     cut = tmp_path / "cut.fvmap"
     cut.write_bytes(built.read_bytes()[:-100])
     bare = write_large_map(tmp_path / "bare.fvmap", np.zeros((4, 32), np.uint8))
-    for path, message in ((cut, "truncated or corrupt"), (bare, "without an encoder")):
+    junk = tmp_path / "junk.fvmap"  # not even the start of one: named as a compact map's fault
+    junk.write_bytes(b"\x00" * 5000)
+    empty_file = tmp_path / "empty.fvmap"
+    empty_file.write_bytes(b"")
+    for path, message in (
+        (cut, "truncated or corrupt"),
+        (bare, "without an encoder"),
+        (junk, "not a flyvpr map file (no b'FLYVPRLM' at the start)"),
+        (empty_file, "too short (0 bytes) to be a flyvpr map file"),
+        (tmp_path / "none.fvmap", "map file not found"),
+    ):
         out_file = tmp_path / "r.csv"
         code, out, err = _run(capsys, "localize", "--map", path, route["winter"], "--out", out_file)
         assert code == 1 and str(path) in err and message in err, err

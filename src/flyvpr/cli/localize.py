@@ -92,7 +92,9 @@ def _cmd_recording(args) -> int:
     args.source = Path(args.source)
     from ..large.recording import is_compact_map
 
-    if is_compact_map(args.map):
+    # by its first bytes, or by its name: a damaged .fvmap is told what a compact map needs
+    fvmap = Path(args.map).suffix.lower() == ".fvmap" and Path(args.map).is_file()
+    if is_compact_map(args.map) or fvmap:
         from ._compact import cmd_localize_compact
 
         return cmd_localize_compact(args)
