@@ -206,12 +206,15 @@ def _first_ctrl_c_stops(source):
         yield state
         return
 
+    first_at: list[float] = []  # when the first Ctrl-C came
+
     def stop(signum, frame):
         now = time.monotonic()
-        if not state["interrupted"]:
-            state.update(interrupted=True, at=now)
+        if not first_at:
+            first_at.append(now)
+            state["interrupted"] = True
             source.stop()
-        elif now - state["at"] > _SECOND_CTRL_C:
+        elif now - first_at[0] > _SECOND_CTRL_C:
             raise KeyboardInterrupt
         # else: the same Ctrl-C delivered again (rerun's handler, with --view and
         # --view-save, passes it on), not a second one
