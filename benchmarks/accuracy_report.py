@@ -314,7 +314,7 @@ def _unmasked_twin(condition: dict) -> tuple:
 def _mask_lines(data: dict) -> list[str]:
     """For every condition seen through a camera mask (its protocol has ``mask``) whose frames
     are also run without it: each filtered method's AUC mean without the mask minus through it
-    (the mask's cost; the fisheye disc's target is at most 0.01)."""
+    (the mask's cost; issue 19 asks at most 0.01 of the fisheye disc)."""
     conditions = _conditions(data)
     unmasked: dict[tuple, str] = {}
     for key, c in conditions.items():

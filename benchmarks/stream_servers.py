@@ -76,6 +76,18 @@ class _Handler(http.server.BaseHTTPRequestHandler):
                 break
             srv.sent.append(sent)
             i += 1
+        if srv.cut_first and not srv.was_cut:
+            # the first connection closes (orderly) in the middle of a JPEG: a broken stream
+            srv.was_cut = True
+            data = srv.jpegs[i % len(srv.jpegs)]
+            head = b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % len(data)
+            try:
+                self.wfile.write(head + data[: len(data) // 2])
+                self.wfile.flush()
+            except OSError:
+                pass
+            srv.finished.set()
+            return
         if srv.reset_first and not srv.was_reset:
             # the first connection ends in a reset (RST), as when the camera's server or the
             # network drops it; later ones end as the others
@@ -112,6 +124,9 @@ class MjpegServer:
     reset_first : bool
         End the first connection with a reset (RST) instead of an orderly close (later
         connections: as without).
+    cut_first : bool
+        End the first connection after half of one more JPEG (an orderly close in the middle
+        of a frame; later connections: as without).
 
     Attributes
     ----------
@@ -130,9 +145,11 @@ class MjpegServer:
         stall_after=None,
         garbage=False,
         reset_first=False,
+        cut_first=False,
     ):
         self.jpegs, self.fps = list(jpegs), fps
         self.reset_first, self.was_reset = reset_first, False
+        self.cut_first, self.was_cut = cut_first, False
         self.n_frames, self.duration = n_frames, duration
         self.stall_after, self.garbage = stall_after, garbage
         if garbage and duration is None:

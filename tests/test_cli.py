@@ -383,16 +383,18 @@ def test_evaluate_load_names_the_model_and_checks_its_window(route_dir, tmp_path
 
 
 @pytest.mark.parametrize(
-    "option",
+    ("option", "says", "points_to_experiment"),
     [
-        ["--method", "pixels", "--method", "seqslam"],
-        ["--method", "pixels", "--seed", "1", "--seed", "2"],
+        (
+            ["--method", "pixels", "--method", "seqslam"],
+            "--method given twice (pixels, seqslam)",
+            True,
+        ),
+        (["--method", "pixels", "--seed", "1", "--seed", "2"], "--seed given twice (1, 2)", False),
     ],
 )
-def test_an_option_given_twice_is_refused(route_dir, capsys, option):
+def test_an_option_given_twice_is_refused(route_dir, capsys, option, says, points_to_experiment):
     assert main(_eval_args(route_dir, *option)) == 2
     err = capsys.readouterr().err
-    assert (
-        f"{option[-2]} given twice ({option[-3] if option[-2] == '--seed' else 'pixels'}, " in err
-    )
-    assert ("flyvpr experiment" in err) == (option[-2] == "--method")
+    assert says in err and "one per run" in err
+    assert ("flyvpr experiment" in err) == points_to_experiment

@@ -401,6 +401,16 @@ def test_a_corrupt_or_foreign_map_exits_1_and_writes_nothing(built, route, tmp_p
     assert not (tmp_path / "e.fvmap").exists()
 
 
+def test_a_model_map_named_fvmap_is_still_a_model_map(route, tmp_path, capsys):
+    # `flyvpr map` without --compact writes a model-file map whatever its name
+    path = tmp_path / "plain.fvmap"
+    code, _, err = _run(capsys, "map", route["summer"], "--out", path)
+    assert code == 0, err
+    code, out, err = _run(capsys, "localize", "--map", path, route["winter"])
+    assert code == 0, err
+    assert f"{N} frames of image folder" in out and "compact map" not in out
+
+
 def test_a_live_stream_against_a_compact_map(built, frames, tmp_path, capsys):
     av = pytest.importorskip("av")  # noqa: F841
     import sys

@@ -78,3 +78,12 @@ def test_self_match_share_tells_a_models_own_frames(random_images):
     assert self_match_share(model, shifted, radius=3) >= 0.9
     with pytest.raises(ValueError, match="empty"):
         self_match_share(model, ref[:0])
+    with pytest.raises(ValueError, match="knows 50 reference places; got 49 images"):
+        self_match_share(model, ref[:49])
+    with pytest.raises(ValueError, match="sample must be >= 1"):
+        self_match_share(model, ref, sample=0)
+    with pytest.raises(ValueError, match="radius must be >= 0"):
+        self_match_share(model, ref, radius=-1)
+    # identical frames tie everywhere: each still finds its own place (a tie with it counts)
+    blank = np.full((30, 32, 64), 0.5, np.float32)
+    assert self_match_share(make_method("pixels").fit(blank), blank, radius=0) == 1.0

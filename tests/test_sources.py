@@ -173,6 +173,9 @@ def test_every_metres_says_how_many_frames_had_no_position(route, tmp_path, capl
     (record,) = [r for r in caplog.records if "no position" in r.getMessage()]
     assert f"skipped {N - 5} of {N} frames that have no position in {short}" in record.getMessage()
     caplog.clear()
+    with caplog.at_level("WARNING", logger="flyvpr"):  # read again (a compact map's 2nd pass)
+        src.read_all(SIZE, every="4m", positions=read_positions(short))
+    assert not [r for r in caplog.records if "no position" in r.getMessage()]
     full = tmp_path / "full.csv"
     full.write_text("frame,x,y\n" + "".join(f"{i},{2.0 * i},0\n" for i in range(N)))
     with caplog.at_level("WARNING", logger="flyvpr"):

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from . import metrics
+from ._validation import check_positive_int
 from .methods import Method, make_method
 
 __all__ = ["evaluate_method", "RESULT_FIELDS", "self_match_share"]
@@ -136,17 +137,48 @@ def evaluate_method(
 
 
 def self_match_share(model: Method, reference_images, *, radius: int = 2, sample: int = 200):
-    """Share of (up to ``sample``, evenly spaced) reference images whose best place under
-    ``model``'s front end lies within ``radius`` places of their own: near 1 for the images a
-    model was fitted on (a classifier's training accuracy, with the tolerance), near 0 for
-    another stretch of the route.  A check that a loaded model belongs to a reference window.
+    """Share of reference images that find their own place through ``model``'s front end.
+
+    A check that a loaded model belongs to a reference window: near 1 for the images it was
+    fitted on (a classifier's training accuracy, within the tolerance), near 0 for another
+    stretch of the route.
+
+    Parameters
+    ----------
+    model : Method
+        Fitted on as many places as there are ``reference_images``.
+    reference_images : ndarray, shape (n, H, W)
+    radius : int, default 2
+        An image finds its place when a place within ``radius`` of its own index scores as
+        high as any (a tie with its own counts: a run of identical frames is not a miss).
+    sample : int, default 200
+        At most this many images, evenly spaced (the first and the last included), are scored.
+
+    Returns
+    -------
+    float
+        In [0, 1].
+
+    Raises
+    ------
+    ValueError
+        For no image, a number of images other than the model's places, ``sample`` < 1 or
+        ``radius`` < 0.
     """
     n = len(reference_images)
     if n == 0:
         raise ValueError("reference_images is empty")
+    if model.frontend.n_reference_ != n:
+        raise ValueError(
+            f"the model knows {model.frontend.n_reference_} reference places; got {n} images"
+        )
+    sample = check_positive_int(sample, "sample")
+    radius = check_positive_int(radius, "radius", minimum=0)
     idx = np.unique(np.linspace(0, n - 1, min(sample, n)).round().astype(np.int64))
-    best = np.asarray(model.frontend.score(reference_images[idx])).argmax(axis=1)
-    return float(np.mean(np.abs(best - idx) <= radius))
+    scores = np.asarray(model.frontend.score(reference_images[idx]), np.float64)
+    near = np.abs(np.arange(n)[None, :] - idx[:, None]) <= radius
+    own = np.where(near, scores, -np.inf).max(axis=1)
+    return float(np.mean(own >= scores.max(axis=1)))
 
 
 def _plain(params: dict, seed) -> dict:

@@ -391,7 +391,7 @@ def cmd_localize_live(args) -> int:
     if ctrl_c["interrupted"]:
         ending = "ended by Ctrl-C"
     elif failure is not None:
-        ending = "ended: the stream stalled or broke, and reopening it failed"
+        ending = "ended: the stream failed (the error line below says how)"
     else:
         ending = "ended: the stream ended"
     # received, not localized, and not damaged: replaced by a newer frame before the

@@ -105,6 +105,8 @@ def cmd_evaluate(args) -> int:
 def _check_fitted_here(model, ref, path) -> None:
     """Warn when a loaded model's front end does not recognise the reference window's own
     images (a model fitted on another window: the ground truth would not be its places)."""
+    if model.frontend.n_reference_ != len(ref):
+        return  # refused by the evaluation itself, with the two numbers
     share = self_match_share(model, ref)
     if share < 0.5:
         logger.warning(

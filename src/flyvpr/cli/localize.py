@@ -6,6 +6,7 @@ import csv
 import io
 import sys
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -92,9 +93,11 @@ def _cmd_recording(args) -> int:
     args.source = Path(args.source)
     from ..large.recording import is_compact_map
 
-    # by its first bytes, or by its name: a damaged .fvmap is told what a compact map needs
-    fvmap = Path(args.map).suffix.lower() == ".fvmap" and Path(args.map).is_file()
-    if is_compact_map(args.map) or fvmap:
+    # by its first bytes; a damaged file named .fvmap (not a model file's zip either) is told
+    # what a compact map needs rather than what a model file does
+    path = Path(args.map)
+    damaged = path.suffix.lower() == ".fvmap" and path.is_file() and not zipfile.is_zipfile(path)
+    if is_compact_map(path) or damaged:
         from ._compact import cmd_localize_compact
 
         return cmd_localize_compact(args)

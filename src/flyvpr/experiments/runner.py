@@ -345,14 +345,24 @@ def _backend_context(backend: str):
 _LOKY_RESTART = "A worker stopped while some jobs were given to the executor"
 
 
+@contextlib.contextmanager
+def _quiet_loky_restarts():
+    """Leave out loky's warning of a restarted worker (only that warning, only from loky)
+    while the runs go on.  The filter is the process's (loky warns from its own thread)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings(
+            "ignore", message=_LOKY_RESTART, category=UserWarning, module=r"joblib\.externals\.loky"
+        )
+        yield
+
+
 def _run_parallel(runs: list[RunSpec], n_jobs: int, backend: str):
     """Yield run records as they finish."""
     from joblib import Parallel, delayed, effective_n_jobs
 
     if not runs:
         return
-    with _backend_context(backend), warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=_LOKY_RESTART, category=UserWarning)
+    with _backend_context(backend):
         tasks = (delayed(execute_run)(run) for run in runs)
         try:
             parallel = Parallel(n_jobs=n_jobs, return_as="generator_unordered")
@@ -488,7 +498,10 @@ def _run(config_path, out_dir, n_jobs: int, backend: str, progress) -> dict:
 
         # Closing the generator on any exit (an error, Ctrl-C, SIGTERM) makes joblib
         # terminate its worker processes instead of leaving them to finish their runs.
-        with contextlib.closing(_run_parallel(parallel_runs, n_jobs, backend)) as records:
+        with (
+            _quiet_loky_restarts(),
+            contextlib.closing(_run_parallel(parallel_runs, n_jobs, backend)) as records,
+        ):
             for record in records:
                 store(record)
         for run in timing_runs:

@@ -23,6 +23,8 @@ from ..images import DEFAULT_SIZE, _check_size
 __all__ = ["Batch", "Every", "RecordingError", "Source", "parse_every", "require_extra"]
 
 logger = logging.getLogger(__name__)
+#: (recording, rule, positions) whose frames without a position were warned of already
+_WARNED_UNPLACED: set[tuple] = set()
 
 #: frames per batch unless a caller asks for another number
 DEFAULT_BATCH = 32
@@ -213,7 +215,9 @@ class Source:
                 n = 0
         if seen == 0:
             raise RecordingError(f"{self.describe()}: the recording holds no frame")
-        if thin.unplaced:
+        said = (self.describe(), str(thin.every), positions.origin if positions else None)
+        if thin.unplaced and said not in _WARNED_UNPLACED:  # once, though a map reads twice
+            _WARNED_UNPLACED.add(said)
             logger.warning(
                 "%s: every=%s skipped %d of %d frames that have no position in %s",
                 self.describe(), thin.every, thin.unplaced, seen, positions.origin,

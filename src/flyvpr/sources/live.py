@@ -103,6 +103,12 @@ class LiveFrame(NamedTuple):
     frame: object
 
 
+#: a JPEG's end-of-image marker, and how far from a packet's end it is looked for (a camera may
+#: pad its JPEGs after it)
+_EOI = b"\xff\xd9"
+_EOI_REACH = 16
+
+
 class LiveSource:
     """A network stream or a camera, decoded on a thread that keeps only the newest frame.
 
@@ -297,12 +303,14 @@ class LiveSource:
         # at once (a stream faster than the decoder would otherwise queue up in TCP buffers)
         lazy = stream.codec_context.name == "mjpeg"
         last = time.monotonic()
+        whole = False  # whether the last MJPEG packet ended a JPEG (its EOI marker)
         try:
             for packet in container.demux(stream):
                 if self._stopping:
                     return "stop"
                 if lazy:
                     if packet.size:
+                        whole = _EOI in bytes(memoryview(packet)[-_EOI_REACH:])
                         last = time.monotonic()
                         t = None if packet.pts is None else float(packet.pts * stream.time_base)
                         self._publish(packet, t, last)
@@ -325,7 +333,7 @@ class LiveSource:
         except av.ExitError:
             return f"stalled: no data for {self.stall_timeout:g} s"
         except (av.FFmpegError, OSError) as exc:
-            if self._closed_by_server(exc):
+            if whole and self._closed_by_server(exc):
                 return "stop" if self._stopping else "end"
             reason = getattr(exc, "strerror", None) or _reason(exc)
             return f"the connection broke ({reason})"
@@ -333,8 +341,9 @@ class LiveSource:
 
     def _closed_by_server(self, exc) -> bool:
         """Whether a read error is an HTTP server closing the stream: FFmpeg's multipart
-        (MJPEG) reader reports the connection's orderly close as EIO, where a broken one
-        raises ECONNRESET or stalls (a timeout)."""
+        (MJPEG) reader reports the connection's orderly close as EIO, where a reset raises
+        ECONNRESET and a silent link stalls (a timeout).  The caller counts it as the end
+        only after a whole JPEG: a close in the middle of one is a broken stream."""
         return self.url.lower().startswith(("http://", "https://")) and (
             getattr(exc, "errno", None) == errno.EIO
         )
