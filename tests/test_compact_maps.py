@@ -253,7 +253,8 @@ def test_map_then_localize_from_the_command_line(route, tmp_path, capsys):
     )  # fmt: skip
     assert code == 0, err
     assert f"compact map ({N} places, 256 bits, ready in " in out
-    assert "relocation by multi-index hashing" in out and f"{N} frames of image folder" in out
+    assert "relocation by multi-index hashing from s.mih)" in out
+    assert f"{N} frames of image folder" in out
     with open(records, newline="") as fh:
         rows = list(csv.DictReader(fh))
     columns = ["frame", "timestamp", "place", "confidence", "state", "relocated", "correct"]
@@ -399,6 +400,14 @@ def test_a_corrupt_or_foreign_map_exits_1_and_writes_nothing(built, route, tmp_p
     code, out, err = _run(capsys, "map", empty, "--out", tmp_path / "e.fvmap", "--compact")
     assert code == 1 and str(empty) in err, err
     assert not (tmp_path / "e.fvmap").exists()
+
+
+def test_mih_without_its_file_says_the_tables_were_built(built, route, tmp_path, capsys):
+    copy = tmp_path / "copy.fvmap"
+    shutil.copy(built, copy)  # no .mih beside it
+    code, out, err = _run(capsys, "localize", "--map", copy, route["winter"], "--index", "mih")
+    assert code == 0, err
+    assert "relocation by multi-index hashing, tables built (no copy.mih))" in out
 
 
 def test_a_model_map_named_fvmap_is_still_a_model_map(route, tmp_path, capsys):

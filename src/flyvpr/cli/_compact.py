@@ -118,7 +118,7 @@ def cmd_localize_compact(args) -> int:
     """``flyvpr localize --map MAP SOURCE`` with a compact map."""
     from tqdm.auto import tqdm
 
-    from ..large.recording import compact_localizer, open_compact_map
+    from ..large.recording import compact_localizer, index_path, open_compact_map
     from ..localization.tracking import distances_moved
     from ..metrics import evaluate_answers
     from ..sources import RecordingError, open_source, read_positions
@@ -220,7 +220,12 @@ def cmd_localize_compact(args) -> int:
         if n_frames == 0:  # inside the with: no output file is left behind
             raise RecordingError(f"{source.describe()}: --every {args.every} keeps no frame")
     elapsed = time.perf_counter() - t0
-    index = "multi-index hashing" if args.index == "mih" else "exact scan"
+    index = "exact scan"
+    if args.index == "mih":
+        sidecar = index_path(args.map)
+        index = "multi-index hashing" + (
+            f" from {sidecar.name}" if sidecar.exists() else f", tables built (no {sidecar.name})"
+        )
     print(
         f"compact map ({cmap.n_places} places, {cmap.large_map.n_bits} bits, ready in "
         f"{open_s:.3f} s, relocation by {index}): {counted(n_frames, 'frame')} of "
