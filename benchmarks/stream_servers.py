@@ -33,6 +33,11 @@ def jpeg_bytes(image: np.ndarray, quality: int = 85) -> bytes:
     return buf.getvalue()
 
 
+def _part_head(n: int) -> bytes:
+    """The multipart header of a JPEG of ``n`` bytes in the MJPEG stream."""
+    return b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % n
+
+
 class _Handler(http.server.BaseHTTPRequestHandler):
     def log_message(self, *args):  # quiet
         pass
@@ -67,7 +72,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
                 if delay > 0:
                     time.sleep(delay)
             data = srv.jpegs[i % len(srv.jpegs)]
-            head = b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % len(data)
+            head = _part_head(len(data))
             sent = time.time()  # before the write: the client may have the frame before it returns
             try:
                 self.wfile.write(head + data + b"\r\n")
@@ -80,9 +85,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             # the first connection closes (orderly) in the middle of a JPEG: a broken stream
             srv.was_cut = True
             data = srv.jpegs[i % len(srv.jpegs)]
-            head = b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % len(data)
             try:
-                self.wfile.write(head + data[: len(data) // 2])
+                self.wfile.write(_part_head(len(data)) + data[: len(data) // 2])
                 self.wfile.flush()
             except OSError:
                 pass
