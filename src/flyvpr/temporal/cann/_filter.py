@@ -152,7 +152,8 @@ class CANN(OdometryFilter):
 
     A row of :meth:`step` or :meth:`filter`: entry ``i`` is the support times the probability
     of being within ``tolerance`` places of ``i`` (calibrated; the front end's scaled scores
-    when it answers), its argmax the answer and its maximum the confidence.  With odometry
+    when it answers), at most the answer's, which is its maximum (the confidence) and its
+    first argmax.  With odometry
     (``velocity``) every row of the layer moves by it times the row's velocity read as a scale
     factor (``odometry="scaled"``), or by it alone (``"exact"``).
 
@@ -170,11 +171,13 @@ class CANN(OdometryFilter):
         Most likely speed, places per frame, before the evidence (the map's own pace).
     speed_prior_width : float, default 0.25
         Standard deviation of the Gaussian prior over velocities around ``speed_prior``
-        (it weighs where the layer starts and where a redrawn velocity lands).
+        (it weighs the velocities the layer starts with and those of the activity re-seeded
+        over the route, ``relocation`` and ``recovery``).
     velocity_change : float, default 0.02
         Probability per frame that the velocity moves to a neighbouring candidate.
     velocity_jump : float, default 0.02
-        Probability per frame that the velocity is redrawn from the prior (stops, starts).
+        Probability per frame that the velocity is redrawn, evenly from all the candidates
+        (backwards with probability ``reverse_weight``): stops, starts.
     jitter : float, default 0.0
         Uneven motion: probability per frame that a robot moving a place or more per frame
         lands one place ahead of or behind where its velocity takes it (half each way; a
@@ -203,8 +206,9 @@ class CANN(OdometryFilter):
         Extra probability per frame of being anywhere, times the probability that the
         sequence is lost (``1 - support_``): a lost filter looks around more.
     tolerance : int, default 2
-        The answer is the place with the most probability within ``tolerance`` places; the
-        confidence is that probability (times the support).
+        The answer is the most probable place in the window of ``2 * tolerance + 1`` places
+        that holds the most probability; the confidence starts from the probability within
+        ``tolerance`` places of the answer (times the support).
     sequence_break : float, default 0.05
         Probability per new frame that the query leaves the route (the support's prior
         decay); a frame counts as ``novelty_`` of a new one, the rest of it relaxes the
@@ -299,8 +303,9 @@ class CANN(OdometryFilter):
     source_ : str
         ``"sequence"`` or ``"front end"``: where the last answer came from.
     n_frames_, n_relocations_ : int
-        Frames filtered since :meth:`reset` (held ones aside); frames whose answer landed
-        more than ``2 * tolerance + 1`` places from the predicted place.
+        Frames filtered since :meth:`reset` (held ones aside); frames answered from the
+        sequence whose answer landed more than ``2 * tolerance + 1`` places from the
+        predicted place (a front-end answer is never counted).
     compiled_ : bool
         Whether the per-frame updates run compiled by numba.
 

@@ -13,8 +13,8 @@ TRANSFORMS = ("auto", "log", "linear")
 #: candidate movements per frame for movement="estimate": 0.75 to 2 places in steps of 1/8
 DEFAULT_VELOCITIES = (0.75, 0.875, 1.0, 1.125, 1.25, 1.375, 1.5, 1.625, 1.75, 1.875, 2.0)
 
-#: Parameters for fast recovery after a kidnap (see "Fast recovery" in the user guide's CANN
-#: page): ``CANN(**FAST_RECOVERY)``.  Weak attractor, strong two-timescale evidence.
+#: Parameters for fast recovery after a kidnap (see "Fast recovery" in the user guide's cann-paper
+#: page): ``AttractorCANN(**FAST_RECOVERY)``.  Weak attractor, strong two-timescale evidence.
 FAST_RECOVERY = {
     "excitation_strength": 8.0,
     "inhibition": 1.0,

@@ -1,8 +1,9 @@
 """The CANN's readout: the packet's answer and its confidence, the front end's, or none.
 
-See "Output" in the user guide's CANN page.  Tiers of the confidence (the row's maximum):
-0 no answer; below 1 a tentative answer of the packet; 1 to 2 the front end's answer while
-the sequence is lost; ``2 + c`` the packet's answer, ``c`` its evidence contrast.
+See "Output" in the user guide's page on the paper's CANN (``docs/guide/cann-paper.md``).
+Tiers of the confidence (the row's maximum): 0 no answer; below 1 a tentative answer of the
+packet; 1 to 2 the front end's answer while the sequence is lost; ``2 + c`` the packet's
+answer, ``c`` its evidence contrast.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ Row ``j`` of the bank holds the evidence along constant-velocity lines of slope
 best line stands out most from its own spread, ``(max - mean) / std`` over places, gets a
 vote if that contrast reaches ``velocity_contrast``; votes decay over ``velocity_memory``
 frames, and the candidate with most votes is the estimate.  See "Shift and copy" in the user
-guide's CANN page.
+guide's page on the paper's CANN (``docs/guide/cann-paper.md``).
 """
 
 from __future__ import annotations
