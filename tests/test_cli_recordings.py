@@ -364,17 +364,22 @@ def test_video_speed_benchmark_runs_small():
 @pytest.fixture
 def scripted(monkeypatch):
     """Every map loaded gets a :class:`Scripted` filter (alternately lost and localized, the
-    lost first); the list holds them, to read the velocities they were given."""
+    lost first); the list holds each such filter as it is reset (the localizer's own copy
+    last), to read the velocities they were given."""
     from flyvpr.localization.maps import Map
 
     load = Map.load.__func__
     made = []
 
+    class Recorded(Scripted):
+        def reset(self):
+            super().reset()
+            made.append(self)
+
     def load_scripted(cls, path, *, size=None):
         m = load(cls, path, size=size)
-        m.method.filter = Scripted(("lost", "localized"))
+        m.method.filter = Recorded(("lost", "localized"))
         m.method.filter.reset()
-        made.append(m.method.filter)
         return m
 
     monkeypatch.setattr(Map, "load", classmethod(load_scripted))

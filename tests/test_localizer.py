@@ -252,3 +252,35 @@ def test_from_map_takes_the_maps_spacing(ref):
     assert Localizer.from_map(bare).place_spacing is None
     assert Localizer.from_map(bare, place_spacing=1.5).place_spacing == 1.5
     assert Localizer("pixels").place_spacing is None
+
+
+def test_a_ready_method_gives_a_localizer_its_own_fresh_filter(route):
+    ref, qry = route
+    method = make_method("flyhash+cann", 0).fit(ref)
+    fresh = [Localizer(make_method("flyhash+cann", 0).fit(ref)).update(img) for img in qry[:1]]
+    method.score(qry[:60])  # the method's filter has run a whole traverse
+    loc = Localizer(method)
+    assert loc.method.filter is not method.filter
+    assert loc.method.frontend is method.frontend  # the map itself is shared
+    assert [loc.update(qry[0])] == fresh
+    # Scoring with the method again, mid-drive, leaves the localizer's frames alone.
+    expected = Localizer(make_method("flyhash+cann", 0).fit(ref))
+    expected.update(qry[0])
+    method.score(qry[:10])
+    for img in qry[1:40]:
+        assert loc.update(img) == expected.update(img)
+
+
+def test_two_localizers_over_one_map_keep_their_own_drives(route):
+    ref, qry = route
+
+    def new_map():
+        method = make_method("pixels+cann", 0).fit(ref)
+        return Map(method, (32, 64), np.zeros(len(ref)), np.arange(len(ref)))
+
+    shared = new_map()
+    one, two = Localizer.from_map(shared), Localizer.from_map(shared)
+    alone = Localizer.from_map(new_map())
+    for k, img in enumerate(qry[:60]):
+        two.update(qry[-1 - k])  # another robot, driving the route the other way
+        assert one.update(img) == alone.update(img)

@@ -19,6 +19,8 @@ that is a little off costs little.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 from collections.abc import Callable
 from inspect import signature
@@ -122,7 +124,10 @@ class Localizer:
     method : str or Method
         A method name (built with ``make_method``) or a ready :class:`Method`; default
         :data:`flyvpr.methods.DEFAULT_METHOD`.
-        Its filter, if any, must be online (offer ``reset``/``step``).
+        Its filter, if any, must be online (offer ``reset``/``step``).  A ready method's
+        front end is shared (``fit`` refits it); its filter is copied and reset, so the
+        localizer starts a drive afresh and keeps its own state: scoring with the method,
+        or a second localizer over it, leaves this one's frames alone.
     random_state : None, int or Generator
         Used when ``method`` is a name.
     frontend_params, filter_params : dict, optional
@@ -153,6 +158,13 @@ class Localizer:
         place_spacing=None,
     ):
         self.method = online_method(method, random_state, frontend_params, filter_params)
+        if self.method is method and method.filter is not None:
+            # The caller's method may have filtered frames already (its ``score``), and may
+            # serve other localizers: this one gets a filter of its own, from a fresh state.
+            self.method = dataclasses.replace(
+                method, filter=copy.deepcopy(method.filter), timing_={}
+            )
+            self.method.filter.reset()
         filt = self.method.filter
         self.place_spacing = _check_place_spacing(place_spacing)
         self._takes_velocity = isinstance(filt, OnlineFilter) and (
