@@ -87,3 +87,41 @@ def test_self_match_share_tells_a_models_own_frames(random_images):
     # identical frames tie everywhere: each still finds its own place (a tie with it counts)
     blank = np.full((30, 32, 64), 0.5, np.float32)
     assert self_match_share(make_method("pixels").fit(blank), blank, radius=0) == 1.0
+
+
+@pytest.mark.parametrize("name", ["flyhash", "kenyon+cann", "flynet+rnn"])
+def test_an_int_seed_refits_the_same_map_and_a_generator_goes_on(synthetic_route, name):
+    r = synthetic_route(40, random_state=3)
+    ref, qry = r.reference_images, r.query_images
+    params = {"epochs": 3} if name.startswith("flynet") else None
+    model = make_method(name, 0, frontend_params=params)
+    first = model.fit(ref).score(qry)
+    np.testing.assert_array_equal(model.fit(ref).score(qry), first)
+    # the first fit is that of a new method with the same seed
+    np.testing.assert_array_equal(make_method(name, 0, params).fit(ref).score(qry), first)
+    # a Generator is a stream: a refit draws on (the projections differ)
+    model = make_method(name, np.random.default_rng(0), params)
+    np.testing.assert_array_equal(model.fit(ref).score(qry), first)
+    assert not np.array_equal(model.fit(ref).score(qry), first)
+
+
+def test_a_part_seeded_after_make_method_keeps_its_seed(synthetic_route):
+    ref = synthetic_route(40, random_state=3).reference_images
+    model = make_method("flyhash", 0)
+    model.frontend.set_params(random_state=7)
+    model.fit(ref)
+    assert model.frontend.random_state == 7
+    np.testing.assert_array_equal(
+        model.frontend.score(ref), make_method("flyhash", 7).fit(ref).frontend.score(ref)
+    )
+
+
+def test_a_method_name_must_be_a_str():
+    with pytest.raises(TypeError, match=r"^method must be a method name \(a str.*got list$"):
+        make_method(["kenyon"])
+
+
+def test_a_filter_trained_on_the_references_says_so_when_they_are_too_few():
+    ref = np.random.default_rng(0).random((1, 32, 64), dtype=np.float32)
+    with pytest.raises(ValueError, match=r"^method 'kenyon\+rnn': its filter learns from the re"):
+        make_method("kenyon+rnn", 0).fit(ref)

@@ -117,7 +117,10 @@ def make_method(name: str, random_state=None, frontend_params=None, filter_param
     name : str
         A key of :data:`METHODS`.
     random_state : None, int or Generator
-        Passed to the parts that take one.
+        Passed to the parts that take one (unless their parameters set it), as one
+        Generator they share (the front end draws first, in ``fit``).  An int seeds it
+        afresh at every :meth:`Method.fit`, so a method refitted gives the same map; a
+        Generator goes on with its stream.
     frontend_params, filter_params : dict, optional
         Constructor keyword arguments of the front end and of the filter.
 
@@ -125,21 +128,37 @@ def make_method(name: str, random_state=None, frontend_params=None, filter_param
     ------
     ValueError
         For an unknown name (the message lists the known ones) or unknown parameters.
+    TypeError
+        For a name that is not a str.
     """
+    if not isinstance(name, str):
+        raise TypeError(
+            f"method must be a method name (a str, see `flyvpr methods`); got {type(name).__name__}"
+        )
     if name not in METHODS:
         raise ValueError(f"unknown method {name!r}; known methods: {', '.join(METHODS)}")
     spec = METHODS[name]
     rng = check_random_state(random_state)
+    seeded = []
     frontend = _construct(FRONTENDS[spec.frontend], frontend_params or {}, rng)
+    if frontend.get_params().get("random_state") is rng:
+        seeded.append("frontend")
     filt = None
     if spec.filter is not None:
         filt = _construct(FILTERS[spec.filter], filter_params or {}, rng)
+        if filt.get_params().get("random_state") is rng:
+            seeded.append("filter")
         hold_default(frontend, filt, filter_params or {})
     elif filter_params:
         raise ValueError(
             f"method {name!r} has no temporal filter; got filter_params {filter_params}"
         )
-    return Method(name, frontend, filt)
+    seed = (
+        None
+        if random_state is None or isinstance(random_state, np.random.Generator)
+        else int(random_state)
+    )
+    return Method(name, frontend, filt, seed=seed, seeded=tuple(seeded))
 
 
 def holds_repeats(frontend) -> bool:
@@ -171,12 +190,19 @@ class Method:
 
     ``fit`` trains on the reference images only; ``score`` returns the
     (filtered) score matrix of the queries and records timings in ``timing_``.
+
+    ``seed`` and ``seeded`` (set by :func:`make_method` from an int ``random_state``): every
+    ``fit`` first gives the parts named in ``seeded`` (``"frontend"``, ``"filter"``; those
+    still holding a Generator) one new Generator seeded with ``seed``, so that refitting gives
+    the same map.
     """
 
     name: str
     frontend: Encoder
     filter: TemporalFilter | None = None
     timing_: dict = field(default_factory=dict)
+    seed: int | None = field(default=None, repr=False)
+    seeded: tuple[str, ...] = field(default=(), repr=False)
 
     def fit(self, reference_images) -> Method:
         """Fit the front end, then the filter on the reference traverse's own scores."""
@@ -186,6 +212,13 @@ class Method:
         """:meth:`fit`, the front end's per-image work run through ``map_chunks`` when it is
         not None (see :meth:`flyvpr.frontends.base.Encoder._fit_chunks`)."""
         t0 = time.perf_counter()
+        if self.seed is not None and self.seeded:
+            rng = np.random.default_rng(self.seed)  # as make_method made it: the same map
+            for part in self.seeded:
+                obj = getattr(self, part)
+                # (unless the part was since given a seed of its own)
+                if isinstance(obj.get_params().get("random_state"), np.random.Generator):
+                    obj.set_params(random_state=rng)
         filt = self.filter
         if filt is not None and not getattr(filt, "needs_reference_scores", False):
             # an online filter checks its parameters on reset: before the front end's fit
@@ -195,7 +228,14 @@ class Method:
                 reset()
         self.frontend._fit_checked(reference_images, map_chunks)
         if self.filter is not None and getattr(self.filter, "needs_reference_scores", False):
-            self.filter.fit(self.frontend.score(reference_images))
+            own = self.frontend.score(reference_images)
+            try:
+                self.filter.fit(own)
+            except ValueError as exc:
+                raise ValueError(
+                    f"method {self.name!r}: its filter learns from the reference images' own "
+                    f"scores ({own.shape[0]} reference images): {exc}"
+                ) from exc
         self.timing_ = {"fit_s": time.perf_counter() - t0}
         return self
 
