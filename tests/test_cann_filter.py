@@ -1038,7 +1038,13 @@ def test_odometry_validation():
 # -- shapes, dtypes, input ---------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("dtype", "expected"),
-    [(np.float32, np.float32), (np.float64, np.float64), (np.int64, np.float64)],
+    [
+        (np.float32, np.float32),
+        (np.float64, np.float64),
+        (np.int64, np.float64),
+        (">f4", np.float32),  # bytes in the other order: the same float32 scores
+        (">f8", np.float64),
+    ],
 )
 @pytest.mark.parametrize("odometry", [False, True])
 def test_shapes_and_dtypes(dtype, expected, odometry):
@@ -1057,6 +1063,10 @@ def test_shapes_and_dtypes(dtype, expected, odometry):
 def test_invalid_input():
     f = CANN()
     f.reset()
+    with pytest.raises(TypeError, match="^scores_row must be real numbers; got dtype complex128"):
+        f.step(np.ones(5) + 0j)
+    with pytest.raises(TypeError, match="^S must be real numbers; got dtype complex64"):
+        f.filter(np.ones((3, 5), np.complex64))
     with pytest.raises(ValueError, match="^scores_row contains NaN or infinite values"):
         f.step(np.r_[1.0, np.nan, 0.0])
     with pytest.raises(
@@ -2323,3 +2333,25 @@ def test_the_first_frame_is_the_prior_weighed_by_its_evidence():
     profile = rows / rows.sum(axis=1, keepdims=True)
     np.testing.assert_allclose(profile, np.broadcast_to(f._marginal, profile.shape), rtol=1e-4)
     np.testing.assert_allclose(f._marginal, 1 / 60, rtol=1e-5)
+
+
+@pytest.mark.parametrize("odometry", ["scaled", "exact"])
+@pytest.mark.parametrize("huge", [1e19, -1e19, 1e300])
+def test_any_finite_odometry_past_the_route_moves_the_layer_off_it(odometry, huge):
+    # A move longer than the route leaves nothing on it, however long: the same frame as a
+    # move of ten routes, with no overflow on the way, and the filter goes on from there (the
+    # fraction of a place a huge move leaves, which phases the rows' later moves, is none).
+    rng = np.random.default_rng(4)
+    S = rng.normal(size=(12, 40))
+    rows = {}
+    for move in (huge, 400.0 if huge > 0 else -400.0):
+        f = CANN(odometry=odometry)
+        with np.errstate(all="raise"):
+            f.step(S[0])
+            f.step(S[1], velocity=1.0)
+            rows[move] = [f.step(S[2], velocity=move)]
+            rows[move] += [f.step(S[k], velocity=1.0) for k in range(3, 12)]
+    far, tens = rows.values()
+    np.testing.assert_array_equal(far[0], tens[0])
+    assert all(np.isfinite(row).all() for row in far)
+    assert [int(row.argmax()) for row in far] == [int(row.argmax()) for row in tens]

@@ -1,4 +1,5 @@
 import math
+import re
 
 import numpy as np
 import pytest
@@ -81,6 +82,13 @@ def test_bad_frame(route):
         loc.update(np.zeros((16, 32), np.float32))
     with pytest.raises(ValueError, match="NaN"):
         loc.update(np.full((32, 64), np.nan, np.float32))
+    for shape in ((1, 32, 64), (32, 64, 3), (64,)):
+        expected = f"image must be one gray frame of shape (H, W) = (32, 64); got shape {shape}"
+        with pytest.raises(ValueError, match=re.escape(expected)):
+            loc.update(np.zeros(shape, np.float32))
+    with pytest.raises(TypeError, match=r"image must be an array of shape \(H, W\)"):
+        loc.update([[0.0, 0.5], [0.5]])
+    assert loc.n_frames_ == 0
 
 
 @pytest.mark.parametrize("call", ["update", "scores", "n_places"])
@@ -284,3 +292,12 @@ def test_two_localizers_over_one_map_keep_their_own_drives(route):
     for k, img in enumerate(qry[:60]):
         two.update(qry[-1 - k])  # another robot, driving the route the other way
         assert one.update(img) == alone.update(img)
+
+
+def test_a_distance_too_large_for_places_names_the_distance(ref):
+    loc = _loc(ref, Scripted(), place_spacing=0.5)
+    with pytest.raises(ValueError, match="distance 1e.308 m over place_spacing 0.5 m is not a fin"):
+        loc.update(ref[0], distance=1e308)
+    with pytest.raises(ValueError, match="distances over place_spacing 0.5 m must be a finite"):
+        loc.update_batch(ref[:2], distances=[1.0, 1e308])
+    assert loc.n_frames_ == 0 and loc.method.filter.velocities == []

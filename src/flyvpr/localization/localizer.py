@@ -161,10 +161,10 @@ class Localizer:
         if self.method is method and method.filter is not None:
             # The caller's method may have filtered frames already (its ``score``), and may
             # serve other localizers: this one gets a filter of its own, from a fresh state.
-            self.method = dataclasses.replace(
-                method, filter=copy.deepcopy(method.filter), timing_={}
-            )
-            self.method.filter.reset()
+            own = copy.deepcopy(method.filter)
+            if isinstance(own, OnlineFilter):  # (online_method checked that it is)
+                own.reset()
+            self.method = dataclasses.replace(method, filter=own, timing_={})
         filt = self.method.filter
         self.place_spacing = _check_place_spacing(place_spacing)
         self._takes_velocity = isinstance(filt, OnlineFilter) and (
@@ -253,7 +253,13 @@ class Localizer:
                 "distance (metres) needs place_spacing, the metres between places: give "
                 "Localizer(place_spacing=...) or a map with positions, or pass velocity in places"
             )
-        return distance / self.place_spacing
+        places = distance / self.place_spacing
+        if not math.isfinite(places):
+            raise ValueError(
+                f"distance {distance:g} m over place_spacing {self.place_spacing:g} m is not a "
+                "finite number of places"
+            )
+        return places
 
     def _velocities(self, velocities, distances, n: int) -> list:
         """Per-frame odometry in places for :meth:`update_batch` (None where NaN or None)."""
@@ -283,7 +289,13 @@ class Localizer:
                     "Localizer(place_spacing=...) or a map with positions, or pass velocities "
                     "in places"
                 )
-            arr = arr / self.place_spacing
+            with np.errstate(over="ignore"):
+                arr = arr / self.place_spacing
+            if np.isinf(arr).any():
+                raise ValueError(
+                    f"distances over place_spacing {self.place_spacing:g} m must be a finite "
+                    f"number of places; got {raw.ravel()[np.isinf(arr)][0]:g} m"
+                )
         return [None if math.isnan(v) else float(v) for v in arr]
 
     def scores(self, image, velocity=None, distance=None) -> np.ndarray:
@@ -301,7 +313,16 @@ class Localizer:
 
     def _scores(self, image, velocity) -> np.ndarray:
         frontend = self.method.frontend
-        frame = check_images(np.asarray(image)[None], "image", frontend.image_shape_)
+        try:
+            image = np.asarray(image)
+        except Exception as exc:  # ragged lists and such
+            raise TypeError(f"image must be an array of shape (H, W); {exc}") from exc
+        if image.ndim != 2:
+            raise ValueError(
+                f"image must be one gray frame of shape (H, W) = {tuple(frontend.image_shape_)}; "
+                f"got shape {image.shape} (update_batch takes a stack of frames)"
+            )
+        frame = check_images(image[None], "image", frontend.image_shape_)
         row = frontend.score_codes(frontend._encode(frame))[0]
         if self.method.filter is not None:
             row = self._step(row, velocity)

@@ -578,16 +578,21 @@ class CANN(OdometryFilter):
         return out[0]
 
     def _shifts(self, velocity: float | None) -> np.ndarray:
-        """Whole places each row moves this frame (fractions accumulate, halves round up)."""
+        """Whole places each row moves this frame (fractions accumulate, halves round up).
+
+        A move of more than the route's length leaves it whatever its size: moves are bounded
+        by twice the route's length (so that any finite odometry, however large, moves the
+        layer off the route rather than past an integer's range)."""
         vel = self._params["velocities"]
+        bound = 2.0 * (self._n or 0) + 2.0
         if velocity is not None and self._params["odometry"] == "scaled":
             vel = velocity * vel  # each row: the odometry times its scale
         elif velocity is not None:
-            total = self._odometry_offset + velocity
+            total = min(max(self._odometry_offset + velocity, -bound), bound)
             k = math.floor(total + 0.5)
             self._odometry_offset = total - k
             return np.full(vel.size, k, np.int64)
-        total = self._offsets + vel
+        total = np.clip(self._offsets + vel, -bound, bound)
         rounded = np.floor(total + 0.5)
         self._offsets = total - rounded
         return rounded.astype(np.int64)
