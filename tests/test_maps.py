@@ -37,3 +37,37 @@ def test_place_spacing_is_the_median_step_between_neighbours(positions, spacing)
         assert m.place_spacing == spacing
     if spacing is not None:
         assert type(m.place_spacing) is float
+
+
+@pytest.mark.parametrize(
+    "field, value, match",
+    [
+        (
+            "timestamps",
+            np.zeros(3),
+            r"timestamps must have shape \(5,\), one entry a place .*\(3,\)",
+        ),
+        ("positions", np.zeros((4, 2)), r"positions must have shape \(5, 2\).*got \(4, 2\)"),
+        ("positions", np.zeros((5, 3)), r"positions must have shape \(5, 2\).*got \(5, 3\)"),
+        ("thumbnails", np.zeros((3, 8, 8), np.uint8), r"thumbnails must have shape \(5, H, W\)"),
+        ("thumbnails", np.zeros((5, 8), np.uint8), r"thumbnails must have shape \(5, H, W\)"),
+        ("source_index", np.arange(0), r"source_index must have shape \(n_places,\)"),
+        ("source_index", np.zeros((5, 1)), r"source_index must have shape \(n_places,\)"),
+    ],
+)
+def test_a_map_refuses_arrays_that_do_not_hold_one_entry_a_place(field, value, match):
+    args = {"timestamps": np.zeros(5), "source_index": np.arange(5), "positions": None,
+            "thumbnails": np.zeros((5, 8, 8), np.uint8)}  # fmt: skip
+    args[field] = value
+    with pytest.raises(ValueError, match=match):
+        Map(None, (32, 64), **args)
+
+
+def test_a_map_of_a_fitted_method_has_its_places(synthetic_route):
+    from flyvpr.methods import make_method
+
+    ref = synthetic_route(20, random_state=0).reference_images
+    method = make_method("pixels", 0).fit(ref)
+    assert Map(method, (32, 64), np.zeros(20), np.arange(20)).n_places == 20
+    with pytest.raises(ValueError, match=r"source_index must have shape \(20 \(the method's pl"):
+        Map(method, (32, 64), np.zeros(19), np.arange(19))

@@ -107,3 +107,21 @@ def test_ground_truth_positions_skips_unknown_positions():
         ground_truth_positions(q, r, -1.0)
     with pytest.raises(ValueError, match="2-d"):
         ground_truth_positions(q[0], r, 1.0)
+
+
+@pytest.mark.parametrize(
+    "batch, error, match",
+    [
+        (0, ValueError, "batch must be >= 1; got 0"),
+        (-5, ValueError, "batch must be >= 1; got -5"),
+        (2.5, TypeError, "batch must be an int; got float"),
+        (True, TypeError, "batch must be an int; got bool"),
+    ],
+)
+def test_a_bad_batch_is_refused_by_name_before_any_frame(images, batch, error, match):
+    loc = _loc(images)
+    with pytest.raises(error, match=match):
+        next(track(loc, Frames(images), batch=batch))
+    with pytest.raises(error, match=match):
+        next(Frames(images).batches((32, 64), batch=batch))
+    assert loc.n_frames_ == 0

@@ -85,10 +85,36 @@ class Map:
     ):
         self.method = method
         self.size = (int(size[0]), int(size[1]))
-        self.timestamps = np.asarray(timestamps, np.float64)
         self.source_index = np.asarray(source_index, np.int64)
+        n = self.source_index.shape[0] if self.source_index.ndim == 1 else -1
+        fitted = getattr(getattr(method, "frontend", None), "n_reference_", None)
+        if n < 1 or (fitted is not None and n != fitted):
+            places = "" if fitted is None else f"{fitted} (the method's places)"
+            raise ValueError(
+                f"source_index must have shape ({places or 'n_places'},), one frame index a "
+                f"place; got {self.source_index.shape}"
+            )
+        self.timestamps = np.asarray(timestamps, np.float64)
         self.positions = None if positions is None else np.asarray(positions, np.float64)
         self.thumbnails = thumbnails
+        for name, value, shape in (
+            ("timestamps", self.timestamps, (n,)),
+            ("positions", self.positions, (n, 2)),
+            ("thumbnails", thumbnails, (n, None, None)),
+        ):
+            got = None if value is None else np.shape(value)
+            if got is not None and (
+                len(got) != len(shape)
+                or any(want is not None and g != want for g, want in zip(got, shape, strict=True))
+            ):
+                want = ", ".join(
+                    "H" if w is None and i == 1 else "W" if w is None else str(w)
+                    for i, w in enumerate(shape)
+                )
+                raise ValueError(
+                    f"{name} must have shape ({want}{',' if len(shape) == 1 else ''}), one "
+                    f"entry a place ({n} places); got {got}"
+                )
         self.info = {
             "source": "",
             "source_kind": "",

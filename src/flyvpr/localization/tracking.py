@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._validation import check_positive_int
 from ..datasets import ground_truth_from_frames, ground_truth_from_positions
 from ..sources import Batch, Source
 
@@ -86,12 +87,17 @@ def track(
         position is unknown, get no odometry (the filter estimates that step itself).
     realtime : bool
         Pace the frames to the recording's timestamps (wall clock), one frame at a time.
+    batch : int, default 32
+        Frames read and localized at a time (at least 1).
 
     Raises
     ------
     ValueError
-        For ``odometry`` without ``positions``.
+        For ``odometry`` without ``positions``, or a ``batch`` below 1.
+    TypeError
+        For a ``batch`` that is not an int.
     """
+    batch = check_positive_int(batch, "batch")
     if odometry and positions is None:
         raise ValueError("odometry needs positions: the recording's own (positions=CSV)")
     m = getattr(localizer, "map_", None)

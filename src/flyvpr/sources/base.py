@@ -18,6 +18,7 @@ from types import ModuleType
 
 import numpy as np
 
+from .._validation import check_positive_int
 from ..images import DEFAULT_SIZE, _check_size
 
 __all__ = ["Batch", "Every", "RecordingError", "Source", "parse_every", "require_extra"]
@@ -196,6 +197,7 @@ class Source:
             If the recording cannot be read, or holds no frame at all (names the file).
         """
         h, w = _check_size(size)
+        batch = check_positive_int(batch, "batch")
         thin = _Thinner(parse_every(every), str(self.path), positions)
         images = np.empty((batch, h, w), np.float32)
         stamps = np.empty(batch, np.float64)
