@@ -192,3 +192,18 @@ def test_labels_as_0_and_1_equal_booleans():
     raw = [0.1, 0.5, 0.9, 0.95]
     assert fit_calibration(raw, [0, 1, 1, 0]) == fit_calibration(raw, [False, True, True, False])
     assert fit_calibration([0.0, 1.0], [0, 1], prior_weight=0.0)[0] == 0.0
+
+
+@pytest.mark.parametrize(
+    "raw, kw, match",
+    [
+        ([0.5, 0.6], {"prior_weight": "1"}, "^prior_weight must be a number; got str$"),
+        ([0.5, 0.6], {"prior_weight": None}, "^prior_weight must be a number; got NoneType$"),
+        ([0.5, 0.6], {"prior_weight": True}, "^prior_weight must be a number; got bool$"),
+        (["a", "b"], {}, "^raw must be numbers; got dtype <U1$"),
+        ([object(), 0.5], {}, "^raw must be numbers; got dtype object$"),
+    ],
+)
+def test_input_of_the_wrong_type_is_refused_by_name(raw, kw, match):
+    with pytest.raises(TypeError, match=match):
+        fit_calibration(raw, [True, False], **kw)

@@ -490,8 +490,9 @@ def test_reliability_by_hand():
         ([np.nan], [True], 10, ValueError, r"confidence must be finite and lie in \[0, 1\]"),
         ([0.5, 0.6], [True], 10, ValueError, "one label per confidence: 2; got 1"),
         ([0.5], [2], 10, ValueError, r"right must hold booleans \(or 0 and 1\)"),
-        ([0.5], [True], 0, ValueError, ">= 1"),
-        ([0.5], [True], 2.5, TypeError, "int"),
+        ([0.5], [True], 0, ValueError, "^bins must be >= 1; got 0$"),
+        ([0.5], [True], 2.5, TypeError, "^bins must be an int; got float$"),
+        (["x"], [True], 10, TypeError, "^confidence must be numbers; got dtype <U1$"),
     ],
 )
 def test_reliability_refuses(confidence, right, bins, error, match):
@@ -499,3 +500,12 @@ def test_reliability_refuses(confidence, right, bins, error, match):
 
     with pytest.raises(error, match=match):
         reliability(confidence, right, bins)
+
+
+def test_evaluate_answers_refuses_confidences_that_are_not_numbers():
+    from flyvpr.metrics import evaluate_answers
+
+    with pytest.raises(TypeError, match="^confidence must be numbers; got dtype <U1$"):
+        evaluate_answers(["x"], [True], [True])
+    with pytest.raises(TypeError, match="^confidence must be an array of numbers"):
+        evaluate_answers([[0.5], [0.5, 0.6]], [True, True], [True, True])

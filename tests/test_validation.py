@@ -69,3 +69,43 @@ def test_check_positive_int_and_fraction():
     assert check_fraction(1.0, "f") == 1.0
     with pytest.raises(ValueError, match=r"^f must be in \(0.0, 1.0\]; got 0.0"):
         check_fraction(0.0, "f")
+
+
+@pytest.mark.parametrize(
+    "size, expected",
+    [
+        ((32, 64), (32, 64)),
+        ((np.int64(8), 16), (8, 16)),
+        ((32.0, 64.0), (32, 64)),
+        ([4, 5], (4, 5)),
+    ],
+)
+def test_image_sizes_are_whole_numbers(size, expected):
+    from flyvpr.images import _check_size
+
+    assert _check_size(size) == expected
+
+
+@pytest.mark.parametrize(
+    "size", [(32.9, 64), (32, 64.7), (True, 64), (np.True_, 64), (1, 2, 3), (32,), "ab", None,
+             (math.nan, 4), (math.inf, 4)],
+)  # fmt: skip
+def test_image_sizes_that_are_not_whole_numbers_are_refused(size):
+    from flyvpr.images import _check_size
+
+    with pytest.raises(TypeError, match=r"size must be a pair \(H, W\) of ints"):
+        _check_size(size)
+
+
+def test_float64_images_past_float32_are_out_of_range_not_infinite():
+    import warnings
+
+    from flyvpr._validation import check_images
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (no overflow in a cast on the way)
+        with pytest.raises(ValueError, match=r"gray values in \[0, 1\]; got range \[0, 1e\+300\]"):
+            check_images(np.array([[[0.0, 1e300]]]))
+    with pytest.raises(ValueError, match="contains NaN or infinite values"):
+        check_images(np.array([[[0.0, np.inf]]]))
+    np.testing.assert_array_equal(check_images(np.array([[[0.0, 0.5]]])), [[[0.0, 0.5]]])

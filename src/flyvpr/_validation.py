@@ -89,21 +89,33 @@ def check_images(images, name: str = "images", shape: tuple[int, int] | None = N
             f"{name} must have image size (H, W) = {tuple(shape)} as at fit time; "
             f"got {tuple(arr.shape[1:])}"
         )
+    # Other floats are checked before the cast to float32, which would turn a value past its
+    # range into inf; the rest after it.
+    before = arr.dtype.kind == "f" and arr.dtype != np.float32
+    if before:
+        _check_gray(arr, name)
     arr = arr.astype(np.float32, copy=False)
+    if not before:
+        _check_gray(arr, name)
+    return arr
+
+
+def _check_gray(arr: np.ndarray, name: str) -> None:
+    """Every value of ``arr`` finite and in [0, 1], or a ValueError naming ``name``."""
     if not np.isfinite(arr).all():
         raise ValueError(f"{name} contains NaN or infinite values")
     lo, hi = float(arr.min()), float(arr.max())
     if lo < 0.0 or hi > 1.0:
         raise ValueError(f"{name} must hold gray values in [0, 1]; got range [{lo:g}, {hi:g}]")
-    return arr
 
 
 def check_scores(S, name: str = "S", ndim: int = 2) -> np.ndarray:
     """Validate a score matrix (or row when ``ndim == 1``) and return float arrays."""
     arr = np.asarray(S)
     kind = arr.dtype.kind  # (the kinds of np.number; faster than np.issubdtype per row)
-    if kind not in "iufc":
-        raise TypeError(f"{name} must be a numeric array; got dtype {arr.dtype}")
+    if kind not in "iuf":
+        what = "real numbers" if kind == "c" else "a numeric array"
+        raise TypeError(f"{name} must be {what}; got dtype {arr.dtype}")
     if arr.ndim != ndim:
         expect = "(n_query, n_reference)" if ndim == 2 else "(n_reference,)"
         raise ValueError(f"{name} must have shape {expect}; got shape {arr.shape}")
@@ -113,6 +125,8 @@ def check_scores(S, name: str = "S", ndim: int = 2) -> np.ndarray:
         raise ValueError(f"{name} contains NaN or infinite values")
     if kind != "f":
         arr = arr.astype(np.float64)
+    elif not arr.dtype.isnative:  # (bytes in the other order: the same floats, this machine's)
+        arr = arr.astype(arr.dtype.newbyteorder("="))
     return arr
 
 

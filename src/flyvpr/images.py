@@ -99,8 +99,13 @@ class ImageFolderError(ValueError):
 
 def _check_size(size) -> tuple[int, int]:
     try:
-        h, w = (int(v) for v in size)
-    except (TypeError, ValueError):
+        h, w = size
+        if isinstance(h, (bool, np.bool_)) or isinstance(w, (bool, np.bool_)):
+            raise TypeError
+        if int(h) != h or int(w) != w:  # (32.0 is 32; 32.9 is no size)
+            raise ValueError
+        h, w = int(h), int(w)
+    except (TypeError, ValueError, OverflowError):
         raise TypeError(f"size must be a pair (H, W) of ints; got {size!r}") from None
     if h < 1 or w < 1:
         raise ValueError(f"size must be positive (H, W); got {size!r}")

@@ -104,11 +104,23 @@ def _check_inputs(S, gt) -> tuple[np.ndarray, np.ndarray]:
     return S, gt
 
 
-def _check_k(k) -> int:
+def as_floats(values, name: str) -> np.ndarray:
+    """``values`` (array-like of numbers or booleans) as a float64 array; a TypeError naming
+    ``name`` for strings, objects and the like."""
+    try:
+        arr = np.asarray(values)
+    except Exception as exc:  # ragged lists and such
+        raise TypeError(f"{name} must be an array of numbers; {exc}") from exc
+    if arr.dtype.kind not in "biuf":
+        raise TypeError(f"{name} must be numbers; got dtype {arr.dtype}")
+    return arr.astype(np.float64)
+
+
+def _check_k(k, name: str = "k") -> int:
     if isinstance(k, bool) or not isinstance(k, (numbers.Integral, np.integer)):
-        raise TypeError(f"k must be an int; got {type(k).__name__}")
+        raise TypeError(f"{name} must be an int; got {type(k).__name__}")
     if k < 1:
-        raise ValueError(f"k must be >= 1; got {k}")
+        raise ValueError(f"{name} must be >= 1; got {k}")
     return int(k)
 
 
@@ -551,7 +563,7 @@ def evaluate_answers(confidence, correct, has_match) -> dict:
     >>> round(r["auc"], 4), round(r["recall_at_1"], 4)
     (0.5278, 0.6667)
     """
-    conf = np.asarray(confidence, dtype=np.float64)
+    conf = as_floats(confidence, "confidence")
     right = np.asarray(correct)
     match = np.asarray(has_match)
     if conf.ndim != 1 or right.shape != conf.shape or match.shape != conf.shape:
@@ -612,8 +624,8 @@ def reliability_counts(confidence, right, bins: int = 10) -> tuple:
     >>> n.tolist(), c.round(2).tolist(), r.tolist()
     ([2, 2], [0.2, 1.95], [1, 2])
     """
-    bins = _check_k(bins)
-    c = np.asarray(confidence, dtype=np.float64).ravel()
+    bins = _check_k(bins, "bins")
+    c = as_floats(confidence, "confidence").ravel()
     r = np.asarray(right).ravel()
     if r.shape != c.shape:
         raise ValueError(f"right must hold one label per confidence: {c.size}; got {r.size}")

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..._validation import check_real
+from ...metrics import as_floats
 from ._filter import _KNOTS as KNOTS  # the confidences at which a table is given
 
 #: the least step between neighbouring values of a fitted table (the filter requires a strictly
@@ -68,7 +70,9 @@ def fit_calibration(raw, right, prior_weight: float = 1.0) -> tuple[float, ...]:
     ------
     ValueError
         For empty, mismatched or non-finite input, raw confidences outside [0, 1], labels
-        other than 0/1, or a negative ``prior_weight``.
+        other than 0/1, or a negative or non-finite ``prior_weight``.
+    TypeError
+        For raw confidences that are not numbers, or a ``prior_weight`` that is not a number.
 
     Examples
     --------
@@ -80,7 +84,7 @@ def fit_calibration(raw, right, prior_weight: float = 1.0) -> tuple[float, ...]:
     >>> [round(v, 1) for v in table[::5]]
     [0.2, 0.6, 0.9]
     """
-    r = np.asarray(raw, dtype=np.float64)
+    r = as_floats(raw, "raw")
     y = np.asarray(right)
     if r.ndim != 1 or r.size == 0:
         raise ValueError(f"raw must be a non-empty 1-d array of confidences; got shape {r.shape}")
@@ -93,8 +97,7 @@ def fit_calibration(raw, right, prior_weight: float = 1.0) -> tuple[float, ...]:
     if y.dtype != bool and not np.isin(y, (0, 1)).all():
         raise ValueError("right must hold booleans (or 0 and 1): whether each answer was right")
     y = y.astype(np.float64)
-    if not (np.isfinite(prior_weight) and prior_weight >= 0.0):
-        raise ValueError(f"prior_weight must be a finite number >= 0; got {prior_weight!r}")
+    prior_weight = check_real(prior_weight, "prior_weight", inclusive=True)
     step = 1.0 / (KNOTS.size - 1)
     # Hat functions: an answer at raw confidence r weighs 1 - |r - knot| / step on each of its
     # two nearest knots (the interpolation the filter applies).
