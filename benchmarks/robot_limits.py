@@ -37,6 +37,10 @@ of the robot views of ``benchmarks/accuracy.py``; ``kenyon+cann`` with its defau
   exact odometry (1 place per frame), and causal SeqSLAM-60 (``SEQ_LENGTH``) told the speed
   exactly (1 place per frame: a matcher that knows what the CANN must find out), with
   OpenSeqSLAM's 0.8-1.2 and with the robot speeds 0.25-3 of the accuracy benchmark.
+* **Forwards and reversing** (``r-1x`` and ``r-reversed``, the dev window driven backwards):
+  the share of answers right, of frames ``localized``, of the ``localized`` and of the
+  ``lost`` answers right, and the mean confidence of a right answer, with the default bank and
+  with ``bidirectional=True``.
 * **Parked** (not a view of the accuracy benchmark): the query drives at 1 place per frame to
   place ``a``, stands there ``PARK_FRAMES`` frames (its one winter frame repeated, as a
   robot's camera sees a parked scene), then drives on ``PARK_AFTER`` frames.  ``PARK_PLACES``
@@ -79,6 +83,12 @@ SAME = 0.01
 JITTERS = (0.0, 0.15, 0.3)
 #: the views they are compared on: uneven frames first, then steady ones (what it costs)
 JITTER_VIEWS = ("r-uneven", "r-drops", "r-1x", "r-2.5x", "r-walk", "r-stopgo")
+#: the reversing runs of the state table: (view, bank, the filter's parameters)
+REVERSING = (
+    ("r-1x", "bidirectional", {"bidirectional": True}),
+    ("r-reversed", "default", {}),
+    ("r-reversed", "bidirectional", {"bidirectional": True}),
+)
 #: frames after the rejoin that the detour's figures cover (the must-show's bound)
 AFTER = 30
 #: a matcher is right from a frame when that frame and the RUN - 1 after it are all right
@@ -190,11 +200,11 @@ def _view(key: str):
     return next(v for v in ROBOT_VIEWS if v.key == key)
 
 
-def _run(seed: int, view, ref, qry, ref_ids, qry_ids):
-    """kenyon+cann over the view: rows, localized flags, the front end's scores and ground
-    truth, and the map's place ids."""
+def _run(seed: int, view, ref, qry, ref_ids, qry_ids, filter_params=None):
+    """kenyon+cann (its filter with ``filter_params``) over the view: rows, localized flags,
+    the front end's scores and ground truth, and the map's place ids."""
     keep = np.arange(len(ref)) if view.gap is None else gap_keep(len(ref), view.gap)
-    method = make_method("kenyon+cann", seed, {}, {})
+    method = make_method("kenyon+cann", seed, {}, filter_params or {})
     method.frontend.fit(ref[keep])
     idx = view.indices(len(qry))
     S = method.frontend.score(view.frames(qry, idx))
@@ -228,6 +238,26 @@ def _jitter_rows(seed: int, S: np.ndarray, qry_ids, ref_ids) -> list[dict]:
                 }
             )
     return rows
+
+
+def state_row(seed: int, view: str, bank: str, out, localized, gt) -> dict:
+    """How right the answers of one run are, and how its state and confidence say so."""
+    right = gt[np.arange(len(out)), out.argmax(axis=1)]
+    confidence = out.max(axis=1).astype(np.float64)
+
+    def share(mask):
+        return float(right[mask].mean()) if mask.any() else None
+
+    return {
+        "seed": seed,
+        "view": view,
+        "bank": bank,
+        "right": float(right.mean()),
+        "localized": float(localized.mean()),
+        "right_when_localized": share(localized),
+        "right_when_lost": share(~localized),
+        "confidence_when_right": float(confidence[right].mean()) if right.any() else None,
+    }
 
 
 def right_from(right: np.ndarray, start: int = 0, run: int = RUN) -> int | None:
@@ -287,7 +317,7 @@ def run(data: Path, progress: bool = True) -> dict:
     for first, last in map_stretches:
         in_stretch[first : last + 1] = True
 
-    stopgo, detour, cold, parked, uneven, matchers = [], [], [], [], [], []
+    stopgo, detour, cold, parked, uneven, matchers, states = [], [], [], [], [], [], []
     fish_ref, fish_qry = fisheye(ref), fisheye(qry)
     park_stops = stop_places(in_stretch, PARK_PLACES, PARK_SEED)
     for seed in SEEDS:
@@ -342,6 +372,11 @@ def run(data: Path, progress: bool = True) -> dict:
         fish_run = _run(seed, _view("r-fisheye"), fish_ref, fish_qry, ref_ids, qry_ids)
         matchers.append(_matchers(seed, "r-fisheye", 0, fish_run[2], fish_run[3], fish_run[0]))
         parked += _parked(seed, ref, qry, park_stops)
+        # forwards and reversing, with the default bank and the mirrored one
+        states.append(state_row(seed, "r-1x", "default", out, localized, gt))
+        for key, bank, params in REVERSING:
+            run_ = _run(seed, _view(key), ref, qry, ref_ids, qry_ids, params)
+            states.append(state_row(seed, key, bank, run_[0], run_[1], run_[3]))
         # (the 1x view's scores: every query frame, in order, against the whole map)
         assert S.shape == (len(qry), len(ref))
         uneven += _jitter_rows(seed, S, qry_ids, ref_ids)
@@ -376,6 +411,7 @@ def run(data: Path, progress: bool = True) -> dict:
         "parked": parked,
         "jitter": uneven,
         "matchers": matchers,
+        "states": states,
     }
 
 
@@ -449,6 +485,39 @@ def _jitter_table(data: dict) -> list[str]:
             aucs = [r["auc"] for r in rows if r["view"] == view and r["jitter"] == j]
             cells.append(f"{np.mean(aucs):.3f}")
         lines.append(f"| {labels.get(view, view)} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _states_table(data: dict) -> list[str]:
+    """Per view and bank, the shares of :func:`state_row`, mean over the seeds."""
+    rows = data["states"]
+    labels = {v.key: v.label for v in ROBOT_VIEWS}
+    keys = (
+        "right",
+        "localized",
+        "right_when_localized",
+        "right_when_lost",
+        "confidence_when_right",
+    )
+    lines = [
+        "",
+        "## Forwards and reversing: what the state says",
+        "",
+        "kenyon+cann on the dev window driven forwards and backwards, with the default bank "
+        "(backwards: -2 to -0.5 in steps of 0.5) and with `bidirectional=True` (the whole bank "
+        "mirrored); mean over the seeds.  Right: within the tolerance.",
+        "",
+        "| view | bank | right | `localized` | right when `localized` | right when `lost` | "
+        "mean confidence of a right answer |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for view, bank in dict.fromkeys((r["view"], r["bank"]) for r in rows):
+        picked = [r for r in rows if r["view"] == view and r["bank"] == bank]
+        cells = []
+        for key in keys:
+            values = [r[key] for r in picked if r[key] is not None]
+            cells.append(f"{np.mean(values):.3f}" if values else "-")
+        lines.append(f"| {labels.get(view, view)} | {bank} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -553,6 +622,8 @@ def render_markdown(data: dict) -> str:
         lines += _parked_table(data)
     if data.get("jitter"):
         lines += _jitter_table(data)
+    if data.get("states"):
+        lines += _states_table(data)
     lines.append("")
     if machine_sentence(data):
         lines.append(machine_sentence(data))

@@ -202,3 +202,17 @@ def test_matcher_table_lists_every_view_and_matcher_per_seed():
     lines = robot_limits._matcher_table({"matchers": rows, "protocol": {"matchers": "m"}})
     assert "| cold start at 1x | kenyon+cann | 33 | 29 | 30 |" in lines
     assert "| detour, from the rejoin | kenyon+cann | 44 | 43 | - |" in lines  # no seed 2 run
+
+
+def test_state_row_splits_the_answers_by_state():
+    # four frames over three places: answers 0, 1, 2, 2; right where gt says; localized 1 and 2
+    out = np.array([[0.9, 0.1, 0.0], [0.2, 0.8, 0.1], [0.0, 0.3, 0.6], [0.1, 0.2, 0.4]])
+    gt = np.array([[1, 0, 0], [0, 1, 0], [0, 1, 0], [0, 0, 1]], bool)
+    localized = np.array([False, True, True, False])
+    row = robot_limits.state_row(3, "r-x", "default", out, localized, gt)
+    assert row["seed"] == 3 and row["view"] == "r-x" and row["bank"] == "default"
+    assert row["right"] == 0.75 and row["localized"] == 0.5
+    assert row["right_when_localized"] == 0.5 and row["right_when_lost"] == 1.0
+    assert row["confidence_when_right"] == pytest.approx((0.9 + 0.8 + 0.4) / 3)
+    none = robot_limits.state_row(0, "r-x", "default", out, np.zeros(4, bool), gt)
+    assert none["right_when_localized"] is None and none["right_when_lost"] == 0.75
