@@ -5,7 +5,7 @@ loosely modelled on the early visual system of insects, in which photoreceptors 
 local light level (lamina) and the medulla responds to oriented edges:
 
 1. :func:`local_contrast_normalize`: every pixel minus the Gaussian-weighted mean of its
-   neighbourhood, divided by the Gaussian-weighted standard deviation (plus ``eps``).  Unlike
+   neighbourhood, divided by ``sqrt(variance + eps**2)`` of the Gaussian-weighted variance.  Unlike
    SeqSLAM's patch normalisation on a fixed grid of patches it is shift-equivariant, so a camera
    that moves by a few pixels sees the same normalised image, moved.
 2. Gabor energy: the response energy ``sqrt(even^2 + odd^2)`` of a quadrature pair of Gabor
