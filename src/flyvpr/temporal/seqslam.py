@@ -164,8 +164,9 @@ class SeqSLAM(OnlineFilter):
     v_min, v_max : float, default 0.8, 1.2
         Range of velocities searched, in reference places per query frame (OpenSeqSLAM's
         range).  ``v_min=0.75, v_max=2.0, v_step=0.125`` searches the same speeds as the
-        CANN's default velocity bank (:class:`~flyvpr.temporal.cann.CANN`), for comparisons
-        where the query moves faster than the reference.
+        paper's CANN's default velocity bank (:class:`~flyvpr.temporal.cann.AttractorCANN`),
+        for comparisons where the query moves faster than the reference; the place-velocity
+        CANN (:class:`~flyvpr.temporal.cann.CANN`) follows 0 to 3.5 places per frame.
     v_step : float, default 0.1
         Spacing of the velocity grid; ``v_max`` is included when it lies on the grid.
     enhance_window : int, default 10
