@@ -454,3 +454,22 @@ def test_a_live_stream_against_a_compact_map(built, frames, tmp_path, capsys):
     right = [abs(int(r["place"]) - int(r["frame"]) % N) <= 2 for r in late]
     assert late and np.mean(right) > 0.9
     assert all(float(r["x"]) == 2.0 * int(r["place"]) for r in rows)
+
+
+def test_a_map_changed_after_it_was_written_is_refused_unless_unverified(
+    built, route, tmp_path, capsys
+):
+    from flyvpr.large.mapfile import _read_container
+
+    bad = tmp_path / "bad.fvmap"
+    shutil.copy(built, bad)
+    header, _ = _read_container(bad, "map")
+    raw = bytearray(bad.read_bytes())
+    raw[header["arrays"]["codes"]["offset"] + 40] ^= 0x10  # one bit of place 1's code
+    bad.write_bytes(bytes(raw))
+    with pytest.raises(MapFileError, match="bad.fvmap: the content does not match the file's"):
+        open_compact_map(bad)
+    assert open_compact_map(bad, verify=False).large_map.n_places == N  # structure intact
+    out = tmp_path / "where.csv"
+    code, _, err = _run(capsys, "localize", "--map", bad, route["winter"], "--out", out)
+    assert code == 1 and "the content does not match" in err and not out.exists()

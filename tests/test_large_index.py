@@ -180,3 +180,24 @@ def test_pool_matches_a_loop(seed, speed, slack):
     ref_best, ref_score = _pool_by_loop(places, dist, 256, speed, slack)
     np.testing.assert_array_equal(best, ref_best)
     np.testing.assert_allclose(score, ref_score)
+
+
+def test_stored_tables_naming_a_place_past_the_map_are_refused_not_read(codes):
+    built = MultiIndexHash().build(codes)
+    places = np.array(built.places_)
+    places[:, :] = len(codes)  # every entry one past the last place (as a corrupt file holds)
+    index = MultiIndexHash.from_arrays(codes, built.starts_, places)
+    with pytest.raises(ValueError, match=r"name a place past the map's \d+ places: the index is"):
+        index.search(codes[:3], 5)
+
+
+@pytest.mark.parametrize("damage", ["first", "falls"])
+def test_stored_bucket_starts_must_rise_from_0(codes, damage):
+    built = MultiIndexHash().build(codes)
+    starts = np.array(built.starts_)
+    if damage == "first":
+        starts[0, 0] = 1
+    else:
+        starts[0, 100] = starts[0, 101] + 1
+    with pytest.raises(ValueError, match=r"starts must rise from 0 to the number of places"):
+        MultiIndexHash.from_arrays(codes, starts, built.places_)

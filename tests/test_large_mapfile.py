@@ -166,3 +166,43 @@ def test_tiled_map_place_noise(tmp_path):
 def test_import_flyvpr_loads_no_faiss():
     code = "import sys, flyvpr, flyvpr.large; sys.exit('faiss' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
+
+
+def _flip_byte(path, name, index=0):
+    """Flip one byte of array ``name`` inside the file (as a disk or a copy could)."""
+    from flyvpr.large.mapfile import _read_container
+
+    header, _ = _read_container(path, "map")
+    offset = header["arrays"][name]["offset"] + index
+    raw = bytearray(path.read_bytes())
+    raw[offset] ^= 0xFF
+    path.write_bytes(bytes(raw))
+
+
+@pytest.mark.parametrize("name", ["codes", "positions", "extra"])
+def test_verify_finds_a_byte_changed_in_any_array(tmp_path, codes, name):
+    path = tmp_path / "m.fvmap"
+    with LargeMapWriter(path, n_places=1000, n_bytes=32, n_dims=2, metadata={"a": 1.5}) as w:
+        w.append(codes[:600], np.zeros((600, 2)))
+        w.append(codes[600:], np.ones((400, 2)))
+        w.add_array("extra", np.arange(7, dtype=np.int64))
+        w.add_array("empty", np.zeros((0, 3), np.float32))
+    seconds = open_large_map(path).verify()  # as written: the digest matches
+    assert seconds >= 0.0
+    _flip_byte(path, name, index=5)
+    m = open_large_map(path)  # the structure is intact: opening reads none of it
+    with pytest.raises(MapFileError, match=r"m\.fvmap: the content does not match the file's"):
+        m.verify()
+
+
+@pytest.mark.parametrize("chunk_bytes", [1, 7, 32, 1000, 1 << 24])
+@pytest.mark.parametrize("shape", [(1000, 32), (5,), (0, 3), ()])
+def test_hashing_in_blocks_is_hashing_the_whole(chunk_bytes, shape):
+    import hashlib
+
+    from flyvpr.large.mapfile import _hash_rows
+
+    array = np.arange(int(np.prod(shape)), dtype=np.int64).reshape(shape)
+    digest = hashlib.sha256()
+    _hash_rows(digest, array, chunk_bytes=chunk_bytes)
+    assert digest.hexdigest() == hashlib.sha256(array.tobytes()).hexdigest()

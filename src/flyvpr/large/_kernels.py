@@ -160,14 +160,17 @@ def rerank(query, codes, candidates, k, n_bits, out_places, out_dist):
 @jit
 def mih_candidates(keys, probes, probe_radius, max_radius, starts, places, cap, out):
     """Places sharing a substring with the query within ``max_radius`` bits, closest probes
-    first, at most ``cap`` (with repeats); returns how many were written to ``out``.
+    first, at most ``cap`` (with repeats); returns how many were written to ``out``, or -1
+    when the tables name a place past the map (``places.shape[1]`` places: a corrupt index
+    file; nothing is read out of bounds).
 
     ``keys[t]``: the query's substring of table ``t``; ``probes``: the XOR masks to probe,
     with their popcounts ``probe_radius`` (ascending); ``starts[t, key]``: bucket starts of
-    table ``t`` in ``places[t]``.
+    table ``t`` in ``places[t]`` (checked when the index is loaded).
     """
     m = 0
     n_tables = keys.shape[0]
+    n = places.shape[1]
     for r in range(max_radius + 1):
         for t in range(n_tables):
             for j in range(probes.shape[0]):
@@ -179,6 +182,9 @@ def mih_candidates(keys, probes, probe_radius, max_radius, starts, places, cap, 
                 for i in range(a, b):
                     if m == cap:
                         return m
-                    out[m] = places[t, i]
+                    place = places[t, i]
+                    if place >= n:
+                        return -1
+                    out[m] = place
                     m += 1
     return m

@@ -99,7 +99,8 @@ class CandidateIndex:
         Raises
         ------
         ValueError
-            Before ``build``, for codes of another width, or ``k`` out of range.
+            Before ``build``, for codes of another width, or ``k`` out of range; when the
+            tables of a loaded index name a place past the map (a corrupt index file).
         """
         if not hasattr(self, "n_places_"):
             raise ValueError(f"this {type(self).__name__} is not built yet; call build(codes)")
@@ -240,6 +241,8 @@ class MultiIndexHash(CandidateIndex):
             )
         if n_tables and (starts[:, -1] != len(words)).any():
             raise ValueError(f"starts must end at the number of places ({len(words)})")
+        if n_tables and ((starts[:, 0] != 0).any() or (np.diff(starts, axis=1) < 0).any()):
+            raise ValueError(f"starts must rise from 0 to the number of places ({len(words)})")
         index.n_tables = n_tables
         index.n_places_, index.n_bytes_ = int(len(words)), int(words.shape[1] * 8)
         index._check(index.n_bytes_ * 8)
@@ -275,6 +278,11 @@ class MultiIndexHash(CandidateIndex):
                 cap,
                 buf,
             )
+            if m < 0:
+                raise ValueError(
+                    f"the index's tables name a place past the map's {self.n_places_} places: "
+                    "the index is corrupt (build it again)"
+                )
             cand = np.unique(buf[:m])
             kern.rerank(q[i], self._words, cand, k, n_bits, places[i], dist[i])
 

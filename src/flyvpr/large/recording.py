@@ -313,8 +313,17 @@ def build_compact_map(
     return cmap
 
 
-def open_compact_map(path) -> CompactMap:
+def open_compact_map(path, verify: bool = True) -> CompactMap:
     """Open a map written by :func:`build_compact_map`, every field checked.
+
+    Parameters
+    ----------
+    verify : bool, default True
+        Also read the whole file and check its content against its ``map_id``
+        (:meth:`~flyvpr.large.LargeMap.verify`: SHA-256, about a second per GB of codes), so
+        that a file changed after it was written is refused rather than answering from
+        damaged codes.  ``False`` opens in milliseconds whatever the size, reading only what
+        the run touches.
 
     Raises
     ------
@@ -322,7 +331,7 @@ def open_compact_map(path) -> CompactMap:
         If ``path`` does not exist.
     MapFileError
         If it is not such a map, or anything in it is missing or does not fit (the message
-        names the file and the field).
+        names the file and the field), or, with ``verify``, its content does not match.
     """
     m = open_large_map(path)
     meta = m.metadata
@@ -357,6 +366,8 @@ def open_compact_map(path) -> CompactMap:
     info = {key: meta[key] for key in _INFO}
     info["seed"] = meta.get("seed")
     info["fit_frames"] = meta.get("fit_frames")
+    if verify:
+        m.verify()
     return CompactMap(m, encoder, columns["timestamps"], columns["frames"], pos, info)
 
 
