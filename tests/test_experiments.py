@@ -284,6 +284,16 @@ def test_unknown_method_lists_the_known_ones(tmp_path):
             ValueError,
             r"spacing must be a number > 0; got 0",
         ),
+        (
+            'name = "d"\nloader = "robotcar"\nroot = "x"',
+            ValueError,
+            r"\('d'\): loader 'robotcar': 'reference' is required for this dataset",
+        ),
+        (
+            'name = "d"\nloader = "robotcar"\nroot = "x"\nreference = "a"',
+            ValueError,
+            r"\('d'\): loader 'robotcar': 'query' is required for this dataset",
+        ),
         ('name = "d"\nloader = "nordland"', ValueError, r"missing required key 'root': a path"),
         ('loader = "nordland"\nroot = "x"', ValueError, r"#2: missing required key 'name'"),
         (

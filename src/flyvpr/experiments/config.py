@@ -229,13 +229,21 @@ class DatasetBlock:
         from ..datasets import DATASETS
 
         values, where = check_table(cls, table, where, ctx)
-        takes = DATASETS[values["loader"]].options
+        spec = DATASETS[values["loader"]]
+        takes = spec.options
         foreign = [k for k in values if k in cls.option_keys() and k not in takes]
         if foreign:
             raise ValueError(
                 f"{where}: loader {values['loader']!r} takes no option(s) "
                 f"{', '.join(map(repr, foreign))}; its options: {', '.join(takes)}"
             )
+        # the loader's own rules (options it has no default for, options that need another
+        # or exclude one), checked now rather than when its runs start
+        given = [k for k in cls.option_keys() if values.get(k) is not None]
+        try:
+            spec.check_options(given, name=repr)
+        except ValueError as exc:
+            raise ValueError(f"{where}: loader {values['loader']!r}: {exc}") from None
         values.setdefault("label", values["name"])
         return cls(**values, base_dir=ctx.base_dir)
 

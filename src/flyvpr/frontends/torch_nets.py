@@ -177,7 +177,7 @@ class TorchClassifier(Encoder):
         epochs, lr, batch = self._check_training()
         self._check_architecture(images.shape[1:])
         rng = check_random_state(self.random_state)
-        torch = import_torch(self._who())
+        torch = import_torch(self._who(), getattr(self, "extra", "torch"))
         self._setup(torch)
         generator = torch_generator(torch, rng)
         n = images.shape[0]
@@ -207,7 +207,7 @@ class TorchClassifier(Encoder):
         )
 
     def _encode(self, images: np.ndarray) -> np.ndarray:
-        torch = import_torch(self._who())
+        torch = import_torch(self._who(), getattr(self, "extra", "torch"))
         out = []
         for start in range(0, images.shape[0], _ENCODE_CHUNK):
             with torch.no_grad():
