@@ -207,7 +207,8 @@ def add_image_args(p: argparse.ArgumentParser, size_default=DEFAULT_SIZE) -> Non
         "--cache-dir",
         type=Path,
         default=None,
-        help="image cache folder (default: $FLYVPR_CACHE_DIR or ~/.cache/flyvpr)",
+        help="image cache folder (default: $FLYVPR_CACHE_DIR, else $XDG_CACHE_HOME/flyvpr, else "
+        "~/.cache/flyvpr)",
     )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
 

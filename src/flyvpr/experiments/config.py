@@ -163,8 +163,8 @@ class Settings:
     )
     cache: bool | str = key(
         Either((Flag(), PathText(resolve=True))),
-        "Decoded-image cache: true (in $FLYVPR_CACHE_DIR, else ~/.cache/flyvpr), false (no "
-        "cache) or a folder.",
+        "Decoded-image cache: true (in $FLYVPR_CACHE_DIR, else $XDG_CACHE_HOME/flyvpr, else "
+        "~/.cache/flyvpr), false (no cache) or a folder.",
         default=True,
     )
 
