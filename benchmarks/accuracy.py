@@ -15,12 +15,18 @@ line in ``METHODS`` there):
   winter -> summer 0-999, FlyNet's 100-place subset summer -> fall and summer -> winter
   (tolerance 2), the windows at 1.5x, 2x and a random 1-1.5x speed, the built-in synthetic
   route's hardest conditions (night; viewpoint jitter 3), the drifting-viewpoint Nordland set
-  0-999 and 1000-1999, and control rows: blank frames, shuffled queries, and a query that
-  starts part-way along the reference (winter 300-999 against summer 0-999);
-* methods: single frames (pixels, flyhash, flynet), SeqSLAM at lengths 20/40/60 with
+  0-999 and 1000-1999, FlyNet's subset through a fisheye disc, control rows (blank frames,
+  shuffled queries, a query that starts part-way along the reference: winter 300-999 against
+  summer 0-999, and a short 300-frame window); and the robot group (``r-...``, at tolerance 2
+  and 20): 0.6x to 3.25x, a random 0.4-1.6x walk, stop-and-go, a 100-frame stop, uneven and
+  dropped frames, camera noise, a detour off the map, a fisheye disc, shuffled and reversed,
+  with and without odometry, on the dev window and on the held-out one (``--list`` shows all);
+* methods: single frames (pixels, flyhash, flynet, kenyon), SeqSLAM at lengths 20/40/60 with
   OpenSeqSLAM's velocity grid (0.8-1.2) and, on the 1x windows and the speed rows, with the
-  CANN's speed range (0.75-2), FlyNet + SeqSLAM / RNN / CANN, pixels+cann, flyhash+cann and
-  netvlad+cann (first seed only: slow; skipped when its extra is not installed);
+  paper CANN's speed range (0.75-2), SeqSLAM-60 with the robot speeds (0.25-3 and 0.25-3.5),
+  FlyNet + SeqSLAM / RNN (the route prior, and trained from scratch) / CANN / the paper's
+  attractor CANN, kenyon+cann (the default), pixels+cann, flyhash+cann and netvlad+cann
+  (first seed only: slow; skipped when its extra is not installed);
 * per condition and method: AUC mean, worst seed and spread (max - min), R@1, R@100%P and
   VPR-Bench's extended precision (means), the largest share of frames on one place, and the
   bytes per reference place each method stores for matching;

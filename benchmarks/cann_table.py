@@ -65,7 +65,9 @@ def main(argv=None) -> int:
     print(f"fitted on {out['answers']} sequence answers:")
     print("CALIBRATION = (" + ", ".join(f"{v:.3f}" for v in out["table"]) + ")")
     if args.json is not None:
-        args.json.write_text(json.dumps(out, indent=1) + "\n")
+        from flyvpr._io import write_text_atomic
+
+        write_text_atomic(args.json, json.dumps(out, indent=1) + "\n")
     return 0
 
 

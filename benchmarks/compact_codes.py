@@ -16,7 +16,7 @@ Codes compared (all from the same fitted KenyonEncoder's optic lobe and mean fea
 * ``simhash``: its ``projection="simhash"`` (Gaussian sign random projection);
 * ``kc-median``: the first 256 / 512 Kenyon cells' activity, thresholded at its median per
   image (dense bits from the sparse projection);
-* ``kc-subset``: the first 256 / 512 bits of the Kenyon code (sparse: about 5% set);
+* ``kc-subset``: 256 / 512 bits of the Kenyon code, every 16th / 8th (sparse: about 5% set);
 * ``kc-xor``: the 4096-bit code folded by XOR to 256 / 512 bits.
 """
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import ast
-import json
 import os
 import random
 import shutil
@@ -212,7 +211,9 @@ def main(argv=None) -> int:
                 for i in sorted(outcomes)
             ],
         }
-        args.json.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
+        from flyvpr._io import write_json_atomic
+
+        write_json_atomic(args.json, record)
     return 0
 
 

@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/scale_indexes.py --places N [--places N ...] --json FILE [--data DIR]
-        [--queries Q] [--k K] [--skip NAME ...]
+        [--queries Q] [--k K] [--skip NAME] [--skip NAME ...]
 
 Protocol: the map of ``benchmarks/scale.py`` (the Nordland 64x32 summer codes, 256 bits,
 tiled to N places, tile flip 0.25, place flip 0.02), built in memory; ``--queries`` (default

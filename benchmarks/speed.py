@@ -4,7 +4,9 @@ Usage::
 
     python benchmarks/speed.py --json out.json [--data ../shared/data] [--repeat 5]
 
-Measures in one run, each figure the median of ``--repeat`` repetitions (seconds unless named):
+Measures in one run, each figure the median of ``--repeat`` repetitions (seconds unless named)
+but the streaming rows (``stream_*``, one pass each, in a process of its own) and the video's
+peak memory (one run per length):
 
 * ``decode_s``: reading and pre-processing the 2000 PNGs (summer + winter, frames 0-999 of
   ``nordland_64x32``) with the cache off;
@@ -18,8 +20,9 @@ Measures in one run, each figure the median of ``--repeat`` repetitions (seconds
 * ``stream_queries_per_s`` / ``stream_peak_rss_mb``: the streaming ``flynet+cann`` Localizer on a
   35,768-place map, one frame at a time, over 5,000+ query frames; peak resident memory of the
   whole process.  The map: the 2400 summer frames repeated 15 times (35,768 = 14 x 2400 + 2168),
-  each copy with its own small perturbation (gain 0.9-1.1, offset +-0.03, a shift of up to one
-  pixel, Gaussian noise sd 0.01), as a stand-in for the 35,768 frames of the full Nordland line.
+  each copy after the first with its own small perturbation (gain 0.9-1.1, offset +-0.03, a
+  shift of up to one pixel, Gaussian noise sd 0.01), as a stand-in for the 35,768 frames of the
+  full Nordland line.
   FlyNet is trained on it with mini-batches of 512 for ``--stream-epochs`` epochs (full-batch
   training over 35,768 classes would need a 35,768^2 logit matrix).  It runs in its own
   process so the peak resident memory is that of the streaming job alone.  The queries are winter
@@ -479,9 +482,11 @@ def render_markdown(data: dict) -> str:
         "`../shared/data/nordland_64x32`, summer = reference, winter = query, frames 0-999 "
         "(1000 x 1000) unless a row says otherwise; gray 32x64. Each figure is the median of "
         + (f"{repeat} repetitions" if repeat else "`--repeat` repetitions (default 5)")
-        + " in one run. Streaming: a "
+        + " in one run, but the streaming rows (one pass each) and the video's peak memory (one "
+        "run per length). Streaming: a "
         + f"{data.get('stream_n_places', N_LINE):,}-place map (the 2400 summer frames repeated, "
-        "each copy perturbed: gain, offset, a one-pixel shift, noise), FlyNet trained on it in "
+        "each copy after the first perturbed: gain, offset, a one-pixel shift, noise), FlyNet "
+        "trained on it in "
         f"mini-batches of 512; {data.get('stream_n_queries', '?'):,} winter frames streamed in "
         "route order, in a process of its own so that its peak memory is its own.",
         "",
