@@ -287,3 +287,31 @@ def test_raise_interruption_walks_the_chain():
     with pytest.raises(OSError) as info:
         g.close()
     raise_interruption(info.value)  # a generator closed ends nothing: returns
+
+
+def test_area_resize_refuses_what_it_cannot_average_by_name():
+    y = np.ones((8, 8), np.float32)
+    assert im.area_resize(y, 4, 2).shape == (4, 2)
+    for bad in (np.ones((2, 8, 8)), np.ones(8), np.ones((0, 8)), [[1.0]]):
+        with pytest.raises(ValueError, match="y must be a non-empty 2-d array"):
+            im.area_resize(bad, 4, 4)
+    for h in (0, 2.5, True):
+        with pytest.raises((ValueError, TypeError), match="size must be"):
+            im.area_resize(y, h, 4)
+
+
+def test_list_images_wants_suffixes_with_their_dot(tmp_path):
+    (tmp_path / "a.png").write_bytes(b"")
+    with pytest.raises(TypeError, match=r"extensions must be a sequence of suffixes"):
+        im.list_images(tmp_path, extensions=".png")
+    with pytest.raises(ValueError, match=r"extensions must start with a dot"):
+        im.list_images(tmp_path, extensions=["png"])
+    assert im.list_images(tmp_path, extensions=[".PNG"]) == [tmp_path / "a.png"]
+
+
+@pytest.mark.parametrize("bayer", ["xyzw", 1, ""])
+def test_a_bad_bayer_pattern_is_the_argument_not_the_file(tmp_path, bayer):
+    path = tmp_path / "raw.png"
+    Image.fromarray(np.zeros((8, 8), np.uint8)).save(path)
+    with pytest.raises(ValueError, match=r"^bayer must be None or one of"):
+        im.load_image(path, (4, 4), bayer=bayer)

@@ -446,3 +446,34 @@ def test_writers_take_a_name_up_to_name_max(tmp_path):
     path = tmp_path / ("v" * 246 + ".mp4")
     write_video(path, frames, fps=10)
     assert path.is_file() and [p.name for p in tmp_path.iterdir()] == [path.name]
+
+
+def test_an_every_object_is_checked_as_text_is():
+    from flyvpr.sources import Every, parse_every
+
+    assert parse_every(Every(3)) == Every(3.0, "frames")
+    assert parse_every(Every(0.5, "seconds")) == Every(0.5, "seconds")
+    for bad, match in (
+        (Every(0), "a frame count must be an integer >= 1"),
+        (Every(2.5), "a frame count must be an integer >= 1"),
+        (Every(-1.0, "metres"), "the step must be > 0"),
+        (Every(2, "bogus"), "unit must be 'frames', 'seconds' or 'metres'"),
+        (Every("2", "frames"), "the step must be a number"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            parse_every(bad)
+
+
+def test_a_missing_bag_is_not_found_and_a_lone_db3_says_what_it_lacks(tmp_path):
+    pytest.importorskip("rosbags")
+    from flyvpr.sources import RecordingError
+    from flyvpr.sources.rosbag import BagSource
+
+    with pytest.raises(FileNotFoundError, match="bag not found"):
+        BagSource(tmp_path / "gone.bag")
+    lone = tmp_path / "x.db3"
+    lone.write_bytes(b"")
+    with pytest.raises(RecordingError) as info:
+        BagSource(lone)
+    # one message, not wrapped in "not a readable ROS bag (...)"
+    assert str(info.value) == f"bag {lone}: a ROS 2 bag file needs the metadata.yaml of its folder"

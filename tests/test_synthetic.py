@@ -302,3 +302,16 @@ def test_saved_route_reads_as_nordland(tmp_path):
     reference, query = bench.load_images(cache=False, progress=False)
     np.testing.assert_allclose(reference, r.reference_images, atol=0.5 / 255 + 1e-6)
     np.testing.assert_allclose(query, r.query_images, atol=0.5 / 255 + 1e-6)
+
+
+@pytest.mark.parametrize("name", ["../escaped", "a/b", "..", ""])
+def test_save_route_writes_no_condition_outside_its_folder(tmp_path, name):
+    from flyvpr.synthetic import make_route, save_route
+
+    route = make_route(5, random_state=0)
+    route.images[name] = route.images.pop(route.conditions[0])
+    route = dataclasses.replace(route, conditions=(name, *route.conditions[1:]))
+    target = tmp_path / "out"
+    with pytest.raises(ValueError, match="is not a plain folder name"):
+        save_route(route, target)
+    assert not (tmp_path / "escaped").exists() and not target.exists()

@@ -60,9 +60,10 @@ def evaluate_method(
         Gray float32 images in [0, 1].
     ground_truth : ndarray of bool, shape (n_query, n_reference)
     seed : int
-        ``random_state`` of every random part.
+        ``random_state`` of every random part, when ``method`` is a name (a ready
+        ``Method`` keeps its own; ``seed`` is then only recorded in the result).
     frontend_params, filter_params : dict, optional
-        Constructor arguments of the parts.
+        Constructor arguments of the parts, when ``method`` is a name (ignored otherwise).
     load_s : float, optional
         Seconds spent loading the images, copied into ``timing``.
     return_scores : bool
@@ -152,7 +153,8 @@ def self_match_share(model: Method, reference_images, *, radius: int = 2, sample
         An image finds its place when a place within ``radius`` of its own index scores as
         high as any (a tie with its own counts: a run of identical frames is not a miss).
     sample : int, default 200
-        At most this many images, evenly spaced (the first and the last included), are scored.
+        At most this many images, evenly spaced (the first and, for a sample of 2 or more,
+        the last included), are scored.
 
     Returns
     -------
@@ -214,7 +216,8 @@ def speed_profile(n_frames: int, speed, random_state=None) -> np.ndarray:
     Returns
     -------
     ndarray of int64
-        Increasing frame indices, starting at 0, all ``< n_frames``.  The
+        Non-decreasing frame indices (a speed below 1 repeats frames: a slower query),
+        starting at 0, all ``< n_frames``.  The
         ground truth of the kept frames is ``gt[indices]``.
 
     Examples

@@ -116,9 +116,9 @@ def to_gray(array: np.ndarray) -> np.ndarray:
     """Convert an image array to float32 gray in [0, 1].
 
     Accepts (H, W) gray, (H, W, 3) RGB and (H, W, 4) RGBA (alpha ignored), with dtype
-    uint8 (divided by 255), uint16 (divided by 65535), other integers holding values in
-    [0, 65535] (16-bit data in Pillow's 32-bit mode ``I``, divided by 65535), bool, or float
-    already in [0, 1].  No value is clipped: anything else is refused.
+    uint8 and other 1-byte integers (divided by 255), uint16 and other integers holding values
+    in [0, 65535] (16-bit data in Pillow's 32-bit mode ``I``, divided by 65535), bool, or
+    float already in [0, 1].  No value is clipped: anything else is refused.
 
     Raises
     ------
@@ -128,7 +128,7 @@ def to_gray(array: np.ndarray) -> np.ndarray:
 
     Examples
     --------
-    >>> to_gray(np.full((2, 2, 3), 255, np.uint8)).max()
+    >>> float(to_gray(np.full((2, 2, 3), 255, np.uint8)).max())
     1.0
     """
     a = np.asarray(array)
@@ -217,6 +217,11 @@ def area_resize(y: np.ndarray, h: int, w: int) -> np.ndarray:
     """
     from . import _image_kernels
 
+    if not isinstance(y, np.ndarray) or y.ndim != 2 or y.size == 0:
+        raise ValueError(
+            f"y must be a non-empty 2-d array; got {getattr(y, 'shape', type(y).__name__)}"
+        )
+    h, w = _check_size((h, w))
     kernel = _image_kernels.band
     rows = np.zeros((h, y.shape[1]), np.float32)
     kernel(y, *_row_band(h, y.shape[0]), rows)
@@ -354,8 +359,12 @@ def load_image(path, size=DEFAULT_SIZE, *, bayer: str | None = None) -> np.ndarr
         If it is corrupt, truncated or not an image, holds float values outside [0, 1] or
         NaN, or declares more pixels than ``PIL.Image.MAX_IMAGE_PIXELS`` (the message names
         the file).
+    ValueError, TypeError
+        For a ``bayer`` that is not one of the patterns, or a bad ``size``.
     """
     size = _check_size(size)
+    if bayer is not None and (not isinstance(bayer, str) or bayer.lower() not in _BAYER_PATTERNS):
+        raise ValueError(f"bayer must be None or one of {_BAYER_PATTERNS}; got {bayer!r}")
     with warnings.catch_warnings():
         # Pillow warns on very large images; _check_pixels refuses those itself.
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)
@@ -428,7 +437,13 @@ def list_images(folder, extensions: Sequence[str] = IMAGE_EXTENSIONS) -> list[Pa
         raise FileNotFoundError(f"image folder not found: {folder}")
     if not folder.is_dir():
         raise NotADirectoryError(f"expected a folder of images; got a file: {folder}")
+    if isinstance(extensions, str):
+        raise TypeError(
+            f"extensions must be a sequence of suffixes such as ('.png',); got {extensions!r}"
+        )
     exts = tuple(e.lower() for e in extensions)
+    if not all(e.startswith(".") for e in exts):
+        raise ValueError(f"extensions must start with a dot, such as '.png'; got {extensions!r}")
     files, hidden, refused = [], 0, []
     with os.scandir(folder) as entries:
         for entry in entries:

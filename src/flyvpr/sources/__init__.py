@@ -59,6 +59,11 @@ def open_source(path, *, topic: str | None = None) -> Source:
     RecordingError
         If it is not a readable recording, or a bag without the topic (the message lists the
         image topics it has).
+    ValueError
+        For a folder: :class:`~flyvpr.images.ImageFolderError` for a stray entry, a
+        ``ValueError`` for a folder without images; and for a ``topic`` given with something
+        that is not a bag.  (``RecordingError`` and ``ImageFolderError`` are ``ValueError``
+        too: catching ``ValueError`` catches every refusal of the data.)
     ImportError
         Naming the ``recordings`` extra, when a video or bag is given without it.
     """

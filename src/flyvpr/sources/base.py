@@ -82,20 +82,25 @@ def parse_every(text) -> Every:
     if text is None:
         return Every()
     if isinstance(text, Every):
-        return text
-    m = _EVERY_RE.match(str(text))
-    if m is None:
-        raise ValueError(
-            f"every: expected N (every N-th frame), Ts (seconds) or Dm (metres), such as 3, "
-            f"0.5s or 2m; got {text!r}"
-        )
-    value = float(m.group(1))
-    unit = {None: "frames", "s": "seconds", "m": "metres"}[(m.group(2) or "").lower() or None]
-    if unit == "frames" and (value != int(value) or value < 1):
+        value, unit = text.value, text.unit
+        if unit not in ("frames", "seconds", "metres"):
+            raise ValueError(f"every: unit must be 'frames', 'seconds' or 'metres'; got {unit!r}")
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"every: the step must be a number; got {value!r}")
+    else:
+        m = _EVERY_RE.match(str(text))
+        if m is None:
+            raise ValueError(
+                f"every: expected N (every N-th frame), Ts (seconds) or Dm (metres), such as 3, "
+                f"0.5s or 2m; got {text!r}"
+            )
+        value = float(m.group(1))
+        unit = {None: "frames", "s": "seconds", "m": "metres"}[(m.group(2) or "").lower() or None]
+    if unit == "frames" and (not math.isfinite(value) or value != int(value) or value < 1):
         raise ValueError(f"every: a frame count must be an integer >= 1; got {text!r}")
     if not math.isfinite(value) or value <= 0:
         raise ValueError(f"every: the step must be > 0; got {text!r}")
-    return Every(value, unit)
+    return Every(float(value), unit)
 
 
 @dataclass
@@ -190,11 +195,17 @@ class Source:
             Thinning rule (:func:`parse_every`); default every frame.
         positions : Positions, optional
             Needed by a metres rule.
+        batch : int, default 32
+            Frames per batch (at least 1).
 
         Raises
         ------
         RecordingError
             If the recording cannot be read, or holds no frame at all (names the file).
+        ImageReadError
+            For a damaged file in an image folder (names it).
+        ValueError
+            For a bad ``every`` (a metres rule without ``positions`` too) or ``batch``.
         """
         h, w = _check_size(size)
         batch = check_positive_int(batch, "batch")

@@ -160,6 +160,8 @@ class LiveSource:
         message names it and says why.
     ValueError
         For a ``url`` that is not live, or timeouts / retries out of range.
+    TypeError
+        For timeouts / retries that are not numbers.
     ImportError
         Naming the ``recordings`` extra, without PyAV.
 

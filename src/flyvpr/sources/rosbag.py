@@ -93,8 +93,9 @@ class _Bag:
         self.path = path
         hl = require_extra("rosbags.highlevel")
         self._errors = _rosbags_errors()
+        paths = _bag_paths(path)  # (its own errors name the bag as they are: not re-wrapped)
         try:
-            self.reader = hl.AnyReader(_bag_paths(path))
+            self.reader = hl.AnyReader(paths)
             self.reader.open()
         except self._errors as exc:
             raise RecordingError(f"bag {path}: not a readable ROS bag ({_reason(exc)})") from None

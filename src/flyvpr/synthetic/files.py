@@ -57,6 +57,8 @@ def save_route(
         If ``rgb=True`` and the route has no colour frames.
     FileExistsError
         If a condition folder already holds route images and ``overwrite`` is False.
+    ValueError
+        Also for a condition whose name is not a plain folder name (a path, ``..``).
     """
     if not isinstance(route, SyntheticRoute):
         raise TypeError(f"route must be a SyntheticRoute; got {type(route).__name__}")
@@ -65,6 +67,12 @@ def save_route(
     elif rgb and route.rgb is None:
         raise ValueError("rgb=True needs a route made with make_route(..., return_rgb=True)")
     folder = Path(folder)
+    for name in route.conditions:
+        if not name or name in (".", "..") or any(c in name for c in "/\\\0"):
+            raise ValueError(
+                f"condition name {name!r} is not a plain folder name: save_route writes each "
+                "condition to a folder of that name inside folder"
+            )
     targets = {name: folder / name for name in route.conditions}
     # Check every folder before writing anything, so a refusal leaves no half-written route.
     for sub in targets.values():

@@ -209,11 +209,13 @@ def make_route(
     Raises
     ------
     TypeError
-        For wrong types of ``n_places``, ``size``, ``conditions`` or ``random_state``.
+        For wrong types of ``n_places``, ``size``, ``conditions``, ``random_state``,
+        ``supersample``, ``step`` or ``viewpoint_jitter``.
     ValueError
         If ``n_places < 2``, ``size`` is smaller than (4, 4), ``step`` is outside
-        (0, 2], ``viewpoint_jitter`` is negative, or a condition name is unknown
-        (the message lists the known ones) or repeated.
+        (0, 2], ``viewpoint_jitter`` is negative, ``supersample`` is below 1,
+        ``random_state`` is negative, a condition name is unknown (the message lists the
+        known ones) or repeated, or a :class:`Condition` lacks a material's colour.
 
     Examples
     --------
