@@ -41,6 +41,14 @@ of the robot views of ``benchmarks/accuracy.py``; ``kenyon+cann`` with its defau
   the share of answers right, of frames ``localized``, of the ``localized`` and of the
   ``lost`` answers right, and the mean confidence of a right answer, with the default bank and
   with ``bidirectional=True``.
+* **A slow robot with a noisy camera** (not views of the accuracy benchmark): query frame
+  ``k`` shows place ``floor(v k)`` for each constant speed ``v`` of ``SLOW_SPEEDS``, through
+  the camera noise of the accuracy benchmark's noisy views (``SLOW_NOISE`` gray levels, seed
+  ``SLOW_NOISE_SEED``), so that a place's frames are near-repeats, never exact ones (a camera
+  whose frame rate is high for the map's place spacing).  Per speed: the front end's AUC
+  alone, kenyon+cann's without and with odometry (places moved since the last frame, as the
+  accuracy benchmark's odometry views give it), and its shares of answers right and of
+  frames ``localized``.
 * **Parked** (not a view of the accuracy benchmark): the query drives at 1 place per frame to
   place ``a``, stands there ``PARK_FRAMES`` frames (its one winter frame repeated, as a
   robot's camera sees a parked scene), then drives on ``PARK_AFTER`` frames.  ``PARK_PLACES``
@@ -67,6 +75,7 @@ from benchmarks.accuracy_setup import (  # noqa: E402
     DATASETS,
     ROBOT_SPEEDS,
     ROBOT_VIEWS,
+    camera_frames,
     fisheye,
 )
 from flyvpr import metrics  # noqa: E402
@@ -102,6 +111,11 @@ SEQ_SPEEDS = {
     "0.8-1.2": {"v_min": 0.8, "v_max": 1.2, "v_step": 0.1},
     "0.25-3": ROBOT_SPEEDS,
 }
+#: a slow robot with a noisy camera: constant speeds (places per frame), the camera noise (sd,
+#: gray levels of 255) and the seed that draws it (the accuracy benchmark's noisy views')
+SLOW_SPEEDS = (0.2, 0.33, 0.5, 1.0)
+SLOW_NOISE = 1.0
+SLOW_NOISE_SEED = 0
 #: parked robot: stand lengths (frames), stop places, the seed that draws them, frames after
 PARK_FRAMES = (30, 100, 300, 1000)
 PARK_PLACES = 12
@@ -240,6 +254,49 @@ def _jitter_rows(seed: int, S: np.ndarray, qry_ids, ref_ids) -> list[dict]:
     return rows
 
 
+def slow_places(speed: float, n: int) -> np.ndarray:
+    """The true place of every query frame of a robot at ``speed`` places per frame."""
+    places = np.floor(speed * np.arange(int(np.ceil(n / speed)) + 1)).astype(np.int64)
+    return places[places < n]
+
+
+def _slow_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
+    """kenyon+cann at each of SLOW_SPEEDS through a noisy camera, without and with
+    odometry (see the module's docstring)."""
+    frontend = make_method("kenyon", seed, {}, {}).frontend
+    frontend.fit(ref)
+    rows = []
+    for speed in SLOW_SPEEDS:
+        idx = slow_places(speed, len(qry))
+        S = frontend.score(camera_frames(qry[idx], SLOW_NOISE, SLOW_NOISE_SEED))
+        gt = ground_truth_from_frames(qry_ids[idx], ref_ids, TOLERANCE)
+        alone = metrics.evaluate(S, gt, ks=(1,))["auc"]
+        steps = np.abs(np.diff(qry_ids[idx], prepend=qry_ids[idx][:1])).astype(np.float64)
+        for odometry in (False, True):
+            filt = make_method("kenyon+cann", seed, {}, {}).filter
+            filt.reset()
+            out = np.empty(S.shape, np.float32)
+            localized = np.zeros(len(S), bool)
+            for t in range(len(S)):
+                v = float(steps[t]) if odometry and t > 0 else None
+                out[t] = filt.step(S[t]) if v is None else filt.step(S[t], velocity=v)
+                localized[t] = filt.state_ == "localized"
+            right = gt[np.arange(len(out)), out.argmax(axis=1)]
+            rows.append(
+                {
+                    "seed": seed,
+                    "speed": speed,
+                    "odometry": odometry,
+                    "frames": len(idx),
+                    "auc_front_end": alone,
+                    "auc": metrics.evaluate(out, gt, ks=(1,))["auc"],
+                    "right": float(right.mean()),
+                    "localized": float(localized.mean()),
+                }
+            )
+    return rows
+
+
 def state_row(seed: int, view: str, bank: str, out, localized, gt) -> dict:
     """How right the answers of one run are, and how its state and confidence say so."""
     right = gt[np.arange(len(out)), out.argmax(axis=1)]
@@ -318,6 +375,7 @@ def run(data: Path, progress: bool = True) -> dict:
         in_stretch[first : last + 1] = True
 
     stopgo, detour, cold, parked, uneven, matchers, states = [], [], [], [], [], [], []
+    slow: list[dict] = []
     fish_ref, fish_qry = fisheye(ref), fisheye(qry)
     park_stops = stop_places(in_stretch, PARK_PLACES, PARK_SEED)
     for seed in SEEDS:
@@ -380,6 +438,7 @@ def run(data: Path, progress: bool = True) -> dict:
         # (the 1x view's scores: every query frame, in order, against the whole map)
         assert S.shape == (len(qry), len(ref))
         uneven += _jitter_rows(seed, S, qry_ids, ref_ids)
+        slow += _slow_rows(seed, ref, qry, ref_ids, qry_ids)
     back = int(_view("r-detour").gap[1] * len(ref))
     return {
         "benchmark": "robot-limits",
@@ -396,6 +455,9 @@ def run(data: Path, progress: bool = True) -> dict:
             "parked": f"1 place per frame to a stop, stand, then {PARK_AFTER} frames on; "
             f"{PARK_PLACES} stops drawn with seed {PARK_SEED} from places 200-799 at least 4 "
             "places from a map stretch",
+            "slow": f"query frame k shows place floor(v k), v in {list(SLOW_SPEEDS)}, camera "
+            f"noise sd {SLOW_NOISE:g} gray levels (seed {SLOW_NOISE_SEED}); odometry: places "
+            "moved since the last frame",
         },
         "machine": machine(),
         "map_stretches": [list(s) for s in map_stretches],
@@ -412,6 +474,7 @@ def run(data: Path, progress: bool = True) -> dict:
         "jitter": uneven,
         "matchers": matchers,
         "states": states,
+        "slow": slow,
     }
 
 
@@ -521,6 +584,31 @@ def _states_table(data: dict) -> list[str]:
     return lines
 
 
+def _slow_table(data: dict) -> list[str]:
+    """Per speed, without and with odometry: mean over the seeds."""
+    rows = data["slow"]
+    lines = [
+        "",
+        "## A slow robot with a noisy camera",
+        "",
+        f"Protocol: {data['protocol']['slow']}.  A place's frames differ by the camera's noise "
+        "only, so none is held as a repeat.  Mean over the seeds.",
+        "",
+        "| speed (places per frame) | frames | odometry | kenyon alone | kenyon+cann | right | "
+        "`localized` |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for speed, odometry in dict.fromkeys((r["speed"], r["odometry"]) for r in rows):
+        picked = [r for r in rows if r["speed"] == speed and r["odometry"] == odometry]
+        mean = {k: float(np.mean([r[k] for r in picked])) for k in picked[0] if k != "seed"}
+        lines.append(
+            f"| {speed:g} | {picked[0]['frames']} | {'yes' if odometry else 'no'} | "
+            f"{mean['auc_front_end']:.3f} | {mean['auc']:.3f} | {mean['right']:.3f} | "
+            f"{mean['localized']:.3f} |"
+        )
+    return lines
+
+
 _MATCHER_VIEWS = {
     "r-1x": "cold start at 1x",
     "r-fisheye": "cold start at 1x, fisheye disc",
@@ -624,6 +712,8 @@ def render_markdown(data: dict) -> str:
         lines += _jitter_table(data)
     if data.get("states"):
         lines += _states_table(data)
+    if data.get("slow"):
+        lines += _slow_table(data)
     lines.append("")
     if machine_sentence(data):
         lines.append(machine_sentence(data))

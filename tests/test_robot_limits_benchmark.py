@@ -216,3 +216,46 @@ def test_state_row_splits_the_answers_by_state():
     assert row["confidence_when_right"] == pytest.approx((0.9 + 0.8 + 0.4) / 3)
     none = robot_limits.state_row(0, "r-x", "default", out, np.zeros(4, bool), gt)
     assert none["right_when_localized"] is None and none["right_when_lost"] == 0.75
+
+
+@pytest.mark.parametrize(
+    "speed, n, expected",
+    [
+        (0.5, 4, [0, 0, 1, 1, 2, 2, 3, 3]),
+        (1.0, 3, [0, 1, 2]),
+        (0.33, 2, [0, 0, 0, 0, 1, 1, 1]),
+        (2.0, 5, [0, 2, 4]),
+    ],
+)
+def test_slow_places_hold_each_place_for_its_share_of_frames(speed, n, expected):
+    np.testing.assert_array_equal(robot_limits.slow_places(speed, n), expected)
+
+
+def test_slow_table_is_the_mean_over_seeds_per_speed_and_odometry():
+    def row(seed, speed, odometry, auc, right):
+        return {
+            "seed": seed,
+            "speed": speed,
+            "odometry": odometry,
+            "frames": int(10 / speed),
+            "auc_front_end": 0.1 + seed / 10,
+            "auc": auc,
+            "right": right,
+            "localized": 0.5,
+        }
+
+    rows = [
+        row(0, 0.2, False, 0.7, 0.8),
+        row(1, 0.2, False, 0.9, 0.6),
+        row(0, 0.2, True, 0.95, 1.0),
+        row(1, 0.2, True, 0.85, 0.9),
+        row(0, 1.0, False, 0.97, 0.97),
+    ]
+    lines = robot_limits._slow_table({"slow": rows, "protocol": {"slow": "p"}})
+    assert "| 0.2 | 50 | no | 0.150 | 0.800 | 0.700 | 0.500 |" in lines
+    assert "| 0.2 | 50 | yes | 0.150 | 0.900 | 0.950 | 0.500 |" in lines
+    assert "| 1 | 10 | no | 0.100 | 0.970 | 0.970 | 0.500 |" in lines
+    assert lines.index("| 0.2 | 50 | no | 0.150 | 0.800 | 0.700 | 0.500 |") < lines.index(
+        "| 1 | 10 | no | 0.100 | 0.970 | 0.970 | 0.500 |"
+    )
+    assert "Protocol: p." in " ".join(lines)
