@@ -49,6 +49,9 @@ of the robot views of ``benchmarks/accuracy.py``; ``kenyon+cann`` with its defau
   alone, kenyon+cann's without and with odometry (places moved since the last frame, as the
   accuracy benchmark's odometry views give it), and its shares of answers right and of
   frames ``localized``.
+* **The random profiles drawn again** (``r-walk``, ``r-uneven`` and ``r-drops`` draw their
+  speeds from ``numpy.random.default_rng(0)``): kenyon+cann's AUC with the same profiles
+  drawn from each seed of ``PROFILE_SEEDS``, on the same front-end scores.
 * **Parked** (not a view of the accuracy benchmark): the query drives at 1 place per frame to
   place ``a``, stands there ``PARK_FRAMES`` frames (its one winter frame repeated, as a
   robot's camera sees a parked scene), then drives on ``PARK_AFTER`` frames.  ``PARK_PLACES``
@@ -77,6 +80,7 @@ from benchmarks.accuracy_setup import (  # noqa: E402
     ROBOT_VIEWS,
     camera_frames,
     fisheye,
+    motion_places,
 )
 from flyvpr import metrics  # noqa: E402
 from flyvpr.datasets import ground_truth_from_frames  # noqa: E402
@@ -116,6 +120,10 @@ SEQ_SPEEDS = {
 SLOW_SPEEDS = (0.2, 0.33, 0.5, 1.0)
 SLOW_NOISE = 1.0
 SLOW_NOISE_SEED = 0
+#: the random speed profiles drawn again: their motions and the seeds that draw them (0 is the
+#: accuracy benchmark's own draw)
+PROFILE_KINDS = ("walk", "uneven", "drops")
+PROFILE_SEEDS = tuple(range(8))
 #: parked robot: stand lengths (frames), stop places, the seed that draws them, frames after
 PARK_FRAMES = (30, 100, 300, 1000)
 PARK_PLACES = 12
@@ -254,6 +262,26 @@ def _jitter_rows(seed: int, S: np.ndarray, qry_ids, ref_ids) -> list[dict]:
     return rows
 
 
+def _profile_rows(seed: int, S: np.ndarray, qry_ids, ref_ids) -> list[dict]:
+    """kenyon+cann's AUC on each of PROFILE_KINDS drawn from each of PROFILE_SEEDS, from the
+    front end's scores ``S`` of every query frame in order."""
+    rows = []
+    for kind in PROFILE_KINDS:
+        for draw in PROFILE_SEEDS:
+            idx = motion_places(kind, len(S), draw)
+            gt = ground_truth_from_frames(qry_ids[idx], ref_ids, TOLERANCE)
+            out = make_method("kenyon+cann", seed, {}, {}).filter.filter(S[idx])
+            rows.append(
+                {
+                    "seed": seed,
+                    "motion": kind,
+                    "draw": draw,
+                    "auc": metrics.evaluate(out, gt, ks=(1,))["auc"],
+                }
+            )
+    return rows
+
+
 def slow_places(speed: float, n: int) -> np.ndarray:
     """The true place of every query frame of a robot at ``speed`` places per frame."""
     places = np.floor(speed * np.arange(int(np.ceil(n / speed)) + 1)).astype(np.int64)
@@ -376,6 +404,7 @@ def run(data: Path, progress: bool = True) -> dict:
 
     stopgo, detour, cold, parked, uneven, matchers, states = [], [], [], [], [], [], []
     slow: list[dict] = []
+    profiles: list[dict] = []
     fish_ref, fish_qry = fisheye(ref), fisheye(qry)
     park_stops = stop_places(in_stretch, PARK_PLACES, PARK_SEED)
     for seed in SEEDS:
@@ -439,6 +468,7 @@ def run(data: Path, progress: bool = True) -> dict:
         assert S.shape == (len(qry), len(ref))
         uneven += _jitter_rows(seed, S, qry_ids, ref_ids)
         slow += _slow_rows(seed, ref, qry, ref_ids, qry_ids)
+        profiles += _profile_rows(seed, S, qry_ids, ref_ids)
     back = int(_view("r-detour").gap[1] * len(ref))
     return {
         "benchmark": "robot-limits",
@@ -475,6 +505,7 @@ def run(data: Path, progress: bool = True) -> dict:
         "matchers": matchers,
         "states": states,
         "slow": slow,
+        "profiles": profiles,
     }
 
 
@@ -581,6 +612,34 @@ def _states_table(data: dict) -> list[str]:
             values = [r[key] for r in picked if r[key] is not None]
             cells.append(f"{np.mean(values):.3f}" if values else "-")
         lines.append(f"| {labels.get(view, view)} | {bank} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _profiles_table(data: dict) -> list[str]:
+    """Per motion, the AUC of each draw of its profile (mean over the seeds)."""
+    rows = data["profiles"]
+    draws = sorted({r["draw"] for r in rows})
+    labels: dict[str, str] = {}
+    for v in ROBOT_VIEWS:  # the dev window's view of each motion, as the robot page names it
+        if v.dataset == DATASET and v.motion and not (v.odometry or v.camera_noise):
+            labels.setdefault(v.motion, v.label)
+    lines = [
+        "",
+        "## The random profiles drawn again",
+        "",
+        "kenyon+cann's AUC with each random speed profile drawn from other seeds (draw 0 is the "
+        "accuracy benchmark's view), on the same front-end scores; mean over the seeds.",
+        "",
+        "| motion | " + " | ".join(f"draw {d}" for d in draws) + " | lowest |",
+        "|---|" + "---|" * (len(draws) + 1),
+    ]
+    for motion in dict.fromkeys(r["motion"] for r in rows):
+        means = [
+            float(np.mean([r["auc"] for r in rows if r["motion"] == motion and r["draw"] == d]))
+            for d in draws
+        ]
+        cells = " | ".join(f"{m:.3f}" for m in means)
+        lines.append(f"| {labels.get(motion, motion)} | {cells} | {min(means):.3f} |")
     return lines
 
 
@@ -712,6 +771,8 @@ def render_markdown(data: dict) -> str:
         lines += _jitter_table(data)
     if data.get("states"):
         lines += _states_table(data)
+    if data.get("profiles"):
+        lines += _profiles_table(data)
     if data.get("slow"):
         lines += _slow_table(data)
     lines.append("")

@@ -259,3 +259,26 @@ def test_slow_table_is_the_mean_over_seeds_per_speed_and_odometry():
         "| 1 | 10 | no | 0.100 | 0.970 | 0.970 | 0.500 |"
     )
     assert "Protocol: p." in " ".join(lines)
+
+
+def test_profiles_table_gives_each_draw_and_the_lowest():
+    rows = [
+        {"seed": s, "motion": m, "draw": d, "auc": a}
+        for s, m, d, a in [
+            (0, "walk", 0, 0.96),
+            (1, "walk", 0, 0.98),
+            (0, "walk", 1, 0.90),
+            (1, "walk", 1, 0.92),
+            (0, "drops", 0, 0.7),
+            (1, "drops", 0, 0.8),
+            (0, "drops", 1, 0.8),
+            (1, "drops", 1, 0.9),
+        ]
+    ]
+    lines = robot_limits._profiles_table({"profiles": rows})
+    assert "| motion | draw 0 | draw 1 | lowest |" in lines
+    assert "| 0-999, random 0.4-1.6x | 0.970 | 0.910 | 0.910 |" in lines
+    assert "| 0-999 at 1x, 20% of frames dropped | 0.750 | 0.850 | 0.750 |" in lines
+    assert lines.index("| 0-999, random 0.4-1.6x | 0.970 | 0.910 | 0.910 |") < lines.index(
+        "| 0-999 at 1x, 20% of frames dropped | 0.750 | 0.850 | 0.750 |"
+    )
