@@ -193,7 +193,8 @@ def test_bad_inputs_one_line_exit_1_nothing_written(recordings, tmp_path, capsys
           "--out", tmp_path / "o.csv"], "fitted on 32x64 images"),
         (["localize", "--map", tmp_path / "r.map", cut, "--out", tmp_path / "o.csv"], "cut.mp4"),
         (["localize", "--map", tmp_path / "r.map", recordings["ros2"][QUERY], "--every", "5m",
-          "--positions", elsewhere, "--out", tmp_path / "o.csv"], "--every 5m keeps no frame"),
+          "--positions", elsewhere, "--out", tmp_path / "o.csv"],
+         "--every 5m keeps frames by distance, and no frame has a position in"),
     ]  # fmt: skip
     for argv, needle in cases:
         code, out, err = _run(capsys, *argv)
@@ -289,6 +290,21 @@ def test_ground_truth_by_positions_scores_like_frames(recordings, tmp_path, caps
     assert code == 0, err
     assert _auc(by_pos) == _auc(by_frames)
     assert f"{gt} within {3.0 * TOL:g} m" in by_pos
+    assert "left out" not in by_pos
+    # a ground truth that starts at frame 10: the frames before it are not scored (their
+    # true place is unknown, not off the map), and their records' correct is empty
+    late = tmp_path / "late_xy.csv"
+    late.write_text("frame,x,y\n" + "".join(f"{i},{3.0 * i},0\n" for i in range(10, N)))
+    records = tmp_path / "late.csv"
+    code, out, err = _run(
+        capsys, "localize", "--map", m, rec[QUERY], "--ground-truth", late,
+        "--radius", 3.0 * TOL, "--out", records,
+    )  # fmt: skip
+    assert code == 0, err
+    assert f"over {N - 10} frames (10 frames without a ground-truth position left out)" in out
+    rows = list(csv.DictReader(records.open()))
+    assert [r["correct"] for r in rows[:10]] == [""] * 10
+    assert {r["correct"] for r in rows[10:]} <= {"0", "1"}
 
 
 def test_realtime_paces_to_the_timestamps(tmp_path, capsys):
@@ -328,10 +344,34 @@ def test_seed_speed_method_and_param_are_refused_with_a_map(recordings, tmp_path
         (["--method", "pixels+cann"], "--method: the map fixes the method"),
         (["--param", "tolerance=3"], "--param: the map fixes the method"),
         (["--speed", "2"], "--speed simulates a robot speed on a --dataset benchmark"),
-    ]:
+        # options of the --dataset benchmark: refused, not ignored
+        (["--first", "10"], "--first: a --dataset option, not for --map MAP SOURCE; --every"),
+        (["--count", "20"], "--count: a --dataset option, not for --map MAP SOURCE"),
+        (["--spacing", "2"], "--spacing: a --dataset option"),
+        (["--root", "x"], "--root: a --dataset option"),
+        (["--reference", "summer"], "--reference: a --dataset option"),
+        (["--query", "winter"], "--query: a --dataset option"),
+        (["--tolerance-m", "5"], "--tolerance-m: a --dataset option"),
+        (["--trust-pickle"], "--trust-pickle: a --dataset option"),
+        (["--no-cache"], "--no-cache: a --dataset option"),
+        (["--cache-dir", "c"], "--cache-dir: a --dataset option"),
+        (["--positions-csv", "p.csv"], "own positions are --positions CSV"),
+        # the ground truth's options go with their kind of ground truth
+        (["--tolerance", "2"], "--tolerance: only with --ground-truth"),
+        (["--radius", "3"], "--radius: only with --ground-truth"),
+        (["--ground-truth", "frames", "--tolerance", "2", "--radius", "3"],
+         "--radius: for a --ground-truth CSV"),
+        (["--ground-truth", "gt.csv", "--radius", "3", "--tolerance", "2"],
+         "--tolerance: for --ground-truth frames"),
+    ]:  # fmt: skip
         code, _, err = _run(capsys, "localize", "--map", m, rec[QUERY], *extra, "--out", out_csv)
         assert code == 2 and says in err, (extra, err)
         assert not out_csv.exists()
+    # "Frames" is the word in any case
+    code, out, err = _run(
+        capsys, "localize", "--map", m, rec[QUERY], "--ground-truth", "FRAMES", "--tolerance", TOL
+    )
+    assert code == 0 and f"ground truth (frames within {TOL})" in out, err
     # with --dataset, --seed still seeds the method (0 when not given)
     code, out, err = _run(
         capsys, "localize", "--dataset", "generic", "--root", rec["summer"].parent,
@@ -427,10 +467,35 @@ def test_odometry_from_a_positions_csv(recordings, maps, scripted, tmp_path, cap
     )
     assert code == 0, err
     assert (
-        f"\nodometry: path integration from --positions {xy} (map spacing 3 m per place)\n" in out
+        f"\nodometry: path integration from --positions {xy} (map spacing 3 m per place); "
+        f"{N - 5} of {N} frames have a position in it\n" in out
     )
     # frames 0-4 have no position and frame 5 none before it: no odometry for them
     assert scripted[-1].velocities == [None] * 6 + [0.5] * (N - 6)
+
+
+def test_positions_that_cover_no_frame_are_said_to_give_none(
+    recordings, maps, scripted, tmp_path, capsys
+):
+    # rows for frames the recording does not have (another recording's file)
+    off = tmp_path / "off.csv"
+    off.write_text("frame,x,y\n" + "".join(f"{i},{1.5 * i},7\n" for i in range(1000, 1010)))
+    code, out, err = _run(
+        capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY], "--positions", off
+    )
+    assert code == 0, err
+    note = [line for line in out.splitlines() if line.startswith("odometry")]
+    assert note == [
+        f"odometry: none: no frame of bag {recordings['ros1'][QUERY]} topic /camera/image has a "
+        f"position in {off} (its rows: frames 1000-1009), so nothing was integrated"
+    ]
+    assert scripted[-1].velocities == [None] * N
+    # a map built with them is refused: not one place would have a position
+    code, out, err = _run(
+        capsys, "map", recordings["ros1"][QUERY], "--positions", off, "--out", tmp_path / "m.map"
+    )
+    assert code == 1 and not (tmp_path / "m.map").exists()
+    assert f"no frame has a position in {off} (its rows: frames 1000-1009; its frames 0-" in err
 
 
 def test_odometry_from_the_bags_topic_and_every(recordings, maps, scripted, capsys):

@@ -322,6 +322,27 @@ def test_ground_truth_by_positions(built, route, capsys):
     assert by_position == float(re.search(r"within 2\): AUC (\d\.\d+)", out).group(1))
 
 
+def test_frames_the_ground_truth_gives_no_position_are_not_scored(built, route, tmp_path, capsys):
+    from flyvpr.metrics import evaluate_answers
+
+    gt = tmp_path / "late.csv"  # positions from frame 20 on only
+    gt.write_text("frame,x,y\n" + "".join(f"{i},{2.0 * i},5\n" for i in range(20, N)))
+    records = tmp_path / "r.csv"
+    code, out, err = _run(
+        capsys, "localize", "--map", built, route["winter"], "--ground-truth", gt,
+        "--radius", "4", "--out", records,
+    )  # fmt: skip
+    assert code == 0, err
+    assert f"over {N - 20} frames (20 frames without a ground-truth position left out)" in out
+    rows = list(csv.DictReader(records.open()))
+    assert len(rows) == N and all(r["correct"] == "" for r in rows[:20])
+    assert {r["correct"] for r in rows[20:]} <= {"0", "1"}
+    conf = np.array([float(r["confidence"]) for r in rows[20:]])
+    right = np.array([r["correct"] == "1" for r in rows[20:]])
+    expected = evaluate_answers(conf, right, np.ones(N - 20, bool))["auc"]
+    assert float(re.search(r"within 4 m\): AUC (\d\.\d+)", out).group(1)) == round(expected, 4)
+
+
 def test_odometry_off_when_the_map_has_no_positions(route, tmp_path, capsys):
     path = tmp_path / "bare.fvmap"
     assert _run(capsys, "map", route["summer"], "--out", path, "--compact", "-q")[0] == 0
@@ -473,3 +494,27 @@ def test_a_map_changed_after_it_was_written_is_refused_unless_unverified(
     out = tmp_path / "where.csv"
     code, _, err = _run(capsys, "localize", "--map", bad, route["winter"], "--out", out)
     assert code == 1 and "the content does not match" in err and not out.exists()
+
+
+def test_more_bits_than_the_optic_lobe_has_features_is_a_usage_error(route, tmp_path, capsys):
+    out = tmp_path / "small.fvmap"
+    code, _, err = _run(capsys, "map", route["summer"], "--compact", "--size", "8x8", "--out", out)
+    assert code == 2 and not out.exists()
+    assert "--bits 256: a compact map at --size 8x8 has at most 16 bits" in err
+    code, _, err = _run(
+        capsys, "map", route["summer"], "--compact", "--size", "16x16", "--bits", "128",
+        "--out", out, "-q",
+    )  # fmt: skip
+    assert code == 2 and "--bits 128: a compact map at --size 16x16 has at most 64 bits" in err
+    assert _run(
+        capsys, "map", route["summer"], "--compact", "--size", "16x16", "--bits", "64",
+        "--out", out, "-q",
+    )[0] == 0  # fmt: skip
+
+
+def test_max_bits_is_the_lobe_s_features_or_none_for_simhash():
+    from flyvpr.large.codes import CompactEncoder
+
+    assert CompactEncoder().max_bits((32, 64)) == 4 * 8 * 16
+    assert CompactEncoder(pool_size=2).max_bits((8, 8)) == 4 * 4 * 4
+    assert CompactEncoder(projection="simhash").max_bits((8, 8)) is None

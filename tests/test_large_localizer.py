@@ -1127,3 +1127,24 @@ def test_repeated_codes_are_not_held_unless_asked():
         fixes = [loc.update_code(q) for q in queries + [queries[-1]] * 10]
         assert loc.filter_.cann_.n_held_ == held
         assert abs(fixes[-1].place - truth[-1]) <= 2
+
+
+def test_on_a_map_of_at_most_k_places_every_place_is_a_candidate():
+    # 200 places, answers 0.4 of their bits flipped: multi-index hashing (radius 1) finds few
+    # of them near the query, the exact scan every place; with k >= the map's places both
+    # localizers search every place, and answer alike
+    codes = _map(n=200)
+    truth = 50 + np.arange(80)
+    runs = {}
+    for name, index in (("exact", ExhaustiveIndex()), ("mih", MultiIndexHash(radius=1))):
+        loc = LargeLocalizer(codes, index.build(codes), k=300)
+        runs[name] = _drive(loc, codes, truth, np.random.default_rng(3), flip=0.4)
+        found, _ = loc._search.search(_query(codes, 60, np.random.default_rng(0))[None], 200)
+        assert (found >= 0).all()  # every place
+        assert loc.index is index  # (the given index stays the localizer's)
+    assert [f.place for f in runs["mih"]] == [f.place for f in runs["exact"]]
+    assert [f.confidence for f in runs["mih"]] == [f.confidence for f in runs["exact"]]
+    # a larger map than k: the index's own answers (multi-index hashing finds fewer)
+    small_k = LargeLocalizer(codes, MultiIndexHash(radius=1).build(codes), k=100)
+    found, _ = small_k._search.search(_query(codes, 60, np.random.default_rng(0), 0.4)[None], 100)
+    assert isinstance(small_k._search, MultiIndexHash) and (found < 0).any()

@@ -47,7 +47,7 @@ def test_parse_every(text, expected):
     assert parse_every(text) == expected
 
 
-@pytest.mark.parametrize("text", ["0", "1.5", "-1s", "2km", "x", "0s"])
+@pytest.mark.parametrize("text", ["0", "1.5", "-1s", "2km", "x", "0s", "1e400m", "1e400s"])
 def test_parse_every_refuses(text):
     with pytest.raises(ValueError, match=f"^every: .*; got '{text}'$"):
         parse_every(text)
@@ -132,7 +132,13 @@ def test_positions_csv_by_frame_and_timestamp(tmp_path):
     by_time = tmp_path / "t.csv"
     by_time.write_text("timestamp,x,y\n10,0,0\n11,5,5\n")
     q = read_positions(by_time)
-    assert q.at(np.zeros(3), np.array([9.0, 10.6, 20.0])).tolist() == [[0, 0], [5, 5], [5, 5]]
+    # the nearest row's position within the rows' span, widened by half the median interval
+    # (0.5 s here); outside it none (a recording that runs on before or after its positions)
+    assert q.span() == (9.5, 11.5)
+    got = q.at(np.zeros(6), np.array([9.0, 9.5, 10.4, 10.6, 11.5, 20.0]))
+    assert np.isnan(got[[0, 5]]).all()
+    assert got[1:5].tolist() == [[0, 0], [0, 0], [5, 5], [5, 5]]
+    assert np.isnan(q.at(np.zeros(2), np.array([9.499, 11.501]))).all()
     bad = tmp_path / "b.csv"
     bad.write_text("name,x,y\na,1,2\n")
     with pytest.raises(ValueError, match="timestamp,x,y or frame,x,y"):
@@ -153,6 +159,13 @@ def test_positions_csv_frames_are_indices(tmp_path, row, message):
     bad.write_text(f"frame,x,y\n0,0,0\n{row}\n")
     with pytest.raises(ValueError, match=message):
         read_positions(bad)
+    dup = tmp_path / "d.csv"
+    dup.write_text("frame,x,y\n0,0,0\n4,1,1\n7,2,2\n4,3,3\n")
+    with pytest.raises(ValueError, match=r"d.csv, line 5: frame 4 is on line 3 too"):
+        read_positions(dup)
+    dup.write_text("timestamp,x,y\n1.5,0,0\n1.50,1,1\n")
+    with pytest.raises(ValueError, match=r"line 3: timestamp 1.50 is on line 2 too"):
+        read_positions(dup)
     # a timestamp may be fractional or negative (seconds on any clock)
     ok = tmp_path / "t.csv"
     ok.write_text("timestamp,x,y\n-5,0,0\n5.5,1,2\n")
@@ -197,10 +210,25 @@ def test_positions_interpolated_between_rows(tmp_path):
     by_time.write_text("timestamp,x,y\n10,0,0\n12,4,-2\n13,4,-2\n")
     q = read_positions(by_time)
     t = np.array([9.0, 10.0, 10.5, 11.0, 12.5, 14.0])
-    assert q.at(np.zeros(6), t, interpolate=True).tolist() == [
-        [0, 0], [0, 0], [1, -0.5], [2, -1], [4, -2], [4, -2]
+    assert q.span() == (9.25, 13.75)  # half the median interval (1.5 s) at either end
+    out = q.at(np.zeros(6), t, interpolate=True)
+    assert np.isnan(out[[0, 5]]).all()  # before the first fix, after the last: none
+    assert out[1:5].tolist() == [[0, 0], [1, -0.5], [2, -1], [4, -2]]
+    near = q.at(np.zeros(6), t)
+    assert np.isnan(near[[0, 5]]).all()
+    assert near[1:5].tolist() == [[0, 0], [0, 0], [0, 0], [4, -2]]
+    # within the widened ends: the end row's position, as before
+    assert q.at(np.zeros(2), np.array([9.3, 13.7]), interpolate=True).tolist() == [
+        [0, 0], [4, -2]
     ]  # fmt: skip
-    assert q.at(np.zeros(6), t).tolist() == [[0, 0], [0, 0], [0, 0], [0, 0], [4, -2], [4, -2]]
+    # frames keyed by index are not widened: a row's own index only
+    assert p.span() == (2.0, 6.0)
+    one = tmp_path / "one.csv"
+    one.write_text("timestamp,x,y\n10,3,4\n")
+    single = read_positions(one)
+    assert single.span() == (10.0, 10.0)
+    got = single.at(np.zeros(3), np.array([9.0, 10.0, 11.0]))
+    assert got[1].tolist() == [3, 4] and np.isnan(got[[0, 2]]).all()
 
 
 def test_navsatfix_positions_in_local_metres(tmp_path):
@@ -456,7 +484,7 @@ def test_an_every_object_is_checked_as_text_is():
     for bad, match in (
         (Every(0), "a frame count must be an integer >= 1"),
         (Every(2.5), "a frame count must be an integer >= 1"),
-        (Every(-1.0, "metres"), "the step must be > 0"),
+        (Every(-1.0, "metres"), "the step must be a finite number > 0"),
         (Every(2, "bogus"), "unit must be 'frames', 'seconds' or 'metres'"),
         (Every("2", "frames"), "the step must be a number"),
     ):

@@ -72,6 +72,16 @@ def test_odometry_by_timestamp_and_every(images):
     assert loc.method.filter.velocities == [None, 1.0, 1.0]
 
 
+def test_frames_before_and_after_timestamped_positions_get_no_odometry(images):
+    # fixes from t = 0.2 to 0.4 s (0.1 s apart: a frame within 0.05 s of the ends still gets
+    # one); frames at t = 0, 0.1 and 0.5 lie outside, and are not clamped to the end fixes
+    t = np.array([0.2, 0.3, 0.4])
+    positions = Positions(t, np.c_[t * 40.0, np.zeros(3)], "timestamp", "t")
+    loc = _loc(images, spacing=4.0)
+    list(track(loc, Frames(images), positions=positions, odometry=True, batch=4))
+    assert loc.method.filter.velocities == [None, None, None, 1.0, 1.0, None]
+
+
 def test_without_odometry_the_filter_gets_none(images):
     positions = Positions(np.arange(N), np.c_[np.arange(N) * 2.0, np.zeros(N)], "frame", "t")
     loc = _loc(images)

@@ -17,7 +17,7 @@ import numpy as np
 
 from ._common import UsageError, check_outputs, counted, flag, positions_words
 from ._records import open_records
-from ._stream import odometry_note, run_metadata
+from ._stream import coverage_note, left_out_words, odometry_note, placed_frames, run_metadata
 from .map import recording_inputs
 
 #: ``flyvpr localize`` options a compact map does not take (what they need: score rows over
@@ -59,6 +59,19 @@ def cmd_map_compact(args) -> int:
         sidecar = index_path(args.out)
         if sidecar.resolve() in {p.resolve() for p in recording_inputs(args)}:
             raise UsageError(f"--mih writes {sidecar}, which is an input of this run")
+    from ..images import DEFAULT_SIZE
+    from ..large.codes import CompactEncoder
+
+    bits, size = args.bits or 256, tuple(args.size or DEFAULT_SIZE)
+    try:
+        most = CompactEncoder(n_bits=bits).max_bits(size)
+    except ValueError:  # a size the optic lobe cannot pool: the builder says so
+        most = None
+    if most is not None and bits > most:
+        raise UsageError(
+            f"--bits {bits}: a compact map at --size {size[0]}x{size[1]} has at most {most} "
+            f"bits (one per optic-lobe feature); give --bits <= {most} or a larger --size"
+        )
     t0 = time.perf_counter()
     cmap = build_compact_map(
         args.source,
@@ -93,13 +106,19 @@ def cmd_map_compact(args) -> int:
 
 
 def _truth(args, cmap, b, gt_positions, lookup):
-    """(whether each frame's answer can be right at all, a function of the answers);
-    ``lookup``: the map's frame numbers sorted, or a KD-tree of its positions."""
+    """(whether each frame's answer can be right at all, a function of the answers, which
+    frames have a ground truth: the --ground-truth CSV may give a frame no position, and such
+    a frame is not scored); ``lookup``: the map's frame numbers sorted, or a KD-tree of its
+    positions."""
     if args.ground_truth == "frames":
         frames = lookup
         lo = np.searchsorted(frames, b.indices - args.tolerance, side="left")
         hi = np.searchsorted(frames, b.indices + args.tolerance, side="right")
-        return hi > lo, lambda places: np.abs(cmap.frames[places] - b.indices) <= args.tolerance
+        return (
+            hi > lo,
+            lambda places: np.abs(cmap.frames[places] - b.indices) <= args.tolerance,
+            np.ones(len(b), bool),
+        )
     xy = gt_positions.at(b.indices, b.timestamps)
     known = np.isfinite(xy).all(axis=1)
     near = np.zeros(len(b), bool)
@@ -111,7 +130,7 @@ def _truth(args, cmap, b, gt_positions, lookup):
         d = np.hypot(*(cmap.positions[places] - xy).T)
         return np.isfinite(d) & (d <= args.radius)
 
-    return near, right
+    return near, right, known
 
 
 def cmd_localize_compact(args) -> int:
@@ -165,8 +184,8 @@ def cmd_localize_compact(args) -> int:
     if args.ground_truth is not None:
         columns.append("correct")
     show = not args.quiet and sys.stderr.isatty()
-    confidences, rights, matchable = [], [], []
-    n_frames = n_localized = 0
+    confidences, rights, matchable, scored = [], [], [], []
+    n_frames = n_localized = n_unknown = placed = 0
     last_xy = np.full((1, 2), np.nan)
     metadata = run_metadata(args, compact_method_name(cmap), cmap.n_places, source)
     t0 = time.perf_counter()
@@ -179,6 +198,7 @@ def cmd_localize_compact(args) -> int:
         for b in source.batches(cmap.size, every=args.every, positions=positions):
             velocity: list = [None] * len(b)
             if odometry and positions is not None and spacing is not None:
+                placed += placed_frames(positions, b)
                 moved, last_xy = distances_moved(positions, b, last_xy)
                 velocity = [float(d) if np.isfinite(d) else None for d in moved / spacing]
             codes = cmap.encoder.encode(b.images)
@@ -192,12 +212,14 @@ def cmd_localize_compact(args) -> int:
                 places[i], conf[i] = fix.place, fix.confidence
                 states.append(fix.state)
                 relocated.append(int(loc.n_reseeds_ > before))
-            right = None
+            right = known = None
             if args.ground_truth is not None:
-                can, judge = _truth(args, cmap, b, gt_positions, lookup)
+                can, judge, known = _truth(args, cmap, b, gt_positions, lookup)
                 right = judge(places)
-                rights.append(right)
-                matchable.append(can)
+                rights.append(right[known])
+                matchable.append(can[known])
+                scored.append(conf[known])
+                n_unknown += int((~known).sum())
             for i in range(len(b)):
                 row = {
                     "frame": int(b.indices[i]),
@@ -210,7 +232,7 @@ def cmd_localize_compact(args) -> int:
                 if cmap.positions is not None:
                     row["x"], row["y"] = (float(v) for v in cmap.positions[places[i]])
                 if right is not None:
-                    row["correct"] = int(right[i])
+                    row["correct"] = int(right[i]) if known[i] else None
                 if out is not None:
                     out.write(row)
             confidences.append(conf)
@@ -236,12 +258,13 @@ def cmd_localize_compact(args) -> int:
         f"{counted(loc.n_searches_, 'code')} searched"
     )
     if note is not None:
-        print(note)
+        print(coverage_note(note, positions, placed, n_frames, source.describe()) if odometry
+              else note)  # fmt: skip
     if args.ground_truth is not None:
         can = np.concatenate(matchable)
         if not can.any():
             raise ValueError(f"--ground-truth {args.ground_truth}: no frame has a true place")
-        r = evaluate_answers(np.concatenate(confidences), np.concatenate(rights), can)
+        r = evaluate_answers(np.concatenate(scored), np.concatenate(rights), can)
         rule = (
             f"frames within {args.tolerance}"
             if args.ground_truth == "frames"
@@ -250,6 +273,7 @@ def cmd_localize_compact(args) -> int:
         print(
             f"ground truth ({rule}): AUC {r['auc']:.4f}, R@1 {r['recall_at_1']:.4f}, "
             f"R@100%P {r['recall_at_100_precision']:.4f} over {r['n_query']} frames"
+            + left_out_words(n_unknown)
         )
     if args.out is not None:
         print(f"wrote {args.out}")

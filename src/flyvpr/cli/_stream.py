@@ -21,15 +21,46 @@ from .map import recording_inputs
 
 
 def _ground_truth(args, m, step, gt_positions):
+    """The batch's ground truth (n, n_places) and which of its frames have one (a frame the
+    --ground-truth CSV gives no position is not scored: its true place is unknown, which is
+    not the same as a frame off the map)."""
     from ..localization.tracking import ground_truth_frames, ground_truth_positions
 
     b = step.batch
     if args.ground_truth == "frames":
-        return ground_truth_frames(b.indices, m.source_index, args.tolerance)
+        gt = ground_truth_frames(b.indices, m.source_index, args.tolerance)
+        return gt, np.ones(len(b), bool)
     if m.positions is None:
         raise UsageError("--ground-truth CSV needs a map built with positions")
     xy = gt_positions.at(b.indices, b.timestamps)
-    return ground_truth_positions(xy, m.positions, args.radius)
+    return ground_truth_positions(xy, m.positions, args.radius), np.isfinite(xy).all(axis=1)
+
+
+def placed_frames(positions, b) -> int:
+    """How many frames of batch ``b`` have a position in ``positions`` (as odometry reads
+    them: interpolated between rows)."""
+    xy = positions.at(b.indices, b.timestamps, interpolate=True)
+    return int(np.isfinite(xy).all(axis=1).sum())
+
+
+def coverage_note(note: str, positions, placed: int, n_frames: int, source: str) -> str:
+    """The summary's odometry line once the run is over: how many frames had a position,
+    and none at all said as such (positions of another recording, or on another clock)."""
+    if placed == 0:
+        return (
+            f"odometry: none: no frame of {source} has a position in {positions.origin} (its "
+            f"rows: {positions.describe_span()}), so nothing was integrated"
+        )
+    if placed < n_frames:
+        return f"{note}; {placed} of {n_frames} frames have a position in it"
+    return note
+
+
+def left_out_words(n_unknown: int) -> str:
+    """The scores line's note on frames the ground truth gives no position ('' for none)."""
+    if not n_unknown:
+        return ""
+    return f" ({counted(n_unknown, 'frame')} without a ground-truth position left out)"
 
 
 def odometry_note(
@@ -117,8 +148,8 @@ def cmd_localize_recording(args) -> int:
     if args.ground_truth is not None:
         columns.append("correct")
     show = not args.quiet and sys.stderr.isatty()
-    confidences, scores, truth, correct = [], [], [], []
-    n_frames = n_reloc = n_localized = 0
+    confidences, scores, truth, correct, scored = [], [], [], [], []
+    n_frames = n_reloc = n_localized = n_unknown = placed = 0
     timed = False  # whether a frame had a timestamp (--realtime paces only those)
     t0 = time.perf_counter()
     with ExitStack() as stack:
@@ -141,13 +172,17 @@ def cmd_localize_recording(args) -> int:
                           odometry=odometry, realtime=args.realtime):  # fmt: skip
             b = step.batch
             timed = timed or bool(np.isfinite(b.timestamps).any())
-            gt = None
+            if odometry:
+                placed += placed_frames(positions, b)
+            gt = known = None
             if args.ground_truth is not None:
-                gt = _ground_truth(args, m, step, gt_positions)
+                gt, known = _ground_truth(args, m, step, gt_positions)
                 # the score rows and ground truth kept for the metrics: 5 bytes per place and frame
                 check_memory(len(b) * m.n_places * 5, "scoring against --ground-truth")
-                scores.append(step.scores.astype(np.float32))
-                truth.append(gt)
+                scores.append(step.scores[known].astype(np.float32))
+                truth.append(gt[known])
+                scored.append(step.confidences[known].astype(np.float32))
+                n_unknown += int((~known).sum())
             for tr in tracers:
                 tr.add(step)
             for i in range(len(b)):
@@ -161,9 +196,10 @@ def cmd_localize_recording(args) -> int:
                 }
                 if step.positions is not None:  # the map's positions, where it has them
                     row["x"], row["y"] = (float(v) for v in step.positions[i])
-                if gt is not None:
-                    row["correct"] = int(gt[i, step.places[i]])
-                    correct.append(bool(row["correct"]))
+                if gt is not None and known is not None:
+                    row["correct"] = int(gt[i, step.places[i]]) if known[i] else None
+                    if known[i]:
+                        correct.append(bool(row["correct"]))
                 if out is not None:
                     images = None
                     if args.mcap_thumbnails:
@@ -193,14 +229,15 @@ def cmd_localize_recording(args) -> int:
         f"{100 * n_localized / n_frames:.1f}% of frames, {counted(n_reloc, 'relocation')}"
     )
     if note is not None:
-        print(note)
+        print(coverage_note(note, positions, placed, n_frames, source.describe()) if odometry
+              else note)  # fmt: skip
     if args.realtime and not timed:
         print(
             f"--realtime: {source.describe()} has no timestamps (an image folder has none; "
             "videos and ROS bags have them), so the frames were not paced"
         )
     if args.ground_truth is not None:
-        _print_scores(args, np.concatenate(scores), np.concatenate(truth))
+        _print_scores(args, np.concatenate(scores), np.concatenate(truth), n_unknown)
     if args.fit_calibration is not None:
         fitted_on = {
             "map": str(args.map),
@@ -208,7 +245,8 @@ def cmd_localize_recording(args) -> int:
             "source": source.describe(),
             "ground_truth": _rule(args),
         }
-        print(fit_and_write(args.fit_calibration, conf, np.array(correct), fitted_on))
+        scored_conf = np.concatenate(scored)  # the frames with a ground truth
+        print(fit_and_write(args.fit_calibration, scored_conf, np.array(correct), fitted_on))
     if args.calibration is not None:
         print(f"confidence through the table of --calibration {args.calibration}")
     print_view_summary(view)
@@ -242,7 +280,7 @@ def _rule(args) -> str:
     return f"{args.ground_truth} within {args.radius:g} m"
 
 
-def _print_scores(args, S, gt) -> None:
+def _print_scores(args, S, gt, n_unknown: int = 0) -> None:
     from ..metrics import evaluate
 
     if not gt.any():
@@ -252,5 +290,5 @@ def _print_scores(args, S, gt) -> None:
     print(
         f"ground truth ({rule}): AUC {r['auc']:.4f}, R@1 {r['recall_at_1']:.4f}, "
         f"R@5 {r['recall_at_5']:.4f}, R@100%P {r['recall_at_100_precision']:.4f} "
-        f"over {r['n_query']} frames"
+        f"over {r['n_query']} frames" + left_out_words(n_unknown)
     )

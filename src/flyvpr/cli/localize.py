@@ -60,6 +60,32 @@ def cmd_localize(args) -> int:
     return _cmd_benchmark(args)
 
 
+#: options of the --dataset benchmark that a recording localized against a map has no use for
+_DATASET_ONLY = (
+    "root", "reference", "query", "first", "count", "tolerance_m", "spacing", "positions_csv",
+    "trust_pickle", "no_cache", "cache_dir",
+)  # fmt: skip
+
+
+def _check_truth_options(args) -> None:
+    """--tolerance goes with --ground-truth frames, --radius with a --ground-truth CSV
+    (``Frames`` in any case is the word, unless a file of that name exists)."""
+    gt = args.ground_truth
+    if isinstance(gt, str) and gt.lower() == "frames" and not Path(gt).exists():
+        args.ground_truth = "frames"
+    given = [o for o in ("tolerance", "radius") if getattr(args, o, None) is not None]
+    if args.ground_truth is None and given:
+        raise UsageError(f"{flag(given[0])}: only with --ground-truth (it scores the run)")
+    if args.ground_truth == "frames" and args.radius is not None:
+        raise UsageError(
+            "--radius: for a --ground-truth CSV (metres); --ground-truth frames takes --tolerance"
+        )
+    if args.ground_truth not in (None, "frames") and args.tolerance is not None:
+        raise UsageError(
+            "--tolerance: for --ground-truth frames; a --ground-truth CSV takes --radius (metres)"
+        )
+
+
 def _cmd_recording(args) -> int:
     from ._stream import cmd_localize_recording
 
@@ -83,6 +109,17 @@ def _cmd_recording(args) -> int:
                 f"{flag(option)}: the map fixes the method and its seed; not with --map "
                 "(build another map with `flyvpr map`)"
             )
+    for option in _DATASET_ONLY:
+        if getattr(args, option, None) not in (None, False):
+            hint = (
+                "; a recording's own positions are --positions CSV (timestamp,x,y or frame,x,y)"
+                if option == "positions_csv"
+                else "; --every thins the recording"
+                if option in ("first", "count", "spacing")
+                else ""
+            )
+            raise UsageError(f"{flag(option)}: a --dataset option, not for --map MAP SOURCE{hint}")
+    _check_truth_options(args)
     if is_live(args.source):
         from ._live import cmd_localize_live
 

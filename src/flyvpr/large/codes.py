@@ -431,6 +431,15 @@ class CompactEncoder(Encoder):
         enc.train_accuracy_ = None
         return enc
 
+    def max_bits(self, size) -> int | None:
+        """The most bits a ``projection='pca'`` encoder can have on images of ``size`` (H, W):
+        the optic lobe's features there (fewer under a mask of static pixels); None for
+        ``simhash``, which takes any number."""
+        if self.projection == "simhash":
+            return None
+        lobe = OpticLobe(*(getattr(self, name) for name in self._LOBE))
+        return lobe.n_features(*size)
+
     # -- fitting ----------------------------------------------------------------
     def _check_params(self) -> int:
         n_bits = check_positive_int(self.n_bits, "n_bits", minimum=64)

@@ -29,7 +29,7 @@ from .._validation import check_positive_int
 from ..localization import LOCALIZED, Fix
 from ..temporal.cann import WindowedCANN
 from .codes import as_words, hamming_similarity, hamming_similarity_at
-from .index import CandidateIndex, pool_candidates
+from .index import CandidateIndex, ExhaustiveIndex, pool_candidates
 
 __all__ = ["LargeLocalizer"]
 
@@ -66,7 +66,9 @@ class LargeLocalizer:
     window : int, default 2048
         Places the layer covers.
     k : int, default 300
-        Candidates per frame from the index.
+        Candidates per frame from the index.  On a map of at most ``k`` places every place is
+        a candidate, whatever the index (an approximate one such as multi-index hashing finds
+        only the codes near the query's; scanning so few codes costs next to nothing).
     pool : int, default 10
         Frames whose candidates are pooled and over which tracks are scored: the last
         ``pool`` frames, only those of the lost stretch when lost.
@@ -204,6 +206,7 @@ class LargeLocalizer:
         self.index = index
         self.encoder = encoder
         self.k = check_positive_int(k, "k")
+        self._every: ExhaustiveIndex | None = None  # (see _search)
         self.pool = check_positive_int(pool, "pool")
         self.reseed_after = check_positive_int(reseed_after, "reseed_after")
         self.check_every = check_positive_int(check_every, "check_every", minimum=0)
@@ -216,6 +219,18 @@ class LargeLocalizer:
         self._layer = {"window": window, "hold_repeats": False, **params}
         self.filter_ = WindowedCANN(n_places, **self._layer)
         self.reset()
+
+    @property
+    def _search(self) -> CandidateIndex:
+        """The index that answers for candidates: ``index``, or on a map of at most ``k``
+        places an exact scan of every code (every place a candidate, whatever the index)."""
+        if self.n_places <= self.k and not isinstance(self.index, ExhaustiveIndex):
+            if self._every is None:
+                every = ExhaustiveIndex()
+                every.build(self.codes)
+                self._every = every
+            return self._every
+        return self.index
 
     @property
     def n_places(self) -> int:
@@ -323,7 +338,7 @@ class LargeLocalizer:
         t0 = time.perf_counter()
         if new:
             codes = np.stack([self._recent[t - now - 1] for t in new])
-            places, dist = self.index.search(codes, k)
+            places, dist = self._search.search(codes, k)
             self._found.update(zip(new, zip(places, dist, strict=True), strict=True))
             self.n_searches_ += len(new)
         none = (np.full(k, -1, np.int64), np.full(k, self.n_bits + 1, np.int32))

@@ -276,7 +276,7 @@ def build_compact_map(
         }
         encode = functools.partial(_encode_rows, encoder)
         timestamps, frames = [], []
-        written = 0
+        written = placed = 0
         n_bytes = int(n_bits) // 8
         with (
             LargeMapWriter(path, n, n_bytes, None if pos is None else 2, meta) as writer,
@@ -290,6 +290,8 @@ def build_compact_map(
                     )
                 codes = runner(encode, b.images) if runner.parallel else encode(b.images)
                 xy = None if pos is None else pos.at(b.indices, b.timestamps)
+                if xy is not None:
+                    placed += int(np.isfinite(xy).all(axis=1).sum())
                 writer.append(codes, xy)
                 timestamps.append(b.timestamps)
                 frames.append(b.indices)
@@ -300,6 +302,11 @@ def build_compact_map(
                     f"{src.describe()}: {written} frames on the second pass, {n} on the first "
                     "(the recording changed while it was read)"
                 )
+            if pos is not None and not placed:  # (the writer removes its temporary file)
+                pos.check_covers(
+                    np.full((n, 2), np.nan), np.concatenate(frames), np.concatenate(timestamps),
+                    src.describe(),
+                )  # fmt: skip
             writer.add_array("timestamps", np.concatenate(timestamps).astype(np.float64))
             writer.add_array("frames", np.concatenate(frames).astype(np.int64))
             for name, array in encoder.state()[1].items():

@@ -240,6 +240,8 @@ class Map:
                     )
                 m.fit(frames.images)
         xy = None if pos is None else pos.at(frames.indices, frames.timestamps)
+        if pos is not None:
+            pos.check_covers(xy, frames.indices, frames.timestamps, src.describe())
         thumbs = np.rint(frames.images * 255.0).astype(np.uint8)
         info = {
             "source": str(src.path),

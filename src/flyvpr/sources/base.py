@@ -99,7 +99,7 @@ def parse_every(text) -> Every:
     if unit == "frames" and (not math.isfinite(value) or value != int(value) or value < 1):
         raise ValueError(f"every: a frame count must be an integer >= 1; got {text!r}")
     if not math.isfinite(value) or value <= 0:
-        raise ValueError(f"every: the step must be > 0; got {text!r}")
+        raise ValueError(f"every: the step must be a finite number > 0; got {text!r}")
     return Every(float(value), unit)
 
 
@@ -228,6 +228,11 @@ class Source:
                 n = 0
         if seen == 0:
             raise RecordingError(f"{self.describe()}: the recording holds no frame")
+        if positions is not None and thin.unplaced == seen:
+            raise RecordingError(
+                f"{self.describe()}: every={thin.every} keeps frames by distance, and no frame "
+                f"has a position in {positions.origin} (its rows: {positions.describe_span()})"
+            )
         said = (self.describe(), str(thin.every), positions.origin if positions else None)
         if thin.unplaced and said not in _WARNED_UNPLACED:  # once, though a map reads twice
             _WARNED_UNPLACED.add(said)
