@@ -52,8 +52,8 @@ of the robot views of ``benchmarks/accuracy.py``; ``kenyon+cann`` with its defau
 * **The random profiles drawn again** (``r-walk`` and ``r-uneven`` draw their speeds,
   ``r-drops`` its dropped frames, from ``numpy.random.default_rng(0)``): kenyon+cann's AUC
   with the same profiles drawn from ``numpy.random.default_rng(d)`` for each ``d`` of
-  ``PROFILE_SEEDS`` (draw 0: the accuracy benchmark's own), on the 1x view's front-end
-  scores of each seed.
+  ``PROFILE_SEEDS`` (draw 0: the accuracy benchmark's own), with the CANN's ``jitter`` at
+  each of ``JITTERS``, on the 1x view's front-end scores of each seed.
 * **Parked** (not a view of the accuracy benchmark): the query drives at 1 place per frame to
   place ``a``, stands there ``PARK_FRAMES`` frames (its one winter frame repeated, as a
   robot's camera sees a parked scene), then drives on ``PARK_AFTER`` frames.  ``PARK_PLACES``
@@ -265,22 +265,25 @@ def _jitter_rows(seed: int, S: np.ndarray, qry_ids, ref_ids) -> list[dict]:
 
 
 def _profile_rows(seed: int, S: np.ndarray, qry_ids, ref_ids) -> list[dict]:
-    """kenyon+cann's AUC on each of PROFILE_KINDS drawn from each of PROFILE_SEEDS, from the
-    front end's scores ``S`` of every query frame in order."""
+    """kenyon+cann's AUC on each of PROFILE_KINDS drawn from each of PROFILE_SEEDS, with the
+    CANN's ``jitter`` at each of JITTERS, from the front end's scores ``S`` of every query
+    frame in order."""
     rows = []
     for kind in PROFILE_KINDS:
         for draw in PROFILE_SEEDS:
             idx = motion_places(kind, len(S), draw)
             gt = ground_truth_from_frames(qry_ids[idx], ref_ids, TOLERANCE)
-            out = make_method("kenyon+cann", seed, {}, {}).filter.filter(S[idx])
-            rows.append(
-                {
-                    "seed": seed,
-                    "motion": kind,
-                    "draw": draw,
-                    "auc": metrics.evaluate(out, gt, ks=(1,))["auc"],
-                }
-            )
+            for jitter in JITTERS:
+                filt = make_method("kenyon+cann", seed, {}, {"jitter": jitter}).filter
+                rows.append(
+                    {
+                        "seed": seed,
+                        "motion": kind,
+                        "draw": draw,
+                        "jitter": jitter,
+                        "auc": metrics.evaluate(filt.filter(S[idx]), gt, ks=(1,))["auc"],
+                    }
+                )
     return rows
 
 
@@ -632,18 +635,20 @@ def _profiles_table(data: dict) -> list[str]:
         "## The random profiles drawn again",
         "",
         f"kenyon+cann's AUC with each random profile drawn again ({data['protocol']['profiles']}"
-        "), on the same front-end scores; mean over the front end's seeds.",
+        "), with the CANN's `jitter` at each value (0: the default), on the same front-end "
+        "scores; mean over the front end's seeds.",
         "",
-        "| motion | " + " | ".join(f"draw {d}" for d in draws) + " | lowest |",
-        "|---|" + "---|" * (len(draws) + 1),
+        "| motion | jitter | " + " | ".join(f"draw {d}" for d in draws) + " | lowest | mean |",
+        "|---|---|" + "---|" * (len(draws) + 2),
     ]
-    for motion in dict.fromkeys(r["motion"] for r in rows):
-        means = [
-            float(np.mean([r["auc"] for r in rows if r["motion"] == motion and r["draw"] == d]))
-            for d in draws
-        ]
+    for motion, jitter in dict.fromkeys((r["motion"], r.get("jitter", 0.0)) for r in rows):
+        picked = [r for r in rows if r["motion"] == motion and r.get("jitter", 0.0) == jitter]
+        means = [float(np.mean([r["auc"] for r in picked if r["draw"] == d])) for d in draws]
         cells = " | ".join(f"{m:.3f}" for m in means)
-        lines.append(f"| {labels.get(motion, motion)} | {cells} | {min(means):.3f} |")
+        lines.append(
+            f"| {labels.get(motion, motion)} | {jitter:g} | {cells} | {min(means):.3f} | "
+            f"{np.mean(means):.3f} |"
+        )
     return lines
 
 

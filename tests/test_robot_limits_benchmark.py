@@ -275,13 +275,15 @@ def test_profiles_table_gives_each_draw_and_the_lowest():
             (1, "drops", 1, 0.9),
         ]
     ]
+    rows += [dict(r, jitter=0.3, auc=r["auc"] - 0.1) for r in rows if r["motion"] == "drops"]
     lines = robot_limits._profiles_table({"profiles": rows, "protocol": {"profiles": "P"}})
-    assert "| motion | draw 0 | draw 1 | lowest |" in lines
-    assert "| 0-999, random 0.4-1.6x | 0.970 | 0.910 | 0.910 |" in lines
-    assert "| 0-999 at 1x, 20% of frames dropped | 0.750 | 0.850 | 0.750 |" in lines
-    assert lines.index("| 0-999, random 0.4-1.6x | 0.970 | 0.910 | 0.910 |") < lines.index(
-        "| 0-999 at 1x, 20% of frames dropped | 0.750 | 0.850 | 0.750 |"
-    )
+    assert "| motion | jitter | draw 0 | draw 1 | lowest | mean |" in lines
+    walk = "| 0-999, random 0.4-1.6x | 0 | 0.970 | 0.910 | 0.910 | 0.940 |"
+    drops = "| 0-999 at 1x, 20% of frames dropped | 0 | 0.750 | 0.850 | 0.750 | 0.800 |"
+    jittered = "| 0-999 at 1x, 20% of frames dropped | 0.3 | 0.650 | 0.750 | 0.650 | 0.700 |"
+    assert walk in lines and drops in lines and jittered in lines
+    assert lines.index(walk) < lines.index(drops) < lines.index(jittered)
+    assert any("(P)" in line for line in lines)
 
 
 def test_profile_draw_0_is_the_accuracy_benchmarks_own_view():
@@ -299,7 +301,15 @@ def test_profile_rows_draw_each_profile_from_its_own_seed(monkeypatch):
         seen.append((kind, seed))
         return np.arange(0, n, 1 + seed % 2)  # draws differ: every frame, or every other
 
+    made = []
+    real = robot_limits.make_method
+
+    def make(name, seed, frontend_params, filter_params):
+        made.append((name, seed, dict(filter_params)))
+        return real(name, seed, frontend_params, filter_params)
+
     monkeypatch.setattr(robot_limits, "motion_places", places)
+    monkeypatch.setattr(robot_limits, "make_method", make)
     monkeypatch.setattr(robot_limits, "PROFILE_SEEDS", (0, 1))
     n = 60
     S = np.full((n, n), 0.1, np.float32)
@@ -307,7 +317,11 @@ def test_profile_rows_draw_each_profile_from_its_own_seed(monkeypatch):
     ids = np.arange(n)
     rows = robot_limits._profile_rows(4, S, ids, ids)
     assert seen == [(k, d) for k in robot_limits.PROFILE_KINDS for d in (0, 1)]
-    assert [(r["motion"], r["draw"]) for r in rows] == seen
+    jitters = robot_limits.JITTERS
+    assert [(r["motion"], r["draw"], r["jitter"]) for r in rows] == [
+        (k, d, j) for k, d in seen for j in jitters
+    ]
+    assert made == [("kenyon+cann", 4, {"jitter": r["jitter"]}) for r in rows]
     assert all(r["seed"] == 4 and 0.0 <= r["auc"] <= 1.0 for r in rows)
     assert rows[0]["auc"] > 0.9  # a clean diagonal, every frame: found
 
