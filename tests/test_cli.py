@@ -369,7 +369,8 @@ def test_evaluate_load_names_the_model_and_checks_its_window(route_dir, tmp_path
         )
     assert f"model={model}" in capsys.readouterr().out
     data = json.loads(out.read_text())
-    assert data["seed"] is None and data["model_file"] == str(model)
+    # the seed `flyvpr fit` was given (0 by default) is kept in the file and reported
+    assert data["seed"] == 0 and data["model_file"] == str(model)
     assert not [r for r in caplog.records if "find their own place" in r.getMessage()]
     # another window of the route: the model's places are not these frames
     with caplog.at_level("WARNING", logger="flyvpr"):
@@ -391,8 +392,19 @@ def test_evaluate_load_names_the_model_and_checks_its_window(route_dir, tmp_path
             True,
         ),
         (["--method", "pixels", "--seed", "1", "--seed", "2"], "--seed given twice (1, 2)", False),
+        (
+            ["--method", "seqslam", "--param", "sequence_length=60", "--param",
+             "sequence_length=20"],
+            "--param sequence_length: given twice (60, 20); one per run",
+            False,
+        ),
+        (
+            ["--method", "kenyon+cann", "--param", "jitter=0.1", "--param", "filter.jitter=0.2"],
+            "--param jitter: given twice (0.1, 0.2)",
+            False,
+        ),
     ],
-)
+)  # fmt: skip
 def test_an_option_given_twice_is_refused(route_dir, capsys, option, says, points_to_experiment):
     assert main(_eval_args(route_dir, *option)) == 2
     err = capsys.readouterr().err

@@ -186,6 +186,12 @@ def grid(**overrides) -> str:
         (grid(seeds="[0, 0]"), ValueError, r"seeds must be .*; got \[0, 0\]: it holds 0 twice"),
         (grid(seeds="[0, -1]"), ValueError, r"item 2, -1, is not an integer >= 0"),
         (grid(methods="[]"), ValueError, r"methods must be a non-empty list .*; got \[\]"),
+        (
+            grid(kind='"training_curve"', methods='["flynet", "pixels", "kenyon+cann"]'),
+            ValueError,
+            r"\[\[grids\]\] #1 \('g'\): a training_curve grid needs methods whose front end is "
+            r"trained epoch by epoch; 'pixels', 'kenyon\+cann' records no per-epoch",
+        ),
         (grid(methods=None), ValueError, r"missing required key 'methods': a non-empty list"),
         (grid(params="{ epochs = [] }"), ValueError, r"params\.epochs must be .*; got \[\]"),
         (grid(params="{ nonsense = 1 }"), ValueError, r"'nonsense' is not a parameter of method"),
@@ -324,6 +330,15 @@ def test_invalid_settings(tmp_path, settings, error, match):
         parse_config(text, base_dir=tmp_path)
 
 
+def test_a_cache_that_is_a_file_is_refused(tmp_path):
+    (tmp_path / "cache").write_text("not a folder")
+    with pytest.raises(ValueError, match=r"config.toml \[settings\]: cache '.*cache' is a file"):
+        load_config(write_config(tmp_path, EVAL_GRID))
+    (tmp_path / "cache").unlink()
+    (tmp_path / "cache").mkdir()
+    assert load_config(write_config(tmp_path, EVAL_GRID)).settings.cache == str(tmp_path / "cache")
+
+
 def test_missing_config_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="nothere.toml"):
         load_config(tmp_path / "nothere.toml")
@@ -361,20 +376,21 @@ def test_run_experiment_in_parallel_and_resume(workdir):
 
 
 def test_a_failing_run_is_recorded_and_retried(workdir):
+    # a value the config cannot check (the front end checks it when it fits) fails the run
     grids = """
     [[grids]]
     name = "curves"
     kind = "training_curve"
     datasets = ["syn"]
-    methods = ["flynet", "pixels"]
-    method_params = { flynet = { epochs = 4 } }
+    methods = ["flynet", "flynet+cann"]
+    method_params = { flynet = { epochs = 4 }, "flynet+cann" = { epochs = 2, n_hidden = 0 } }
     """
     config = write_config(workdir, grids)
     out = workdir / "out"
     summary = run_experiment(config, out, n_jobs=1, progress=False)
     assert len(summary["ran"]) == 2
     (failed,) = summary["errors"]
-    assert "accuracy_history_" in summary["errors"][failed]
+    assert "n_hidden must be >= 1" in summary["errors"][failed]
     record = json.loads((out / "runs" / f"{failed}.json").read_text())
     assert record["status"] == "error" and "Traceback" in record["traceback"]
     ok = json.loads(next(p for k, p in run_files(out).items() if k != failed).read_text())
@@ -410,9 +426,50 @@ def test_speed_profile_subsets_the_queries(workdir):
 
 def test_missing_data_fails_before_any_run(tmp_path):
     out = tmp_path / "out"
-    with pytest.raises(FileNotFoundError, match="route"):
-        run_experiment(write_config(tmp_path, EVAL_GRID), out, progress=False)
-    assert not run_files(out)
+    config = write_config(tmp_path, EVAL_GRID)
+    with pytest.raises(FileNotFoundError, match="route") as info:
+        run_experiment(config, out, progress=False)
+    # the message names the config's file and block; nothing is written
+    assert str(info.value).startswith(f"{config} [[datasets]] #1 ('syn'): ")
+    assert not out.exists()
+
+
+def test_data_that_fails_leaves_a_results_folder_as_it_was(workdir):
+    out = workdir / "out"
+    grids = EVAL_GRID.replace('methods = ["pixels", "flynet", "seqslam"]', 'methods = ["pixels"]')
+    grids = grids.replace("method_params = { flynet = { epochs = 5 } }\n", "")
+    run_experiment(write_config(workdir, grids), out, progress=False)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    broken = write_config(workdir, grids, BASE.replace('root = "route"', 'root = "nope"'))
+    with pytest.raises(FileNotFoundError, match=r"\[\[datasets\]\] #1 \('syn'\): .*nope"):
+        run_experiment(broken, out, progress=False)
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    # a window beyond the data is named the same way (a ValueError from the loader)
+    beyond = write_config(workdir, grids, BASE + "first = 25\ncount = 50\n")
+    with pytest.raises(ValueError, match=r"\[\[datasets\]\] #1 \('syn'\): .*beyond"):
+        run_experiment(beyond, out, progress=False)
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_qualitative_queries_beyond_the_data_are_refused(workdir):
+    grids = """
+    [[grids]]
+    name = "shown"
+    kind = "qualitative"
+    datasets = ["syn"]
+    methods = ["pixels"]
+    queries = [5, 5000, 29]
+    """
+    out = workdir / "out"
+    with pytest.raises(ValueError) as info:
+        run_experiment(write_config(workdir, grids), out, progress=False)
+    assert str(info.value) == (
+        f"{workdir / 'config.toml'} [[grids]] 'shown': queries 5000 lie beyond the "
+        f"{N_PLACES} queries of dataset 'syn' (positions 0-{N_PLACES - 1})"
+    )
+    assert not out.exists()
+    ok = grids.replace("5000, ", "")
+    assert run_experiment(write_config(workdir, ok), out, progress=False)["errors"] == {}
 
 
 @pytest.mark.parametrize(

@@ -260,3 +260,24 @@ def test_a_file_from_before_hold_repeats_takes_the_front_ends_default(
     assert again.filter.get_params().keys() == paper.filter.get_params().keys()
     S = paper.score(data[1])
     np.testing.assert_array_equal(again.filter.filter(S), paper.filter.filter(S))
+
+
+def test_the_seed_a_method_was_made_with_is_kept(tmp_path, data):
+    from flyvpr.modelio import _write_archive
+
+    ref = data[0]
+    path = save_method(make_method("kenyon+cann", 3).fit(ref), tmp_path / "m.npz")
+    assert load_method(path).seed == 3
+    # a Generator, or none: nothing to record
+    rng = np.random.default_rng(3)
+    path = save_method(make_method("kenyon+cann", rng).fit(ref), tmp_path / "g.npz")
+    assert load_method(path).seed is None
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if k != "__meta__"}
+        meta = json.loads(z["__meta__"].tobytes())
+    assert meta["seed"] is None
+    for bad in ("3", -1, True, 2.0):
+        meta["seed"] = bad
+        out = _write_archive(tmp_path / "bad.npz", dict(meta), arrays)  # checksums recomputed
+        with pytest.raises(ModelFileError, match=r"bad\.npz: seed: expected an integer >= 0"):
+            load_method(out)

@@ -56,9 +56,9 @@ params = { wta_ratio = [0.25, 0.5], epochs = 5 }
 name = "curves"
 kind = "training_curve"
 datasets = ["syn"]
-methods = ["flynet", "pixels"]
+methods = ["flynet", "flynet+cann"]
 seeds = [0, 1]
-method_params = { flynet = { epochs = 5 } }
+method_params = { flynet = { epochs = 5 }, "flynet+cann" = { epochs = 2, n_hidden = 0 } }
 
 [[grids]]
 name = "time"
@@ -95,14 +95,14 @@ FIGURES = {
 
 @pytest.fixture(scope="module")
 def results(tmp_path_factory) -> Path:
-    """An experiment folder with every kind of grid and one failed run (pixels has no
-    training curve)."""
+    """An experiment folder with every kind of grid and a failed run (flynet+cann in the
+    training-curve grid with n_hidden = 0, which its front end refuses when it fits)."""
     folder = tmp_path_factory.mktemp("report")
     save_route(make_route(24, random_state=1), folder / "route")
     config = folder / "tiny.toml"
     config.write_text(textwrap.dedent(CONFIG), encoding="utf-8")
     summary = run_experiment(config, folder / "out", n_jobs=1, progress=False)
-    assert len(summary["errors"]) == 2  # pixels in the training-curve grid, seeds 0 and 1
+    assert len(summary["errors"]) == 2  # flynet+cann in the training-curve grid, seeds 0, 1
     return folder / "out"
 
 
@@ -163,8 +163,8 @@ def test_report_tables_hold_every_method_and_the_failures(report):
     for method in ("pixels", "flynet", "seqslam"):
         assert f"| {method} |" in text
     assert "## Failed runs" in text
-    assert text.count("train-syn-pixels-s") == 2
-    assert "accuracy_history_" in text
+    assert text.count("train-syn-flynet+cann-s") == 2
+    assert "n_hidden must be >= 1" in text
     assert "feature extraction (s)" in text and "trained params" in text
 
 
@@ -304,8 +304,8 @@ FAULTS = {
         r"with key 'result.accuracy_history' \(a finished train run\)",
     ),
     "failed-run-without-error": (
-        lambda d: _edit_json(_a_run_file(d, "train-syn-pixels-s0-"), lambda r: r.pop("error")),
-        "train-syn-pixels-s0-",
+        lambda d: _edit_json(_a_run_file(d, "train-syn-flynet+cann-s0-"), lambda r: r.pop("error")),
+        "train-syn-flynet+cann-s0-",
         r"with key 'error' \(status 'error'\)",
     ),
 }

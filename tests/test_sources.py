@@ -505,3 +505,37 @@ def test_a_missing_bag_is_not_found_and_a_lone_db3_says_what_it_lacks(tmp_path):
         BagSource(lone)
     # one message, not wrapped in "not a readable ROS bag (...)"
     assert str(info.value) == f"bag {lone}: a ROS 2 bag file needs the metadata.yaml of its folder"
+
+
+def test_positions_that_cover_no_frame_are_named_with_both_spans(tmp_path):
+    from flyvpr.sources.positions import Positions
+
+    by_time = Positions(np.array([100.0, 101.0, 102.5]), np.zeros((3, 2)), "timestamp", "gps.csv")
+    assert by_time.describe_span() == "timestamps 100-102.5 s"
+    t = np.array([0.0, 2.5, 5.0])
+    xy = by_time.at(np.arange(3), t)
+    assert np.isnan(xy).all()
+    with pytest.raises(RecordingError) as info:
+        by_time.check_covers(xy, np.arange(3), t, "video v.mp4")
+    assert str(info.value) == (
+        "video v.mp4: no frame has a position in gps.csv (its rows: timestamps 100-102.5 s; its "
+        "frames' timestamps 0-5 s): the positions and the recording must share a clock"
+    )
+    by_frame = Positions(np.array([7, 9]), np.zeros((2, 2)), "frame", "f.csv")
+    assert by_frame.describe_span() == "frames 7-9"
+    with pytest.raises(RecordingError) as info:
+        by_frame.check_covers(np.full((2, 2), np.nan), np.array([0, 5]), t[:2], "folder d")
+    assert str(info.value) == (
+        "folder d: no frame has a position in f.csv (its rows: frames 7-9; its frames 0-5): a "
+        "frame,x,y row names a frame's index in the recording"
+    )
+    # one frame placed is enough; so is an empty recording (nothing to place)
+    some = np.array([[np.nan, np.nan], [1.0, 2.0]])
+    by_frame.check_covers(some, np.array([0, 8]), t[:2], "folder d")
+    by_frame.check_covers(np.zeros((0, 2)), np.zeros(0, int), np.zeros(0), "folder d")
+    # a row keyed by frame is not widened; a timestamp is, by half the median interval
+    assert by_frame.span() == (7.0, 9.0) and by_time.span() == (99.375, 103.125)
+    empty = tmp_path / "h.csv"
+    empty.write_text("")
+    with pytest.raises(ValueError, match="got nothing$"):
+        read_positions(empty)

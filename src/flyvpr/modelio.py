@@ -71,6 +71,8 @@ _META_FIELDS: dict[str, type | tuple[type, ...]] = {
     "filter": (dict, type(None)),
     "checksum": str,
 }
+#: optional fields (files from before them have none): the int seed the method was made with
+_OPTIONAL_FIELDS = ("seed",)
 #: optional sections that extend a model file (a map adds ``map``, read by flyvpr.localization.maps)
 _SECTIONS = ("map",)
 
@@ -185,6 +187,8 @@ def save_method(method: Method, path, *, size=DEFAULT_SIZE, sections=None) -> Pa
         "format_version": FORMAT_VERSION,
         "flyvpr_version": __version__,
         "method": method.name,
+        # the int seed make_method was given (every random part's), None for another source
+        "seed": method.seed if type(method.seed) is int else None,
         "preprocessing": preprocessing_settings(size),
         "frontend": {
             "name": method.frontend.name,
@@ -415,7 +419,7 @@ def _check_fields(r: _Reader, meta: dict, size) -> tuple[int, int]:
             raise r.error(key, "missing")
         if not isinstance(meta[key], kind) or isinstance(meta[key], bool):
             raise r.error(key, f"has the wrong type: {type(meta[key]).__name__}")
-    extra = sorted(set(meta) - set(_META_FIELDS) - set(_SECTIONS))
+    extra = sorted(set(meta) - set(_META_FIELDS) - set(_SECTIONS) - set(_OPTIONAL_FIELDS))
     if extra:
         raise r.error(extra[0], "not a field of a flyvpr model")
     from .images import _PREPROCESS_VERSION
@@ -586,6 +590,10 @@ def _load(path, size, readers: dict, what: str = "model file"):
         stored = meta.pop("checksum")
         if stored != _checksum(meta, r.arrays):
             raise r.error("checksum", "content checksum mismatch: modified or damaged")
-    method = Method(meta["method"], frontend, filt)
+    seed = meta.get("seed")  # (files from before the seed was kept have none)
+    if seed is not None and (type(seed) is not int or seed < 0):
+        raise r.error("seed", f"expected an integer >= 0 or null; got {seed!r}")
+    # (the parts hold their fitted state: a refit draws afresh, the seed is a record)
+    method = Method(meta["method"], frontend, filt, seed=seed)
     _probe(r, method, image_shape)
     return method, found

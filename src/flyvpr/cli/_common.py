@@ -188,6 +188,10 @@ def split_params(method: str, params: list[tuple[str, object]]):
                 f"{sorted(front_names)}"
                 + (f", filter takes {sorted(filt_names)}" if filt_names else "")
             )
+        if key in target:
+            raise UsageError(
+                f"--param {key}: given twice ({target[key]!r}, {value!r}); one per run"
+            )
         target[key] = value
     return front, filt
 
@@ -227,7 +231,10 @@ DATASET_OPTIONS = {
     ),
     "radius": (nonnegative_float, "ground truth by positions CSV: match radius in metres"),
     "spacing": (positive_float, "keep one frame every this many metres along the route"),
-    "positions_csv": (Path, "CSV with header traverse,filename,x,y (metres)"),
+    "positions_csv": (
+        Path,
+        "CSV with header traverse,filename,x,y (metres); a relative path is relative to --root",
+    ),
     "trust_pickle": (
         bool,
         "allow unpickling the dataset's ground-truth file; pickles can execute code, so only "

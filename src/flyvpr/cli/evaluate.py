@@ -85,7 +85,8 @@ def cmd_evaluate(args) -> int:
         "n_query": result["n_query"],
         "tolerance": tolerance_value(protocol.get("tolerance")),
         "tolerance_unit": tolerance_unit(protocol.get("tolerance")),
-        "seed": args.seed,  # None for a loaded model (see model_file)
+        # a loaded model's: the seed `flyvpr fit` was given (None for a file without one)
+        "seed": args.seed if args.load is None else model.seed,
         "model_file": None if args.load is None else str(args.load),
         "image_size": list(args.size),
         **{

@@ -368,8 +368,9 @@ class Benchmark:
         """The facts a report must print next to every number (JSON-serialisable).
 
         Keys: ``dataset``, ``root``, ``reference``, ``query`` (traverse names),
-        ``first``, ``count``, ``n_reference``, ``n_query``, ``tolerance``, then
-        the loader's ``details`` (e.g. RobotCar's ``spacing_m``).
+        ``first``, ``count``, ``n_reference``, ``n_query``, ``tolerance``, ``sources`` (the
+        files the ground truth was read from, such as a positions CSV), then the loader's
+        ``details`` (e.g. RobotCar's ``spacing_m``).
         """
         out = {
             "dataset": self.dataset,
@@ -381,6 +382,7 @@ class Benchmark:
             "n_reference": self.n_reference,
             "n_query": self.n_query,
             "tolerance": dict(self.tolerance),
+            "sources": [str(p) for p in self.sources],
         }
         out.update(self.details)
         return out

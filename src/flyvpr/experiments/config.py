@@ -117,8 +117,9 @@ KIND_DOCS = {
         "(`examples` evenly spaced queries, or the `queries` positions)"
     ),
     "training_curve": (
-        "fit only; training accuracy per epoch, mean and spread over seeds (the front end "
-        "must record `accuracy_history_`)"
+        "fit only; training accuracy per epoch, mean and spread over seeds (methods whose "
+        "front end is trained epoch by epoch and records `accuracy_history_`: flynet, fc, "
+        "cnn, netvlad and their combinations; others are refused when the config is read)"
     ),
     "timing": (
         "as evaluate, but images are decoded without the cache, an untimed warm-up on 100 "
@@ -167,6 +168,15 @@ class Settings:
         "~/.cache/flyvpr), false (no cache) or a folder.",
         default=True,
     )
+
+    @classmethod
+    def from_table(cls, table, where: str, ctx: Context) -> Settings:
+        """Check ``[settings]``; a cache folder must not be an existing file."""
+        values, where = check_table(cls, table, where, ctx)
+        cache = values.get("cache")
+        if isinstance(cache, str) and Path(cache).exists() and not Path(cache).is_dir():
+            raise ValueError(f"{where}: cache {cache!r} is a file; expected a folder")
+        return cls(**values)
 
     def to_dict(self) -> dict:
         """JSON form (as stored in ``experiment.json``)."""
@@ -329,7 +339,8 @@ class GridBlock:
     )
     queries: tuple[int, ...] | None = key(
         ListOf(Int(0), "integers >= 0"),
-        "Query positions to show instead of evenly spaced ones.",
+        "Query positions to show instead of evenly spaced ones (each below the number of "
+        "queries of every dataset of the grid: checked when the data is loaded).",
         default=None,
         default_doc="none",
         only_if=("kind", ("qualitative",)),
@@ -360,6 +371,21 @@ class GridBlock:
         first = {k: (v[0] if isinstance(v, list) else v) for k, v in grid.params.items()}
         for m in grid.methods:
             route_params(METHODS[m], {**first, **grid.method_params.get(m, {})}, where)
+        if grid.kind == "training_curve":
+            from ..frontends import FRONTENDS
+
+            untrained = [
+                m
+                for m in grid.methods
+                if "accuracy_history_"
+                not in getattr(FRONTENDS[METHODS[m].frontend], "_state_names", ())
+            ]
+            if untrained:
+                raise ValueError(
+                    f"{where}: a training_curve grid needs methods whose front end is trained "
+                    f"epoch by epoch; {', '.join(map(repr, untrained))} records no "
+                    "per-epoch training accuracy"
+                )
         if grid.kind == "sensitivity" and len(grid.axes) != 1:
             raise ValueError(
                 f"{where}: a sensitivity grid needs exactly one params axis (a list value); "

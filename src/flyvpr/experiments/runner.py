@@ -202,7 +202,7 @@ def _evaluate(run: RunSpec, bench, timing: bool) -> dict:
     return {
         "result": result,
         "predictions": best.tolist(),
-        "confidence": [round(float(c), 6) for c in confidence],
+        "confidence": [float(c) for c in confidence],  # exact: the curve can be recomputed
         "correct": correct.astype(int).tolist(),
     }
 
@@ -378,14 +378,19 @@ def _run_parallel(runs: list[RunSpec], n_jobs: int, backend: str):
         yield from parallel(tasks)
 
 
-def _prepare(config: ExperimentConfig, runs: list[RunSpec], progress: bool) -> None:
-    """Load every benchmark once here: missing data fails before any run starts, and the
-    image cache is filled before parallel workers would each decode the same files."""
+def _prepare(config: ExperimentConfig, runs: list[RunSpec], progress: bool) -> dict[str, int]:
+    """Load every benchmark once here: missing data fails before any run starts (and before
+    anything is written), with the config's file and ``[[datasets]]`` block named, and the
+    image cache is filled before parallel workers would each decode the same files.
+    Returns the number of queries of each dataset loaded at every frame (no speed)."""
     seen = set()
+    n_query: dict[str, int] = {}
+    names = list(config.datasets)
     for run in runs:
         spec = run.spec
+        name = spec["dataset"]["name"]
         key = (
-            spec["dataset"]["name"],
+            name,
             json.dumps(spec["speed"]),
             spec["seed"] if spec["speed"] else None,
             tuple(spec["image_size"]),
@@ -393,9 +398,43 @@ def _prepare(config: ExperimentConfig, runs: list[RunSpec], progress: bool) -> N
         if key in seen:
             continue
         seen.add(key)
-        bench = load_benchmark_of(run)
-        if run.task != "timing" and run.cache is not False:
-            bench.load_images(tuple(spec["image_size"]), cache=run.cache, progress=progress)
+        where = f"{config.path or 'config'} [[datasets]] #{names.index(name) + 1} ({name!r})"
+        try:
+            bench = load_benchmark_of(run)
+            if run.task != "timing" and run.cache is not False:
+                bench.load_images(tuple(spec["image_size"]), cache=run.cache, progress=progress)
+        except (OSError, ValueError) as exc:
+            raise _named(exc, where) from exc
+        if spec["speed"] is None:
+            n_query[name] = bench.n_query
+    return n_query
+
+
+def _named(exc: Exception, where: str) -> Exception:
+    """``exc`` again (its type where it takes a message) with ``where`` before its message."""
+    message = f"{where}: {exc}"
+    try:
+        return type(exc)(message)
+    except Exception:  # a type that wants other arguments
+        return ValueError(message)
+
+
+def _check_queries(config: ExperimentConfig, n_query: dict[str, int]) -> None:
+    """A qualitative grid's ``queries`` must be query positions of each of its datasets."""
+    for grid in config.grids:
+        if grid.kind != "qualitative" or grid.queries is None:
+            continue
+        for name in grid.datasets:
+            n = n_query.get(name)
+            if n is None:  # (not loaded: its runs are finished; the report says so)
+                continue
+            beyond = [q for q in grid.queries if q >= n]
+            if beyond:
+                raise ValueError(
+                    f"{config.path or 'config'} [[grids]] {grid.name!r}: queries "
+                    f"{', '.join(map(str, beyond))} lie beyond the {n} queries of dataset "
+                    f"{name!r} (positions 0-{n - 1})"
+                )
 
 
 def _want_progress(progress) -> bool:
@@ -450,7 +489,6 @@ def _run(config_path, out_dir, n_jobs: int, backend: str, progress) -> dict:
     config = load_config(config_path)
     out_dir = Path(out_dir)
     runs_dir = out_dir / "runs"
-    runs_dir.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     started = _now()
 
@@ -461,6 +499,9 @@ def _run(config_path, out_dir, n_jobs: int, backend: str, progress) -> dict:
     logger.info("%d runs, %d already finished, %d to run", len(runs), n_skipped, len(pending))
 
     show = _want_progress(progress)
+    # the data first: a dataset that fails to load leaves the results folder as it was
+    _check_queries(config, _prepare(config, pending, show))
+    runs_dir.mkdir(parents=True, exist_ok=True)
     experiment_file = out_dir / "experiment.json"
     sessions = read_experiment(experiment_file)["sessions"] if experiment_file.exists() else []
     session = {
@@ -480,7 +521,6 @@ def _run(config_path, out_dir, n_jobs: int, backend: str, progress) -> dict:
         "sessions": sessions + [session],  # ``session`` is updated in place when done
     }
     write_json_atomic(experiment_file, _json_safe(experiment_record))
-    _prepare(config, pending, show)
 
     ran: list[str] = []
     errors: dict[str, str] = {}

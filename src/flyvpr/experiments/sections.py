@@ -446,6 +446,13 @@ def _section_qualitative(doc: Document, g: GridRuns, figures: bool, order: list[
         n_query = len(items[0]["record"]["predictions"])
         if g.grid.queries is not None:
             queries = [q for q in g.grid.queries if q < n_query]
+            beyond = [q for q in g.grid.queries if q >= n_query]
+            if beyond:  # (the runner refuses them; run files from elsewhere may have fewer)
+                doc.para(
+                    f"{g.dataset_label(ds)}: queries {', '.join(map(str, beyond))} lie beyond "
+                    f"its {n_query} queries: not shown.",
+                    "error",
+                )
         else:
             spread = np.linspace(0, n_query - 1, g.grid.examples + 2)[1:-1].round().astype(int)
             queries = sorted(set(int(q) for q in spread))
