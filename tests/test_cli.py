@@ -410,3 +410,47 @@ def test_an_option_given_twice_is_refused(route_dir, capsys, option, says, point
     err = capsys.readouterr().err
     assert says in err and "one per run" in err
     assert ("flyvpr experiment" in err) == points_to_experiment
+
+
+@pytest.mark.parametrize(
+    ("interrupt", "code", "says"),
+    [
+        (KeyboardInterrupt(), 130, "flyvpr: interrupted"),
+        ("terminated", 143, "terminated by SIGTERM"),
+    ],
+)
+def test_an_interrupt_inside_a_compiled_kernel_exits_as_an_interrupt(
+    monkeypatch, capsys, interrupt, code, says
+):
+    # numba re-raises an exception set during a kernel as SystemError("... returned a result
+    # with an exception set"), the interrupt chained to it
+    import argparse
+
+    import flyvpr.cli as cli
+
+    if interrupt == "terminated":
+        interrupt = cli.Terminated()
+
+    def func(args):
+        try:
+            raise interrupt
+        except BaseException as exc:
+            raise SystemError("CPUDispatcher(...) returned a result with an exception set") from exc
+
+    chosen = [func]
+
+    class Parser:
+        def parse_args(self, argv):
+            return argparse.Namespace(verbose=0, command="map", func=chosen[0])
+
+    monkeypatch.setattr(cli, "build_parser", Parser)
+    assert cli.main([]) == code
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+    def other(args):  # a SystemError of another cause is not an interrupt
+        raise SystemError("something else")
+
+    chosen[0] = other
+    with pytest.raises(SystemError, match="something else"):
+        cli.main([])

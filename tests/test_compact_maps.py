@@ -501,11 +501,18 @@ def test_more_bits_than_the_optic_lobe_has_features_is_a_usage_error(route, tmp_
     code, _, err = _run(capsys, "map", route["summer"], "--compact", "--size", "8x8", "--out", out)
     assert code == 2 and not out.exists()
     assert "--bits 256: a compact map at --size 8x8 has at most 16 bits" in err
+    assert "a compact map needs at least 64, or a larger --size" in err
+    code, _, err = _run(
+        capsys, "map", route["summer"], "--compact", "--size", "30x62", "--out", out
+    )
+    assert code == 2 and not out.exists()
+    assert "--size 30x62: a compact map needs both sides multiples of 4" in err
     code, _, err = _run(
         capsys, "map", route["summer"], "--compact", "--size", "16x16", "--bits", "128",
         "--out", out, "-q",
     )  # fmt: skip
     assert code == 2 and "--bits 128: a compact map at --size 16x16 has at most 64 bits" in err
+    assert "give --bits 64 or fewer" in err
     assert _run(
         capsys, "map", route["summer"], "--compact", "--size", "16x16", "--bits", "64",
         "--out", out, "-q",
@@ -518,3 +525,60 @@ def test_max_bits_is_the_lobe_s_features_or_none_for_simhash():
     assert CompactEncoder().max_bits((32, 64)) == 4 * 8 * 16
     assert CompactEncoder(pool_size=2).max_bits((8, 8)) == 4 * 4 * 4
     assert CompactEncoder(projection="simhash").max_bits((8, 8)) is None
+
+
+def test_the_index_file_of_each_map_is_its_own(route, tmp_path, capsys, caplog):
+    assert index_path(tmp_path / "a.fvmap") == tmp_path / "a.mih"
+    assert index_path(tmp_path / "route.v1") == tmp_path / "route.v1.mih"
+    assert index_path(tmp_path / "x.mih") == tmp_path / "x.mih.mih"  # never the map itself
+    # two maps whose names differ only after the last dot: two index files
+    for name, seed in (("route.v1", "1"), ("route.v2", "2")):
+        argv = ["map", route["summer"], "--out", tmp_path / name, "--compact", "--mih", "-q"]
+        assert _run(capsys, *argv, "--seed", seed)[0] == 0
+    for name in ("route.v1", "route.v2"):
+        code, out, err = _run(
+            capsys, "localize", "--map", tmp_path / name, route["winter"], "--index", "mih"
+        )
+        assert code == 0 and f"relocation by multi-index hashing from {name}.mih)" in out, err
+    # a map written over with --out x.mih: map and tables stay apart
+    x = tmp_path / "x.mih"
+    assert _run(capsys, "map", route["summer"], "--out", x, "--compact", "--mih", "-q")[0] == 0
+    assert is_compact_map(x) and (tmp_path / "x.mih.mih").is_file()
+
+
+def test_a_rebuilt_map_drops_or_ignores_the_tables_of_the_map_it_replaced(
+    route, tmp_path, capsys, caplog
+):
+    path = tmp_path / "st.fvmap"
+    sidecar = tmp_path / "st.mih"
+    assert _run(capsys, "map", route["summer"], "--out", path, "--compact", "--mih", "-q")[0] == 0
+    kept = sidecar.read_bytes()
+    # another map in its place (another seed), without --mih: the old tables index nothing
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        argv = ["map", route["summer"], "--out", path, "--compact", "--seed", "5", "-q"]
+        assert _run(capsys, *argv)[0] == 0
+    assert not sidecar.exists()
+    assert any(f"removed {sidecar}" in r.getMessage() for r in caplog.records)
+    # a stale index file (left by a rebuild that stopped before it): built in memory, said so
+    sidecar.write_bytes(kept)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        code, out, err = _run(
+            capsys, "localize", "--map", path, route["winter"], "--index", "mih",
+            "--ground-truth", "frames", "--tolerance", "2",
+        )  # fmt: skip
+    assert code == 0, err
+    assert "relocation by multi-index hashing, tables built (st.mih indexes another map))" in out
+    assert any("indexes another map than" in r.getMessage() for r in caplog.records)
+    exact = _run(
+        capsys, "localize", "--map", path, route["winter"], "--ground-truth", "frames",
+        "--tolerance", "2",
+    )[1]  # fmt: skip
+    assert re.search(r"AUC (\d\.\d+)", out).group(1) == re.search(r"AUC (\d\.\d+)", exact).group(1)
+    # the same map again (same seed): its tables still fit and stay
+    assert _run(capsys, "map", route["summer"], "--out", path, "--compact", "--mih", "-q",
+                "--seed", "5")[0] == 0  # fmt: skip
+    tables = sidecar.read_bytes()
+    assert _run(capsys, "map", route["summer"], "--out", path, "--compact", "-q",
+                "--seed", "5")[0] == 0  # fmt: skip
+    assert sidecar.read_bytes() == tables

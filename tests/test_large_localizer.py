@@ -348,6 +348,17 @@ def test_the_documented_defaults():
         ({"hold": 0}, ValueError, "hold must be >= 1; got 0"),
         ({"full_search_places": -1}, ValueError, "full_search_places must be >= 0; got -1"),
         ({"pool": 2.5}, TypeError, "pool must be an int; got float"),
+        (
+            {"speed": (2, 0)},
+            ValueError,
+            r"speed must be \(low, high\) with 0 <= low <= high, finite; got \(2, 0\)",
+        ),
+        (
+            {"speed": (0, float("inf"))},
+            ValueError,
+            r"speed must be \(low, high\) with 0 <= low <= high, finite; got \(0, inf\)",
+        ),
+        ({"speed": 2.0}, ValueError, r"speed must be \(low, high\), two numbers; got 2.0"),
     ],
 )
 def test_each_bad_parameter_is_named(params, error, message):
@@ -1148,3 +1159,19 @@ def test_on_a_map_of_at_most_k_places_every_place_is_a_candidate():
     small_k = LargeLocalizer(codes, MultiIndexHash(radius=1).build(codes), k=100)
     found, _ = small_k._search.search(_query(codes, 60, np.random.default_rng(0), 0.4)[None], 100)
     assert isinstance(small_k._search, MultiIndexHash) and (found < 0).any()
+
+
+def test_a_refused_frame_leaves_nothing_behind():
+    codes = _map(n=2000)
+    rng = np.random.default_rng(5)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256)
+    _drive(loc, codes, 100 + np.arange(20), rng)
+    kept = (list(loc._recent), list(loc._velocities), loc.n_frames_)
+    for bad, error in ((float("nan"), ValueError), (float("inf"), ValueError), ("1", TypeError)):
+        with pytest.raises(error, match="velocity must be"):
+            loc.update_code(_query(codes, 120, rng), bad)
+        assert (list(loc._recent), list(loc._velocities), loc.n_frames_) == kept
+    # lost frames whose re-seed replays the stored odometry: no refused value among it
+    for place in 1500 + np.arange(12):
+        loc.update_code(_query(codes, int(place), rng), None)
+    assert None in loc._velocities and loc.n_frames_ == kept[2] + 12

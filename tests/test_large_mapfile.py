@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from flyvpr.large import (
+    ForeignIndexError,
     LargeMapWriter,
     MapFileError,
     MultiIndexHash,
@@ -130,8 +131,15 @@ def test_index_file_round_trip(tmp_path, codes):
     assert back.radius == 2 and isinstance(back.places_, np.memmap)
     np.testing.assert_array_equal(back.search(codes[:3], 2)[0], index.search(codes[:3], 2)[0])
     other = open_large_map(write_large_map(tmp_path / "o.fvmap", codes[::-1]))
-    with pytest.raises(MapFileError, match="another map"):
+    with pytest.raises(ForeignIndexError, match="another map"):
         load_index(tmp_path / "m.mih", other)
+    assert issubclass(ForeignIndexError, MapFileError)
+    # an index of other codes is not saved as this map's, even of as many places
+    with pytest.raises(ValueError, match="built over other codes than those of the map"):
+        save_index(tmp_path / "x.mih", MultiIndexHash().build(codes[::-1].copy()), m)
+    assert not (tmp_path / "x.mih").exists()
+    # built over a copy of the map's codes: the same codes, saved
+    save_index(tmp_path / "c.mih", MultiIndexHash().build(np.array(m.codes)), m)
     # the same map written again is the same map: its index fits
     again = open_large_map(write_large_map(tmp_path / "a.fvmap", codes, chunk=7))
     assert again.map_id == m.map_id

@@ -281,3 +281,12 @@ def test_the_seed_a_method_was_made_with_is_kept(tmp_path, data):
         out = _write_archive(tmp_path / "bad.npz", dict(meta), arrays)  # checksums recomputed
         with pytest.raises(ModelFileError, match=r"bad\.npz: seed: expected an integer >= 0"):
             load_method(out)
+
+
+def test_only_a_method_is_saved(tmp_path):
+    from flyvpr.large import CompactEncoder
+
+    for thing in (CompactEncoder(), "kenyon+cann", None):
+        with pytest.raises(TypeError, match=r"method must be a flyvpr Method .*; got"):
+            save_method(thing, tmp_path / "m.npz")
+    assert not (tmp_path / "m.npz").exists()

@@ -180,6 +180,11 @@ def save_method(method: Method, path, *, size=DEFAULT_SIZE, sections=None) -> Pa
     -------
     Path
     """
+    if not isinstance(method, Method):
+        raise TypeError(
+            f"method must be a flyvpr Method (flyvpr.methods.make_method); got "
+            f"{type(method).__name__} (a compact map keeps its encoder in the map file)"
+        )
     method.frontend._check_fitted()
     arrays: dict = {}
     meta = {

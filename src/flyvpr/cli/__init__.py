@@ -96,6 +96,19 @@ def _sizing_options(args) -> str:
     return ", ".join(parts) or "none"
 
 
+def _interrupt_in(exc: BaseException) -> BaseException | None:
+    """The KeyboardInterrupt or :class:`Terminated` chained to ``exc`` (as cause or context),
+    if any."""
+    seen: set[int] = set()
+    node: BaseException | None = exc
+    while node is not None and id(node) not in seen:
+        seen.add(id(node))
+        if isinstance(node, (KeyboardInterrupt, Terminated)):
+            return node
+        node = node.__cause__ or node.__context__
+    return None
+
+
 def main(argv=None) -> int:
     """Run the CLI; returns the process exit code.
 
@@ -130,6 +143,17 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("flyvpr: interrupted", file=sys.stderr)
         return 130
+    except SystemError as exc:
+        # Ctrl-C or SIGTERM inside a compiled (numba) kernel comes out as "returned a result
+        # with an exception set", the interrupt chained to it
+        cause = _interrupt_in(exc)
+        if isinstance(cause, Terminated):
+            print("flyvpr: terminated by SIGTERM; no half-written file left", file=sys.stderr)
+            return 143
+        if isinstance(cause, KeyboardInterrupt):
+            print("flyvpr: interrupted", file=sys.stderr)
+            return 130
+        raise
     except MemoryError:
         print(
             f"flyvpr {args.command}: error: out of memory: the run asked for more memory than "

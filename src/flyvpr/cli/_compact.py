@@ -63,14 +63,20 @@ def cmd_map_compact(args) -> int:
     from ..large.codes import CompactEncoder
 
     bits, size = args.bits or 256, tuple(args.size or DEFAULT_SIZE)
-    try:
-        most = CompactEncoder(n_bits=bits).max_bits(size)
-    except ValueError:  # a size the optic lobe cannot pool: the builder says so
-        most = None
+    encoder = CompactEncoder(n_bits=bits)
+    pool = encoder.pool_size
+    if size[0] % pool or size[1] % pool:
+        raise UsageError(
+            f"--size {size[0]}x{size[1]}: a compact map needs both sides multiples of {pool} "
+            "(the optic lobe's pooling cells)"
+        )
+    most = encoder.max_bits(size)
     if most is not None and bits > most:
+        fits = most // 64 * 64  # (--bits is a multiple of 64)
+        advice = f"give --bits {fits} or fewer" if fits else "a compact map needs at least 64"
         raise UsageError(
             f"--bits {bits}: a compact map at --size {size[0]}x{size[1]} has at most {most} "
-            f"bits (one per optic-lobe feature); give --bits <= {most} or a larger --size"
+            f"bits (one per optic-lobe feature); {advice}, or a larger --size"
         )
     t0 = time.perf_counter()
     cmap = build_compact_map(
@@ -137,7 +143,7 @@ def cmd_localize_compact(args) -> int:
     """``flyvpr localize --map MAP SOURCE`` with a compact map."""
     from tqdm.auto import tqdm
 
-    from ..large.recording import compact_localizer, index_path, open_compact_map
+    from ..large.recording import compact_localizer, open_compact_map
     from ..localization.tracking import distances_moved
     from ..metrics import evaluate_answers
     from ..sources import RecordingError, open_source, read_positions
@@ -242,12 +248,7 @@ def cmd_localize_compact(args) -> int:
         if n_frames == 0:  # inside the with: no output file is left behind
             raise RecordingError(f"{source.describe()}: --every {args.every} keeps no frame")
     elapsed = time.perf_counter() - t0
-    index = "exact scan"
-    if args.index == "mih":
-        sidecar = index_path(args.map)
-        index = "multi-index hashing" + (
-            f" from {sidecar.name}" if sidecar.exists() else f", tables built (no {sidecar.name})"
-        )
+    index = loc.index_source_
     print(
         f"compact map ({cmap.n_places} places, {cmap.large_map.n_bits} bits, ready in "
         f"{open_s:.3f} s, relocation by {index}): {counted(n_frames, 'frame')} of "

@@ -32,6 +32,7 @@ from .index import (
 )
 from .localizer import LargeLocalizer
 from .mapfile import (
+    ForeignIndexError,
     LargeMap,
     LargeMapWriter,
     MapFileError,
@@ -51,6 +52,7 @@ __all__ = [
     "ExhaustiveIndex",
     "FaissHNSWIndex",
     "FaissIVFIndex",
+    "ForeignIndexError",
     "LargeMap",
     "LargeMapWriter",
     "MapFileError",

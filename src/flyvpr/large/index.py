@@ -21,6 +21,7 @@ of 8, and answer ``search(query_codes, k) -> (places, distances)``):
 from __future__ import annotations
 
 import itertools
+import math
 import time
 from typing import Any
 
@@ -387,6 +388,17 @@ INDEXES = {
 }
 
 
+def check_speed_range(speed) -> tuple[float, float]:
+    """``speed`` as (low, high), finite numbers with 0 <= low <= high (places per frame)."""
+    try:
+        low, high = (float(v) for v in speed)
+    except (TypeError, ValueError):
+        raise ValueError(f"speed must be (low, high), two numbers; got {speed!r}") from None
+    if not (math.isfinite(high) and 0 <= low <= high):
+        raise ValueError(f"speed must be (low, high) with 0 <= low <= high, finite; got {speed}")
+    return low, high
+
+
 def pool_candidates(
     frame_places, frame_distances, n_bits: int, speed=(0.5, 2.0), slack: int = 3
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -445,9 +457,7 @@ def pool_candidates(
             f"T >= 1; got {p.shape} and {d.shape}"
         )
     n_bits = check_positive_int(n_bits, "n_bits")
-    low, high = (float(v) for v in speed)
-    if not 0 <= low <= high:
-        raise ValueError(f"speed must be (low, high) with 0 <= low <= high; got {speed}")
+    low, high = check_speed_range(speed)
     slack = check_positive_int(slack, "slack", minimum=0)
     n_frames = p.shape[0]
     ahead = (n_frames - 1 - np.arange(n_frames))[:, None].astype(np.float64)

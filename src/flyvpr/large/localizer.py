@@ -25,11 +25,11 @@ from collections import deque
 
 import numpy as np
 
-from .._validation import check_positive_int
+from .._validation import check_positive_int, check_real
 from ..localization import LOCALIZED, Fix
 from ..temporal.cann import WindowedCANN
 from .codes import as_words, hamming_similarity, hamming_similarity_at
-from .index import CandidateIndex, ExhaustiveIndex, pool_candidates
+from .index import CandidateIndex, ExhaustiveIndex, check_speed_range, pool_candidates
 
 __all__ = ["LargeLocalizer"]
 
@@ -207,10 +207,12 @@ class LargeLocalizer:
         self.encoder = encoder
         self.k = check_positive_int(k, "k")
         self._every: ExhaustiveIndex | None = None  # (see _search)
+        #: where the index came from, in words (set by flyvpr.large.compact_localizer)
+        self.index_source_: str | None = None
         self.pool = check_positive_int(pool, "pool")
         self.reseed_after = check_positive_int(reseed_after, "reseed_after")
         self.check_every = check_positive_int(check_every, "check_every", minimum=0)
-        self.speed = tuple(float(v) for v in speed)
+        self.speed = check_speed_range(speed)
         self.hold = check_positive_int(hold, "hold")
         self.full_search_places = check_positive_int(
             full_search_places, "full_search_places", minimum=0
@@ -284,6 +286,8 @@ class LargeLocalizer:
             raise ValueError(
                 f"code must be uint8 of shape ({self.codes.shape[1]},); got {q.dtype} {q.shape}"
             )
+        if velocity is not None:  # checked before anything is kept: a refused frame leaves none
+            velocity = check_real(velocity, "velocity", low=None)
         f = self.filter_
         self._recent.append(q)
         self._velocities.append(velocity)

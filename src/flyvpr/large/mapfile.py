@@ -63,6 +63,10 @@ class MapFileError(ValueError):
     """A map or index file that is malformed, truncated or of another kind."""
 
 
+class ForeignIndexError(MapFileError):
+    """An index file written for another map than the one it is opened with."""
+
+
 def _aligned(n: int) -> int:
     return -(-n // _ALIGN) * _ALIGN
 
@@ -443,6 +447,12 @@ def save_index(path, index, large_map: LargeMap) -> Path:
             f"index covers {index.n_places_} places; the map {large_map.path} has "
             f"{large_map.n_places}"
         )
+    codes = index._codes
+    if codes is not large_map.codes and not np.array_equal(codes, large_map.codes):
+        raise ValueError(
+            f"index was built over other codes than those of the map {large_map.path} (build "
+            "it over the map's own: MultiIndexHash().build(large_map.codes))"
+        )
     params = {"radius": index.radius, "max_candidates": index.max_candidates}
     f = _ArrayFile(path, "mih", {}, {"map_id": large_map.map_id, "params": params})
     try:
@@ -466,13 +476,14 @@ def load_index(path, large_map: LargeMap, **params):
     Raises
     ------
     MapFileError
-        If the file is not an index file, is corrupt, or was written for another map.
+        If the file is not an index file, is corrupt, or was written for another map
+        (:class:`ForeignIndexError`, a MapFileError).
     """
     from .index import MultiIndexHash
 
     header, arrays = _read_container(path, "mih")
     if header.get("map_id") != large_map.map_id:
-        raise MapFileError(f"{path}: indexes another map than {large_map.path}")
+        raise ForeignIndexError(f"{path}: indexes another map than {large_map.path}")
     stored = header.get("params") or {}
     settings = {k: stored[k] for k in ("radius", "max_candidates") if k in stored}
     settings.update(params)

@@ -75,8 +75,13 @@ def is_compact_map(path) -> bool:
 
 
 def index_path(path) -> Path:
-    """Where ``build_compact_map(..., index="mih")`` writes the map's multi-index hash tables."""
-    return Path(path).with_suffix(".mih")
+    """Where ``build_compact_map(..., index="mih")`` writes the map's multi-index hash tables:
+    ``X.fvmap`` -> ``X.mih``; any other name gets ``.mih`` added (``route.v1`` ->
+    ``route.v1.mih``), so that two maps never share one."""
+    path = Path(path)
+    if path.suffix == ".fvmap":
+        return path.with_suffix(".mih")
+    return path.with_name(path.name + ".mih")
 
 
 @dataclass
@@ -312,12 +317,29 @@ def build_compact_map(
             for name, array in encoder.state()[1].items():
                 writer.add_array(f"encoder.{name}", array)
     cmap = open_compact_map(path)
+    sidecar = index_path(path)
     if index == "mih":
-        save_index(
-            index_path(path), MultiIndexHash(radius=1).build(cmap.large_map.codes), cmap.large_map
-        )
+        save_index(sidecar, MultiIndexHash(radius=1).build(cmap.large_map.codes), cmap.large_map)
+    elif sidecar.is_file() and _foreign(sidecar, cmap):
+        # the tables of the map this one replaced: they index nothing any more
+        sidecar.unlink()
+        logger.warning("removed %s: it indexed the map %s replaced", sidecar, path)
     logger.info("compact map: %d places from %s", n, src.describe())
     return cmap
+
+
+def _foreign(sidecar: Path, cmap) -> bool:
+    """Whether the index file ``sidecar`` was written for another map than ``cmap`` (a file
+    that is not an index file at all is left to its owner: False)."""
+    from .mapfile import ForeignIndexError, load_index
+
+    try:
+        load_index(sidecar, cmap.large_map)
+    except ForeignIndexError:
+        return True
+    except (OSError, ValueError):
+        return False
+    return False
 
 
 def open_compact_map(path, verify: bool = True) -> CompactMap:
@@ -394,7 +416,10 @@ def compact_localizer(cmap: CompactMap, index: str = "exhaustive", **params):
     Returns
     -------
     LargeLocalizer
-        Its ``update(image, velocity=None)`` takes a pre-processed frame of ``cmap.size``.
+        Its ``update(image, velocity=None)`` takes a pre-processed frame of ``cmap.size``;
+        its ``index_source_`` says in words where its index came from (the exact scan, the
+        tables of :func:`index_path`, or tables built in memory, where that file is missing
+        or indexes another map: a warning says so).
 
     Raises
     ------
@@ -403,19 +428,34 @@ def compact_localizer(cmap: CompactMap, index: str = "exhaustive", **params):
     MapFileError
         If the index file is corrupt or indexes another map.
     """
-    from .index import ExhaustiveIndex, MultiIndexHash
+    from .index import CandidateIndex, ExhaustiveIndex, MultiIndexHash
     from .localizer import LargeLocalizer
-    from .mapfile import load_index
+    from .mapfile import ForeignIndexError, load_index
 
     codes = cmap.large_map.codes
+    source = "exact scan"
+    found: CandidateIndex | None = None
     if index == "exhaustive":
         found = ExhaustiveIndex().build(codes)
     elif index == "mih":
         sidecar = index_path(cmap.path)
         if sidecar.exists():
-            found = load_index(sidecar, cmap.large_map)
+            try:
+                found = load_index(sidecar, cmap.large_map)
+                source = f"multi-index hashing from {sidecar.name}"
+            except ForeignIndexError:
+                logger.warning(
+                    "%s indexes another map than %s: its tables are built in memory instead "
+                    "(`flyvpr map --compact --mih` writes them again)", sidecar, cmap.path,
+                )  # fmt: skip
+                source = f"multi-index hashing, tables built ({sidecar.name} indexes another map)"
         else:
+            source = f"multi-index hashing, tables built (no {sidecar.name})"
+        if found is None:
             found = MultiIndexHash(radius=1).build(codes)
     else:
         raise ValueError(f"index must be 'exhaustive' or 'mih'; got {index!r}")
-    return LargeLocalizer(codes, found, encoder=cmap.encoder, **params)
+    assert found is not None
+    loc = LargeLocalizer(codes, found, encoder=cmap.encoder, **params)
+    loc.index_source_ = source
+    return loc
