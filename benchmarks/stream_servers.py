@@ -62,8 +62,12 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         self.end_headers()
         start = time.monotonic()
         i = 0
+        hangs = srv.hang_first is not None and not srv.was_hung
+        srv.was_hung = srv.was_hung or hangs
         while not srv.closing and not srv.hung:
             if srv.n_frames is not None and i >= srv.n_frames:
+                break
+            if hangs and i >= srv.hang_first[0]:
                 break
             if srv.duration is not None and time.monotonic() - start >= srv.duration:
                 break
@@ -81,6 +85,17 @@ class _Handler(http.server.BaseHTTPRequestHandler):
                 break
             srv.sent.append(sent)
             i += 1
+        if hangs:
+            data = srv.jpegs[i % len(srv.jpegs)]
+            try:
+                self.wfile.write(_part_head(len(data)) + data[: len(data) // 2])
+                self.wfile.flush()
+            except OSError:
+                return
+            end = time.monotonic() + srv.hang_first[1]
+            while time.monotonic() < end and not srv.closing:
+                time.sleep(0.05)
+            return
         if srv.cut_first and not srv.was_cut:
             # the first connection closes (orderly) in the middle of a JPEG: a broken stream
             srv.was_cut = True
@@ -131,6 +146,10 @@ class MjpegServer:
     cut_first : bool
         End the first connection after half of one more JPEG (an orderly close in the middle
         of a frame; later connections: as without).
+    hang_first : (int, float), optional
+        The first connection sends so many frames, then half of one more JPEG, then hangs
+        silent for so many seconds (a camera that hangs in the middle of a picture; later
+        connections: as without).
 
     Attributes
     ----------
@@ -150,8 +169,10 @@ class MjpegServer:
         garbage=False,
         reset_first=False,
         cut_first=False,
+        hang_first=None,
     ):
         self.jpegs, self.fps = list(jpegs), fps
+        self.hang_first, self.was_hung = hang_first, False
         self.reset_first, self.was_reset = reset_first, False
         self.cut_first, self.was_cut = cut_first, False
         self.n_frames, self.duration = n_frames, duration

@@ -220,6 +220,9 @@ def test_garbage_stream_one_line_exit_1(route, tmp_path, capsys):
         (["--fit-calibration", "t.json"], "--fit-calibration: not with a live source"),
         (["--view-save", "x.txt"], "--view-save x.txt: expected a .rrd file"),
         (["--view", "--view-port", "9000", "--view-data-port", "9000"], "two ports are needed"),
+        (["--view-port", "9001"], "--view-port: only with --view"),
+        (["--view-data-port", "9002"], "--view-data-port: only with --view"),
+        (["--view", "--view-port", "70000"], "--view-port 70000: a port is 1-65535"),
     ],
 )
 def test_live_usage_errors(route, capsys, extra, match):
@@ -370,3 +373,18 @@ def test_view_needs_the_extra(route, monkeypatch):
     monkeypatch.setattr(builtins, "__import__", no_rerun)
     with pytest.raises(ImportError, match=r"pip install 'flyvpr\[view\]'"):
         LiveView(Map.load(route["map"]), serve=False, save="x.rrd")
+
+
+@pytest.mark.parametrize("option", ["--view-port", "--view-data-port"])
+def test_a_busy_view_port_fails_the_run_before_any_work(route, tmp_path, capsys, option):
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("0.0.0.0", 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        out = tmp_path / "r.csv"
+        code, _, err = _run(capsys, "localize", "--map", route["map"], route["png"], "--view",
+                            option, port, "--out", out)  # fmt: skip
+    assert code == 2 and f"{option} {port}: already in use by another program" in err
+    assert not out.exists()

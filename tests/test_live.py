@@ -4,6 +4,7 @@ server thread, MPEG-TS over UDP muxed with PyAV), the newest-frame rule, stalls 
 from __future__ import annotations
 
 import errno
+import os
 import sys
 import time
 from pathlib import Path
@@ -252,6 +253,17 @@ def test_a_stream_of_damaged_jpegs_raises():
     assert src.n_corrupt > 10
 
 
+def test_a_camera_that_hangs_in_the_middle_of_a_jpeg_is_reconnected():
+    """The first connection sends 20 frames and half a JPEG, then hangs: after the stall the
+    reader reconnects; the torn JPEG it hands over after the silence is not a stream of
+    damage, and the frames go on."""
+    with MjpegServer(_gray_jpegs(), fps=50, n_frames=60, hang_first=(20, 30)) as srv:
+        src = LiveSource(srv.url, stall_timeout=1, retries=3)
+        got = [f.index for f in src.frames((8, 16))]
+    assert src.n_reconnects >= 1 and len(got) > 40
+    assert src.ended
+
+
 def test_the_end_of_a_stream_ends_the_frames(tmp_path):
     """A server that sends a short MPEG-TS over TCP and closes: the frames end, no error."""
     import socket
@@ -284,3 +296,33 @@ def test_the_end_of_a_stream_ends_the_frames(tmp_path):
     server.close()
     assert src.ended and src.n_received == 20 and src.clock == "stream"
     assert got and got[-1] == 19  # the last frame is always taken
+
+
+def test_an_interrupt_while_the_stream_opens_is_taken_at_once():
+    """FFmpeg's open blocks in C; a signal (Ctrl-C, the CLI's SIGTERM) must not wait for its
+    open_timeout: a server that accepts and never answers, a signal after 0.5 s."""
+    import signal
+    import socket
+    import threading
+
+    class Interrupted(Exception):
+        pass
+
+    def handler(signum, frame):
+        raise Interrupted
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen(4)
+        url = f"http://127.0.0.1:{server.getsockname()[1]}/stream.mjpg"
+        previous = signal.signal(signal.SIGUSR1, handler)
+        timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGUSR1))
+        try:
+            timer.start()
+            t0 = time.monotonic()
+            with pytest.raises(Interrupted):
+                LiveSource(url, open_timeout=20)
+            assert time.monotonic() - t0 < 3.0
+        finally:
+            timer.cancel()
+            signal.signal(signal.SIGUSR1, previous)

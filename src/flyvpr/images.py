@@ -513,10 +513,19 @@ def _write_cache(path: Path, array: np.ndarray, key: str) -> None:
         "key": key,
         "shape": list(array.shape),
     }
-    with atomic_open(path, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED) as zf:
-        zf.writestr("meta.json", json.dumps(meta))
-        with zf.open("images.npy", "w", force_zip64=True) as member:
-            np.lib.format.write_array(member, array, allow_pickle=False)
+    with atomic_open(path, "wb") as fh:
+        zf = zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED)
+        try:
+            zf.writestr("meta.json", json.dumps(meta))
+            with zf.open("images.npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, array, allow_pickle=False)
+        except BaseException:
+            # an interruption or a failed write: the archive is dropped unclosed (its close
+            # would raise over a member still open, now and again from __del__); the temporary
+            # file goes with atomic_open
+            zf.fp = None
+            raise
+        zf.close()
 
 
 def _read_cache(path: Path, key: str, shape: tuple[int, ...]) -> np.ndarray:

@@ -224,6 +224,7 @@ def _write_archive(path: Path, meta: dict, arrays: dict) -> Path:
     blob = json.dumps(meta).encode()
     payload = {"__meta__": np.frombuffer(blob, dtype=np.uint8), **arrays}
     with atomic_open(path, "w+b") as fh:
+        zf = None
         try:
             with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
                 for key, value in payload.items():
@@ -232,7 +233,11 @@ def _write_archive(path: Path, meta: dict, arrays: dict) -> Path:
                 zf.comment = b"0" * _TRAILER
         except Exception as exc:
             # A Ctrl-C or SIGTERM inside a member's close leaves the archive's close to raise
-            # ValueError over it: the interruption is what ends the write.
+            # ValueError over it: the interruption is what ends the write.  The archive is
+            # dropped (the temporary file goes with atomic_open), so that its __del__, run when
+            # the traceback is freed, does not try the same close again and print it.
+            if zf is not None:
+                zf.fp = None
             raise_interruption(exc)
             raise
         fh.flush()

@@ -135,10 +135,40 @@ def check_view_args(args, inputs) -> None:
         if args.out is not None and args.view_save.resolve() == Path(args.out).resolve():
             raise UsageError(f"--view-save {args.view_save}: already the --out of this run")
         check_outputs(args, inputs, ("view_save",))
+    from ..view import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
+
+    defaults = {"view_port": DEFAULT_WEB_PORT, "view_data_port": DEFAULT_GRPC_PORT}
+    given = [o for o in defaults if getattr(args, o) != defaults[o]]
+    if given and not args.view:
+        raise UsageError(f"--{given[0].replace('_', '-')}: only with --view")
     if args.view and args.view_port == args.view_data_port:
         raise UsageError(
             f"--view-port and --view-data-port: two ports are needed; both are {args.view_port}"
         )
+    if args.view:
+        for option in ("view_port", "view_data_port"):
+            port = getattr(args, option)
+            if port > 65535:
+                raise UsageError(f"--{option.replace('_', '-')} {port}: a port is 1-65535")
+            if not _port_free(port):
+                raise UsageError(
+                    f"--{option.replace('_', '-')} {port}: already in use by another program; "
+                    "pick another port"
+                )
+
+
+def _port_free(port: int) -> bool:
+    """Whether a TCP server could listen on ``port`` on every interface now (as the viewer's
+    servers do), checked before any work so that a busy port fails the run at its start."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(("0.0.0.0", port))
+        except OSError:
+            return False
+    return True
 
 
 def open_view(args, m, *, background: bool):

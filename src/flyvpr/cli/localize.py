@@ -287,7 +287,8 @@ def register(sub) -> None:
     p.add_argument(
         "--out",
         type=Path,
-        help="records file to write (atomically), the format by its suffix: .csv; with --map "
+        help="records file to write (atomically; a live source's records are written as they "
+        "are made, each line whole), the format by its suffix: .csv; with --map "
         "also .jsonl (JSON Lines) or .mcap (JSON messages with JSON schemas, for Foxglove and "
         "other MCAP tools); numbers are written exactly (every digit of a float64)",
     )

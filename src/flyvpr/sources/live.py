@@ -223,11 +223,38 @@ class LiveSource:
 
     # -- opening ----------------------------------------------------------------------------
     def _open(self):
-        """Open the source, or raise RecordingError naming it and saying why."""
+        """Open the source, or raise RecordingError naming it and saying why.
+
+        FFmpeg's open blocks (up to ``open_timeout``) in C, where Python cannot deliver
+        Ctrl-C or SIGTERM; it runs in a helper thread while this one waits in short steps, so
+        an interrupt ends the wait at once (the helper, a daemon, ends with FFmpeg's
+        timeout; a container it opens after the interrupt is closed)."""
+        outcome: dict = {}
+
+        def attempt() -> None:
+            try:
+                outcome["container"] = self._try_open()
+            except BaseException as exc:  # handed to the waiting thread
+                outcome["error"] = exc
+            if outcome.get("abandoned") and "container" in outcome:
+                outcome["container"].close()
+
+        helper = threading.Thread(target=attempt, name="flyvpr-live-open", daemon=True)
+        helper.start()
         try:
-            return self._try_open()
-        except _OpenFailed as exc:
-            raise RecordingError(f"{self.describe()}: {exc}") from None
+            while helper.is_alive():
+                helper.join(0.05)
+        except BaseException:  # Ctrl-C, SIGTERM: leave FFmpeg to its timeout
+            outcome["abandoned"] = True
+            if "container" in outcome:
+                outcome["container"].close()
+            raise
+        error = outcome.get("error")
+        if isinstance(error, _OpenFailed):
+            raise RecordingError(f"{self.describe()}: {error}") from None
+        if error is not None:
+            raise error
+        return outcome["container"]
 
     def _try_open(self):
         """Open the source; every failure becomes an _OpenFailed with the reason."""
@@ -441,7 +468,10 @@ class LiveSource:
         jpeg = self._av.CodecContext.create("mjpeg", "r")
         self._thread = threading.Thread(target=self._run, name="flyvpr-live-reader", daemon=True)
         self._thread.start()
-        last_good = time.monotonic()
+        # since when every JPEG taken has been damaged (None after a good one): a stream that
+        # sends only damage for stall_timeout ends; one torn JPEG after a silence (a camera
+        # that hung mid-picture, which the reader reconnects to) does not
+        damaged_since: float | None = None
         try:
             while True:
                 item = self._take()
@@ -451,13 +481,15 @@ class LiveSource:
                 if isinstance(frame, self._av.Packet):
                     frame = self._decode_jpeg(jpeg, frame)
                     if frame is None:
-                        if time.monotonic() - last_good > self.stall_timeout:
+                        now = time.monotonic()
+                        damaged_since = now if damaged_since is None else damaged_since
+                        if now - damaged_since > self.stall_timeout:
                             raise RecordingError(
                                 f"{self.describe()}: no decodable frame for "
                                 f"{self.stall_timeout:g} s ({self.n_corrupt} damaged JPEG frames)"
                             )
                         continue
-                last_good = time.monotonic()
+                damaged_since = None
                 yield LiveFrame(index, t, arrival, _decoder(frame)((h, w)), frame)
         finally:
             self.close()
