@@ -42,6 +42,15 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     def log_message(self, *args):  # quiet
         pass
 
+    def _half_jpeg(self, data: bytes) -> bool:
+        """Send a part head and the first half of ``data``; False if the client left."""
+        try:
+            self.wfile.write(_part_head(len(data)) + data[: len(data) // 2])
+            self.wfile.flush()
+        except OSError:
+            return False
+        return True
+
     def do_GET(self):  # noqa: N802 - http.server's name
         srv = self.server.owner
         if srv.garbage:
@@ -86,25 +95,16 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             srv.sent.append(sent)
             i += 1
         if hangs:
-            data = srv.jpegs[i % len(srv.jpegs)]
-            try:
-                self.wfile.write(_part_head(len(data)) + data[: len(data) // 2])
-                self.wfile.flush()
-            except OSError:
-                return
-            end = time.monotonic() + srv.hang_first[1]
-            while time.monotonic() < end and not srv.closing:
-                time.sleep(0.05)
+            # half of the next JPEG, then silence: a camera that hangs in the middle of a picture
+            if self._half_jpeg(srv.jpegs[i % len(srv.jpegs)]):
+                end = time.monotonic() + srv.hang_first[1]
+                while time.monotonic() < end and not srv.closing:
+                    time.sleep(0.05)
             return
         if srv.cut_first and not srv.was_cut:
             # the first connection closes (orderly) in the middle of a JPEG: a broken stream
             srv.was_cut = True
-            data = srv.jpegs[i % len(srv.jpegs)]
-            try:
-                self.wfile.write(_part_head(len(data)) + data[: len(data) // 2])
-                self.wfile.flush()
-            except OSError:
-                pass
+            self._half_jpeg(srv.jpegs[i % len(srv.jpegs)])
             srv.finished.set()
             return
         if srv.reset_first and not srv.was_reset:
