@@ -117,6 +117,16 @@ def test_udp_mpegts_timestamps_from_the_stream():
         assert abs(float(f.image.mean()) * 255 - LEVELS[k % 40]) < 3
 
 
+def test_an_upper_case_scheme_is_read_as_its_lower_case():
+    # RFC 3986: a scheme is case-insensitive; FFmpeg refused HTTP:// ("protocol not found")
+    with MjpegServer(_gray_jpegs(), fps=None, n_frames=5) as srv:
+        url = "HTTP" + srv.url[len("http") :]
+        src = LiveSource(url, stall_timeout=2, retries=0)
+        got = list(src.frames((8, 16)))
+    assert src.url == srv.url and src.describe() == f"stream {srv.url}"
+    assert len(got) + src.n_dropped == 5 and src.n_received == 5
+
+
 def test_a_stall_is_retried_then_raises():
     messages = []
     with MjpegServer(_gray_jpegs(), fps=100, n_frames=10, stall_after=30) as srv:

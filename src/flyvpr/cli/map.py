@@ -174,7 +174,11 @@ def register(sub) -> None:
         "--fit-frames",
         type=int,
         metavar="N",
-        help="fit the encoder on at most N frames, evenly spaced (default 10000)",
+        help=(
+            "fit the encoder on at most N frames, evenly spaced: every k-th frame, k the "
+            "least power of 2 that keeps N or fewer (read in one pass: between N/2 and N "
+            "frames of a long recording; default 10000)"
+        ),
     )
     c.add_argument(
         "--mih",

@@ -188,7 +188,10 @@ class LiveSource:
                 f"url must be a stream URL ({', '.join(s + '://' for s in LIVE_SCHEMES)}) or a "
                 f"camera device (/dev/video0); got {self.url!r}"
             )
-        self.kind = "stream" if _SCHEME_RE.match(self.url) else "camera"
+        scheme = _SCHEME_RE.match(self.url)
+        if scheme is not None:  # a scheme is case-insensitive; FFmpeg knows lower case only
+            self.url = scheme.group(1).lower() + self.url[len(scheme.group(1)) :]
+        self.kind = "stream" if scheme is not None else "camera"
         self.options = {str(k): str(v) for k, v in (options or {}).items()}
         self.stall_timeout = check_real(stall_timeout, "stall_timeout", unit="seconds")
         self.open_timeout = check_real(open_timeout, "open_timeout", unit="seconds")
