@@ -230,7 +230,8 @@ class View:
 class Entry:
     """A method as the benchmark runs it.
 
-    ``groups``: the view groups it runs on (``None``: all).  ``first_seed_only``: slow methods
+    ``groups``: the view groups it runs on (``None``: all); ``views``: only these views
+    (``None``: those of its groups).  ``first_seed_only``: slow methods
     run with the first seed only (said so in the output).  Deterministic methods (no part takes
     a ``random_state``) run once, with the first seed, whatever this says.
     """
@@ -241,6 +242,7 @@ class Entry:
     filter_params: dict = field(default_factory=dict)
     groups: tuple[str, ...] | None = None
     first_seed_only: bool = False
+    views: tuple[str, ...] | None = None
 
     @property
     def name(self) -> str:
@@ -257,6 +259,8 @@ class Entry:
         return not any("random_state" in part.get_params() for part in parts)
 
     def runs_on(self, view: View) -> bool:
+        if self.views is not None:
+            return view.key in self.views
         if view.group == "robot":
             if self.label not in ROBOT_METHODS:
                 return False
@@ -278,6 +282,7 @@ class Entry:
             "frontend_params": dict(self.frontend_params),
             "filter_params": dict(self.filter_params),
             "groups": None if self.groups is None else list(self.groups),
+            **({} if self.views is None else {"views": list(self.views)}),
             "seeds": "first" if (self.first_seed_only or self.deterministic) else "all",
             "deterministic": self.deterministic,
         }
@@ -604,6 +609,10 @@ CANN_SPEEDS = {"v_min": 0.75, "v_max": 2.0, "v_step": 0.125}
 ROBOT_SPEEDS = {"v_min": 0.25, "v_max": 3.0, "v_step": 0.125}
 #: the same up to 3.5 places per frame, the CANN's bank since it reaches 3.5 (r-3.25x)
 ROBOT_SPEEDS_35 = {"v_min": 0.25, "v_max": 3.5, "v_step": 0.125}
+#: the same speeds backwards, for the query driven backwards along the map (the CANN's bank
+#: has backward rows; SeqSLAM searches one range of velocities, and one from -3.5 to 3.5 would
+#: pass through 0, where a line stays on one place)
+ROBOT_SPEEDS_BACK = {"v_min": -3.5, "v_max": -0.25, "v_step": 0.125}
 _FAST_ROWS = ("nordland", "speed")
 
 METHODS: list[Entry] = [
@@ -643,8 +652,24 @@ METHODS: list[Entry] = [
     Entry("kenyon+cann"),
     Entry("netvlad+cann", first_seed_only=True),
     Entry("flynet+cann-paper", groups=("nordland", "speed", "robot")),
-    Entry("seqslam-60 v0.25-3", "seqslam", filter_params=ROBOT_SPEEDS, groups=("robot",)),
-    Entry("seqslam-60 v0.25-3.5", "seqslam", filter_params=ROBOT_SPEEDS_35, groups=("robot",)),
+    Entry(
+        "seqslam-60 v0.25-3",
+        "seqslam",
+        filter_params={"sequence_length": 60, **ROBOT_SPEEDS},
+        groups=("robot",),
+    ),
+    Entry(
+        "seqslam-60 v0.25-3.5",
+        "seqslam",
+        filter_params={"sequence_length": 60, **ROBOT_SPEEDS_35},
+        groups=("robot",),
+    ),
+    Entry(
+        "seqslam-60 backwards 0.25-3.5",
+        "seqslam",
+        filter_params={"sequence_length": 60, **ROBOT_SPEEDS_BACK},
+        views=("r-reversed",),
+    ),
 ]
 
 #: the methods that run on the robot views (the rest skip them)

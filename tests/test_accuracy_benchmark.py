@@ -30,6 +30,33 @@ def test_tables_are_consistent():
     assert {"seqslam-20", "seqslam-40", "seqslam-60", "flynet+cann", "pixels+cann"} <= labels
 
 
+def test_seqslam_labels_say_what_runs():
+    # "seqslam-60 v0.25-3" ran SeqSLAM's default length, 20, on the robot views for a while
+    import re
+
+    from flyvpr.methods import make_method
+
+    seen = 0
+    for entry in accuracy_setup.METHODS:
+        m = re.fullmatch(
+            r"(?:\w+\+)?seqslam-(\d+)(?: v([\d.]+)-([\d.]+))?(?: backwards ([\d.]+)-([\d.]+))?",
+            entry.label,
+        )
+        if m is None:
+            continue
+        seen += 1
+        filt = make_method(entry.name, 0, entry.frontend_params, entry.filter_params).filter
+        assert filt.sequence_length == int(m.group(1)), entry.label
+        if m.group(2) is not None:
+            assert (filt.v_min, filt.v_max) == (float(m.group(2)), float(m.group(3))), entry.label
+        elif m.group(4) is not None:
+            assert (filt.v_min, filt.v_max) == (-float(m.group(5)), -float(m.group(4)))
+            assert all(v.motion == "reversed" for v in accuracy_setup.VIEWS if entry.runs_on(v))
+        else:
+            assert (filt.v_min, filt.v_max) == (0.8, 1.2), entry.label
+    assert seen >= 9
+
+
 def test_check_tables_catches_mistakes():
     dup = [*accuracy_setup.METHODS, Entry("flynet")]
     with pytest.raises(ValueError, match="duplicate method labels"):

@@ -476,6 +476,25 @@ def test_reliability_by_hand():
     assert reliability([], []) == []
 
 
+def test_reliability_bins_hold_their_lower_edge_and_name_their_edges():
+    from flyvpr.metrics import reliability, reliability_counts
+
+    # 0.29 * 100 is 28.999...: each confidence on an edge still opens its own bin
+    edges = [0.29, 0.57, 0.58, 0.99, 0.01]
+    n, _, _ = reliability_counts(edges, [True] * 5, bins=100)
+    assert np.flatnonzero(n).tolist() == [1, 29, 57, 58, 99]
+    n, _, _ = reliability_counts([0.3, 0.7, 0.6, 1 / 3], [True] * 4, bins=10)
+    assert n.tolist() == [0, 0, 0, 2, 0, 0, 1, 1, 0, 0]
+    # edges that one decimal cannot write get three
+    bins3 = [r["bin"] for r in reliability([0.1, 0.5, 0.9], [True] * 3, bins=3)]
+    assert bins3 == ["0.000-0.333", "0.333-0.667", "0.667-1.000"]
+    assert [r["bin"] for r in reliability([0.0, 0.99], [1, 1], bins=8)] == [
+        "0.000-0.125",
+        "0.875-1.000",
+    ]
+    assert [r["bin"] for r in reliability([0.5], [1], bins=2)] == ["0.5-1.0"]
+
+
 @pytest.mark.parametrize(
     "confidence, right, bins, error, match",
     [

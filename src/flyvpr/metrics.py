@@ -31,7 +31,6 @@ a true match, so every function that reports recall raises ``ValueError`` for su
 
 from __future__ import annotations
 
-import math
 import numbers
 from typing import Any
 
@@ -439,7 +438,10 @@ def extended_precision(S, gt) -> float:
     among those with the highest confidence (one prediction unless several tie), which is the
     highest precision among the points that share the lowest recall.  EP rewards a system
     whose most confident predictions are right and that keeps precision 1 for long; unlike the
-    AUC it ignores the low-precision tail.
+    AUC it ignores the low-precision tail.  The recall is this module's, the share of the
+    queries that have an acceptable reference: VPR-Bench's own code divides by the number of
+    right predictions instead, so its EP differs wherever a prediction is wrong (see the
+    metrics guide).
 
     Parameters
     ----------
@@ -633,7 +635,9 @@ def reliability_counts(confidence, right, bins: int = 10) -> tuple:
         raise ValueError("confidence must be finite and lie in [0, 1]")
     if r.dtype != bool and not np.isin(r, (0, 1)).all():
         raise ValueError("right must hold booleans (or 0 and 1)")
-    b = np.minimum((c * bins).astype(np.int64), bins - 1)
+    # The bin: how many of the inner edges 1/bins, 2/bins, ... lie at or below (compared with
+    # the edges themselves: c * bins misplaces some, 0.29 * 100 = 28.999...).
+    b = np.searchsorted(np.arange(1, bins) / bins, c, side="right")
     return (
         np.bincount(b, minlength=bins),
         np.bincount(b, c, minlength=bins),
@@ -653,7 +657,10 @@ def reliability(confidence, right, bins: int = 10) -> list[dict]:
     [('0.0-0.1', 1, 0.0), ('0.9-1.0', 2, 0.5)]
     """
     n, total, hits = reliability_counts(confidence, right, bins)
-    digits = max(1, math.ceil(math.log10(bins)))  # 0.1 for ten bins, 0.05 for twenty
+    # The fewest decimals that write every edge exactly (0.1 for ten bins, 0.05 for twenty),
+    # three where none does (thirds: 0.333-0.667).
+    edges = np.arange(bins + 1) / bins
+    digits = next((d for d in range(1, 4) if np.allclose(edges.round(d), edges, 0, 1e-12)), 3)
     return [
         {
             "bin": f"{k / bins:.{digits}f}-{(k + 1) / bins:.{digits}f}",
