@@ -56,10 +56,20 @@ def summarise(rows: list[dict]) -> list[dict]:
         for key in _METRICS[1:-1]:
             entry[f"{key}_mean"] = statistics.fmean(r[key] for r in rs)
         entry["top_share_max"] = max(r["top_share"] for r in rs)
-        for key in ("localized_share", "offmap_localized_share"):
+        for key in (
+            "localized_share",
+            "offmap_localized_share",
+            "offmap_confidence_mean",
+            "offmap_confident_share",
+        ):
             values = [r[key] for r in rs if r.get(key) is not None]
             if values:
-                entry[f"{key}_mean"] = statistics.fmean(values)
+                entry[key if key.endswith("_mean") else f"{key}_mean"] = statistics.fmean(values)
+        for key in ("stand_frames", "stand_localized", "stand_localized_wrong"):
+            if any(key in r for r in rs):
+                entry[key] = sum(r.get(key, 0) for r in rs)  # counts: pooled over the seeds
+        if any("stand_ahead_max" in r for r in rs):
+            entry["stand_ahead_max"] = max(r.get("stand_ahead_max", 0) for r in rs)
         rejoin = [r.get("rejoin_frames") for r in rs if "rejoin_frames" in r]
         if rejoin:
             entry["rejoin_frames"] = rejoin
@@ -295,10 +305,26 @@ def _robot_lines(data: dict) -> list[str]:
         if "offmap_localized_share_mean" in s:
             rejoin = s.get("rejoin_frames", [])
             shown = ", ".join("never" if r is None else str(r) for r in rejoin)
+            sure = ""
+            if s.get("offmap_confidence_mean") is not None:
+                sure = (
+                    f" (every off-map answer is wrong: their mean confidence "
+                    f"{s['offmap_confidence_mean']:.2f}, "
+                    f"{s['offmap_confident_share_mean']:.0%} of them at 0.5 or more)"
+                )
             lines.append(
                 f"{conditions[s['condition']]['label']}, {s['method']}: "
-                f"{s['offmap_localized_share_mean']:.1%} of the off-map frames localized; "
+                f"{s['offmap_localized_share_mean']:.1%} of the off-map frames localized{sure}; "
                 f"frames after rejoining the map until localized and right, per seed: {shown}."
+            )
+    for s in summary:
+        if s.get("stand_frames"):
+            n, loc, wrong = s["stand_frames"], s["stand_localized"], s["stand_localized_wrong"]
+            share = f" ({wrong / loc:.0%})" if loc else ""
+            lines.append(
+                f"{conditions[s['condition']]['label']}, {s['method']}: of {n} frames standing "
+                f"(seeds pooled), {loc} localized and {wrong} of those wrong{share}; an answer "
+                f"lay up to {s['stand_ahead_max']} places ahead of the stand."
             )
     return lines
 

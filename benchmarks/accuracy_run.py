@@ -165,6 +165,8 @@ def run_task(task: Task) -> dict:
                             )
                         if view.gap is not None and tol == min(view.tolerances):
                             row.update(_detour(qry_ids[idx], view_ref_ids, out, states, tol))
+                        if tol == min(view.tolerances):
+                            row.update(_stands(qry_ids[idx], view_ref_ids, out, states, tol))
                     rows.append(row)
                 if task.kidnap and view.kidnap and entry.spec.filter in ("cann", "cann-paper"):
                     tol = view.tolerances[0]
@@ -293,9 +295,43 @@ def _detour(query_ids, ref_ids, out, states, tol: int) -> dict:
         after = np.arange(np.flatnonzero(off)[-1] + 1, len(out))
         hit = after[states[after] & right[after]]
         back = int(hit[0] - after[0]) if hit.size else None
+    confidence = out.max(axis=1)[off]  # the CANN's answer holds its row's maximum
     return {
         "offmap_localized_share": float(states[off].mean()) if off.any() else None,
         "rejoin_frames": back,
+        # every off-map answer is wrong: how sure of them the filter says it is
+        "offmap_confidence_mean": float(confidence.mean()) if off.any() else None,
+        "offmap_confident_share": float((confidence >= 0.5).mean()) if off.any() else None,
+    }
+
+
+#: a stand: at least this many consecutive frames at one place (a slow speed's repeats of a
+#: place, 2-3 frames at 0.4-0.6 places per frame, are not stops)
+STAND_FRAMES = 10
+
+
+def _stands(query_ids, ref_ids, out, states, tol: int) -> dict:
+    """Frames where the query stands (its true place is the frame before's, in a run of at
+    least ``STAND_FRAMES`` frames at that place): how many, how many are ``localized``, how
+    many of those are wrong (beyond ``tol``), and the most places an answer lay ahead of the
+    true place on them; nothing for a query that never stands."""
+    query_ids = np.asarray(query_ids)
+    starts = np.flatnonzero(np.r_[True, query_ids[1:] != query_ids[:-1]])
+    lengths = np.diff(np.r_[starts, len(query_ids)])
+    stand = np.zeros(len(query_ids), bool)
+    for first, length in zip(starts, lengths, strict=True):
+        if length >= STAND_FRAMES:
+            stand[first + 1 : first + length] = True
+    if not stand.any():
+        return {}
+    answers = out.argmax(axis=1)
+    right = ground_truth_from_frames(query_ids, ref_ids, tol)[np.arange(len(out)), answers]
+    ahead = np.asarray(ref_ids)[answers] - query_ids
+    return {
+        "stand_frames": int(stand.sum()),
+        "stand_localized": int((stand & states).sum()),
+        "stand_localized_wrong": int((stand & states & ~right).sum()),
+        "stand_ahead_max": int(max(0, ahead[stand].max())),
     }
 
 

@@ -22,8 +22,12 @@ from flyvpr.methods import METHODS as FLYVPR_METHODS
 from flyvpr.methods import make_method
 from flyvpr.temporal.rnn import FROM_SCRATCH
 
-#: What tuned the CANN's defaults (see the CANN's docstring): printed next to those numbers.
-TUNED = "tuned the CANN defaults (flynet+cann, seeds 0-4)"
+#: What tuned the CANN's defaults (see "What chose the defaults" on the CANN guide page and
+#: the paper CANN's guide): printed next to those numbers.
+TUNED = (
+    "chose the CANN defaults (kenyon, pixels and FlyNet front ends, seed 0) and the paper "
+    "CANN's (FlyNet, seeds 0-4)"
+)
 
 
 @dataclass(frozen=True)
@@ -293,7 +297,12 @@ def _nordland(key, label, first, count=1000, folder="nordland_64x32", **kw) -> D
 
 
 DATASETS: list[Dataset] = [
-    _nordland("n64-0", "Nordland 64x32 summer->winter 0-999", 0, tuning=TUNED),
+    _nordland(
+        "n64-0",
+        "Nordland 64x32 summer->winter 0-999",
+        0,
+        tuning=TUNED + "; its robot views fitted the confidence's calibration table",
+    ),
     _nordland("n64-1000", "Nordland 64x32 summer->winter 1000-1999", 1000, tuning=TUNED),
     _nordland(
         "n64-1400",

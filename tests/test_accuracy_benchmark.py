@@ -460,3 +460,92 @@ def test_odometry_steps_are_unsigned_places_moved_times_the_scale():
     assert steps.dtype == np.float64 and steps.tolist() == [0.0, 1.0, 2.0, 0.0]
     long = views["r-walk-odo-long"].odometry_steps(np.array([4, 5, 7]))
     assert long.tolist() == pytest.approx([0.0, 1.2, 2.4])
+
+
+def _rows_answering(answers, n_ref):
+    """A filter's rows whose best place is ``answers[t]``, with confidence ``0.1 + t / 100``."""
+    out = np.zeros((len(answers), n_ref), np.float32)
+    out[np.arange(len(answers)), answers] = 0.1 + np.arange(len(answers)) / 100
+    return out
+
+
+def test_stands_count_localized_wrong_answers_and_the_run_ahead(monkeypatch):
+    monkeypatch.setattr(accuracy_run, "STAND_FRAMES", 4)
+    query = np.array([0, 1, 2, 2, 2, 2, 3, 4, 4, 4, 5])  # stands on frames 3-5 (place 2)
+    ref = np.arange(10)
+    # frame 3 within 2 places, frame 4 four places ahead; frames 8-9: 3 frames, not a stand
+    answers = [0, 1, 2, 3, 6, 2, 3, 4, 9, 9, 5]
+    states = np.array([0, 1, 1, 1, 1, 0, 1, 1, 1, 1, 1], bool)
+    got = accuracy_run._stands(query, ref, _rows_answering(answers, 10), states, 2)
+    assert got == {
+        "stand_frames": 3,
+        "stand_localized": 2,
+        "stand_localized_wrong": 1,
+        "stand_ahead_max": 4,
+    }
+    # behind the stand is not ahead; a query that never stands has nothing to say
+    behind = [0, 1, 2, 0, 0, 2, 3, 4, 4, 4, 5]
+    got = accuracy_run._stands(query, ref, _rows_answering(behind, 10), states, 2)
+    assert got["stand_ahead_max"] == 0 and got["stand_localized_wrong"] == 0
+    assert (
+        accuracy_run._stands(np.arange(5), ref, _rows_answering([0] * 5, 10), states[:5], 2) == {}
+    )
+    monkeypatch.setattr(accuracy_run, "STAND_FRAMES", 5)  # the stand of 4 frames is too short
+    assert accuracy_run._stands(query, ref, _rows_answering(answers, 10), states, 2) == {}
+
+
+def test_detour_scores_the_off_map_confidence():
+    ref = np.array([0, 1, 2, 3, 7, 8, 9])  # places 4-6 left out of the map
+    query = np.arange(10)
+    answers = [0, 1, 2, 3, 3, 3, 4, 5, 5, 6]  # map indices
+    states = np.array([1, 1, 1, 1, 0, 0, 1, 0, 1, 1], bool)
+    out = _rows_answering(answers, len(ref))
+    out[4, answers[4]] = 0.7  # off the map, and sure of it
+    got = accuracy_run._detour(query, ref, out, states, 0)
+    assert got["offmap_localized_share"] == pytest.approx(1 / 3)
+    assert got["offmap_confidence_mean"] == pytest.approx((0.7 + 0.15 + 0.16) / 3, abs=1e-6)
+    assert got["offmap_confident_share"] == pytest.approx(1 / 3)
+    assert got["rejoin_frames"] == 1  # frame 7 answers place 8 (lost), frame 8 place 8: right
+
+
+def test_robot_verdicts_pool_stands_and_average_the_off_map_confidence():
+    base = {"recall_at_1": 0.9, "recall_at_100_precision": 0.5, "extended_precision": 0.7}
+    base.update(top_share=0.01, filter_s=0.0, localized_share=0.9)
+    rows = [
+        {**base, "condition": "s@2", "method": "m", "seed": seed, "auc": 0.9,
+         "stand_frames": 30, "stand_localized": loc, "stand_localized_wrong": wrong,
+         "stand_ahead_max": ahead}
+        for seed, loc, wrong, ahead in ((0, 20, 5, 7), (1, 10, 5, 12))
+    ] + [
+        {**base, "condition": "d@2", "method": "m", "seed": seed, "auc": 0.8,
+         "offmap_localized_share": 0.01 * seed, "rejoin_frames": 40 + seed,
+         "offmap_confidence_mean": conf, "offmap_confident_share": share}
+        for seed, conf, share in ((0, 0.2, 0.1), (1, 0.4, 0.3))
+    ]  # fmt: skip
+    summary = accuracy_report.summarise(rows)
+    by = {s["condition"]: s for s in summary}
+    assert (by["s@2"]["stand_frames"], by["s@2"]["stand_localized"]) == (60, 30)
+    assert (by["s@2"]["stand_localized_wrong"], by["s@2"]["stand_ahead_max"]) == (10, 12)
+    assert by["d@2"]["offmap_confidence_mean"] == pytest.approx(0.3)
+    assert by["d@2"]["offmap_confident_share_mean"] == pytest.approx(0.2)
+    assert "stand_frames" not in by["d@2"]
+    data = {
+        "methods": [{"label": "m", "method": "kenyon+cann"}],
+        "conditions": [
+            {"key": k, "label": label, "group": "robot", "tolerance": 2}
+            for k, label in (("s@2", "stops"), ("d@2", "detour"))
+        ],
+        "rows": rows,
+        "summary": summary,
+    }
+    lines = accuracy_report._robot_lines(data)
+    assert (
+        "stops, m: of 60 frames standing (seeds pooled), 30 localized and 10 of those wrong "
+        "(33%); an answer lay up to 12 places ahead of the stand." in lines
+    )
+    assert any(
+        line.startswith("detour, m: 0.5% of the off-map frames localized (every off-map answer "
+                        "is wrong: their mean confidence 0.30, 20% of them at 0.5 or more); ")
+        and line.endswith("per seed: 40, 41.")
+        for line in lines
+    )  # fmt: skip
