@@ -323,8 +323,8 @@ def _robot_lines(data: dict) -> list[str]:
             share = f" ({wrong / loc:.0%})" if loc else ""
             lines.append(
                 f"{conditions[s['condition']]['label']}, {s['method']}: of {n} frames standing "
-                f"(seeds pooled), {loc} localized and {wrong} of those wrong{share}; an answer "
-                f"lay up to {s['stand_ahead_max']} places ahead of the stand."
+                f"(seeds pooled), {loc} localized and {wrong} of those wrong{share}; a localized "
+                f"answer lay up to {s['stand_ahead_max']} places ahead of the stand."
             )
     return lines
 

@@ -313,8 +313,9 @@ STAND_FRAMES = 10
 def _stands(query_ids, ref_ids, out, states, tol: int) -> dict:
     """Frames where the query stands (its true place is the frame before's, in a run of at
     least ``STAND_FRAMES`` frames at that place): how many, how many are ``localized``, how
-    many of those are wrong (beyond ``tol``), and the most places an answer lay ahead of the
-    true place on them; nothing for a query that never stands."""
+    many of those are wrong (beyond ``tol``), and the most places a ``localized`` answer lay
+    ahead of the true place on them (a lost answer is the front end's hint, from anywhere);
+    nothing for a query that never stands."""
     query_ids = np.asarray(query_ids)
     starts = np.flatnonzero(np.r_[True, query_ids[1:] != query_ids[:-1]])
     lengths = np.diff(np.r_[starts, len(query_ids)])
@@ -331,7 +332,7 @@ def _stands(query_ids, ref_ids, out, states, tol: int) -> dict:
         "stand_frames": int(stand.sum()),
         "stand_localized": int((stand & states).sum()),
         "stand_localized_wrong": int((stand & states & ~right).sum()),
-        "stand_ahead_max": int(max(0, ahead[stand].max())),
+        "stand_ahead_max": int(max(0, ahead[stand & states].max(initial=0))),
     }
 
 

@@ -483,6 +483,10 @@ def test_stands_count_localized_wrong_answers_and_the_run_ahead(monkeypatch):
         "stand_localized_wrong": 1,
         "stand_ahead_max": 4,
     }
+    # a lost answer far ahead (the front end's hint) is not the packet running on
+    lost_far = [0, 1, 2, 3, 6, 9, 3, 4, 9, 9, 5]
+    got = accuracy_run._stands(query, ref, _rows_answering(lost_far, 10), states, 2)
+    assert got["stand_ahead_max"] == 4 and got["stand_localized_wrong"] == 1
     # behind the stand is not ahead; a query that never stands has nothing to say
     behind = [0, 1, 2, 0, 0, 2, 3, 4, 4, 4, 5]
     got = accuracy_run._stands(query, ref, _rows_answering(behind, 10), states, 2)
@@ -541,7 +545,7 @@ def test_robot_verdicts_pool_stands_and_average_the_off_map_confidence():
     lines = accuracy_report._robot_lines(data)
     assert (
         "stops, m: of 60 frames standing (seeds pooled), 30 localized and 10 of those wrong "
-        "(33%); an answer lay up to 12 places ahead of the stand." in lines
+        "(33%); a localized answer lay up to 12 places ahead of the stand." in lines
     )
     assert any(
         line.startswith("detour, m: 0.5% of the off-map frames localized (every off-map answer "
