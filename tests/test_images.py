@@ -1,4 +1,5 @@
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -315,3 +316,251 @@ def test_a_bad_bayer_pattern_is_the_argument_not_the_file(tmp_path, bayer):
     Image.fromarray(np.zeros((8, 8), np.uint8)).save(path)
     with pytest.raises(ValueError, match=r"^bayer must be None or one of"):
         im.load_image(path, (4, 4), bayer=bayer)
+
+
+# -- EXIF orientation ------------------------------------------------------------------------
+# How the picture U (as a viewer shows it) is stored under each EXIF Orientation, from the
+# tag's definition (which stored row and column are the visual top and left side), written
+# independently of the decoder's table.
+_STORED = {
+    1: lambda u: u,
+    2: lambda u: u[:, ::-1],  # column 0 is the visual right-hand side
+    3: lambda u: u[::-1, ::-1],  # row 0 is the visual bottom, column 0 the right-hand side
+    4: lambda u: u[::-1],  # row 0 is the visual bottom
+    5: lambda u: u.swapaxes(0, 1),  # row 0 is the visual left-hand side, column 0 the top
+    6: lambda u: np.rot90(u, 1),  # row 0 is the visual right-hand side, column 0 the top
+    7: lambda u: u[::-1, ::-1].swapaxes(0, 1),  # row 0 right-hand side, column 0 the bottom
+    8: lambda u: np.rot90(u, -1),  # row 0 is the visual left-hand side, column 0 the bottom
+}
+
+
+def _save_oriented(path, upright, orientation, **kwargs):
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    stored = np.ascontiguousarray(_STORED[orientation](upright))
+    Image.fromarray(stored).save(path, exif=exif, **kwargs)
+    return path
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_exif_orientation_turns_the_frame_upright(tmp_path, orientation):
+    # a phone's or a rotated camera's frame is stored sideways with a tag saying how to show it
+    rng = np.random.default_rng(orientation)
+    upright = rng.integers(0, 256, (24, 40, 3), dtype=np.uint8)
+    want = im.load_image(_save(tmp_path / "upright.png", upright), size=(24, 40))
+    got = im.load_image(_save_oriented(tmp_path / "a.png", upright, orientation), size=(24, 40))
+    np.testing.assert_array_equal(got, want)
+    # the same through load_images, and as Pillow's own exif_transpose shows the file
+    np.testing.assert_array_equal(
+        im.load_images([tmp_path / "a.png"], (24, 40), cache=False, progress=False)[0], want
+    )
+    from PIL import ImageOps
+
+    shown = np.asarray(ImageOps.exif_transpose(Image.open(tmp_path / "a.png")))
+    np.testing.assert_array_equal(shown, upright)
+
+
+def test_exif_orientation_of_a_jpeg(tmp_path):
+    # the reader's case: a JPEG stored rotated with Orientation 6 read sideways
+    x = np.linspace(0, 255, 64)
+    upright = np.dstack([np.add.outer(np.linspace(0, 120, 32), x / 2)] * 3).astype(np.uint8)
+    want = im.load_image(_save(tmp_path / "b.jpg", upright), size=(16, 32))
+    stored = _save_oriented(tmp_path / "a.jpg", upright, 6, quality=95)
+    assert Image.open(stored).size == (32, 64)  # (W, H): stored sideways
+    np.testing.assert_allclose(im.load_image(stored, size=(16, 32)), want, atol=3 / 255)
+
+
+@pytest.mark.parametrize("compression", [None, "tiff_deflate"])
+@pytest.mark.parametrize("orientation", [3, 6, 8])
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_a_tiff_turned_by_its_orientation_tag_is_read_upright(
+    tmp_path, orientation, compression, channels
+):
+    # Pillow turns TIFFs itself while loading them; read from a path it memory-maps an
+    # uncompressed one and, for orientations 5-8, garbles its pixels
+    rng = np.random.default_rng(orientation)
+    upright = rng.integers(0, 256, (24, 40, channels), dtype=np.uint8).squeeze()
+    want = im.load_image(_save(tmp_path / "upright.png", upright), size=(24, 40))
+    stored = np.ascontiguousarray(_STORED[orientation](upright))
+    extra = {"compression": compression} if compression else {}
+    Image.fromarray(stored).save(tmp_path / "a.tif", tiffinfo={274: orientation}, **extra)
+    np.testing.assert_array_equal(im.load_image(tmp_path / "a.tif", size=(24, 40)), want)
+
+
+def test_an_exif_block_that_cannot_be_read_is_refused_by_name(tmp_path):
+    # its orientation is unknown: reading it as stored could be reading it sideways
+    Image.fromarray(np.zeros((4, 4), np.uint8)).save(tmp_path / "bad.png", exif=b"garbage!")
+    with pytest.raises(im.ImageReadError, match=r"bad.png: its EXIF metadata cannot be read"):
+        im.load_image(tmp_path / "bad.png")
+
+
+def test_exif_orientation_of_a_bayer_mosaic_turns_it_after_demosaicing(tmp_path):
+    # turning the mosaic itself would change its pattern (GBRG turned is no longer GBRG)
+    rng = np.random.default_rng(3)
+    mosaic = rng.integers(0, 256, (12, 20), dtype=np.uint8)
+    flat = im.load_image(_save(tmp_path / "raw.png", mosaic), size=(12, 20), bayer="gbrg")
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(mosaic).save(tmp_path / "tagged.png", exif=exif)
+    got = im.load_image(tmp_path / "tagged.png", size=(20, 12), bayer="gbrg")
+    np.testing.assert_array_equal(got, np.rot90(flat, -1))  # 6: shown turned 90 degrees clockwise
+
+
+def test_the_decode_version_is_in_the_cache_key_so_old_stacks_are_decoded_again(
+    tmp_path, monkeypatch
+):
+    # a stack cached before orientation was applied must not be served: the cache key holds
+    # a decode version of its own (the pre-processing version, written in model files, stays)
+    paths = _folder(tmp_path / "imgs", n=2)
+    cache = tmp_path / "cache"
+    key = im._cache_key(paths, (32, 64), None)
+    monkeypatch.setattr(im, "_DECODE_VERSION", im._DECODE_VERSION - 1)
+    assert im._cache_key(paths, (32, 64), None) != key
+    im.load_images(paths, cache=cache, progress=False)  # a cache written by the older decoder
+    monkeypatch.undo()
+    decoded = []
+    real = im._decode
+    monkeypatch.setattr(im, "_decode", lambda *a: decoded.append(a[0]) or real(*a))
+    im.load_images(paths, cache=cache, progress=False)
+    assert decoded == paths
+    assert len(list(cache.glob("*.npz"))) == 2
+
+
+# -- natural order -----------------------------------------------------------------------------
+def test_natural_order_reads_decimal_fractions_as_decimals(tmp_path):
+    # timestamps written with str(float): .05 comes before .1, not after .2
+    stamps = [1600000000.0, 1600000000.05, 1600000000.1, 1600000000.15, 1600000000.2]
+    for t in reversed(stamps):
+        (tmp_path / f"{t}.png").write_bytes(b"")
+    assert [p.name for p in im.list_images(tmp_path)] == [f"{t}.png" for t in stamps]
+    names = ["frame1.png", "frame1.5.png", "frame2.png", "frame2.25.png", "frame10.png"]
+    assert sorted(names[::-1], key=lambda n: im._natural_key(Path(n))) == names
+
+
+def test_natural_order_breaks_ties_by_name_not_by_listing(tmp_path):
+    import itertools
+
+    names = ["001.png", "01.png", "1.0.png", "1.png", "A2.png", "a2.png", "b.png"]
+    for name in names:
+        (tmp_path / name).write_bytes(b"")
+    assert [p.name for p in im.list_images(tmp_path)] == names
+    for order in itertools.islice(itertools.permutations(names), 0, 5040, 97):
+        assert sorted(order, key=lambda n: im._natural_key(Path(n))) == names
+
+
+# -- 16-bit colour ------------------------------------------------------------------------------
+def _png16(path, array, color_type):
+    """A 16-bit PNG written by hand (Pillow writes no 16-bit colour): array uint16, (H, W) for
+    gray (colour type 0) or (H, W, C) for gray+alpha (4), RGB (2) and RGBA (6)."""
+    import struct
+    import zlib
+
+    h, w = array.shape[:2]
+    raw = b"".join(b"\x00" + array[y].astype(">u2").tobytes() for y in range(h))
+
+    def chunk(kind, data):
+        crc = zlib.crc32(kind + data) & 0xFFFFFFFF
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", crc)
+
+    header = struct.pack(">IIBBBBB", w, h, 16, color_type, 0, 0, 0)
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(raw))
+        + chunk(b"IEND", b"")
+    )
+    return path
+
+
+def _high_byte_warnings(caplog):
+    return [
+        r
+        for r in caplog.records
+        if r.name == "flyvpr.images" and r.levelname == "WARNING" and "high byte" in r.message
+    ]
+
+
+@pytest.mark.parametrize(
+    "color_type, channels", [(2, 3), (6, 4), (4, 2)], ids=["rgb", "rgba", "la"]
+)
+def test_16bit_colour_is_named_in_one_warning_per_folder(tmp_path, caplog, color_type, channels):
+    # Pillow reads 16-bit colour into 8 bits (its high byte): 12-bit data keeps 16 levels
+    ramp = np.tile(np.arange(0, 4096, 4, dtype=np.uint16), (4, 1))  # 12-bit data
+    colour = np.dstack([ramp] * channels)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    paths = [_png16(folder / f"{i}.png", colour, color_type) for i in range(3)]
+    _png16(folder / "3.png", ramp, 0)  # 16-bit gray: full precision, no warning
+    paths.append(folder / "3.png")
+    with caplog.at_level("WARNING", logger="flyvpr.images"):
+        out = im.load_images(paths, size=(4, 1024), cache=False, progress=False)
+    assert len(np.unique(out[0])) == 16 and len(np.unique(out[3])) == 1024
+    (record,) = _high_byte_warnings(caplog)  # one for the folder, not one per frame
+    message = record.getMessage()
+    assert message.startswith(f"{paths[0]} (and 2 more of the 4 frames): colour of more than 8")
+    assert "16-bit gray, which keeps full precision, or as 8-bit colour" in message
+    # frame by frame (a folder source): once per folder too
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="flyvpr.images"):
+        for p in paths:
+            im.load_image(p, size=(4, 64))
+    (record,) = _high_byte_warnings(caplog)
+    assert record.getMessage().startswith(f"{paths[0]}: colour of more than 8 bits per sample")
+
+
+def test_8bit_colour_and_16bit_gray_are_not_warned_about(tmp_path, caplog):
+    paths = _folder(tmp_path / "imgs", n=2)
+    paths.append(_png16(tmp_path / "imgs" / "gray16.png", np.full((8, 8), 4095, np.uint16), 0))
+    with caplog.at_level("WARNING", logger="flyvpr.images"):
+        im.load_images(paths, cache=False, progress=False)
+        im.load_image(paths[-1])
+    assert not _high_byte_warnings(caplog)
+
+
+# -- colour modes ------------------------------------------------------------------------------
+def test_a_colour_mode_read_as_if_rgb_is_refused_by_name(tmp_path):
+    rgb = np.random.default_rng(0).integers(0, 256, (8, 8, 3), dtype=np.uint8)
+    Image.fromarray(rgb).convert("LAB").save(tmp_path / "lab.tif")
+    assert Image.open(tmp_path / "lab.tif").mode == "LAB"
+    expected = "lab.tif: colour mode LAB is not supported; convert the image to RGB or gray"
+    with pytest.raises(im.ImageReadError, match=expected):
+        im.load_image(tmp_path / "lab.tif")
+    with pytest.raises(im.ImageReadError, match="colour mode HSV is not supported"):
+        im._check_mode(tmp_path / "hsv.png", Image.new("HSV", (2, 2)))
+
+
+def test_premultiplied_gray_alpha_is_read_as_its_gray(tmp_path):
+    # a TIFF with associated alpha opens as "La": its gray divided by the alpha, alpha ignored
+    la = Image.merge("LA", [Image.new("L", (4, 4), 100), Image.new("L", (4, 4), 128)])
+    la.save(tmp_path / "la.tif")
+    data = (tmp_path / "la.tif").read_bytes()
+    unassociated = bytes.fromhex("52010300010000000200")  # ExtraSamples = 2
+    assert data.count(unassociated) == 1
+    (tmp_path / "la.tif").write_bytes(data.replace(unassociated, unassociated[:-2] + b"\x01\x00"))
+    assert Image.open(tmp_path / "la.tif").mode == "La"
+    np.testing.assert_allclose(im.load_image(tmp_path / "la.tif", (4, 4)), 199 / 255, atol=1e-6)
+
+
+def test_every_mode_decoded_is_one_pillow_has():
+    assert im._DECODED_MODES <= set(Image.MODES)
+    assert {"LAB", "HSV"}.isdisjoint(im._DECODED_MODES)
+
+
+# -- area_resize of any real dtype ---------------------------------------------------------------
+@pytest.mark.parametrize(
+    "dtype", [">f4", ">f8", "f2", ">u2", "<u2", "i2", ">i4", "u4", "i8", "int8", "bool", "f8"]
+)
+def test_area_resize_takes_every_real_dtype(dtype):
+    rng = np.random.default_rng(0)
+    top = 2 if dtype == "bool" else (100 if dtype == "int8" else 2000)  # exact in each dtype
+    y = rng.integers(0, top, (37, 53))
+    want = im.area_resize(y.astype(np.float32), 8, 16)
+    got = im.area_resize(y.astype(dtype), 8, 16)
+    assert got.dtype == np.float32 and got.shape == (8, 16)
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+
+
+def test_area_resize_refuses_what_is_not_real_numbers():
+    for bad in (np.ones((4, 4), complex), np.full((4, 4), "a"), np.empty((4, 4), object)):
+        with pytest.raises(TypeError, match=f"y must hold real numbers; got dtype {bad.dtype}"):
+            im.area_resize(bad, 2, 2)

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from fake_filters import Scripted, Stateless
+from flyvpr import images as im
 from flyvpr.localization import LOCALIZED, LOST, Fix, Fixes, Localizer
 from flyvpr.localization.maps import Map
 from flyvpr.methods import Method, make_method
@@ -89,6 +90,43 @@ def test_bad_frame(route):
     with pytest.raises(TypeError, match=r"image must be an array of shape \(H, W\)"):
         loc.update([[0.0, 0.5], [0.5]])
     assert loc.n_frames_ == 0
+
+
+def test_raw_camera_frames_are_pointed_to_to_gray(route):
+    # a camera's uint8/uint16 or colour frame: the message says the dtype and what converts it
+    ref, _ = route
+    loc = Localizer("flyhash", random_state=0).fit(ref)
+    u8 = np.round(ref[3] * 255).astype(np.uint8)
+    lo, hi = int(u8.min()), int(u8.max())
+    for frame, dtype in ((u8, "uint8"), (u8.astype(np.uint16) * 257, "uint16")):
+        k = 257 if dtype == "uint16" else 1
+        expected = (
+            f"image must hold gray values in [0, 1]; got range [{lo * k}, {hi * k}] (dtype "
+            f"{dtype}: convert camera frames with flyvpr.images.to_gray)"
+        )
+        with pytest.raises(ValueError, match=re.escape(expected)):
+            loc.update(frame)
+        with pytest.raises(ValueError, match=re.escape(expected.replace("image ", "images ", 1))):
+            loc.update_batch(np.stack([frame] * 2))
+    for channels, dtype in ((3, np.uint8), (4, np.float32)):
+        frame = np.zeros((32, 64, channels), dtype)
+        expected = (
+            f"image must be one gray frame of shape (H, W) = (32, 64); got shape {frame.shape} "
+            f"(a colour frame, dtype {frame.dtype}: convert camera frames with "
+            "flyvpr.images.to_gray)"
+        )
+        with pytest.raises(ValueError, match=re.escape(expected) + "$"):
+            loc.update(frame)
+        with pytest.raises(ValueError, match=r"\(colour frames, dtype .*flyvpr.images.to_gray"):
+            loc.update_batch(np.stack([frame] * 2))
+    # the hint only where it applies: a float frame out of range, a stack given to update
+    with pytest.raises(ValueError, match=rf"got range \[{lo}, {hi}\]$"):
+        loc.update(u8.astype(np.float32))
+    with pytest.raises(ValueError, match=r"\(update_batch takes a stack of frames\)$"):
+        loc.update(np.zeros((3, 32, 64), np.float32))
+    assert loc.n_frames_ == 0
+    # what the message points to does convert the frame
+    np.testing.assert_allclose(loc.scores(im.to_gray(u8)), loc.scores(u8 / np.float32(255)))
 
 
 @pytest.mark.parametrize("call", ["update", "scores", "n_places"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -109,3 +110,37 @@ def test_float64_images_past_float32_are_out_of_range_not_infinite():
     with pytest.raises(ValueError, match="contains NaN or infinite values"):
         check_images(np.array([[[0.0, np.inf]]]))
     np.testing.assert_array_equal(check_images(np.array([[[0.0, 0.5]]])), [[[0.0, 0.5]]])
+
+
+@pytest.mark.parametrize("dtype", ["uint8", "uint16", "int32", ">u2"])
+def test_integer_images_out_of_range_name_their_dtype_and_to_gray(dtype):
+    from flyvpr._validation import check_images
+
+    images = np.array([[[0, 3], [200, 255]]], dtype=dtype)
+    expected = (
+        f"images must hold gray values in [0, 1]; got range [0, 255] (dtype {images.dtype}: "
+        "convert camera frames with flyvpr.images.to_gray)"
+    )
+    with pytest.raises(ValueError, match=re.escape(expected) + "$"):
+        check_images(images)
+
+
+def test_colour_stacks_are_pointed_to_to_gray_and_floats_are_not():
+    from flyvpr._validation import check_images
+
+    for shape in ((2, 4, 4, 3), (2, 4, 4, 4)):
+        with pytest.raises(
+            ValueError,
+            match=re.escape(
+                f"images must have shape (N, H, W); got shape {shape} (colour frames, dtype "
+                "uint8: convert each camera frame with flyvpr.images.to_gray)"
+            ),
+        ):
+            check_images(np.zeros(shape, np.uint8))
+    with pytest.raises(ValueError, match=r"got shape \(2, 4, 4, 2\)$"):
+        check_images(np.zeros((2, 4, 4, 2), np.uint8))
+    # a float image out of range: to_gray would refuse it too, so no hint
+    with pytest.raises(ValueError, match=r"gray values in \[0, 1\]; got range \[0, 255\]$"):
+        check_images(np.array([[[0.0, 255.0]]], np.float32))
+    # integers within [0, 1] are gray values (a binary mask)
+    np.testing.assert_array_equal(check_images(np.array([[[0, 1]]], np.uint8)), [[[0.0, 1.0]]])

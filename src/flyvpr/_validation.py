@@ -81,7 +81,14 @@ def check_images(images, name: str = "images", shape: tuple[int, int] | None = N
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
         raise TypeError(f"{name} must be a numeric array; got dtype {arr.dtype}")
     if arr.ndim != 3:
-        raise ValueError(f"{name} must have shape (N, H, W); got shape {arr.shape}")
+        colour = arr.ndim == 4 and arr.shape[-1] in (3, 4)
+        hint = (
+            f" (colour frames, dtype {arr.dtype}: convert each camera frame with "
+            "flyvpr.images.to_gray)"
+            if colour
+            else ""
+        )
+        raise ValueError(f"{name} must have shape (N, H, W); got shape {arr.shape}{hint}")
     if arr.shape[0] == 0:
         raise ValueError(f"{name} is empty: got shape {arr.shape}")
     if shape is not None and tuple(arr.shape[1:]) != tuple(shape):
@@ -94,19 +101,29 @@ def check_images(images, name: str = "images", shape: tuple[int, int] | None = N
     before = arr.dtype.kind == "f" and arr.dtype != np.float32
     if before:
         _check_gray(arr, name)
+    dtype = arr.dtype
     arr = arr.astype(np.float32, copy=False)
     if not before:
-        _check_gray(arr, name)
+        _check_gray(arr, name, dtype)
     return arr
 
 
-def _check_gray(arr: np.ndarray, name: str) -> None:
-    """Every value of ``arr`` finite and in [0, 1], or a ValueError naming ``name``."""
+def _check_gray(arr: np.ndarray, name: str, dtype: np.dtype | None = None) -> None:
+    """Every value of ``arr`` finite and in [0, 1], or a ValueError naming ``name`` (and, for
+    integers, ``dtype``, the type before the cast to float32)."""
     if not np.isfinite(arr).all():
         raise ValueError(f"{name} contains NaN or infinite values")
     lo, hi = float(arr.min()), float(arr.max())
     if lo < 0.0 or hi > 1.0:
-        raise ValueError(f"{name} must hold gray values in [0, 1]; got range [{lo:g}, {hi:g}]")
+        dtype = arr.dtype if dtype is None else np.dtype(dtype)
+        hint = (
+            f" (dtype {dtype}: convert camera frames with flyvpr.images.to_gray)"
+            if dtype.kind in "iu"
+            else ""
+        )
+        raise ValueError(
+            f"{name} must hold gray values in [0, 1]; got range [{lo:g}, {hi:g}]{hint}"
+        )
 
 
 def check_scores(S, name: str = "S", ndim: int = 2) -> np.ndarray:

@@ -10,14 +10,17 @@ alike.
 What is read (see :data:`FOLDER_RULES` and ``docs/guide/reliability.md``): every entry of
 an image folder is a frame or is refused by name, except hidden entries; integer pixels are
 scaled by their type's white level; float pixels must already lie in [0, 1]; a frame larger
-than Pillow's ``MAX_IMAGE_PIXELS`` is refused before it is decoded.
+than Pillow's ``MAX_IMAGE_PIXELS`` is refused before it is decoded.  A frame is turned upright
+by its EXIF orientation tag (as a viewer shows it); a colour mode that is not RGB in some form
+(LAB, HSV) is refused; colour of more than 8 bits per sample, of which Pillow reads the high
+byte only, is named in a warning.
 
 Decoded stacks are cached on disk (no pickle) under a key built from the file list with each
 file's size, modification time, inode and status-change time, the target size and the
-pre-processing version, so a second run does not decode again.  Each cache file carries its
-key, and the zip's CRC-32 of its pixels is checked on every read; an entry that fails any check
-(unreadable, swapped, damaged, NaN or out of range) is named in a warning and rebuilt.  Cache
-files are written atomically: a crash never leaves a partial cache.
+pre-processing and decoding versions, so a second run does not decode again.  Each cache file
+carries its key, and the zip's CRC-32 of its pixels is checked on every read; an entry that
+fails any check (unreadable, swapped, damaged, NaN or out of range) is named in a warning and
+rebuilt.  Cache files are written atomically: a crash never leaves a partial cache.
 """
 
 from __future__ import annotations
@@ -30,14 +33,16 @@ import logging
 import os
 import re
 import stat
+import struct
 import sys
 import warnings
 import zipfile
 from collections.abc import Sequence
+from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError
 
 from ._io import atomic_open, raise_interruption
 from ._npy import read_npz_member
@@ -66,8 +71,31 @@ logger = logging.getLogger(__name__)
 DEFAULT_SIZE = (32, 64)
 #: File suffixes treated as images when a folder is listed.
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm")
-#: Bumped whenever pre-processing changes, so stale caches are never reused.
+#: Bumped whenever pre-processing changes, so stale caches are never reused.  It is written
+#: into model files too, which refuse to load under another version.
 _PREPROCESS_VERSION = 1
+#: Version of the decoding of a file into pixels, part of the image cache's key only (not of
+#: model files: a file decodes as before unless it is one of the cases a version fixed).
+#: 2: EXIF orientation applied; LAB/HSV files refused.
+_DECODE_VERSION = 2
+#: Pillow modes :func:`_decode` turns into gray correctly (converted first where needed).
+_DECODED_MODES = frozenset(
+    {"1", "L", "LA", "La", "P", "PA", "RGB", "RGBA", "RGBa", "RGBX", "CMYK", "YCbCr", "F"}
+    | {"I", "I;16", "I;16L", "I;16B", "I;16N"}
+)
+#: Raw modes in which Pillow reads 16-bit colour (or gray with alpha) samples into an 8-bit
+#: mode, keeping only each sample's high byte (PNG, TIFF, SGI).
+_HIGH_BYTE_RAWMODES = re.compile(r"(L|LA|La|RGB|RGBA|RGBa|RGBX|CMYK|YCbCr);16[BLN]?")
+#: EXIF Orientation -> the transposition that shows the picture upright (EXIF 2.32, 4.6.5).
+_ORIENTATION = {
+    2: Image.Transpose.FLIP_LEFT_RIGHT,
+    3: Image.Transpose.ROTATE_180,
+    4: Image.Transpose.FLIP_TOP_BOTTOM,
+    5: Image.Transpose.TRANSPOSE,
+    6: Image.Transpose.ROTATE_270,
+    7: Image.Transpose.TRANSVERSE,
+    8: Image.Transpose.ROTATE_90,
+}
 #: ITU-R BT.601 luma weights, as OpenCV's RGB -> gray conversion.
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 _BAYER_PATTERNS = ("gbrg", "grbg", "rggb", "bggr")
@@ -78,14 +106,17 @@ FOLDER_RULES = (
     "Image folders: every entry but a hidden one is a frame or is refused by name.\n"
     "- frames: regular files (or links to them) ending in "
     + " ".join(IMAGE_EXTENSIONS)
-    + " (any case), in natural name order (2.png before 10.png);\n"
+    + " (any case), in natural name order: numbers by value, decimals too (2.png before "
+    "10.png, 1.05.png before 1.1.png), names equal but for that (1.png, 01.png) by name;\n"
     "- skipped, counted with `flyvpr --verbose COMMAND`: hidden entries, whose name starts "
     "with '.' (.DS_Store, ._* AppleDouble files);\n"
     "- refused: anything else (another extension such as .gif, .webp or .txt, a sub-folder, a "
     "dangling link, a link loop, a FIFO, a device, an unreadable file).\n"
     "Pixels: 8/16-bit integers are scaled by 255/65535; float images must lie in [0, 1] (other "
-    "ranges and NaN are refused); frames over PIL.Image.MAX_IMAGE_PIXELS pixels are refused "
-    "before decoding."
+    "ranges and NaN are refused); 16-bit colour is read by its high byte only (a warning names "
+    "the file; 16-bit gray keeps full precision); colour modes other than RGB, CMYK, YCbCr "
+    "and palettes (LAB, HSV) are refused; frames are turned upright by their EXIF orientation; "
+    "frames over PIL.Image.MAX_IMAGE_PIXELS pixels are refused before decoding."
 )
 
 
@@ -205,8 +236,12 @@ def _row_band(n_out: int, n_in: int):
     return starts, counts, weights
 
 
+#: The dtypes the area-resize kernel reads as they are (native byte order).
+_KERNEL_DTYPES = (np.dtype(np.uint8), np.dtype(np.float32), np.dtype(np.float64))
+
+
 def area_resize(y: np.ndarray, h: int, w: int) -> np.ndarray:
-    """Area-average the 2-d array ``y`` (uint8 or float, any range) to ``(h, w)``, float32.
+    """Area-average the 2-d array ``y`` (any real dtype, any range) to ``(h, w)``, float32.
 
     The package's one resize (image files, video frames, ROS bags): the weights of
     :func:`area_matrix` along both axes, exact for any factor, as OpenCV's ``INTER_AREA``.
@@ -214,6 +249,17 @@ def area_resize(y: np.ndarray, h: int, w: int) -> np.ndarray:
     loop: one multiply-add per input pixel, instead of a dense product's ``h`` per pixel),
     then the same along the columns of that small result.  No BLAS call: BLAS threads would
     compete with a video decoder's.
+
+    uint8, float32 and float64 in this machine's byte order are read as they are; any other
+    real dtype (other integers, bool, float16, either byte order) is first converted to
+    float32, the type of the result.
+
+    Raises
+    ------
+    ValueError
+        If ``y`` is not a non-empty 2-d array.
+    TypeError
+        If its dtype is not real numbers (complex, object, strings).
     """
     from . import _image_kernels
 
@@ -222,6 +268,12 @@ def area_resize(y: np.ndarray, h: int, w: int) -> np.ndarray:
             f"y must be a non-empty 2-d array; got {getattr(y, 'shape', type(y).__name__)}"
         )
     h, w = _check_size((h, w))
+    if y.dtype.kind not in "biuf":
+        raise TypeError(f"y must hold real numbers; got dtype {y.dtype}")
+    if y.dtype not in _KERNEL_DTYPES:  # (== compares the byte order too)
+        # numba compiles neither float16 nor the other byte order; one float32 kernel serves
+        # every other integer type rather than one compilation per type
+        y = y.astype(np.float32)
     kernel = _image_kernels.band
     rows = np.zeros((h, y.shape[1]), np.float32)
     kernel(y, *_row_band(h, y.shape[0]), rows)
@@ -275,19 +327,37 @@ def demosaic_bilinear(raw: np.ndarray, pattern: str = "gbrg") -> np.ndarray:
     return np.clip(rgb, 0.0, 1.0)
 
 
-def _decode(path: Path, bayer: str | None) -> np.ndarray:
-    """Decode one file to a float32 gray array in [0, 1] at its native size."""
+def _decode(path: Path, bayer: str | None, high_byte: list | None = None) -> np.ndarray:
+    """Decode one file to a float32 gray array in [0, 1] at its native size, upright (its
+    EXIF orientation applied).
+
+    A 16-bit colour file, of which Pillow reads only the high byte of each sample, is appended
+    to ``high_byte`` with its raw mode (for the caller's one warning), or warned about here
+    (once per folder) when that is None.
+    """
     img: Image.Image  # the opened file, then maybe a converted copy
     try:
-        with Image.open(path) as img:
+        # Opened from a file object, not a path, so that Pillow never memory-maps it: its
+        # mmap path takes the upright size of an uncompressed TIFF turned by its orientation
+        # tag (5-8) for the stored one and garbles the pixels (Pillow 13).
+        with open(path, "rb") as fh, Image.open(fh) as img:
             _check_pixels(path, img)
+            _check_mode(path, img)
+            rawmode = _high_byte_rawmode(img)  # (from the tiles, which load() clears)
             img.load()
+            # (Pillow turns a TIFF itself while loading it, and drops the tag)
+            transpose = _ORIENTATION.get(_orientation(path, img))
+            if transpose is not None and bayer is None:
+                # (a Bayer mosaic is turned after demosaicing: turning it changes its pattern)
+                img = ImageOps.exif_transpose(img)
             mode = img.mode
             if mode == "P":
                 img = img.convert("RGBA" if "transparency" in img.info else "RGB")
             elif mode in ("LA", "PA"):
                 img = img.convert("L")
-            elif mode == "CMYK" or mode == "YCbCr":
+            elif mode == "La":  # (premultiplied: LA divides the alpha out, which L ignores)
+                img = img.convert("LA").convert("L")
+            elif mode in ("CMYK", "YCbCr", "RGBa"):
                 img = img.convert("RGB")
             elif mode == "1":
                 img = img.convert("L")
@@ -315,12 +385,87 @@ def _decode(path: Path, bayer: str | None) -> np.ndarray:
                 raise ImageReadError(
                     f"{path}: expected a single-channel raw Bayer image; got shape {arr.shape}"
                 )
-            return demosaic_bilinear(arr, bayer) @ _LUMA
-        return to_gray(arr)
+            gray = demosaic_bilinear(arr, bayer) @ _LUMA
+            if transpose is not None:
+                gray = np.asarray(Image.fromarray(gray.astype(np.float32)).transpose(transpose))
+        else:
+            gray = to_gray(arr)
     except ImageReadError:
         raise
     except ValueError as exc:
         raise ImageReadError(f"{path}: {exc}") from None
+    if rawmode is not None:
+        if high_byte is None:
+            _warn_high_byte([(path, rawmode)])
+        else:
+            high_byte.append((path, rawmode))
+    return gray
+
+
+def _check_mode(path: Path, img) -> None:
+    """Refuse a colour mode that :func:`_decode` would misread (LAB, HSV: not RGB)."""
+    if img.mode not in _DECODED_MODES:
+        raise ImageReadError(
+            f"{path}: colour mode {img.mode} is not supported; convert the image to RGB or gray"
+        )
+
+
+def _high_byte_rawmode(img) -> str | None:
+    """The raw mode of a file whose colour samples of more than 8 bits (16-bit PNG, TIFF, SGI;
+    a PPM with a maxval over 255) Pillow reads into 8 bits, or None."""
+    if img.mode.startswith(("I", "F")):  # 16-bit gray: full precision
+        return None
+    for tile in img.tile:
+        args = tile[3] if len(tile) > 3 else None
+        rawmode = args if isinstance(args, str) else None
+        if isinstance(args, tuple) and args and isinstance(args[0], str):
+            rawmode = args[0]
+            # a PPM of more than 8 bits: Pillow's "ppm" decoder rescales it to 8 bits
+            if tile[0].startswith("ppm") and len(args) > 1 and args[1] > 255:
+                return f"{rawmode}, maxval {args[1]}"
+        if rawmode is not None and _HIGH_BYTE_RAWMODES.fullmatch(rawmode):
+            return rawmode
+    return None
+
+
+_HIGH_BYTE_ADVICE = (
+    "Pillow reads only the high byte of each sample (8 bits; the rest is lost): save the frames "
+    "as 16-bit gray, which keeps full precision, or as 8-bit colour"
+)
+#: Folders already warned about by :func:`load_image` (a folder source reads frame by frame).
+_high_byte_folders: set[str] = set()
+
+
+def _warn_high_byte(found: list, n_frames: int | None = None) -> None:
+    """One warning naming the first of ``found`` ((path, raw mode) pairs): per call of
+    :func:`load_images` (``n_frames`` loaded), or per folder for frames loaded one by one."""
+    path, rawmode = found[0]
+    if n_frames is None:
+        folder = os.path.abspath(path.parent)
+        if folder in _high_byte_folders:
+            return
+        _high_byte_folders.add(folder)
+    more = f" (and {len(found) - 1} more of the {n_frames} frames)" if len(found) > 1 else ""
+    logger.warning(
+        "%s%s: colour of more than 8 bits per sample (raw mode %s); %s",
+        path,
+        more,
+        rawmode,
+        _HIGH_BYTE_ADVICE,
+    )
+
+
+def _orientation(path: Path, img) -> int:
+    """The EXIF Orientation of an opened file (1, upright, when it has none)."""
+    try:
+        value = img.getexif().get(ExifTags.Base.Orientation, 1)
+    except (SyntaxError, ValueError, TypeError, KeyError, IndexError, OSError, struct.error) as exc:
+        # (the kinds Pillow's EXIF parser raises on a damaged block)
+        raise ImageReadError(
+            f"{path}: its EXIF metadata cannot be read, so its orientation is unknown ({exc}); "
+            "save the image again without the EXIF block, turned upright"
+        ) from None
+    return value if isinstance(value, int) else 1
 
 
 def _check_pixels(path: Path, img) -> None:
@@ -344,7 +489,10 @@ def load_image(path, size=DEFAULT_SIZE, *, bayer: str | None = None) -> np.ndarr
     Parameters
     ----------
     path : str or Path
-        PNG, JPEG or any format Pillow reads; 8 or 16 bit; gray, RGB or RGBA.
+        PNG, JPEG or any format Pillow reads; 8 or 16 bit; gray, RGB or RGBA (or CMYK, YCbCr,
+        a palette).  It is turned upright by its EXIF orientation tag.  Colour of more than 8
+        bits per sample is read by its high byte only (Pillow's decoding): a warning names the
+        file (once per folder); 16-bit gray keeps full precision.
     size : (int, int)
         Target (H, W); the paper's is (32, 64).
     bayer : str, optional
@@ -357,8 +505,9 @@ def load_image(path, size=DEFAULT_SIZE, *, bayer: str | None = None) -> np.ndarr
         If the file does not exist.
     ImageReadError
         If it is corrupt, truncated or not an image, holds float values outside [0, 1] or
-        NaN, or declares more pixels than ``PIL.Image.MAX_IMAGE_PIXELS`` (the message names
-        the file).
+        NaN, has a colour mode that is not RGB in some form (LAB, HSV) or an EXIF block that
+        cannot be read (its orientation unknown), or declares more pixels than
+        ``PIL.Image.MAX_IMAGE_PIXELS`` (the message names the file).
     ValueError, TypeError
         For a ``bayer`` that is not one of the patterns, or a bad ``size``.
     """
@@ -372,9 +521,18 @@ def load_image(path, size=DEFAULT_SIZE, *, bayer: str | None = None) -> np.ndarr
     return resize_area(gray, size)
 
 
+_NUMBER = re.compile(r"(\d+\.\d+|\d+)")
+
+
 def _natural_key(path: Path):
-    parts = re.split(r"(\d+)", path.name)
-    return [int(p) if p.isdigit() else p.lower() for p in parts]
+    """Natural order: runs of digits by value, a decimal fraction too (``1600000000.05.png``,
+    a timestamp written by ``str(float)``, before ``1600000000.1.png``), text without case;
+    names equal but for that (``1.png``, ``01.png``; ``a2.png``, ``A2.png``) by the name
+    itself, so the order never depends on the folder listing's."""
+    parts = _NUMBER.split(path.name)
+    # split alternates text and number, so equal positions always hold the same type
+    key = [Decimal(p) if i % 2 else p.lower() for i, p in enumerate(parts)]
+    return key, path.name
 
 
 def _refusal(entry: os.DirEntry, extensions: tuple[str, ...]) -> str | None:
@@ -501,7 +659,13 @@ def _cache_key(paths: Sequence[Path], size, bayer) -> str:
             [os.path.abspath(p), st.st_size, st.st_mtime_ns, st.st_dev, st.st_ino, st.st_ctime_ns]
         )
     blob = json.dumps(
-        {"v": _PREPROCESS_VERSION, "size": list(size), "bayer": bayer, "files": entries}
+        {
+            "v": _PREPROCESS_VERSION,
+            "decode": _DECODE_VERSION,
+            "size": list(size),
+            "bayer": bayer,
+            "files": entries,
+        }
     )
     return hashlib.sha256(blob.encode()).hexdigest()[:32]
 
@@ -572,6 +736,10 @@ def load_images(
 ) -> np.ndarray:
     """Load many image files into a float32 stack (N, H, W) in [0, 1].
 
+    Each file is decoded as by :func:`load_image`; files of colour with more than 8 bits per
+    sample, read by their high byte only, are named in one warning per call (when the files
+    are decoded, not on a cache hit).
+
     Parameters
     ----------
     paths : sequence of str or Path
@@ -624,12 +792,15 @@ def load_images(
                 raise_interruption(exc)
                 logger.warning("image cache %s is unusable (%s); rebuilding it", cache_file, exc)
     out = np.empty(shape, dtype=np.float32)
+    high_byte: list = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)
         for i, p in enumerate(
             tqdm(paths, desc=desc, unit="img", disable=not _want_progress(progress), leave=False)
         ):
-            out[i] = resize_area(_decode(p, bayer), size)
+            out[i] = resize_area(_decode(p, bayer, high_byte), size)
+    if high_byte:
+        _warn_high_byte(high_byte, len(paths))
     if cache_file is not None:
         try:
             _write_cache(cache_file, out, key)

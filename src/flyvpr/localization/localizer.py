@@ -318,9 +318,15 @@ class Localizer:
         except Exception as exc:  # ragged lists and such
             raise TypeError(f"image must be an array of shape (H, W); {exc}") from exc
         if image.ndim != 2:
+            hint = (
+                f"(a colour frame, dtype {image.dtype}: convert camera frames with "
+                "flyvpr.images.to_gray)"
+                if image.ndim == 3 and image.shape[-1] in (3, 4)
+                else "(update_batch takes a stack of frames)"
+            )
             raise ValueError(
                 f"image must be one gray frame of shape (H, W) = {tuple(frontend.image_shape_)}; "
-                f"got shape {image.shape} (update_batch takes a stack of frames)"
+                f"got shape {image.shape} {hint}"
             )
         frame = check_images(image[None], "image", frontend.image_shape_)
         row = frontend.score_codes(frontend._encode(frame))[0]
