@@ -149,6 +149,61 @@ def test_map_summary_counts_places_without_a_position(recordings, tmp_path, caps
     assert code == 0 and "without positions" in out
 
 
+def _timed_positions(path, t):
+    """A timestamp,x,y CSV of the route's positions at the times ``t`` (the bags' frames are
+    3 m apart at 10 Hz from t = 1000 s: 30 m/s)."""
+    rows = "".join(f"{s!r},{30.0 * (s - 1000)!r},0\n" for s in np.asarray(t).tolist())
+    path.write_text("timestamp,x,y\n" + rows)
+    return path
+
+
+def test_map_positions_slower_than_the_camera_are_interpolated(
+    recordings, scripted, tmp_path, capsys
+):
+    # a 1 Hz GPS under a 10 Hz camera: the places used to take the nearest fix (steps of 0
+    # and 30 m), so the map had no spacing, odometry went off and every=6m kept one frame a fix
+    bag = recordings["ros1"]["summer"]
+    gps = _timed_positions(tmp_path / "gps.csv", 1000.0 + np.arange(7))
+    code, out, err = _run(capsys, "map", bag, "--positions", gps, "--out", tmp_path / "g.map")
+    assert code == 0, err
+    assert f"map of {N} places" in out and "(every 1, with positions, 3 m per place," in out
+    code, out, err = _run(
+        capsys, "map", bag, "--positions", gps, "--every", "6m", "--out", tmp_path / "e.map"
+    )
+    assert code == 0, err
+    assert f"map of {N // 2} places" in out and "with positions, 6 m per place" in out
+    code, out, err = _run(
+        capsys, "localize", "--map", tmp_path / "g.map", recordings["ros1"][QUERY],
+        "--positions", gps,
+    )  # fmt: skip
+    assert code == 0, err
+    assert f"odometry: path integration from --positions {gps} (map spacing 3 m per place)\n" in out
+    velocities = scripted[-1].velocities  # a place a frame: the map's spacing, the query's
+    assert velocities[0] is None and velocities[1:] == pytest.approx([1.0] * (N - 1))
+
+
+def test_map_places_in_a_gap_of_the_positions_have_none(recordings, tmp_path, capsys, caplog):
+    # 20 Hz positions silent for 2 s (1002-1004): frames 20-39 used to take the last fix
+    # before the gap or the first after it (up to 30 m off); now they have none, and say so
+    bag = recordings["ros1"]["summer"]
+    t = 1000 + np.r_[0:40, 80:120] / 20
+    gps = _timed_positions(tmp_path / "gap.csv", t)
+    code, out, err = _run(capsys, "map", bag, "--positions", gps, "--out", tmp_path / "g.map")
+    assert code == 0, err
+    assert f"with positions (none for 20 of {N} places: not in {gps}), 3 m per place" in out
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        code, out, err = _run(
+            capsys, "map", bag, "--positions", gps, "--every", "6m", "--out", tmp_path / "e.map"
+        )
+    assert code == 0, err
+    assert f"map of {N // 2 - 10} places" in out  # frames 0, 2, ..., 18, 40, 42, ..., 58
+    (warning,) = [r.getMessage() for r in caplog.records if "no position" in r.getMessage()]
+    assert warning.endswith(
+        f"every=6m skipped 20 of {N} frames that have no position in {gps} (its rows: "
+        "timestamps 1000-1005.95 s; 1 gap: timestamps 1001.95-1004 s)"
+    )
+
+
 def test_counted_says_one_thing_or_several():
     from flyvpr.cli._common import counted
 
@@ -622,3 +677,97 @@ def test_video_caption_says_lost(recordings, maps, scripted, tmp_path, capsys, m
     # "frame 0  t=1000.00s  place 0  conf 0.224  LOST": what follows the confidence
     assert [c.split("  ")[4:] for c in captions] == [["LOST"], []] * 3
     assert [c.split("  ")[0] for c in captions] == [f"frame {i}" for i in range(0, N, 10)]
+
+
+# -- videos of the kinds cameras and editors make; GPS before its first fix ----------------------
+def _mkv(path, frames, pts_ms, *, audio_s=0):
+    """Lossless 4:4:4 Matroska of gray frames at the given times (ms), and optionally a
+    silent audio track of ``audio_s`` seconds."""
+    from fractions import Fraction
+
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("ffv1", rate=10)
+        s.height, s.width = frames.shape[1:3]
+        s.pix_fmt = "yuv444p"
+        a = c.add_stream("pcm_s16le", rate=8000) if audio_s else None
+        if a is not None:
+            a.layout = "mono"
+        for frame, t in zip(frames, pts_ms, strict=True):
+            vf = av.VideoFrame.from_ndarray(np.rint(frame * 255).astype(np.uint8), format="gray")
+            vf.pts, vf.time_base = t, Fraction(1, 1000)
+            c.mux(s.encode(vf))
+        c.mux(s.encode(None))
+        if a is not None:
+            for k in range(audio_s):
+                af = av.AudioFrame.from_ndarray(
+                    np.zeros((1, 8000), np.int16), format="s16", layout="mono"
+                )
+                af.sample_rate, af.pts = 8000, k * 8000
+                c.mux(a.encode(af))
+            c.mux(a.encode(None))
+    return path
+
+
+def test_unusual_intact_videos_map_and_cut_ones_are_one_line(tmp_path, capsys):
+    route = make_route(20, size=(64, 128), conditions=("summer",), random_state=3)
+    frames = route.images["summer"]
+    vfr = _mkv(tmp_path / "vfr.mkv", frames, [100 * i for i in range(10)] + [
+        1000 + 1000 * i for i in range(10)
+    ])  # fmt: skip
+    audio = _mkv(tmp_path / "audio.mkv", frames, [100 * i for i in range(20)], audio_s=4)
+    for video in (vfr, audio):
+        code, out, err = _run(capsys, "map", video, "--out", tmp_path / "m.map")
+        assert code == 0, err
+        assert "map of 20 places" in out
+    cut = tmp_path / "cut.mkv"
+    cut.write_bytes(audio.read_bytes()[: audio.stat().st_size // 2])
+    code, out, err = _run(capsys, "map", cut, "--out", tmp_path / "o.map")
+    assert code == 1 and len(err.strip().splitlines()) == 1, err
+    assert f"video {cut}: truncated: its header implies at least" in err
+    assert not (tmp_path / "o.map").exists()
+
+
+def test_map_from_a_gps_that_had_no_fix_at_first(tmp_path, capsys, caplog):
+    # a receiver sends STATUS_NO_FIX at latitude 0, longitude 0 before its first fix: those
+    # used to become the origin, so every place was thousands of km off and the east-west
+    # scale that of the equator (4 m per place instead of 2 at latitude 60)
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from flyvpr.sources.rosbag import EARTH_RADIUS_M
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    T = ts.types
+    route = make_route(20, size=(32, 64), conditions=("summer",), random_state=3)
+    east = np.degrees(2.0 / (EARTH_RADIUS_M * np.cos(np.radians(60.0))))
+    bag = tmp_path / "gps.bag"
+    with Writer(bag) as w:
+        cam = w.add_connection("/cam", "sensor_msgs/msg/Image", typestore=ts)
+        fix = w.add_connection("/fix", "sensor_msgs/msg/NavSatFix", typestore=ts)
+        for i, frame in enumerate(route.images["summer"]):
+            ns = (1000 * 10 + i) * 10**8  # 1000 s + i / 10 s
+            stamp = T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
+            hdr = T["std_msgs/msg/Header"](seq=i, stamp=stamp, frame_id="cam")
+            pixels = np.rint(frame * 255).astype(np.uint8)
+            image = T["sensor_msgs/msg/Image"](
+                header=hdr, height=32, width=64, encoding="mono8", is_bigendian=0, step=64,
+                data=pixels.reshape(-1),
+            )  # fmt: skip
+            w.write(cam, ns, ts.serialize_ros1(image, "sensor_msgs/msg/Image"))
+            no_fix = i < 4
+            gps = T["sensor_msgs/msg/NavSatFix"](
+                header=hdr, status=T["sensor_msgs/msg/NavSatStatus"](
+                    status=-1 if no_fix else 0, service=1
+                ),
+                latitude=0.0 if no_fix else 60.0, longitude=0.0 if no_fix else 10.0 + i * east,
+                altitude=0.0, position_covariance=np.zeros(9), position_covariance_type=0,
+            )  # fmt: skip
+            w.write(fix, ns, ts.serialize_ros1(gps, "sensor_msgs/msg/NavSatFix"))
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        code, out, err = _run(
+            capsys, "map", bag, "--topic", "/cam", "--position-topic", "/fix",
+            "--out", tmp_path / "g.map",
+        )  # fmt: skip
+    assert code == 0, err
+    assert "with positions" in out and "2 m per place" in out, out
+    assert "skipped 4 without a fix (status < 0) of 20 position messages" in caplog.text

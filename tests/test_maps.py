@@ -1,4 +1,5 @@
-"""Map properties that need no recording: the spacing between places."""
+"""Map properties that need no recording: the spacing between places; the positions a map
+built from a recording gives its places."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import numpy as np
 import pytest
 
 from flyvpr.localization.maps import Map
+from flyvpr.sources import Positions, Source
 
 
 def _map(positions):
@@ -71,3 +73,60 @@ def test_a_map_of_a_fitted_method_has_its_places(synthetic_route):
     assert Map(method, (32, 64), np.zeros(20), np.arange(20)).n_places == 20
     with pytest.raises(ValueError, match=r"source_index must have shape \(20 \(the method's pl"):
         Map(method, (32, 64), np.zeros(19), np.arange(19))
+
+
+class _Camera(Source):
+    """``images`` as a 10 Hz recording from t = 1000 s (frame i at 1000 + i / 10)."""
+
+    kind = "camera"
+
+    def __init__(self, path, images):
+        super().__init__(path)
+        self.images = images
+
+    def _frames(self):
+        for i, image in enumerate(self.images):
+            yield i, 1000 + i / 10, lambda size, image=image: image
+
+
+def _gps(t):
+    """Positions at the times ``t``: the robot drives 20 m/s along x."""
+    t = np.asarray(t, np.float64)
+    return Positions(t, np.c_[(t - 1000) * 20, np.zeros(len(t))], "timestamp", "gps")
+
+
+@pytest.mark.parametrize("compact", [False, True])
+def test_a_map_interpolates_positions_slower_than_the_camera(synthetic_route, tmp_path, compact):
+    # a 10 Hz camera and 1 Hz positions: each place gets its point on the way (2 m apart),
+    # not the nearest fix's (steps of 0 and 20 m, whose median gave the map no spacing)
+    src = _Camera(tmp_path / "cam", synthetic_route(40, random_state=0).reference_images)
+    gps = _gps(1000.0 + np.arange(5))
+    if compact:
+        from flyvpr.large.recording import build_compact_map
+
+        m = build_compact_map(src, tmp_path / "m.fvmap", positions=gps, n_bits=64)
+    else:
+        m = Map.build(src, "pixels", positions=gps)
+    np.testing.assert_allclose(m.positions, np.c_[2.0 * np.arange(40), np.zeros(40)], atol=1e-9)
+    assert m.place_spacing == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("compact", [False, True])
+def test_a_map_leaves_places_in_a_gap_of_its_positions_without_one(
+    synthetic_route, tmp_path, compact
+):
+    # 20 Hz positions with 2 s missing (from 1001.5 to 1003.5): the places recorded then have
+    # none, as places before the first fix have none (not the fix next to them, nor a line
+    # across, up to 20 m off)
+    t = 1000 + np.r_[0:30, 70:80] / 20
+    src = _Camera(tmp_path / "cam", synthetic_route(40, random_state=0).reference_images)
+    if compact:
+        from flyvpr.large.recording import build_compact_map
+
+        m = build_compact_map(src, tmp_path / "m.fvmap", positions=_gps(t), n_bits=64)
+    else:
+        m = Map.build(src, "pixels", positions=_gps(t))
+    unplaced = np.flatnonzero(np.isnan(m.positions).any(axis=1)).tolist()
+    assert unplaced == list(range(15, 35))
+    np.testing.assert_allclose(m.positions[[14, 35], 0], [28, 70], atol=1e-9)
+    assert m.place_spacing == pytest.approx(2.0)

@@ -14,7 +14,9 @@ from flyvpr.localization.maps import Map  # noqa: E402
 from flyvpr.modelio import ModelFileError, load_method  # noqa: E402
 from flyvpr.sources import (  # noqa: E402
     Every,
+    Positions,
     RecordingError,
+    Source,
     open_source,
     parse_every,
     read_positions,
@@ -305,21 +307,18 @@ def test_expected_video_frames_say_how_sure_they_are():
 
     from flyvpr.sources.video import _expected_frames
 
-    # a header that counts its frames says so; one with a duration and a rate only implies
-    # a count, one frame short for rounding; with neither there is nothing to check against
-    assert _expected_frames(NS(duration=None), NS(frames=300)) == (300, "announces")
-    ten_s = NS(duration=10_000_000)  # microseconds
-    assert _expected_frames(ten_s, NS(frames=0, average_rate=30, guessed_rate=None)) == (
-        299,
-        "implies at least",
-    )
-    assert _expected_frames(ten_s, NS(frames=0, average_rate=None, guessed_rate=25))[0] == 249
-    assert _expected_frames(
-        NS(duration=None), NS(frames=0, average_rate=30, guessed_rate=None)
-    ) == (
-        None,
-        "",
-    )
+    # a header that counts its frames says so; one with a rate only implies a count from the
+    # seconds missing, one frame short for rounding; without a rate there is nothing to say
+    assert _expected_frames(NS(frames=300), decoded=100, missing_s=5.0) == (300, "announces")
+    thirty = NS(frames=0, average_rate=30, guessed_rate=None)
+    assert _expected_frames(thirty, decoded=0, missing_s=10.0) == (299, "implies at least")
+    assert _expected_frames(thirty, decoded=50, missing_s=10.0) == (349, "implies at least")
+    guessed = NS(frames=0, average_rate=None, guessed_rate=25)
+    assert _expected_frames(guessed, decoded=0, missing_s=10.0)[0] == 249
+    # frames that came further apart than the nominal rate (a variable rate): one per interval
+    assert _expected_frames(thirty, decoded=10, missing_s=10.0, interval=0.5)[0] == 29
+    none = NS(frames=0, average_rate=None, guessed_rate=None)
+    assert _expected_frames(none, decoded=10, missing_s=10.0) == (None, "")
 
 
 def test_map_round_trip_and_from_map(route, tmp_path):
@@ -539,3 +538,423 @@ def test_positions_that_cover_no_frame_are_named_with_both_spans(tmp_path):
     empty.write_text("")
     with pytest.raises(ValueError, match="got nothing$"):
         read_positions(empty)
+
+
+class _Stamped(Source):
+    """A recording of blank frames stamped ``stamps`` (seconds): clocks no writer makes."""
+
+    kind = "stamped"
+
+    def __init__(self, path, stamps):
+        super().__init__(path)
+        self.stamps = np.asarray(stamps, np.float64)
+
+    def _frames(self):
+        for i, t in enumerate(self.stamps):
+            yield i, float(t), lambda size: np.zeros(size, np.float32)
+
+
+def _step_back_warnings(caplog):
+    return [r.getMessage() for r in caplog.records if "step back" in r.getMessage()]
+
+
+def test_every_metres_interpolates_positions_slower_than_the_camera(tmp_path):
+    # a 10 Hz camera and 1 Hz positions, 2 m per frame: each frame its own point on the way
+    # (the nearest row gave frames 0-4 x = 0 and 5-14 x = 20: one frame kept per fix)
+    src = _Stamped(tmp_path / "cam", 1000 + 0.1 * np.arange(40))
+    t = 1000.0 + np.arange(5)
+    pos = Positions(t, np.c_[20 * np.arange(5.0), np.zeros(5)], "timestamp", "gps")
+    got = src.read_all(SIZE, every="4m", positions=pos)
+    assert got.indices.tolist() == list(range(0, 40, 2))
+    # keyed by frame, rows every 5th frame: interpolated by index (the docs' promise)
+    by_frame = Positions(np.arange(0, 40, 5), np.c_[np.arange(0, 40, 5) * 2.0, np.zeros(8)],
+                         "frame", "f.csv")  # fmt: skip
+    got = src.read_all(SIZE, every="4m", positions=by_frame)
+    assert got.indices.tolist() == list(range(0, 36, 2))  # frames 36-39: after the last row
+
+
+def test_positions_leave_frames_in_a_gap_without_one():
+    # 20 Hz odometry at 20 m/s from t = 1003, silent from 1006 to 1008 (2 s: 40 intervals)
+    k = np.r_[0:60, 100:180]
+    t = 1003 + k / 20
+    pos = Positions(t, np.c_[(t - 1000) * 20, np.zeros(len(t))], "timestamp", "odom")
+    assert pos.gaps.tolist() == [[pytest.approx(1005.95), 1008.0]]
+    assert pos.describe_gaps() == "1 gap: timestamps 1005.95-1008 s"
+    q = np.array([1005.9, 1005.95, 1005.97, 1005.99, 1007.0, 1007.98, 1008.0, 1008.125])
+    for interpolate in (False, True):
+        x = pos.at(np.zeros(len(q)), q, interpolate=interpolate)[:, 0]
+        # within half the median interval (0.025 s) of the row either side: that row's, as at
+        # the ends; further inside: none (not the row next to it, not a line across)
+        assert x[[0, 1, 2]] == pytest.approx([118, 119, 119])
+        assert np.isnan(x[[3, 4]]).all()
+        assert x[5:7] == pytest.approx([160, 160])
+        assert x[7] == pytest.approx(162.5 if interpolate else 162)
+    # not gaps: a 1 Hz GPS that lost one fix (2 s, not more than 3 median intervals), a 20 Hz
+    # topic delayed by 0.5 s (not more than 1 s); a GPS that lost 3 fixes (4 s) is one
+    lost_one = Positions(np.r_[0:5, 6:10] + 100.0, np.c_[np.r_[0:5, 6:10], np.zeros(9)],
+                         "timestamp", "gps")  # fmt: skip
+    assert not len(lost_one.gaps) and lost_one.describe_gaps() == ""
+    assert lost_one.at(np.zeros(1), np.array([105.5]), interpolate=True)[0, 0] == 5.5
+    delayed = np.r_[np.arange(40) / 20, 2.45 + np.arange(40) / 20]
+    assert not len(Positions(delayed, np.zeros((80, 2)), "timestamp", "odom").gaps)
+    lost_three = Positions(np.r_[0:5, 8:10] + 100.0, np.zeros((7, 2)), "timestamp", "gps")
+    assert lost_three.gaps.tolist() == [[104.0, 108.0]]
+    assert np.isnan(lost_three.at(np.zeros(1), np.array([106.0]), interpolate=True)).all()
+    # keyed by frame: rows 10-11 missing is an interval of 3 rows (interpolated), rows 20-29
+    # missing a gap (none, interpolated or not); never widened into it
+    frames = np.r_[0:10, 12:20, 30:40]
+    by_frame = Positions(frames, np.c_[frames * 1.0, np.zeros(len(frames))], "frame", "f.csv")
+    assert by_frame.describe_gaps() == "1 gap: frames 19-30"
+    x = by_frame.at(np.array([10, 11, 19, 20, 29, 30]), np.full(6, np.nan), interpolate=True)
+    assert x[[0, 1, 2, 5], 0].tolist() == [10, 11, 19, 30] and np.isnan(x[[3, 4]]).all()
+    many = Positions(np.r_[0, 10, 11, 12, 30, 31, 50, 51, 70, 71], np.zeros((10, 2)), "frame", "m")
+    assert many.describe_gaps() == "4 gaps: frames 0-10, 12-30, 31-50 and 1 more"
+
+
+def test_every_metres_skips_frames_in_a_gap_and_says_so(tmp_path, caplog):
+    src = _Stamped(tmp_path / "cam", 1000 + 0.1 * np.arange(120))
+    t = 1003 + np.r_[0:60, 100:180] / 20
+    pos = Positions(t, np.c_[(t - 1000) * 20, np.zeros(len(t))], "timestamp", "odom")
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        got = src.read_all(SIZE, every="2m", positions=pos)
+    # frames 30-59 and 80-119 are 2 m apart; 0-29 (before the rows) and 60-79 (the gap) have
+    # none (a straight line across kept frames 59, 70, 81 as if 20 m had been driven in 1 s)
+    assert got.indices.tolist() == list(range(30, 60)) + list(range(80, 120))
+    (message,) = [r.getMessage() for r in caplog.records if "no position" in r.getMessage()]
+    assert message.endswith(
+        "every=2m skipped 50 of 120 frames that have no position in odom (its rows: timestamps "
+        "1003-1011.95 s; 1 gap: timestamps 1005.95-1008 s)"
+    )
+
+
+def test_every_seconds_goes_on_after_the_clock_steps_back(tmp_path, caplog):
+    # image stamps set back 3 s at frame 60 (a clock correction): the seconds rule used to
+    # wait for the old time again, dropping frames 60-89 without a word
+    stamps = 1000 + 0.1 * np.arange(120) - np.where(np.arange(120) >= 60, 3.0, 0.0)
+    src = _Stamped(tmp_path / "jump", stamps)
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        got = src.read_all(SIZE, every="0.5s")
+    # the step back counts as no time: 0.5 s of the clock after frame 55 is frame 61
+    assert got.indices.tolist() == list(range(0, 60, 5)) + list(range(61, 120, 5))
+    assert _step_back_warnings(caplog) == [
+        f"stamped {tmp_path / 'jump'}: the timestamps step back by 2.9 s at frame 60; every=0.5s "
+        "counts the step as no time and goes on from the new time (later steps back are not "
+        "reported)"
+    ]
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="flyvpr"):  # read again (a compact map's 2nd pass)
+        assert src.read_all(SIZE, every="0.5s").indices.tolist() == got.indices.tolist()
+    assert not _step_back_warnings(caplog)
+    # stamps out of order in pairs (0.1, 0, 0.3, 0.2, ...): warned once, and the rule still
+    # thins (forward steps of 0.3 s per 2 frames) rather than keeping every frame after a step
+    swapped = 1000 + 0.1 * (np.arange(40) + np.where(np.arange(40) % 2, -1, 1))
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        got = _Stamped(tmp_path / "swap", swapped).read_all(SIZE, every="0.5s")
+    assert got.indices.tolist() == list(range(0, 40, 4))
+    assert len(_step_back_warnings(caplog)) == 1 and "at frame 1;" in caplog.text
+    # a clock that only goes forward: no warning, as before
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        got = _Stamped(tmp_path / "even", 1000 + 0.1 * np.arange(40)).read_all(SIZE, every="1s")
+    assert got.indices.tolist() == [0, 10, 20, 30] and not _step_back_warnings(caplog)
+
+
+@pytest.mark.parametrize("origin", [0.0, 512_345.0])  # local metres, UTM eastings
+def test_every_metres_allows_for_rounding(tmp_path, origin):
+    # x = i * 0.1 m exactly as read from a CSV: 0.30000000000000004 < 0.3 used to fail, keeping
+    # steps of 3, 3, 4, 3, ... (34 frames of 120 instead of 40)
+    pos = tmp_path / "p.csv"
+    pos.write_text("frame,x,y\n" + "".join(f"{i},{origin + i * 0.1!r},0\n" for i in range(120)))
+    src = _Stamped(tmp_path / "cam", 1000 + 0.1 * np.arange(120))
+    got = src.read_all(SIZE, every="0.3m", positions=read_positions(pos))
+    assert got.indices.tolist() == list(range(0, 120, 3))
+    # a real shortfall is not rounding
+    xy = np.c_[np.arange(120) * 0.1 - 1e-6 * (np.arange(120) == 2), np.zeros(120)]
+    short = Positions(np.arange(120), xy, "frame", "short")
+    assert src.read_all(SIZE, every="0.2m", positions=short).indices.tolist()[:3] == [0, 3, 5]
+
+
+@pytest.mark.parametrize("start", [1000.0, 1_700_000_000.013])  # bag time, Unix time
+def test_every_seconds_allows_for_rounding(tmp_path, start):
+    # Unix timestamps hold about 0.2 us in a float64: 0.3 s between two of them came out
+    # 0.2999998 s, and a 10 Hz camera kept steps of 4, 4, 4, 4, 3 with every=0.3s
+    stamps = np.array([start + i * 0.1 for i in range(200)])
+    got = _Stamped(tmp_path / "cam", stamps).read_all(SIZE, every="0.3s")
+    assert got.indices.tolist() == list(range(0, 200, 3))
+    got = _Stamped(tmp_path / "cam", stamps).read_all(SIZE, every="0.7s")
+    assert got.indices.tolist() == list(range(0, 200, 7))
+
+
+# -- videos of the kinds cameras and editors make; GPS without a fix ----------------------------
+def _write_av(path, streams, *, audio_s=0.0, container_options=None):
+    """Encode a test video with PyAV.  ``streams``: dicts with ``frames`` (n, H, W, 3) uint8
+    and optionally ``pts`` (in ``time_base``, default 1/10 s), ``codec`` (ffv1),
+    ``pix_fmt`` (yuv444p), ``default`` (the stream's default disposition).  ``audio_s``:
+    also a silent mono audio track of that many seconds."""
+    from fractions import Fraction
+
+    import av
+
+    with av.open(str(path), "w", options=container_options or {}) as c:
+        outs = []
+        for spec in streams:
+            n, h, w = spec["frames"].shape[:3]
+            s = c.add_stream(spec.get("codec", "ffv1"), rate=10)
+            s.width, s.height, s.pix_fmt = w, h, spec.get("pix_fmt", "yuv444p")
+            if "default" in spec:
+                s.disposition = av.stream.Disposition.default if spec["default"] else 0
+            outs.append(s)
+        audio = None
+        if audio_s:
+            audio = c.add_stream("pcm_s16le", rate=8000)
+            audio.layout = "mono"
+        for s, spec in zip(outs, streams, strict=True):
+            tb = spec.get("time_base", Fraction(1, 10))
+            for i, rgb in enumerate(spec["frames"]):
+                frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
+                frame.pts, frame.time_base = spec.get("pts", range(len(spec["frames"])))[i], tb
+                c.mux(s.encode(frame))
+            c.mux(s.encode(None))
+        if audio is not None:
+            for k in range(int(audio_s)):
+                silence = av.AudioFrame.from_ndarray(
+                    np.zeros((1, 8000), np.int16), format="s16", layout="mono"
+                )
+                silence.sample_rate, silence.pts = 8000, k * 8000
+                c.mux(audio.encode(silence))
+            c.mux(audio.encode(None))
+    return path
+
+
+def _rgb(route, season="summer", n=N):
+    return np.rint(route.rgb[season][:n] * 255).astype(np.uint8)
+
+
+def _upright(route, n=N, size=SIZE):
+    """The route's frames as the video path reads a lossless 4:4:4 video of them."""
+    return np.stack([resize_area(f, size) for f in route.images["summer"][:n]])
+
+
+def test_variable_frame_rate_video_is_read_whole(route, tmp_path):
+    # 12 frames at 10 fps, then 12 at 1 fps: the old check took the container's duration
+    # (13.2 s) times the average rate (10 fps) as a minimum and refused the file as truncated
+    from fractions import Fraction
+
+    pts = [100 * i for i in range(12)] + [1200 + 1000 * i for i in range(12)]
+    spec = {"frames": _rgb(route), "pts": pts, "time_base": Fraction(1, 1000)}
+    path = _write_av(tmp_path / "vfr.mkv", [spec])
+    got = open_source(path).read_all(SIZE)
+    assert len(got) == N
+    np.testing.assert_allclose(got.timestamps, np.array(pts) / 1000)
+    # cut, it is still refused; the frames it implies are at most those it had
+    cut = tmp_path / "cut.mkv"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size * 2 // 3])
+    with pytest.raises(RecordingError, match=r"cut\.mkv: truncated: ") as err:
+        open_source(cut).read_all(SIZE)
+    import re
+
+    implied = int(re.search(r"implies at least (\d+) frames", str(err.value))[1])
+    assert implied <= N
+
+
+@pytest.mark.parametrize(
+    ("suffix", "codec", "pix_fmt"),
+    [(".mkv", "ffv1", "yuv444p"), (".webm", "libvpx-vp9", "yuv420p")],
+)
+def test_camera_that_dropped_frames_is_read(route, tmp_path, suffix, codec, pix_fmt):
+    # a 10 fps camera that dropped 2 frames: 22 frames over 2.4 s were refused ("implies at
+    # least 23 frames, 22 could be decoded")
+    pts = [i for i in range(N) if i not in (5, 13)]
+    spec = {"frames": _rgb(route, n=len(pts)), "pts": pts, "codec": codec, "pix_fmt": pix_fmt}
+    path = _write_av(tmp_path / f"drop{suffix}", [spec])
+    got = open_source(path).read_all(SIZE)
+    assert len(got) == N - 2
+    np.testing.assert_allclose(got.timestamps, np.array(pts) / 10)
+
+
+def test_losslessly_trimmed_mp4_with_an_edit_list_is_read(route, tmp_path):
+    # what `ffmpeg -ss 1 -i v.mp4 -c copy` writes: every sample is kept (the header still
+    # announces 24) and an edit list hides the first second: 14 frames play, the old check
+    # wanted 24
+    import av
+
+    whole = write_video(tmp_path / "v.mp4", _rgb(route), fps=10)
+    trim = tmp_path / "trim.mp4"
+    with av.open(str(whole)) as src, av.open(str(trim), "w") as dst:
+        ist = src.streams.video[0]
+        ost = dst.add_stream_from_template(ist)
+        shift = int(1 / ist.time_base)
+        for packet in src.demux(ist):
+            if packet.dts is None:
+                continue
+            packet.pts -= shift
+            packet.dts -= shift
+            packet.stream = ost
+            dst.mux(packet)
+    with av.open(str(trim)) as c:
+        assert c.streams.video[0].frames == N  # the samples are all there
+    got = open_source(trim).read_all(SIZE)
+    assert len(got) == N - 10
+    full = open_source(whole).read_all(SIZE)
+    np.testing.assert_allclose(got.images, full.images[10:], atol=1e-6)
+
+
+def test_video_with_a_longer_audio_track_is_read(route, tmp_path):
+    # the container lasts 5 s (the audio), the video 2.4 s: the video's own end counts
+    path = _write_av(tmp_path / "a.mkv", [{"frames": _rgb(route)}], audio_s=5)
+    assert len(open_source(path).read_all(SIZE)) == N
+    # and cut, its video stream's own duration (a DURATION tag) still shows the cut
+    cut = tmp_path / "cut.mkv"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(
+        RecordingError,
+        match=r"cut\.mkv: truncated: its header implies at least \d+ frames, \d+ could be "
+        r"decoded \(its video stream lasts until 2\.40 s, the decoded frames reach",
+    ):
+        open_source(cut).read_all(SIZE)
+
+
+def test_cut_mp4_with_its_index_first_is_refused(route, tmp_path):
+    # faststart: the index (moov) before the frames, so the cut file opens
+    path = _write_av(
+        tmp_path / "fs.mp4",
+        [{"frames": _rgb(route), "codec": "libx264", "pix_fmt": "yuv420p"}],
+        container_options={"movflags": "faststart"},
+    )
+    assert len(open_source(path).read_all(SIZE)) == N
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size * 2 // 3])
+    with pytest.raises(RecordingError, match=r"cut\.mp4: (truncated|damaged or truncated)"):
+        open_source(cut).read_all(SIZE)
+
+
+def _rotated_mp4(src, dst, matrix):
+    """``src`` with the video track's display matrix (tkhd) set to ``matrix`` = (a, b, c, d):
+    QuickTime's x' = a x + c y, y' = b x + d y on the screen (y down)."""
+    import struct
+
+    data = bytearray(src.read_bytes())
+    at = data.find(b"tkhd")
+    version = data[at + 4]
+    offset = at + 4 + 4 + (32 if version == 1 else 20) + 16  # flags, times, reserved ...
+    a, b, c, d = (int(v * 0x10000) & 0xFFFFFFFF for v in matrix)
+    data[offset : offset + 36] = struct.pack(">9I", a, b, 0, c, d, 0, 0, 0, 0x40000000)
+    dst.write_bytes(bytes(data))
+    return dst
+
+
+@pytest.mark.parametrize(
+    ("matrix", "turns"),
+    [
+        # (x, y) -> (-y, x): right becomes down, a clockwise quarter turn on the screen, as
+        # `ffmpeg` applies it (transpose=clock); np.rot90 counts counter-clockwise turns
+        ((0, 1, -1, 0), -1),
+        ((-1, 0, 0, -1), 2),  # what a phone held upside down writes
+        ((0, -1, 1, 0), 1),
+    ],
+)
+def test_rotated_video_is_read_upright(route, tmp_path, matrix, turns):
+    import av
+
+    plain = write_video(tmp_path / "v.mp4", _rgb(route, n=6), fps=10, crf=0)
+    rotated = _rotated_mp4(plain, tmp_path / "r.mp4", matrix)
+    with av.open(str(rotated)) as c:  # FFmpeg reads the matrix as this rotation
+        assert round(next(c.decode(video=0)).rotation) % 360 == 90 * turns % 360
+    upright = open_source(plain).read_all(SIZE).images
+    size = SIZE if turns == 2 else SIZE[::-1]  # a quarter turn swaps height and width
+    got = open_source(rotated).read_all(size).images
+    np.testing.assert_allclose(got, np.rot90(upright, turns, axes=(1, 2)), atol=1e-5)
+
+
+def test_display_rotation_other_than_quarter_turns_is_not_applied(caplog, monkeypatch):
+    from types import SimpleNamespace as NS
+
+    from flyvpr.sources import video
+    from flyvpr.sources.video import _quarter_turns
+
+    monkeypatch.setattr(video, "_WARNED_ANGLES", set())  # each warning is said once
+
+    assert [_quarter_turns(NS(rotation=r)) for r in (0, -90, 90, 180, -180, 89.6)] == [
+        0, 3, 1, 2, 2, 1,
+    ]  # fmt: skip
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        assert _quarter_turns(NS(rotation=45.0)) == 0
+        assert _quarter_turns(NS()) == 0  # a frame of a PyAV without the attribute
+    assert "rotates it by 45.0 degrees; only multiples of 90" in caplog.text
+    assert "rotated videos are read as stored: pip install 'av>=14.1'" in caplog.text
+
+
+def test_several_video_streams_read_the_default_one(route, tmp_path, caplog):
+    # stream 0: a small preview (5 frames); stream 1: the main track, flagged default
+    small = np.stack([f[::2, ::2] for f in _rgb(route, "winter", 5)])
+    path = _write_av(
+        tmp_path / "two.mkv",
+        [{"frames": small, "default": False}, {"frames": _rgb(route), "default": True}],
+    )
+    with caplog.at_level("INFO", logger="flyvpr"):
+        src = open_source(path)
+    assert "reading video stream #1 (ffv1 128x64, default), the one FFmpeg would play, of 2" in (
+        caplog.text
+    )
+    got = src.read_all(SIZE)
+    assert len(got) == N
+    assert np.abs(got.images - _upright(route)).mean() < 0.01
+    # with one video stream nothing is said
+    caplog.clear()
+    with caplog.at_level("INFO", logger="flyvpr"):
+        open_source(_write_av(tmp_path / "one.mkv", [{"frames": _rgb(route, n=3)}]))
+    assert "video stream #" not in caplog.text
+
+
+def _navsat_bag(path, fixes):
+    """A ROS 1 bag of NavSatFix messages: (t, latitude, longitude, status) each."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    T = ts.types
+    with Writer(path) as w:
+        conn = w.add_connection("/fix", "sensor_msgs/msg/NavSatFix", typestore=ts)
+        for i, (t, lat, lon, status) in enumerate(fixes):
+            stamp = T["builtin_interfaces/msg/Time"](sec=int(t), nanosec=int(t % 1 * 1e9))
+            msg = T["sensor_msgs/msg/NavSatFix"](
+                header=T["std_msgs/msg/Header"](seq=i, stamp=stamp, frame_id="gps"),
+                status=T["sensor_msgs/msg/NavSatStatus"](status=status, service=1),
+                latitude=lat, longitude=lon, altitude=0.0,
+                position_covariance=np.zeros(9), position_covariance_type=0,
+            )  # fmt: skip
+            w.write(conn, int(t * 1e9), ts.serialize_ros1(msg, "sensor_msgs/msg/NavSatFix"))
+    return path
+
+
+def test_navsatfix_without_a_fix_is_skipped(tmp_path, caplog):
+    from flyvpr.sources.rosbag import EARTH_RADIUS_M, read_bag_positions
+
+    # a receiver's first messages before its first fix: STATUS_NO_FIX (-1) at 0, 0; then fixes
+    # at latitude 60 moving 2 m east each; one of them NaN
+    east = np.degrees(2.0 / (EARTH_RADIUS_M * np.cos(np.radians(60.0))))
+    fixes = [(100.0 + i, 0.0, 0.0, -1) for i in range(4)]
+    fixes += [(104.0 + k, 60.0, 10.0 + k * east, 0) for k in range(6)]
+    fixes[6] = (106.0, float("nan"), float("nan"), 0)
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        t, xy = read_bag_positions(_navsat_bag(tmp_path / "gps.bag", fixes), "/fix")
+    np.testing.assert_array_equal(t, [104, 105, 107, 108, 109])
+    # metres from the first fix, not from (0, 0), on the scale of latitude 60
+    np.testing.assert_allclose(xy, np.c_[[0, 2, 6, 8, 10], np.zeros(5)], atol=1e-6)
+    assert (
+        f"bag {tmp_path / 'gps.bag'} topic /fix: skipped 4 without a fix (status < 0) and 1 "
+        "with a non-finite position of 10 position messages"
+    ) in caplog.text
+    # as positions of a recording, the same
+    pos = read_positions(bag=tmp_path / "gps.bag", topic="/fix")
+    np.testing.assert_allclose(pos.xy[:, 0], [0, 2, 6, 8, 10], atol=1e-6)
+
+
+def test_navsatfix_that_never_fixed_is_refused(tmp_path):
+    bag = _navsat_bag(tmp_path / "nofix.bag", [(100.0 + i, 0.0, 0.0, -1) for i in range(3)])
+    with pytest.raises(
+        RecordingError,
+        match=r"nofix\.bag topic /fix: no usable position \(3 messages: 3 without a fix "
+        r"\(status < 0\)\)",
+    ):
+        read_positions(bag=bag, topic="/fix")

@@ -222,3 +222,69 @@ def test_writer_refuses_odd_yuv_width(tmp_path):
     with pytest.raises(ValueError, match="yuyv frames need an even width"):
         write_bag(tmp_path / "o.bag", np.zeros((1, 4, 5), np.uint8), version=1, encoding="yuyv")
     assert list(tmp_path.iterdir()) == []
+
+
+# -- generic OpenCV types: 8UC3 and 8UC4 are cv_bridge's bgr8 and bgra8 --------------------------
+def _colour_message(encoding, rgb, *, step=None):
+    """A raw message of ``rgb`` (H, W, 3) in OpenCV's channel order: BGR, plus opaque alpha
+    for four channels."""
+    h, w = rgb.shape[:2]
+    pixels = rgb[:, :, ::-1]
+    if encoding.lower() in ("8uc4", "bgra8"):
+        pixels = np.concatenate([pixels, np.full((h, w, 1), 255, np.uint8)], axis=2)
+    rows = np.ascontiguousarray(pixels).reshape(h, -1)
+    if step is not None:
+        rows = np.concatenate([rows, np.zeros((h, step - rows.shape[1]), np.uint8)], axis=1)
+    return SimpleNamespace(
+        encoding=encoding, height=h, width=w, step=rows.shape[1], data=rows.reshape(-1),
+        is_bigendian=0,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("encoding", "alias"),
+    [("8UC3", "bgr8"), ("8uc3", "bgr8"), ("8UC4", "bgra8"), ("8uc4", "bgra8")],
+)
+def test_cv_type_colour_encodings_read_as_bgr(encoding, alias, images):
+    rgb = images["rgb"][0]
+    assert IMAGE_ENCODINGS[encoding.lower()] == IMAGE_ENCODINGS[alias]
+    got = _raw_gray(_colour_message(encoding, rgb), WHERE)
+    np.testing.assert_array_equal(got, _raw_gray(_colour_message(alias, rgb), WHERE))
+    np.testing.assert_allclose(got, to_gray(rgb), atol=1e-6)
+    # the step is honoured as for any raw image
+    padded = _colour_message(encoding, rgb, step=rgb.shape[1] * 4 + 5)
+    np.testing.assert_array_equal(_raw_gray(padded, WHERE), got)
+
+
+def test_cv_type_colour_bag_through_the_cli(tmp_path, capsys, images):
+    # an 8UC3 bag as a driver writes it (rosbags directly: BGR bytes labelled 8UC3)
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    T = ts.types
+    bag = tmp_path / "c.bag"
+    with Writer(bag) as w:
+        conn = w.add_connection("/cam", "sensor_msgs/msg/Image", typestore=ts)
+        for i, rgb in enumerate(images["rgb"]):
+            m = _colour_message("8UC3", rgb)
+            stamp = T["builtin_interfaces/msg/Time"](sec=100 + i, nanosec=0)
+            msg = T["sensor_msgs/msg/Image"](
+                header=T["std_msgs/msg/Header"](seq=i, stamp=stamp, frame_id="cam"),
+                height=m.height, width=m.width, encoding="8UC3", is_bigendian=0, step=m.step,
+                data=m.data,
+            )  # fmt: skip
+            w.write(conn, (100 + i) * 10**9, ts.serialize_ros1(msg, "sensor_msgs/msg/Image"))
+    np.testing.assert_allclose(_decoded(bag, (H, W)), _gray(images["rgb"]), atol=1e-6)
+    assert main(["map", str(bag), "--out", str(tmp_path / "r.map"), "-q"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_depth_encoding_16uc1_stays_refused():
+    # 16UC1 is REP 118's depth image (millimetres), not a camera frame: not read as mono16
+    assert "16uc1" not in IMAGE_ENCODINGS
+    depth = SimpleNamespace(
+        encoding="16UC1", height=4, width=6, step=12, data=np.zeros(48, np.uint8), is_bigendian=0
+    )
+    with pytest.raises(RecordingError, match=rf"{WHERE}: unsupported image encoding '16UC1'"):
+        _raw_gray(depth, WHERE)

@@ -294,7 +294,8 @@ def build_compact_map(
                         "the first (the recording changed while it was read)"
                     )
                 codes = runner(encode, b.images) if runner.parallel else encode(b.images)
-                xy = None if pos is None else pos.at(b.indices, b.timestamps)
+                # between rows, as for a full map (Map.build) and the query's odometry
+                xy = None if pos is None else pos.at(b.indices, b.timestamps, interpolate=True)
                 if xy is not None:
                     placed += int(np.isfinite(xy).all(axis=1).sum())
                 writer.append(codes, xy)

@@ -182,9 +182,11 @@ class Map:
         every : str or Every, optional
             ``3``, ``0.5s`` or ``2m`` (see :func:`flyvpr.sources.parse_every`).
         positions : str, Path or Positions, optional
-            A ``timestamp,x,y`` or ``frame,x,y`` CSV.
+            A ``timestamp,x,y`` or ``frame,x,y`` CSV.  A place gets the straight line between
+            the rows on either side of its frame (by timestamp or by index), none outside the
+            rows or inside a gap between them (:mod:`flyvpr.sources.positions`).
         position_topic : str, optional
-            A NavSatFix or Odometry topic of the same bag.
+            A NavSatFix or Odometry topic of the same bag (read the same way).
         progress : bool
             Show a progress bar (on stderr) of the frames read (and, with ``n_jobs`` or
             ``scheduler``, of each pass over them).
@@ -239,7 +241,9 @@ class Map:
                         m.frontend.name,
                     )
                 m.fit(frames.images)
-        xy = None if pos is None else pos.at(frames.indices, frames.timestamps)
+        # between rows, as the query's odometry reads them: a position topic slower than the
+        # camera gives each place its own point on the way, not the nearest row's
+        xy = None if pos is None else pos.at(frames.indices, frames.timestamps, interpolate=True)
         if pos is not None:
             pos.check_covers(xy, frames.indices, frames.timestamps, src.describe())
         thumbs = np.rint(frames.images * 255.0).astype(np.uint8)

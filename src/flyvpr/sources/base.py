@@ -26,6 +26,14 @@ __all__ = ["Batch", "Every", "RecordingError", "Source", "parse_every", "require
 logger = logging.getLogger(__name__)
 #: (recording, rule, positions) whose frames without a position were warned of already
 _WARNED_UNPLACED: set[tuple] = set()
+#: (recording, rule) whose timestamps stepping back were warned of already
+_WARNED_STEP_BACK: set[tuple] = set()
+
+#: a step of ``every`` ('0.5s', '2m') that falls short by no more than this (seconds or
+#: metres), plus a few units in the last place of the numbers it is computed from, is taken
+#: as the full step: rounding, such as 0.1 m steps adding up to 0.30000000000000004 m or
+#: Unix timestamps (float64 holds them to about 0.2 us), does not drop a frame
+EVERY_SLACK = 1e-9
 
 #: frames per batch unless a caller asks for another number
 DEFAULT_BATCH = 32
@@ -124,6 +132,14 @@ class Batch:
         return int(self.images.shape[0])
 
 
+def _short(step: float, every: float, *values) -> bool:
+    """Whether ``step`` falls short of ``every`` by more than rounding: :data:`EVERY_SLACK`
+    plus 4 units in the last place of the largest of ``values`` (what ``step`` is computed
+    from), so that the test does not depend on where the clock or the coordinates start."""
+    scale = max((abs(float(v)) for v in values), default=0.0)
+    return step < every - (EVERY_SLACK + 4 * math.ulp(scale))
+
+
 class _Thinner:
     """Decides frame by frame whether ``every`` keeps it (positions for the metres rule)."""
 
@@ -132,6 +148,7 @@ class _Thinner:
         self.where = where
         self.positions = positions
         self.last_t: float | None = None
+        self.prev_t: float | None = None  # the previous frame's timestamp (kept or not)
         self.last_xy: np.ndarray | None = None
         self.unplaced = 0  # frames a metres rule skipped for want of a position
         if every.unit == "metres" and positions is None:
@@ -149,18 +166,42 @@ class _Thinner:
                 raise RecordingError(
                     f"{self.where}: every={e} needs timestamps, and this recording has none"
                 )
-            if self.last_t is not None and timestamp - self.last_t < e.value - 1e-9:
+            prev, self.prev_t = self.prev_t, timestamp
+            if prev is not None and timestamp < prev:
+                # a clock set back (or stamps out of order): the step back counts as no time,
+                # so the rule goes on from the new time instead of waiting for the old one
+                self._stepped_back(index, prev - timestamp)
+                if self.last_t is not None:
+                    self.last_t -= prev - timestamp
+            if self.last_t is not None and _short(
+                timestamp - self.last_t, e.value, timestamp, self.last_t
+            ):
                 return False
             self.last_t = timestamp
             return True
-        xy = self.positions.at(np.array([index]), np.array([timestamp]))[0]
+        # between rows by time (or index), as odometry reads them: positions slower than the
+        # camera give each frame its own point on the way, not the nearest row's
+        xy = self.positions.at(np.array([index]), np.array([timestamp]), interpolate=True)[0]
         if not np.isfinite(xy).all():
             self.unplaced += 1
             return False
-        if self.last_xy is not None and np.hypot(*(xy - self.last_xy)) < e.value:
+        if self.last_xy is not None and _short(
+            float(np.hypot(*(xy - self.last_xy))), e.value, *xy, *self.last_xy
+        ):
             return False
         self.last_xy = xy
         return True
+
+    def _stepped_back(self, index: int, step: float) -> None:
+        said = (self.where, str(self.every))
+        if said in _WARNED_STEP_BACK:  # once a recording, though a map reads it twice
+            return
+        _WARNED_STEP_BACK.add(said)
+        logger.warning(
+            "%s: the timestamps step back by %.6g s at frame %d; every=%s counts the step as "
+            "no time and goes on from the new time (later steps back are not reported)",
+            self.where, step, index, self.every,
+        )  # fmt: skip
 
 
 class Source:
@@ -209,7 +250,7 @@ class Source:
         """
         h, w = _check_size(size)
         batch = check_positive_int(batch, "batch")
-        thin = _Thinner(parse_every(every), str(self.path), positions)
+        thin = _Thinner(parse_every(every), self.describe(), positions)
         images = np.empty((batch, h, w), np.float32)
         stamps = np.empty(batch, np.float64)
         idx = np.empty(batch, np.int64)
@@ -236,9 +277,12 @@ class Source:
         said = (self.describe(), str(thin.every), positions.origin if positions else None)
         if thin.unplaced and said not in _WARNED_UNPLACED:  # once, though a map reads twice
             _WARNED_UNPLACED.add(said)
+            gaps = positions.describe_gaps()
             logger.warning(
-                "%s: every=%s skipped %d of %d frames that have no position in %s",
+                "%s: every=%s skipped %d of %d frames that have no position in %s (its rows: "
+                "%s%s)",
                 self.describe(), thin.every, thin.unplaced, seen, positions.origin,
+                positions.describe_span(), f"; {gaps}" if gaps else "",
             )  # fmt: skip
         if n:
             yield Batch(images[:n].copy(), stamps[:n].copy(), idx[:n].copy())

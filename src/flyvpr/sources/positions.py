@@ -4,7 +4,16 @@ A CSV has a header naming ``timestamp,x,y`` (seconds, metres) or ``frame,x,y`` (
 index in the recording, before thinning); extra columns are ignored.  A frame gets the position
 of its own index, or of the nearest timestamp within the rows' time span (widened at either end
 by half the median interval between rows); a frame outside it has none, as a frame index
-without a row has none.
+without a row has none.  Interpolated (``at(..., interpolate=True)``, what maps, ``every='2m'``
+and odometry use), a frame between two rows gets its point on the straight line between
+them (by timestamp, or by index for rows keyed by frame).
+
+A frame inside a *gap*, two neighbouring rows further apart than ``GAP_INTERVALS`` (3) times
+the median interval between rows and, for timestamps, than ``GAP_MIN_SECONDS`` (1 s), has no
+position either way: a position topic that stopped for a while says nothing about where the
+robot went meanwhile, and neither the row next to it nor a straight line across is a place
+to store or a distance to drive.  As at the ends of the rows, a frame within half the median
+interval of the row at either side of a gap gets that row's position.
 """
 
 from __future__ import annotations
@@ -21,9 +30,15 @@ from .base import RecordingError
 
 __all__ = ["Positions", "read_positions"]
 
+#: two neighbouring rows further apart than this many median intervals between rows ...
+GAP_INTERVALS = 3.0
+#: ... and, keyed by timestamp, further apart than this many seconds leave a gap between them
+#: (a fix lost now and then, or a topic delayed by a busy recorder, is not one)
+GAP_MIN_SECONDS = 1.0
+
 
 class Positions:
-    """Positions (metres) looked up by frame index or by nearest timestamp.
+    """Positions (metres) looked up by frame index or by timestamp.
 
     Parameters
     ----------
@@ -33,6 +48,13 @@ class Positions:
     by : {'frame', 'timestamp'}
     origin : str
         Where they came from (for messages and the map file).
+
+    Attributes
+    ----------
+    interval : float
+        The median interval between neighbouring rows (0 for a single row).
+    gaps : ndarray, shape (n_gaps, 2)
+        The keys of the two rows on either side of each gap (see the module's docstring).
     """
 
     def __init__(self, keys, xy, by: str, origin: str):
@@ -41,53 +63,95 @@ class Positions:
         self.xy = np.asarray(xy, np.float64).reshape(-1, 2)[order]
         self.by = by
         self.origin = origin
+        steps = np.diff(self.keys)
+        self.interval = float(np.median(steps)) if len(steps) else 0.0
+        limit = GAP_INTERVALS * self.interval
+        if by == "timestamp":
+            limit = max(limit, GAP_MIN_SECONDS)
+        #: row i is followed by a gap (length n - 1)
+        self._gap_after = steps > limit
+        before = np.flatnonzero(self._gap_after)
+        self.gaps = np.c_[self.keys[before], self.keys[before + 1]]
+
+    def _margin(self) -> float:
+        """How far beyond a row (at the ends, and into a gap) a timestamp still gets it."""
+        return 0.5 * self.interval if self.by == "timestamp" else 0.0
 
     def span(self) -> tuple[float, float]:
         """The keys a frame's own may take to get a position: from the first row's to the
         last's; for timestamps, widened at either end by half the median interval between
         rows (a frame a little before the first fix or after the last one still gets it)."""
         first, last = float(self.keys[0]), float(self.keys[-1])
-        if self.by == "timestamp" and len(self.keys) > 1:
-            margin = 0.5 * float(np.median(np.diff(self.keys)))
-            return first - margin, last + margin
-        return first, last
+        margin = self._margin()
+        return first - margin, last + margin
 
     def at(self, indices, timestamps, *, interpolate: bool = False) -> np.ndarray:
         """Positions (n, 2) of frames; NaN where a frame index has no row, or a timestamp lies
-        outside :meth:`span` (a recording that goes on before or after its positions).
+        outside :meth:`span` (a recording that goes on before or after its positions), and
+        for a frame inside one of the ``gaps`` (more than half the median interval from
+        the rows on either side of it).
 
         With ``interpolate``, a frame between two rows gets the straight-line blend of their
-        positions instead of the nearer one (or, keyed by frame, NaN), so that distances
-        between consecutive frames follow the motion when positions are sparser than frames
-        (odometry); outside the rows' range it is as without.
+        positions instead of the nearer one (or, keyed by frame, NaN), so that positions and
+        distances between consecutive frames follow the motion when positions are sparser than
+        frames (map places, ``every='2m'``, odometry); outside the rows' range and in a gap it
+        is as without.
         """
         if self.by == "frame":
             q = np.asarray(indices, np.float64)
-            pos = np.clip(np.searchsorted(self.keys, q), 0, len(self.keys) - 1)
+        else:
+            q = np.asarray(timestamps, np.float64)
+            if not np.isfinite(q).all():
+                raise RecordingError(
+                    f"positions {self.origin} are keyed by timestamp, but the recording's "
+                    "frames have no timestamps: use a frame,x,y CSV"
+                )
+        n = len(self.keys)
+        if interpolate:
+            out = self._interp(q)
+        elif self.by == "frame":
+            pos = np.clip(np.searchsorted(self.keys, q), 0, n - 1)
             out = self.xy[pos].copy()
             out[self.keys[pos] != q] = np.nan
-            if interpolate:
-                inside = (q >= self.keys[0]) & (q <= self.keys[-1])
-                out[inside] = self._interp(q[inside])
-            return out
-        t = np.asarray(timestamps, np.float64)
-        if not np.isfinite(t).all():
-            raise RecordingError(
-                f"positions {self.origin} are keyed by timestamp, but the recording's frames "
-                "have no timestamps: use a frame,x,y CSV"
-            )
-        lo, hi = self.span()
-        if interpolate:
-            out = self._interp(t)
-        elif len(self.keys) == 1:
-            out = np.repeat(self.xy[:1], len(t), axis=0)
+        elif n == 1:
+            out = np.repeat(self.xy[:1], len(q), axis=0)
         else:
-            right = np.clip(np.searchsorted(self.keys, t), 1, len(self.keys) - 1)
+            right = np.clip(np.searchsorted(self.keys, q), 1, n - 1)
             left = right - 1
-            nearer_left = np.abs(t - self.keys[left]) <= np.abs(self.keys[right] - t)
+            nearer_left = np.abs(q - self.keys[left]) <= np.abs(self.keys[right] - q)
             out = self.xy[np.where(nearer_left, left, right)]
-        out[(t < lo) | (t > hi)] = np.nan
+        lo, hi = self.span()
+        out[(q < lo) | (q > hi)] = np.nan
+        if len(self.gaps):
+            self._blank_gaps(q, out)
         return out
+
+    def _blank_gaps(self, q: np.ndarray, out: np.ndarray) -> None:
+        """NaN for the keys ``q`` inside a gap; the row's own position within the margin of
+        either side (as at the ends), in place of an interpolated one."""
+        n = len(self.keys)
+        right = np.searchsorted(self.keys, q, side="right")  # the first row after q
+        left = np.clip(right - 1, 0, n - 2)
+        right = np.clip(right, 1, n - 1)
+        inside = (q > self.keys[0]) & (q < self.keys[-1]) & self._gap_after[left]
+        margin = self._margin()
+        near_left = inside & (q - self.keys[left] <= margin)
+        near_right = inside & ~near_left & (self.keys[right] - q <= margin)
+        out[near_left] = self.xy[left[near_left]]
+        out[near_right] = self.xy[right[near_right]]
+        out[inside & ~near_left & ~near_right] = np.nan
+
+    def describe_gaps(self, most: int = 3) -> str:
+        """The gaps in words, for messages (``''`` for none): ``2 gaps: timestamps
+        1005.95-1008 s, 1020-1031 s``."""
+        if not len(self.gaps):
+            return ""
+        unit = " s" if self.by == "timestamp" else ""
+        shown = ", ".join(f"{a:.10g}-{b:.10g}{unit}" for a, b in self.gaps[:most])
+        more = f" and {len(self.gaps) - most} more" if len(self.gaps) > most else ""
+        kind = "timestamps" if self.by == "timestamp" else "frames"
+        word = "gap" if len(self.gaps) == 1 else "gaps"
+        return f"{len(self.gaps)} {word}: {kind} {shown}{more}"
 
     def describe_span(self) -> str:
         """The rows' keys in words, for messages: ``timestamps 10-42.5 s`` or ``frames 0-99``."""

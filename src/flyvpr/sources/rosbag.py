@@ -13,16 +13,20 @@ are read without demosaicing or colour conversion, since a 32x64 gray frame need
   ``uyvy`` and ``yuyv``): the Y (luma) samples are the gray frame, at full resolution and as
   the camera sent them (no range expansion); the width must be even (pixel pairs share U, V).
 
-Every raw image honours ``step`` (bytes per row, padding included) and, for 16 bits,
+The generic ``8UC3`` and ``8UC4`` are read as ``bgr8`` and ``bgra8``, as cv_bridge reads
+them.  Every raw image honours ``step`` (bytes per row, padding included) and, for 16 bits,
 ``is_bigendian``.  A frame's timestamp is
 its header stamp, or the time the bag recorded it when the stamp is zero.  Positions come from a
 ``sensor_msgs/NavSatFix`` topic (latitude/longitude to local metres, equirectangular about the
-first fix) or a ``nav_msgs/Odometry`` topic (pose position x, y).
+first fix; messages without a fix, ``status.status < 0``, are skipped) or a
+``nav_msgs/Odometry`` topic (pose position x, y); messages with a non-finite position are
+skipped too, and how many is logged as a warning.
 """
 
 from __future__ import annotations
 
 import io
+import logging
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -33,6 +37,8 @@ from ..images import _LUMA, resize_area, to_gray
 from .base import Decoder, RecordingError, Source, _reason, require_extra
 
 __all__ = ["BagSource", "IMAGE_ENCODINGS", "BAG_EXTENSIONS", "read_bag_positions"]
+
+logger = logging.getLogger(__name__)
 
 #: file suffixes read as bags (a ROS 2 bag may also be given as its folder)
 BAG_EXTENSIONS = (".bag", ".db3", ".mcap")
@@ -51,8 +57,13 @@ IMAGE_ENCODINGS = {
     "mono16": ("u2", 1, None),
     "rgb8": ("u1", 3, "rgb"),
     "bgr8": ("u1", 3, "bgr"),
+    # generic OpenCV types as drivers publish colour frames; cv_bridge reads them as bgr8 and
+    # bgra8 (OpenCV's channel order).  16UC1 is not here: it is the depth-image encoding
+    # (REP 118, millimetres), not a camera frame
+    "8uc3": ("u1", 3, "bgr"),
     "rgba8": ("u1", 4, "rgb"),
     "bgra8": ("u1", 4, "bgr"),
+    "8uc4": ("u1", 4, "bgr"),
     "rgb16": ("u2", 3, "rgb"),
     "bgr16": ("u2", 3, "bgr"),
     **{
@@ -298,6 +309,11 @@ def _compressed_gray(msg, where: str) -> np.ndarray:
 def read_bag_positions(path, topic: str) -> tuple[np.ndarray, np.ndarray]:
     """Timestamps (n,) and local positions (n, 2) in metres from a NavSatFix or Odometry topic.
 
+    NavSatFix messages without a fix (``status.status < 0``: ``STATUS_NO_FIX``, whose
+    latitude and longitude are placeholders such as 0, 0) and messages with a non-finite
+    position are skipped; how many is logged as a warning.  NavSatFix positions are metres
+    east and north of the first fix (equirectangular, scaled by the cosine of its latitude).
+
     Raises
     ------
     RecordingError
@@ -307,22 +323,38 @@ def read_bag_positions(path, topic: str) -> tuple[np.ndarray, np.ndarray]:
     bag = _Bag(Path(path))
     try:
         conns = bag.pick(topic, _NAVSAT + _ODOMETRY, "position", "position_topic=TOPIC")
-        stamps, values = [], []
+        navsat = conns[0].msgtype in _NAVSAT
+        stamps, values, n_messages, n_no_fix = [], [], 0, 0
         for conn, logtime, msg in bag.messages(conns):
-            stamps.append(_stamp(msg, logtime))
+            n_messages += 1
             if conn.msgtype in _NAVSAT:
+                if int(msg.status.status) < 0:  # STATUS_NO_FIX (-1), STATUS_UNKNOWN (-2)
+                    n_no_fix += 1
+                    continue
                 values.append((msg.latitude, msg.longitude))
             else:
                 p = msg.pose.pose.position
                 values.append((p.x, p.y))
-        navsat = conns[0].msgtype in _NAVSAT
+            stamps.append(_stamp(msg, logtime))
     finally:
         bag.close()
     xy = np.asarray(values, dtype=np.float64).reshape(-1, 2)
     keep = np.isfinite(xy).all(axis=1)
+    n_not_finite = int(np.count_nonzero(~keep))
     t, xy = np.asarray(stamps, np.float64)[keep], xy[keep]
+    skipped = []
+    if n_no_fix:
+        skipped.append(f"{n_no_fix} without a fix (status < 0)")
+    if n_not_finite:
+        skipped.append(f"{n_not_finite} with a non-finite position")
     if len(t) == 0:
-        raise RecordingError(f"bag {path} topic {topic}: no finite position")
+        why = f" ({n_messages} messages: {', '.join(skipped)})" if skipped else ""
+        raise RecordingError(f"bag {path} topic {topic}: no usable position{why}")
+    if skipped:
+        logger.warning(
+            "bag %s topic %s: skipped %s of %d position messages",
+            path, topic, " and ".join(skipped), n_messages,
+        )  # fmt: skip
     if navsat:
         lat0, lon0 = np.radians(xy[0])
         lat, lon = np.radians(xy[:, 0]), np.radians(xy[:, 1])

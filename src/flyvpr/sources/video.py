@@ -9,10 +9,27 @@ full range, and the result divided by 255.  That costs a fraction of what FFmpeg
 takes for the same area resize (``frame.reformat(..., interpolation="AREA")``), which remains
 the path for every other pixel format (RGB, 10-bit, palette ...): converted to full-size gray
 first, then averaged the same way.
+
+Which stream: the one FFmpeg itself would play (``av_find_best_stream``: the default-flagged
+video stream, else the one with the most frames), said at info level when there are several.
+A display matrix that turns the picture by a multiple of 90 degrees (what phones write
+instead of rotating the pixels) is applied, so frames come upright as a player shows them.
+
+A truncated file is refused: by the demuxer's or decoder's own error where it raises one
+(MP4, H.264 ...), and otherwise by time.  The video stream's header says when it ends (its
+own duration, never the container's, which spans an audio track too; a Matroska stream's
+``DURATION`` tag; an AVI stream's frame count); the last decoded frame must reach that end
+within three frame intervals.  Frame counts would not do: a variable-frame-rate video has no
+count to expect, and an MP4 cut losslessly keeps samples its edit list leaves out.  A stream
+whose header says no end (an MPEG-TS file, a multi-stream Matroska file without
+``DURATION`` tags) can only be refused on a decoding error.
 """
 
 from __future__ import annotations
 
+import logging
+import math
+import re
 from collections.abc import Iterator
 
 import numpy as np
@@ -21,6 +38,8 @@ from ..images import area_resize
 from .base import Decoder, RecordingError, Source, _reason, require_extra
 
 __all__ = ["VideoSource", "VIDEO_EXTENSIONS"]
+
+logger = logging.getLogger(__name__)
 
 #: file suffixes read as video
 VIDEO_EXTENSIONS = (".mp4", ".mkv", ".avi", ".mov", ".webm", ".m4v", ".mpg", ".mpeg", ".ts")
@@ -47,6 +66,14 @@ class VideoSource(Source):
         with self._open() as container:
             if not container.streams.video:
                 raise RecordingError(f"video {self.path}: has no video stream")
+            stream = _video_stream(container)
+            n_video = len(container.streams.video)
+            if n_video > 1:
+                logger.info(
+                    "video %s: reading video stream #%d (%s), the one FFmpeg would play, of "
+                    "%d video streams",
+                    self.path, stream.index, _describe_stream(stream), n_video,
+                )  # fmt: skip
 
     def _open(self):
         try:
@@ -59,38 +86,149 @@ class VideoSource(Source):
     def _frames(self) -> Iterator[tuple[int, float, Decoder]]:
         av = self._av
         with self._open() as container:
-            stream = container.streams.video[0]
+            stream = _video_stream(container)
             if self.threads:
                 stream.thread_type = "AUTO"
-            expected, says = _expected_frames(container, stream)
+            ends = _stream_end(container, stream)
+            nominal = _nominal_interval(stream)
             index = 0
+            times = [math.nan, math.nan]  # the last two frames' presentation times
+            last_duration = math.nan  # the last frame's own duration, where it has one
             try:
                 for frame in container.decode(stream):
                     t = frame.time
                     t = float("nan") if t is None else float(t)
+                    times = [times[1], t]
+                    last_duration = _frame_duration(frame)
                     yield index, t, _decoder(frame)
                     index += 1
             except av.FFmpegError as exc:
                 raise RecordingError(
                     f"video {self.path}: damaged or truncated after frame {index} ({_reason(exc)})"
                 ) from None
-            if expected is not None and index < expected:
+            # the longest of the stated, the last seen and the last frame's own interval: a
+            # variable rate may have slowed towards the end
+            step = max(
+                x for x in (nominal, times[1] - times[0], last_duration, 0.0) if math.isfinite(x)
+            )
+            if ends is None or step == 0.0 or (index and math.isnan(times[1])):
+                return  # nothing to compare: no end in the header, no frame rate, no times
+            if index:
+                reached = times[1] + (last_duration if last_duration > 0 else step)
+            else:
+                reached = _stream_start(stream)
+            missing = ends - reached
+            if missing > 3 * step + _CLOCK_SLACK_S:
+                expected, says = _expected_frames(
+                    stream, decoded=index, missing_s=missing, interval=step
+                )
+                count = f"its header {says} {expected} frames, " if expected else ""
                 raise RecordingError(
-                    f"video {self.path}: truncated: its header {says} {expected} frames, "
-                    f"{index} could be decoded"
+                    f"video {self.path}: truncated: {count}{index} could be decoded (its video "
+                    f"stream lasts until {ends:.2f} s, the decoded frames reach {reached:.2f} s)"
                 )
 
 
-def _expected_frames(container, stream) -> tuple[int | None, str]:
-    """The frame count the header announces, or the one its duration implies less one frame of
-    slack for rounding (None when the header says neither), and how to say it."""
-    if stream.frames:
+#: seconds of timestamp rounding forgiven beyond the frame intervals (Matroska keeps ms)
+_CLOCK_SLACK_S = 0.002
+
+
+def _video_stream(container):
+    """The video stream FFmpeg would pick (``av_find_best_stream``): the default-flagged one,
+    else the one with the most decodable frames (a cover picture loses to the video)."""
+    best = container.streams.best("video")
+    return best if best is not None else container.streams.video[0]
+
+
+def _describe_stream(stream) -> str:
+    flags = []
+    disposition = int(getattr(stream, "disposition", 0) or 0)
+    if disposition & 1:  # AV_DISPOSITION_DEFAULT
+        flags.append("default")
+    if disposition & 1024:  # AV_DISPOSITION_ATTACHED_PIC
+        flags.append("cover picture")
+    name = stream.codec_context.name if stream.codec_context is not None else "unknown codec"
+    text = f"{name} {stream.width}x{stream.height}"
+    return f"{text}, {', '.join(flags)}" if flags else text
+
+
+def _stream_start(stream) -> float:
+    tb = stream.time_base
+    return float(stream.start_time * tb) if stream.start_time is not None and tb else 0.0
+
+
+def _nominal_interval(stream) -> float:
+    """Seconds between frames at the stream's nominal rate (NaN when it states none)."""
+    rate = stream.average_rate or stream.guessed_rate
+    return 1.0 / float(rate) if rate else math.nan
+
+
+def _frame_duration(frame) -> float:
+    """The frame's own duration in seconds (NaN when the container gives none)."""
+    duration, tb = getattr(frame, "duration", None), frame.time_base
+    return float(duration * tb) if duration and tb else math.nan
+
+
+_DURATION_TAG = re.compile(r"^(\d+):([0-5]?\d):(\d+(?:\.\d*)?)$")
+
+
+def _duration_tag(metadata) -> float | None:
+    """A Matroska stream's ``DURATION`` tag (``HH:MM:SS.nnnnnnnnn``) in seconds, or None.
+
+    FFmpeg's muxer writes the stream's last presentation time plus its duration; mkvmerge
+    also writes one (language-suffixed keys such as ``DURATION-eng`` included)."""
+    for key, value in metadata.items():
+        if key.upper().split("-")[0] == "DURATION":
+            m = _DURATION_TAG.match(str(value).strip())
+            if m:
+                return int(m[1]) * 3600 + int(m[2]) * 60 + float(m[3])
+    return None
+
+
+def _stream_end(container, stream) -> float | None:
+    """When the video stream ends by its header, in seconds on its frames' clock, or None.
+
+    The stream's own duration from its start; an AVI stream's frame count (one time-base
+    tick per frame: a cut AVI's demuxer shortens the duration to what it found, not the
+    count); a Matroska stream's ``DURATION`` tag, read as an end time (FFmpeg's meaning;
+    as a duration it could only say less).  The container's duration only when the video
+    is its one stream: it spans every stream, so an audio track longer than the video would
+    count.
+    """
+    tb, start = stream.time_base, _stream_start(stream)
+    ends = []
+    if stream.duration and tb:
+        ends.append(start + float(stream.duration * tb))
+    if container.format.name == "avi" and stream.frames and tb:
+        ends.append(start + float(stream.frames * tb))
+    tag = _duration_tag(stream.metadata)
+    if tag is not None:
+        ends.append(tag)
+    if not ends and len(container.streams) == 1 and container.duration:
+        # container times are in microseconds (AV_TIME_BASE)
+        ends.append(((container.start_time or 0) + container.duration) / 1_000_000)
+    return max(ends) if ends else None
+
+
+def _expected_frames(
+    stream, *, decoded: int, missing_s: float, interval=None
+) -> tuple[int | None, str]:
+    """How many frames the header announces, or at least implies, and how to say it: words
+    for the message of a video found truncated (None, "" when the header says neither).
+
+    The count it announces; else the ``decoded`` frames and the ``missing_s`` seconds of
+    stream after them at the nominal rate, or one frame per ``interval`` where frames came
+    further apart (a variable rate), less one frame of slack for rounding.
+    """
+    if stream.frames and stream.frames > decoded:
         return int(stream.frames), "announces"
     rate = stream.average_rate or stream.guessed_rate
-    if container.duration and rate:
-        # container.duration is in microseconds (AV_TIME_BASE)
-        return int(container.duration * float(rate) / 1_000_000) - 1, "implies at least"
-    return None, ""
+    rate = float(rate) if rate else math.nan
+    if interval:
+        rate = min(rate, 1.0 / interval) if math.isfinite(rate) else 1.0 / interval
+    if not math.isfinite(rate):
+        return None, ""
+    return decoded + int(missing_s * rate) - 1, "implies at least"
 
 
 #: 8-bit YUV formats whose first plane is the luma, one byte per pixel
@@ -112,10 +250,45 @@ def _luma(frame) -> tuple[np.ndarray, bool]:
     return frame.reformat(format="gray").to_ndarray(), True
 
 
+def _quarter_turns(frame) -> int:
+    """Counter-clockwise quarter turns that bring the frame upright, from its display matrix
+    (FFmpeg's side data, as ``ffmpeg`` and players apply it); 0 without one, or for an angle
+    that is not a multiple of 90 degrees (said once per angle)."""
+    angle = getattr(frame, "rotation", None)
+    if angle is None:  # PyAV before 14.1 has no VideoFrame.rotation
+        if None not in _WARNED_ANGLES:
+            _WARNED_ANGLES.add(None)
+            logger.warning(
+                "this PyAV does not expose a video's display rotation (VideoFrame.rotation); "
+                "rotated videos are read as stored: pip install 'av>=14.1'"
+            )
+        return 0
+    if not math.isfinite(angle):  # a singular matrix
+        return 0
+    turns = round(angle / 90)
+    if abs(angle - 90 * turns) > 1.0:
+        if angle not in _WARNED_ANGLES:
+            _WARNED_ANGLES.add(angle)
+            logger.warning(
+                "a video's display matrix rotates it by %.1f degrees; only multiples of 90 "
+                "are applied, so its frames are read unrotated",
+                angle,
+            )
+        return 0
+    return turns % 4
+
+
+#: angles (None: no rotation in this PyAV) warned of already
+_WARNED_ANGLES: set[float | None] = set()
+
+
 def _decoder(frame):
     def decode(size):
         h, w = size
         y, full = _luma(frame)
+        turns = _quarter_turns(frame)
+        if turns:
+            y = np.ascontiguousarray(np.rot90(y, turns))
         small = area_resize(y, h, w)
         if full:
             small *= np.float32(1.0 / 255.0)
