@@ -759,3 +759,22 @@ def test_repeated_rows_are_held_only_behind_front_ends_that_never_repeat_on_nois
         given = make_method(f"{front}+cann", 0, filter_params={"hold_repeats": True})
         assert given.filter.hold_repeats is True
     assert "hold_repeats" not in make_method("flynet+cann-paper", 0).filter.get_params()
+
+
+@pytest.mark.parametrize("movement", [1e19, -1e19, 1e308])
+def test_a_move_beyond_int64_empties_the_line_as_a_move_past_its_end(movement):
+    # velocity=1e19 (odometry) or movement=1e19 overflowed the shift kernel's int64
+    # (OverflowError: int too big to convert); any move of the route's length or more leaves
+    # every unit at rest, so it answers as a move by exactly that length
+    S = _scores([20 + t for t in range(30)])
+    huge, exact = CANN(movement=1.0), CANN(movement=1.0)
+    for row in S[:-1]:
+        huge.step(row)
+        exact.step(row)
+    np.testing.assert_array_equal(
+        huge.step(S[-1], velocity=movement),
+        exact.step(S[-1], velocity=np.sign(movement) * N_PLACES),
+    )
+    assert huge.velocity_ == movement
+    out = CANN(movement=movement).filter(S)
+    np.testing.assert_array_equal(out, CANN(movement=float(np.sign(movement) * N_PLACES)).filter(S))

@@ -145,6 +145,29 @@ def test_unknown_param_is_usage_error(route_dir, capsys):
     assert "bogus" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("key", ["epochs", "learning_rate", "batch_size"])
+def test_a_param_both_parts_take_needs_its_prefix(route_dir, tmp_path, capsys, key):
+    # flynet+rnn: FlyNet and the RNN both train; epochs=1 went to FlyNet alone and left the
+    # RNN at its default without a word
+    argv = ["fit", *_eval_args(route_dir)[1:], "--method", "flynet+rnn", "--param", f"{key}=1"]
+    assert main([*argv, "--save", str(tmp_path / "m.npz")]) == 2
+    err = capsys.readouterr().err
+    assert f"--param {key}: both parts of 'flynet+rnn' take {key!r}" in err
+    assert f"frontend.{key}=" in err and f"filter.{key}=" in err
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_prefixed_params_go_to_their_part():
+    from flyvpr.cli._common import split_params
+
+    front, filt = split_params(
+        "flynet+rnn", [("frontend.epochs", 3), ("filter.epochs", 2), ("hidden_size", 16)]
+    )
+    assert front == {"epochs": 3} and filt == {"epochs": 2, "hidden_size": 16}
+    # a name only one part takes needs no prefix
+    assert split_params("flynet+cann", [("epochs", 5)]) == ({"epochs": 5}, {})
+
+
 def test_help_exits_0(capsys):
     assert main(["--help"]) == 0
     assert "evaluate" in capsys.readouterr().out
@@ -381,6 +404,54 @@ def test_evaluate_load_names_the_model_and_checks_its_window(route_dir, tmp_path
     capsys.readouterr()
     assert main(["evaluate", *common, "--load", str(model), "--seed", "3"]) == 2
     assert "--seed: a model loaded with --load is fitted already" in capsys.readouterr().err
+
+
+def test_evaluate_load_compares_with_the_models_own_training_accuracy(
+    route_dir, tmp_path, capsys, caplog
+):
+    # FlyNet with 5% winner-take-all fits its own 30 places poorly (training accuracy 27%):
+    # fewer than half of its frames (43%) find their own place even on the window it was
+    # fitted on, which is no sign of another window (a fixed 50% warned there); on another
+    # window none do.
+    from flyvpr.datasets import load_benchmark
+    from flyvpr.evaluation import self_match_share
+    from flyvpr.modelio import load_method
+
+    model = tmp_path / "m.npz"
+    common = [*_eval_args(route_dir)[1:], "--count", "30"]
+    fit = ["fit", *[a for a in common if a not in ("--query", "winter", "--tolerance", "2")]]
+    params = ["--param", "wta_ratio=0.05", "--param", "epochs=40"]
+    assert main([*fit, "--method", "flynet", *params, "--first", "0", "--save", str(model)]) == 0
+    fitted = load_method(model)
+    own = load_benchmark("nordland", root=route_dir, reference="summer", count=30)
+    own_share = self_match_share(fitted, own.reference.load_images(cache=False, progress=False))
+    assert fitted.train_accuracy / 2 < own_share < 0.5
+    capsys.readouterr()
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        assert main(["evaluate", *common, "--first", "0", "--load", str(model)]) == 0
+    assert not [r for r in caplog.records if "find their own place" in r.getMessage()]
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        assert main(["evaluate", *common, "--first", "30", "--load", str(model)]) == 0
+    (warning,) = [r for r in caplog.records if "find their own place" in r.getMessage()]
+    assert "its training accuracy on the frames it was fitted on: " in warning.getMessage()
+
+
+def test_evaluate_load_takes_the_models_image_size(route_dir, tmp_path, capsys):
+    model = tmp_path / "k16.npz"
+    common = [*_eval_args(route_dir)[1:], "--count", "30"]
+    fit = ["fit", *[a for a in common if a not in ("--query", "winter", "--tolerance", "2")]]
+    assert main([*fit, "--method", "kenyon", "--size", "16x32", "--save", str(model)]) == 0
+    out = tmp_path / "r.json"
+    capsys.readouterr()
+    assert main(["evaluate", *common, "--load", str(model), "--out", str(out)]) == 0
+    assert "size=16x32" in capsys.readouterr().out
+    assert json.loads(out.read_text())["image_size"] == [16, 32]
+    # a --size that is given must be the model's
+    assert main(["evaluate", *common, "--load", str(model), "--size", "32x64"]) == 1
+    assert "was fitted on 16x32 images; got --size 32x64" in capsys.readouterr().err
+    # without --load the default stays 32x64
+    assert main(["evaluate", *common, "--method", "pixels", "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["image_size"] == [32, 64]
 
 
 @pytest.mark.parametrize(

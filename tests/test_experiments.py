@@ -139,6 +139,28 @@ def test_parameters_route_to_front_end_and_filter(tmp_path):
     assert all(r.spec["filter_params"]["v_max"] == 1.5 for r in runs)
 
 
+def test_a_param_both_parts_take_needs_its_prefix(tmp_path):
+    # flynet+rnn: FlyNet and the RNN both take epochs; unprefixed, it went to FlyNet only
+    grids = """
+    [[grids]]
+    name = "g"
+    kind = "evaluate"
+    datasets = ["syn"]
+    methods = ["flynet+rnn"]
+    params = { epochs = 3 }
+    """
+    with pytest.raises(
+        ValueError,
+        match=r"'epochs' is a parameter of both parts of method 'flynet\+rnn' .*"
+        r"write 'frontend\.epochs' or 'filter\.epochs'",
+    ):
+        load_config(write_config(tmp_path, grids))
+    prefixed = grids.replace("epochs = 3", '"frontend.epochs" = 3, "filter.epochs" = 2')
+    (run,) = load_config(write_config(tmp_path, prefixed)).runs()
+    assert run.spec["frontend_params"]["epochs"] == 3
+    assert run.spec["filter_params"]["epochs"] == 2
+
+
 def test_method_seeds_override_the_grid_seeds(tmp_path):
     grids = EVAL_GRID.replace("seeds = [0, 1]", "seeds = [0, 1]\nmethod_seeds = { pixels = [7] }")
     config = load_config(write_config(tmp_path, grids))

@@ -290,3 +290,111 @@ def test_only_a_method_is_saved(tmp_path):
         with pytest.raises(TypeError, match=r"method must be a flyvpr Method .*; got"):
             save_method(thing, tmp_path / "m.npz")
     assert not (tmp_path / "m.npz").exists()
+
+
+def _resealed(path, out, edit):
+    """``path``'s metadata edited by ``edit`` and written to ``out`` with checksums recomputed
+    (a crafted file: only the checks on the content can refuse it)."""
+    from flyvpr.modelio import _write_archive
+
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if k != "__meta__"}
+        meta = json.loads(z["__meta__"].tobytes())
+    edit(meta)
+    return _write_archive(out, meta, arrays)
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory, data):
+    """Model files of a few methods (fitted once), by method name."""
+    folder = tmp_path_factory.mktemp("saved")
+    made = {}
+
+    def get(name):
+        if name not in made:
+            made[name] = save_method(make_method(name, 0).fit(data[0]), folder / f"{name}.npz")
+        return made[name]
+
+    return get
+
+
+@pytest.mark.parametrize(
+    "name, part, key, value, problem",
+    [
+        ("kenyon", "frontend", "wavelength", 1e308,
+         r"frontend\.state: does not restore a kenyon \(a parameter or value out of range: "
+         r"OverflowError"),
+        ("seqslam", "filter", "v_max", 1e308,
+         r"filter\.state: does not restore a seqslam \(v_min=0\.8 to v_max=1e\+308 in steps "
+         r"of v_step=0\.1 are more velocities than can be counted"),
+        ("seqslam", "filter", "v_min", -1e308, r"filter\.state: .*more velocities than can"),
+        ("seqslam", "filter", "sequence_length", 10**30,
+         r"filter\.state: does not restore a seqslam \(.*sequence_length=10+ would need"),
+    ],
+)  # fmt: skip
+def test_parameters_that_overflow_are_a_model_file_error(
+    tmp_path, saved, name, part, key, value, problem
+):
+    # (each raised OverflowError from deep inside the part)
+    out = _resealed(
+        saved(name), tmp_path / "x.npz", lambda m: m[part]["params"].update({key: value})
+    )
+    with pytest.raises(ModelFileError, match=rf"x\.npz: {problem}"):
+        load_method(out)
+
+
+@pytest.mark.parametrize(
+    "name, key, value",
+    [("flyhash+cann-paper", "movement", 1e308), ("seqslam", "v_step", 1e30)],
+)
+def test_huge_but_valid_parameters_load_and_score(tmp_path, saved, data, name, key, value):
+    # movement 1e308 moves the packet off the route every frame (it overflowed int64);
+    # v_step 1e30 searches one velocity
+    out = _resealed(
+        saved(name), tmp_path / "x.npz", lambda m: m["filter"]["params"].update({key: value})
+    )
+    model = load_method(out)
+    assert getattr(model.filter, key) == value
+    assert np.isfinite(model.score(data[1][:5])).all()
+
+
+def test_a_parameter_given_as_an_array_is_saved_as_a_list(tmp_path, data):
+    # velocities=np.arange(...) fitted, then save_method refused it ("cannot save attribute
+    # velocities of type ndarray")
+    velocities = np.arange(0.75, 2.01, 0.125)
+    model = make_method("flyhash+cann-paper", 0, filter_params={"velocities": velocities})
+    model.fit(data[0])
+    again = load_method(save_method(model, tmp_path / "m.npz"))
+    assert again.filter.velocities == velocities.tolist()
+    np.testing.assert_array_equal(again.score(data[1]), model.score(data[1]))
+    ints = make_method("flyhash+cann-paper", 0, filter_params={"velocities": np.arange(1, 3)})
+    again = load_method(save_method(ints.fit(data[0]), tmp_path / "i.npz"))
+    assert again.filter.velocities == [1, 2]
+
+
+@pytest.mark.parametrize("where", ["local header", "central directory", "member data"])
+def test_a_damaged_sealed_file_says_it_failed_its_checksum(tmp_path, saved, where):
+    # one bit flipped in the zip's local header or central directory was reported as "has no
+    # flyvpr metadata: not a flyvpr model", though the file's checksum told it was damaged
+    path = saved("flyhash")
+    body = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo("__meta__.npy")
+        at = {
+            "local header": info.header_offset,
+            "central directory": z.start_dir,
+            "member data": info.header_offset + 40 + len(info.filename) + 64,
+        }[where]
+    body[at] ^= 0x10
+    out = tmp_path / "damaged.npz"
+    out.write_bytes(bytes(body))
+    with pytest.raises(
+        ModelFileError,
+        match=r"damaged\.npz failed its file checksum: it was modified or is damaged",
+    ):
+        load_method(out)
+    # a file without the seal is no flyvpr model, as before
+    plain = tmp_path / "plain.npz"
+    np.savez(plain, a=np.zeros(3))
+    with pytest.raises(ModelFileError, match="not a flyvpr model"):
+        load_method(plain)

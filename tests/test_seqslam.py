@@ -409,3 +409,49 @@ def test_parameters_too_large_for_memory_are_refused(params, match):
         SeqSLAM(**params).filter(S)
     with pytest.raises(InsufficientMemoryError, match=match):
         SeqSLAM(**params).step(S[0])
+
+
+@pytest.mark.parametrize("kind", [np.int64, np.int32, int])
+def test_a_numpy_integer_sequence_length_runs_online(kind):
+    # deque(maxlen=np.int64(10)) raised TypeError in reset(), so make_method(...).fit failed
+    from flyvpr.methods import make_method
+
+    S = np.random.default_rng(0).normal(size=(12, 30))
+    filt = SeqSLAM(sequence_length=kind(5))
+    rows = np.array([filt.step(row) for row in S])
+    np.testing.assert_array_equal(rows, SeqSLAM(sequence_length=5).filter(S))
+    ref = np.random.default_rng(1).random((30, 32, 64), dtype=np.float32)
+    model = make_method("seqslam", 0, filter_params={"sequence_length": kind(10)}).fit(ref)
+    assert model.score(ref[:4]).shape == (4, 30)
+
+
+@pytest.mark.parametrize(
+    ("params", "match"),
+    [
+        ({"v_max": 1e308}, r"v_min=0\.8 to v_max=1e\+308 in steps of v_step=0\.1 are more"),
+        ({"v_min": -1e308}, "more velocities than can be counted"),
+        ({"v_min": -1e308, "v_max": 1e308, "v_step": 1e300}, "more velocities than can be"),
+    ],
+)
+def test_a_grid_too_wide_to_count_is_a_value_error(params, match):
+    # (v_max - v_min) / v_step overflowed to inf: OverflowError, not the documented ValueError
+    S = np.random.default_rng(0).normal(size=(5, 30))
+    with pytest.raises(ValueError, match=match):
+        SeqSLAM(**params).filter(S)
+    with pytest.raises(ValueError, match=match):
+        SeqSLAM(**params).step(S[0])
+    with pytest.raises(ValueError, match=match):
+        SeqSLAM(**params).reset()
+
+
+def test_velocities_far_off_the_route_read_nothing():
+    # 1e308 places per frame: every earlier frame of a line lies off the route (the shifts
+    # overflowed int64), so only the current frame counts, without a warning
+    import warnings
+
+    S = np.random.default_rng(0).normal(size=(6, 30))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        far = SeqSLAM(v_min=1e308, v_max=1e308, v_step=1.0, sequence_length=4).filter(S)
+    one = SeqSLAM(sequence_length=1).filter(S) / 2.0  # the same sum over sqrt(4) frames
+    np.testing.assert_allclose(far, one, rtol=1e-12)

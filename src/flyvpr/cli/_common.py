@@ -155,7 +155,12 @@ def parse_param(text: str) -> tuple[str, object]:
 
 
 def split_params(method: str, params: list[tuple[str, object]]):
-    """Route KEY=VALUE pairs to the front end or the filter by their constructor names."""
+    """Route KEY=VALUE pairs to the front end or the filter by their constructor names.
+
+    A name both parts take (``epochs`` of ``flynet+rnn``) must say which part it is for,
+    ``frontend.KEY`` or ``filter.KEY``: given to one part silently, it would leave the other
+    at its default.
+    """
     from ..frontends import FRONTENDS
     from ..temporal import FILTERS
 
@@ -171,6 +176,12 @@ def split_params(method: str, params: list[tuple[str, object]]):
         elif key.startswith("frontend."):
             key = key[len("frontend.") :]
             target = front if key in front_names else None
+        elif key in front_names and key in filt_names and key != "random_state":
+            raise UsageError(
+                f"--param {key}: both parts of {method!r} take {key!r} (front end "
+                f"{spec.frontend!r}, filter {spec.filter!r}); write frontend.{key}=... or "
+                f"filter.{key}=... (or both)"
+            )
         elif key in front_names:
             target = front
         elif key in filt_names:
@@ -196,14 +207,20 @@ def split_params(method: str, params: list[tuple[str, object]]):
     return front, filt
 
 
-def add_image_args(p: argparse.ArgumentParser, size_default=DEFAULT_SIZE) -> None:
+def add_image_args(
+    p: argparse.ArgumentParser, size_default=DEFAULT_SIZE, from_file: str = "--map"
+) -> None:
+    """--size, --no-cache, --cache-dir and --quiet.  ``size_default`` None: --size is None
+    unless given, and the command takes the size of the file ``from_file`` names (a map's,
+    a model's) when there is one, else 32x64."""
+    what = {"--map": "the map's", "--load": "the model's"}.get(from_file, "the file's")
     p.add_argument(
         "--size",
         type=parse_size,
         default=size_default,
         metavar="HxW",
         help="image size after area-averaging resize (default: 32x64"
-        + ("" if size_default else "; with --map: the map's")
+        + ("" if size_default else f"; with {from_file}: {what}")
         + ")",
     )
     p.add_argument("--no-cache", action="store_true", help="neither read nor write the image cache")
@@ -305,7 +322,7 @@ def add_method_args(
         default=[],
         metavar="KEY=VALUE",
         help="constructor parameter of the front end or filter (JSON value), e.g. epochs=100; "
-        "prefix with frontend. or filter. to disambiguate",
+        "a name both take (epochs of flynet+rnn) needs the prefix frontend. or filter.",
     )
 
 

@@ -10,6 +10,7 @@ from .._io import write_json_atomic
 from .._version import __version__
 from ..datasets import load_benchmark
 from ..evaluation import evaluate_method, self_match_share
+from ..images import DEFAULT_SIZE
 from ._common import (
     RESULT_COLUMNS,
     UsageError,
@@ -43,10 +44,12 @@ def cmd_evaluate(args) -> int:
             )
         from ..modelio import load_method
 
+        # a given --size must be the model's; without one, the model's is used
         model = load_method(args.load, size=args.size)
         if args.method is not None and args.method != model.name:
             raise UsageError(f"--method {args.method} but {args.load} holds {model.name}")
         args.method = model.name
+        args.size = tuple(int(v) for v in model.frontend.image_shape_)
         front_params = filt_params = None
     elif args.method is None:
         raise UsageError("give --method METHOD (or --load MODEL.npz)")
@@ -54,6 +57,7 @@ def cmd_evaluate(args) -> int:
         model = args.method
         front_params, filt_params = split_params(args.method, args.param)
         args.seed = 0 if args.seed is None else args.seed
+        args.size = args.size or DEFAULT_SIZE
     bench = load_benchmark(args.dataset, **kwargs)
     loaded = [args.load] if args.load is not None else []
     check_outputs(args, [*bench.input_files(), *loaded], ("out",))
@@ -103,18 +107,36 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+#: warn when fewer reference frames find their own place than this share of those expected
+_SELF_MATCH_FRACTION = 0.5
+
+
 def _check_fitted_here(model, ref, path) -> None:
     """Warn when a loaded model's front end does not recognise the reference window's own
-    images (a model fitted on another window: the ground truth would not be its places)."""
+    images (a model fitted on another window: the ground truth would not be its places).
+
+    The images it was fitted on find their own place (within 2) about as often as its
+    training accuracy says, or more; a front end that learns nothing finds nearly all of
+    them.  So the warning comes when fewer than half as many as that find it: on another
+    window of the route almost none do, while a model that fits its own places poorly (a
+    training accuracy of 30%) is not taken for one fitted elsewhere.
+    """
     if model.frontend.n_reference_ != len(ref):
         return  # refused by the evaluation itself, with the two numbers
     share = self_match_share(model, ref)
-    if share < 0.5:
+    trained = model.train_accuracy
+    expected = 1.0 if trained is None else float(trained)
+    if share < _SELF_MATCH_FRACTION * expected:
+        own = (
+            "on the frames it was fitted on nearly all do"
+            if trained is None
+            else f"its training accuracy on the frames it was fitted on: {100 * trained:.0f}%"
+        )
         logger.warning(
             "%s: only %.0f%% of the reference frames (evenly sampled) find their own place "
-            "within 2 places: the model was likely fitted on other reference frames (check "
-            "--reference, --first and --count against those given to `flyvpr fit`)",
-            path, 100 * share,
+            "within 2 places (%s): the model was likely fitted on other reference frames "
+            "(check --reference, --first and --count against those given to `flyvpr fit`)",
+            path, 100 * share, own,
         )  # fmt: skip
 
 
@@ -160,7 +182,7 @@ def register(sub) -> None:
         metavar="MODEL.npz",
         help="use a model saved by `flyvpr fit --save` instead of fitting",
     )
-    add_image_args(p)
+    add_image_args(p, size_default=None, from_file="--load")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser(

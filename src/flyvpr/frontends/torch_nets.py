@@ -245,7 +245,7 @@ class TorchClassifier(Encoder):
         }
 
     # -- saved state (flyvpr.modelio) -----------------------------------------------------
-    _state_names = ("weights_", "loss_history_", "accuracy_history_")
+    _state_names: tuple[str, ...] = ("weights_", "loss_history_", "accuracy_history_")
 
     def _state_arrays(self, scalars: dict) -> dict:
         epochs = check_positive_int(self.epochs, "epochs")

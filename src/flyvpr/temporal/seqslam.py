@@ -131,10 +131,16 @@ def enhance_contrast(D, window: int = 10) -> np.ndarray:
     return np.where(flat, 0.0, (x - mean) / np.where(flat, 1.0, std))
 
 
+#: place shifts are capped at this size: a line that far off the route reads nothing, as any
+#: farther one (and huge velocities, such as 1e308 x 19, fit int64 and stay finite)
+_MAX_SHIFT = 2.0**62
+
+
 def _round_half_away(x: np.ndarray) -> np.ndarray:
     # The small nudge makes products such as 0.9 * 5 = 4.5000000000000004 or 1.5 * 3 = 4.5
     # round the same way whatever their last bit.
-    return (np.sign(x) * np.floor(np.abs(x) + 0.5 + 1e-9)).astype(np.int64)
+    rounded = np.sign(x) * np.floor(np.abs(x) + 0.5 + 1e-9)
+    return np.clip(rounded, -_MAX_SHIFT, _MAX_SHIFT).astype(np.int64)
 
 
 def _add_shifted(acc: np.ndarray, src: np.ndarray, shift: int) -> None:
@@ -241,7 +247,15 @@ class SeqSLAM(OnlineFilter):
             For invalid parameters (each message names the parameter).
         """
         self._check_params()
-        n_steps = int(np.floor((self.v_max - self.v_min) / self.v_step + 1e-9))
+        with np.errstate(over="ignore"):
+            span = np.floor((float(self.v_max) - float(self.v_min)) / float(self.v_step) + 1e-9)
+        if not np.isfinite(span):
+            raise ValueError(
+                f"v_min={self.v_min:g} to v_max={self.v_max:g} in steps of v_step="
+                f"{self.v_step:g} are more velocities than can be counted; expected a grid "
+                "of a few velocities (by default 5: 0.8 to 1.2 in steps of 0.1)"
+            )
+        n_steps = int(span)
         # The grid and the table of line shifts (velocities x sequence_length int64), refused
         # before they are allocated.
         check_memory(
@@ -272,7 +286,8 @@ class SeqSLAM(OnlineFilter):
         if cached is None or cached[0] != key:
             velocities = self.velocities()  # first: it refuses grids too large for memory
             offsets = self._offsets()
-            shifts = _round_half_away(np.outer(velocities, offsets))
+            with np.errstate(over="ignore"):  # inf: off the route, capped at _MAX_SHIFT
+                shifts = _round_half_away(np.outer(velocities, offsets))
             cached = (key, (offsets, np.unique(shifts, axis=0)))
             self._table_cache = cached
         return cached[1]
@@ -304,8 +319,10 @@ class SeqSLAM(OnlineFilter):
     # -- online ---------------------------------------------------------------
     def reset(self) -> None:
         """Forget all past frames (call before a new query traverse)."""
-        self._check_params()
-        self._buffer: deque[np.ndarray] = deque(maxlen=self.sequence_length)
+        # The table of lines first: it refuses grids and lengths too large for memory, so the
+        # buffer's length fits (deque takes a Python int, not numpy's, and at most 2**63 - 1).
+        self._shift_table()
+        self._buffer: deque[np.ndarray] = deque(maxlen=int(self.sequence_length))
 
     def _step(self, row: np.ndarray) -> np.ndarray:
         self._check_params()

@@ -1,6 +1,7 @@
 """The paper's CANN: an attractor network over the places (the ``cann-paper`` filter).
 
-Kept as published for reproducing the paper (``flynet+cann-paper``); the default ``cann``
+The paper's architecture for reproducing it (``flynet+cann-paper``), with flyvpr's own
+parameters where the paper gives none (see ``docs/guide/cann-paper.md``); the default ``cann``
 filter is :class:`~flyvpr.temporal.cann.CANN`, the place-velocity layer.
 """
 
@@ -23,7 +24,7 @@ _STATS_SAMPLES = 4096
 
 
 class AttractorCANN(OdometryFilter):
-    """The paper's 1-d continuous attractor network (FlyNet+CANN as published).
+    """The paper's 1-d continuous attractor network (FlyNet+CANN's architecture).
 
     The equations, the readout and how the defaults were chosen are on the user guide's CANN
     page (``docs/guide/cann-paper.md``).  All times are in frame periods, all distances in
@@ -377,6 +378,11 @@ class AttractorCANN(OdometryFilter):
             total = self._offset + v
             k = math.floor(total + 0.5)
             self._offset = total - k
+            # A move of the route's length or more empties the line (everything enters at
+            # rest), as any longer one does: bounded so that it fits the kernels' int64
+            # (velocity=1e19 overflowed there).
+            n = self._u.shape[0]
+            k = max(-n, min(n, k))
         # What enters is at rest (its potential: the inhibition alone).  On the first frame a
         # shift by 0, which moves nothing, compiles the kernel.
         kernels["shift"](self._u, k, np.float32(-p["inhibition"] * self._g))
