@@ -360,6 +360,16 @@ def test_ground_truth_by_positions_scores_like_frames(recordings, tmp_path, caps
     rows = list(csv.DictReader(records.open()))
     assert [r["correct"] for r in rows[:10]] == [""] * 10
     assert {r["correct"] for r in rows[10:]} <= {"0", "1"}
+    # a ground truth with a row every other frame: the frames between get the straight line
+    # between their neighbours' rows (they were left out as frames without a row)
+    sparse = tmp_path / "sparse_xy.csv"
+    kept = [*range(0, N, 2), N - 1]
+    sparse.write_text("frame,x,y\n" + "".join(f"{i},{3.0 * i},0\n" for i in kept))
+    code, out, err = _run(
+        capsys, "localize", "--map", m, rec[QUERY], "--ground-truth", sparse, "--radius", 3.0 * TOL
+    )
+    assert code == 0, err
+    assert "left out" not in out and _auc(out) == _auc(by_frames)
 
 
 def test_realtime_paces_to_the_timestamps(tmp_path, capsys):

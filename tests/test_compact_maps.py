@@ -322,6 +322,29 @@ def test_ground_truth_by_positions(built, route, capsys):
     assert by_position == float(re.search(r"within 2\): AUC (\d\.\d+)", out).group(1))
 
 
+def test_ground_truth_rows_sparser_than_frames_are_interpolated(built, route, tmp_path, capsys):
+    # a row every third frame: the frames between get the straight line between their
+    # neighbours' rows (without it they had no row and were left out of the score)
+    full = _run(
+        capsys, "localize", "--map", built, route["winter"], "--ground-truth", route["xy"],
+        "--radius", "4",
+    )[1]  # fmt: skip
+    sparse = tmp_path / "sparse.csv"
+    rows = np.loadtxt(route["xy"], delimiter=",", skiprows=1)
+    kept = rows[np.r_[0 : len(rows) : 3, len(rows) - 1]]
+    sparse.write_text(
+        "frame,x,y\n" + "".join(f"{int(f)},{float(x)!r},{float(y)!r}\n" for f, x, y in kept)
+    )
+    code, out, err = _run(
+        capsys, "localize", "--map", built, route["winter"], "--ground-truth", sparse,
+        "--radius", "4",
+    )  # fmt: skip
+    assert code == 0, err
+    assert "left out" not in out
+    auc = re.compile(r"within 4 m\): AUC (\d\.\d+)")
+    assert auc.search(out).group(1) == auc.search(full).group(1)
+
+
 def test_frames_the_ground_truth_gives_no_position_are_not_scored(built, route, tmp_path, capsys):
     from flyvpr.metrics import evaluate_answers
 

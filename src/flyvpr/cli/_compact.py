@@ -125,7 +125,7 @@ def _truth(args, cmap, b, gt_positions, lookup):
             lambda places: np.abs(cmap.frames[places] - b.indices) <= args.tolerance,
             np.ones(len(b), bool),
         )
-    xy = gt_positions.at(b.indices, b.timestamps)
+    xy = gt_positions.at(b.indices, b.timestamps, interpolate=True)  # (as the map's places)
     known = np.isfinite(xy).all(axis=1)
     near = np.zeros(len(b), bool)
     if known.any():

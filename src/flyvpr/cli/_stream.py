@@ -32,7 +32,8 @@ def _ground_truth(args, m, step, gt_positions):
         return gt, np.ones(len(b), bool)
     if m.positions is None:
         raise UsageError("--ground-truth CSV needs a map built with positions")
-    xy = gt_positions.at(b.indices, b.timestamps)
+    # between two rows of the CSV, the straight line (as the map's places and odometry read it)
+    xy = gt_positions.at(b.indices, b.timestamps, interpolate=True)
     return ground_truth_positions(xy, m.positions, args.radius), np.isfinite(xy).all(axis=1)
 
 
