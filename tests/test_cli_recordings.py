@@ -16,6 +16,7 @@ from fake_filters import Scripted  # noqa: E402
 from flyvpr.cli import main  # noqa: E402
 from flyvpr.sources.writers import write_bag, write_video  # noqa: E402
 from flyvpr.synthetic import make_route, save_route  # noqa: E402
+from videos import write_av  # noqa: E402
 
 N = 60
 TOL = 1
@@ -691,31 +692,13 @@ def test_video_caption_says_lost(recordings, maps, scripted, tmp_path, capsys, m
 
 # -- videos of the kinds cameras and editors make; GPS before its first fix ----------------------
 def _mkv(path, frames, pts_ms, *, audio_s=0):
-    """Lossless 4:4:4 Matroska of gray frames at the given times (ms), and optionally a
-    silent audio track of ``audio_s`` seconds."""
+    """Lossless Matroska of gray frames at the given times (ms), and optionally a silent audio
+    track of ``audio_s`` seconds."""
     from fractions import Fraction
 
-    with av.open(str(path), "w") as c:
-        s = c.add_stream("ffv1", rate=10)
-        s.height, s.width = frames.shape[1:3]
-        s.pix_fmt = "yuv444p"
-        a = c.add_stream("pcm_s16le", rate=8000) if audio_s else None
-        if a is not None:
-            a.layout = "mono"
-        for frame, t in zip(frames, pts_ms, strict=True):
-            vf = av.VideoFrame.from_ndarray(np.rint(frame * 255).astype(np.uint8), format="gray")
-            vf.pts, vf.time_base = t, Fraction(1, 1000)
-            c.mux(s.encode(vf))
-        c.mux(s.encode(None))
-        if a is not None:
-            for k in range(audio_s):
-                af = av.AudioFrame.from_ndarray(
-                    np.zeros((1, 8000), np.int16), format="s16", layout="mono"
-                )
-                af.sample_rate, af.pts = 8000, k * 8000
-                c.mux(a.encode(af))
-            c.mux(a.encode(None))
-    return path
+    rgb = np.repeat(np.rint(frames * 255).astype(np.uint8)[..., None], 3, axis=-1)
+    stream = {"frames": rgb, "pts": pts_ms, "time_base": Fraction(1, 1000)}
+    return write_av(path, [stream], audio_s=audio_s)
 
 
 def test_unusual_intact_videos_map_and_cut_ones_are_one_line(tmp_path, capsys):

@@ -23,6 +23,7 @@ from flyvpr.sources import (  # noqa: E402
 )
 from flyvpr.sources.writers import write_bag, write_video  # noqa: E402
 from flyvpr.synthetic import make_route, save_route  # noqa: E402
+from videos import write_av  # noqa: E402
 
 N = 24
 SIZE = (32, 64)
@@ -686,46 +687,6 @@ def test_every_seconds_allows_for_rounding(tmp_path, start):
 
 
 # -- videos of the kinds cameras and editors make; GPS without a fix ----------------------------
-def _write_av(path, streams, *, audio_s=0.0, container_options=None):
-    """Encode a test video with PyAV.  ``streams``: dicts with ``frames`` (n, H, W, 3) uint8
-    and optionally ``pts`` (in ``time_base``, default 1/10 s), ``codec`` (ffv1),
-    ``pix_fmt`` (yuv444p), ``default`` (the stream's default disposition).  ``audio_s``:
-    also a silent mono audio track of that many seconds."""
-    from fractions import Fraction
-
-    import av
-
-    with av.open(str(path), "w", options=container_options or {}) as c:
-        outs = []
-        for spec in streams:
-            n, h, w = spec["frames"].shape[:3]
-            s = c.add_stream(spec.get("codec", "ffv1"), rate=10)
-            s.width, s.height, s.pix_fmt = w, h, spec.get("pix_fmt", "yuv444p")
-            if "default" in spec:
-                s.disposition = av.stream.Disposition.default if spec["default"] else 0
-            outs.append(s)
-        audio = None
-        if audio_s:
-            audio = c.add_stream("pcm_s16le", rate=8000)
-            audio.layout = "mono"
-        for s, spec in zip(outs, streams, strict=True):
-            tb = spec.get("time_base", Fraction(1, 10))
-            for i, rgb in enumerate(spec["frames"]):
-                frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
-                frame.pts, frame.time_base = spec.get("pts", range(len(spec["frames"])))[i], tb
-                c.mux(s.encode(frame))
-            c.mux(s.encode(None))
-        if audio is not None:
-            for k in range(int(audio_s)):
-                silence = av.AudioFrame.from_ndarray(
-                    np.zeros((1, 8000), np.int16), format="s16", layout="mono"
-                )
-                silence.sample_rate, silence.pts = 8000, k * 8000
-                c.mux(audio.encode(silence))
-            c.mux(audio.encode(None))
-    return path
-
-
 def _rgb(route, season="summer", n=N):
     return np.rint(route.rgb[season][:n] * 255).astype(np.uint8)
 
@@ -742,7 +703,7 @@ def test_variable_frame_rate_video_is_read_whole(route, tmp_path):
 
     pts = [100 * i for i in range(12)] + [1200 + 1000 * i for i in range(12)]
     spec = {"frames": _rgb(route), "pts": pts, "time_base": Fraction(1, 1000)}
-    path = _write_av(tmp_path / "vfr.mkv", [spec])
+    path = write_av(tmp_path / "vfr.mkv", [spec])
     got = open_source(path).read_all(SIZE)
     assert len(got) == N
     np.testing.assert_allclose(got.timestamps, np.array(pts) / 1000)
@@ -766,7 +727,7 @@ def test_camera_that_dropped_frames_is_read(route, tmp_path, suffix, codec, pix_
     # least 23 frames, 22 could be decoded")
     pts = [i for i in range(N) if i not in (5, 13)]
     spec = {"frames": _rgb(route, n=len(pts)), "pts": pts, "codec": codec, "pix_fmt": pix_fmt}
-    path = _write_av(tmp_path / f"drop{suffix}", [spec])
+    path = write_av(tmp_path / f"drop{suffix}", [spec])
     got = open_source(path).read_all(SIZE)
     assert len(got) == N - 2
     np.testing.assert_allclose(got.timestamps, np.array(pts) / 10)
@@ -801,7 +762,7 @@ def test_losslessly_trimmed_mp4_with_an_edit_list_is_read(route, tmp_path):
 
 def test_video_with_a_longer_audio_track_is_read(route, tmp_path):
     # the container lasts 5 s (the audio), the video 2.4 s: the video's own end counts
-    path = _write_av(tmp_path / "a.mkv", [{"frames": _rgb(route)}], audio_s=5)
+    path = write_av(tmp_path / "a.mkv", [{"frames": _rgb(route)}], audio_s=5)
     assert len(open_source(path).read_all(SIZE)) == N
     # and cut, its video stream's own duration (a DURATION tag) still shows the cut
     cut = tmp_path / "cut.mkv"
@@ -816,7 +777,7 @@ def test_video_with_a_longer_audio_track_is_read(route, tmp_path):
 
 def test_cut_mp4_with_its_index_first_is_refused(route, tmp_path):
     # faststart: the index (moov) before the frames, so the cut file opens
-    path = _write_av(
+    path = write_av(
         tmp_path / "fs.mp4",
         [{"frames": _rgb(route), "codec": "libx264", "pix_fmt": "yuv420p"}],
         container_options={"movflags": "faststart"},
@@ -887,7 +848,7 @@ def test_display_rotation_other_than_quarter_turns_is_not_applied(caplog, monkey
 def test_several_video_streams_read_the_default_one(route, tmp_path, caplog):
     # stream 0: a small preview (5 frames); stream 1: the main track, flagged default
     small = np.stack([f[::2, ::2] for f in _rgb(route, "winter", 5)])
-    path = _write_av(
+    path = write_av(
         tmp_path / "two.mkv",
         [{"frames": small, "default": False}, {"frames": _rgb(route), "default": True}],
     )
@@ -902,7 +863,7 @@ def test_several_video_streams_read_the_default_one(route, tmp_path, caplog):
     # with one video stream nothing is said
     caplog.clear()
     with caplog.at_level("INFO", logger="flyvpr"):
-        open_source(_write_av(tmp_path / "one.mkv", [{"frames": _rgb(route, n=3)}]))
+        open_source(write_av(tmp_path / "one.mkv", [{"frames": _rgb(route, n=3)}]))
     assert "video stream #" not in caplog.text
 
 
