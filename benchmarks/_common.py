@@ -68,8 +68,9 @@ def make_line_map(summer: np.ndarray, n_places: int, rng) -> np.ndarray:
 
 
 def machine_sentence(data: dict) -> str:
-    """The "Machine: ..." line of a results page from its JSON's ``machine`` (empty if none)."""
-    m = data.get("machine") or {}
+    """The "Machine: ..." line of a results page from its JSON's ``machine`` (empty if none;
+    fields the platform left empty, such as ``processor`` on some Linux, left out)."""
+    m = {k: v for k, v in (data.get("machine") or {}).items() if v not in ("", None)}
     return f"Machine: {', '.join(f'{k} {v}' for k, v in m.items())}." if m else ""
 
 

@@ -332,3 +332,11 @@ def test_the_localized_threshold_the_docs_state_is_the_tables():
         claims = re.findall(r"confidence (?:of )?(\d\.\d+) or more", text)
         assert claims, f"{path.name} no longer states the localized threshold"
         assert set(claims) == {stated}, (path.name, claims, level)
+
+
+def test_machine_sentence_leaves_out_empty_fields():
+    from benchmarks._common import machine_sentence
+
+    data = {"machine": {"machine": "x86_64", "processor": "", "cpu_count": 2, "gpu": None}}
+    assert machine_sentence(data) == "Machine: machine x86_64, cpu_count 2."
+    assert machine_sentence({"machine": {}}) == machine_sentence({}) == ""

@@ -67,6 +67,13 @@ datasets = ["syn"]
 methods = ["seqslam"]
 
 [[grids]]
+name = "cold"
+kind = "timing"
+datasets = ["syn"]
+methods = ["pixels"]
+warmup = false
+
+[[grids]]
 name = "size"
 kind = "footprint"
 datasets = ["syn"]
@@ -383,3 +390,11 @@ def test_build_report_writes_nothing(results):
     doc = build_report(results, figures=False)
     assert sorted(p.name for p in results.iterdir()) == before
     assert doc.figures == {} and any(b["type"] == "table" for b in doc.blocks)
+
+
+def test_timing_tables_say_whether_the_runs_were_warmed_up(report):
+    md = report[1].read_text(encoding="utf-8")
+    assert "after a warm-up (the method run untimed on 100 frames first)" in md
+    assert "without a warm-up (warmup = false" in md
+    # one caption each: the warmed grid does not claim the cold one's and the other way round
+    assert md.count("after a warm-up") == 1 and md.count("without a warm-up") == 1

@@ -121,3 +121,43 @@ def test_video_trace_has_a_frame_per_step_frame(tmp_path):
     assert len(frames) == 7
     assert frames[0].shape == (16 + 128 + 2 * 64, 512, 3)
     assert trace.n == 7
+
+
+def _cann_map():
+    """A map whose method's filter reports a state: its confidence is a probability."""
+    m = _map()
+    m.method = SimpleNamespace(filter=SimpleNamespace(state_="lost"))
+    return m
+
+
+def test_a_probability_is_drawn_on_its_own_scale_and_a_score_from_low_to_high(tmp_path):
+    path = tmp_path / "trace.html"
+    with open_trace(path, _cann_map()) as trace:
+        trace.add(_step(0, 5))
+    assert _page_data(path)["probabilities"] is True
+    with open_trace(path, _map()) as trace:  # no filter state: raw scores
+        trace.add(_step(0, 5))
+    assert _page_data(path)["probabilities"] is False
+
+
+def test_video_confidence_bars_keep_their_height_and_show_under_a_relocation(tmp_path):
+    pytest.importorskip("av")
+    green, red = np.array([60, 180, 90]), np.array([220, 50, 50])
+    with open_trace(tmp_path / "trace.mp4", _cann_map()) as trace:
+        first = _step(0, 5, relocated=(3,))
+        trace.add(first)
+        # the last plot (confidence over time) of the last frame drawn: a column per frame
+        panel = trace._draw(first, 4)[-64:]
+        heights = (panel == green).all(axis=2).sum(axis=0)
+        # frame k's bar is column 512 - 5 + k, as high as its confidence: 1 + 63 rows at 1
+        expected = 1 + np.rint(first.confidences * 63).astype(int)
+        assert (panel[:6, 512 - 5 + 3] == red).all()  # a tick above the relocation's bar ...
+        heights[512 - 5 + 3] += 6 - (64 - expected[3])  # ... over the bar's top rows
+        np.testing.assert_array_equal(heights[-5:], expected)
+        later = _step(5, 3, relocated=())
+        later.confidences[:] = 0.01  # low confidences after: the earlier bars keep their height
+        trace.add(later)
+        panel = trace._draw(later, 2)[-64:]
+        heights = (panel == green).all(axis=2).sum(axis=0)
+        heights[512 - 8 + 3] += 6 - (64 - expected[3])
+        np.testing.assert_array_equal(heights[-8:-3], expected)

@@ -261,7 +261,7 @@ DATASET_OPTIONS = {
 
 
 def add_dataset_args(p: argparse.ArgumentParser, required: bool = True) -> None:
-    g = p.add_argument_group("dataset (see `flyvpr datasets` for layouts and options)")
+    g = p.add_argument_group("dataset (run flyvpr datasets for the layouts and their options)")
     g.add_argument("--dataset", required=required, choices=sorted(DATASETS), help="dataset layout")
     used = {opt for spec in DATASETS.values() for opt in spec.options}
     for opt in DATASET_OPTIONS:

@@ -349,8 +349,14 @@ def _section_timing(doc: Document, g: GridRuns, figures: bool, order: list[str])
         rows,
         "feature extraction = decoding and resizing the query images (no cache) + encoding "
         "them; place matching = scoring against every reference + temporal filtering; per "
-        "query = (extraction + matching) / queries. Runs executed one at a time after a "
-        "warm-up; mean over seeds.",
+        "query = (extraction + matching) / queries. Runs executed one at a time "
+        + (
+            "after a warm-up (the method run untimed on 100 frames first)"
+            if g.grid.warmup
+            else "without a warm-up (warmup = false: the first run of a method pays its "
+            "compilation and first-call costs)"
+        )
+        + "; mean over seeds.",
     )
     doc.para(
         "For comparison, the paper (different hardware, full-resolution frames) reports for "

@@ -186,6 +186,8 @@ class Localizer:
             Metres between consecutive places; default the map's
             :attr:`~flyvpr.localization.maps.Map.place_spacing` (None for a map without positions).
 
+        Notes
+        -----
         The map is kept as ``map_`` (timestamps, positions and thumbnails of the places).
         """
         from .maps import Map

@@ -31,6 +31,8 @@ HTML_BINS = 256
 _W = 512  # canvas width: two images of 256 px side by side
 _IMG_H = 128
 _PLOT_H = 64
+#: height of the tick above a relocated frame's confidence bar (it leaves the bar visible)
+_RELOC_H = 6
 _TEXT_H = 16
 _H = _TEXT_H + _IMG_H + 2 * _PLOT_H
 _BLUE = np.array([70, 130, 220], np.uint8)
@@ -59,6 +61,13 @@ def _normalised(values: np.ndarray) -> np.ndarray:
     return (values - lo) / (hi - lo) if hi > lo else np.zeros_like(values, dtype=np.float64)
 
 
+def _probabilities(the_map) -> bool:
+    """Whether the map's method says its confidence as a probability in [0, 1]: a filter that
+    reports a state (the CANN).  The trace draws it on that scale; a raw score (no filter, or
+    one without a state) from the lowest to the highest seen."""
+    return hasattr(getattr(getattr(the_map, "method", None), "filter", None), "state_")
+
+
 def _bars(heights: np.ndarray, plot_h: int, colour) -> np.ndarray:
     """An RGB panel (plot_h, len(heights), 3) with a bar of ``heights`` (in [0, 1]) per column."""
     top = plot_h - np.rint(np.clip(heights, 0, 1) * (plot_h - 1)).astype(int) - 1
@@ -84,6 +93,7 @@ class VideoTrace:
         self.history = np.zeros(_W)
         self.relocs = np.zeros(_W, bool)
         self.n = 0
+        self.probabilities = _probabilities(the_map)
 
     def add(self, step) -> None:
         for i in range(len(step.places)):
@@ -108,14 +118,17 @@ class VideoTrace:
         y += _IMG_H
         act = _normalised(_binned(step.scores[i].astype(np.float64), _W))
         panel = _bars(act, _PLOT_H, _BLUE)
-        panel[:, place * _W // m.n_places] = _RED
+        panel[:, (2 * place + 1) * _W // (2 * m.n_places)] = _RED  # the place's centre
         canvas[y : y + _PLOT_H] = panel
         y += _PLOT_H
         seen = min(self.n + 1, _W)
         hist = np.zeros(_W)
-        hist[-seen:] = _normalised(self.history[-seen:])
+        # a probability on its own scale (the same bar height for a frame all the video
+        # long); a raw score from the lowest to the highest seen so far
+        recent = self.history[-seen:]
+        hist[-seen:] = recent if self.probabilities else _normalised(recent)
         panel = _bars(hist, _PLOT_H, _GREEN)
-        panel[:, self.relocs] = _RED
+        panel[:_RELOC_H, self.relocs] = _RED  # a tick above a relocation's bar
         canvas[y : y + _PLOT_H] = panel
         img = Image.fromarray(canvas)
         b = step.batch
@@ -161,6 +174,7 @@ class HtmlTrace:
         h, w = queries.shape[1:] if len(queries) else m.size
         thumbs = m.thumbnails if m.thumbnails is not None else np.zeros((m.n_places, h, w))
         data = {
+            "probabilities": _probabilities(m),
             "h": int(h),
             "w": int(w),
             "n_places": m.n_places,
@@ -199,13 +213,15 @@ def open_trace(path, the_map):
 
 _PAGE = """<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>flyvpr trace</title>
-<style>body{font:14px sans-serif;margin:1em}canvas{border:1px solid #ccc;display:block}
-#info{margin:.4em 0}</style></head><body>
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<style>body{font:14px sans-serif;margin:1em}
+canvas{border:1px solid #ccc;display:block;width:512px;max-width:100%}
+#slider{width:512px;max-width:calc(100% - 5em)}#info{margin:.4em 0}</style></head><body>
 <h1>flyvpr localization trace</h1>
-<div><button id="play">play</button> <input id="slider" type="range" min="0" value="0"
- style="width:512px"></div><div id="info"></div>
+<div><button id="play">play</button> <input id="slider" type="range" min="0" value="0"></div>
+<div id="info"></div>
 <p>query frame | matched place; activity over places (red: matched place);
-confidence over time (red: relocation, black: this frame)</p>
+confidence over time, <span id="scale"></span> (red tick: relocation, black: this frame)</p>
 <canvas id="c" width="512" height="272"></canvas>
 <script>
 const D = __DATA__;
@@ -215,7 +231,11 @@ const c = document.getElementById("c"), g = c.getContext("2d");
 const s = document.getElementById("slider"), info = document.getElementById("info");
 const n = D.rows.length; s.max = Math.max(0, n - 1);
 const confs = D.rows.map(r => r[3]);
-const lo = Math.min(...confs), hi = Math.max(...confs);
+// a probability on its own scale, 0 to 1; a raw score from the run's lowest to its highest
+const lo = D.probabilities ? 0 : Math.min(...confs), hi = D.probabilities ? 1 : Math.max(...confs);
+document.getElementById("scale").textContent = D.probabilities ? "bar height 0 to 1" :
+  "bar height from the run's lowest score (" + lo.toPrecision(3) + ") to its highest (" +
+  hi.toPrecision(3) + ")";
 g.imageSmoothingEnabled = false;
 function draw(i) {
   const r = D.rows[i]; if (!r) return;
@@ -227,13 +247,15 @@ function draw(i) {
     const v = act[i * D.bins + b] / 255 * 63;
     g.fillRect(b * 512 / D.bins, 192 - v, 512 / D.bins, v);
   }
-  g.fillStyle = "#dc3232"; g.fillRect(r[2] * 512 / D.n_places, 128, 2, 64);
+  g.fillStyle = "#dc3232"; g.fillRect((r[2] + 0.5) * 512 / D.n_places - 1, 128, 2, 64);
+  const wide = Math.max(1, 512 / n);
   for (let k = 0; k < n; k++) {
-    const x = k * 512 / n, v = hi > lo ? (confs[k] - lo) / (hi - lo) * 63 : 0;
-    g.fillStyle = D.rows[k][4] ? "#dc3232" : "#3cb45a";
-    g.fillRect(x, D.rows[k][4] ? 192 : 256 - v, Math.max(1, 512 / n), D.rows[k][4] ? 64 : v);
+    const x = k * 512 / n;
+    const v = hi > lo ? Math.min(Math.max((confs[k] - lo) / (hi - lo), 0), 1) * 63 : 0;
+    g.fillStyle = "#3cb45a"; g.fillRect(x, 256 - v, wide, v);
+    if (D.rows[k][4]) { g.fillStyle = "#dc3232"; g.fillRect(x, 192, wide, 6); }
   }
-  g.fillStyle = "#000"; g.fillRect(i * 512 / n, 192, 1, 64);
+  g.fillStyle = "#000"; g.fillRect(Math.max(1, (i + 0.5) * 512 / n - 0.5), 192, 1, 64);
   info.textContent = "frame " + r[0] + (r[1] === null ? "" : "  t=" + r[1].toFixed(2) + " s") +
     "  place " + r[2] + "  confidence " + r[3].toPrecision(3) + (r[5] === "lost" ? "  LOST" : "") +
     (r[4] ? "  RELOCATED" : "");
