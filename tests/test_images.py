@@ -387,11 +387,29 @@ def test_a_tiff_turned_by_its_orientation_tag_is_read_upright(
     np.testing.assert_array_equal(im.load_image(tmp_path / "a.tif", size=(24, 40)), want)
 
 
-def test_an_exif_block_that_cannot_be_read_is_refused_by_name(tmp_path):
-    # its orientation is unknown: reading it as stored could be reading it sideways
-    Image.fromarray(np.zeros((4, 4), np.uint8)).save(tmp_path / "bad.png", exif=b"garbage!")
-    with pytest.raises(im.ImageReadError, match=r"bad.png: its EXIF metadata cannot be read"):
-        im.load_image(tmp_path / "bad.png")
+def test_an_exif_block_that_cannot_be_read_is_read_as_stored_with_a_warning(tmp_path, caplog):
+    # as Pillow reads such a JPEG (it drops the block at open): the frame loads, and a warning
+    # names the file, since its orientation is unknown
+    frame = np.arange(16, dtype=np.uint8).reshape(4, 4) * 10
+    Image.fromarray(frame).save(tmp_path / "bad.png", exif=b"garbage!")
+    with caplog.at_level("WARNING", logger="flyvpr.images"):
+        got = im.load_image(tmp_path / "bad.png", size=(4, 4))
+    np.testing.assert_allclose(got, frame / 255, atol=1e-6)
+    assert "bad.png: its EXIF metadata cannot be read" in caplog.text
+
+
+def test_a_bayer_tiff_with_an_orientation_tag_is_refused(tmp_path):
+    # Pillow turns a TIFF while loading it, before the mosaic could be demosaiced
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    mosaic = np.random.default_rng(1).integers(0, 256, (12, 20), dtype=np.uint8)
+    Image.fromarray(mosaic).save(tmp_path / "raw.tif", exif=exif)
+    with pytest.raises(im.ImageReadError, match=r"raw\.tif: a raw Bayer TIFF with an orientation"):
+        im.load_image(tmp_path / "raw.tif", size=(20, 12), bayer="gbrg")
+    # without the tag, or not a mosaic, it loads
+    Image.fromarray(mosaic).save(tmp_path / "plain.tif")
+    assert im.load_image(tmp_path / "plain.tif", size=(12, 20), bayer="gbrg").shape == (12, 20)
+    assert im.load_image(tmp_path / "raw.tif", size=(20, 12)).shape == (20, 12)
 
 
 def test_exif_orientation_of_a_bayer_mosaic_turns_it_after_demosaicing(tmp_path):
@@ -435,6 +453,31 @@ def test_natural_order_reads_decimal_fractions_as_decimals(tmp_path):
     assert [p.name for p in im.list_images(tmp_path)] == [f"{t}.png" for t in stamps]
     names = ["frame1.png", "frame1.5.png", "frame2.png", "frame2.25.png", "frame10.png"]
     assert sorted(names[::-1], key=lambda n: im._natural_key(Path(n))) == names
+
+
+def test_natural_order_reads_a_dotted_run_as_whole_numbers():
+    # versions and addresses are not decimals: 1.10.0 comes after 1.2.3
+    names = ["v1.2.3.png", "v1.10.0.png", "10.0.0.2.png", "10.0.0.10.png", "a.1.png", "a.10.png"]
+    got = sorted(names[::-1], key=lambda n: im._natural_key(Path(n)))
+    assert got == ["10.0.0.2.png", "10.0.0.10.png", "a.1.png", "a.10.png", "v1.2.3.png",
+                   "v1.10.0.png"]  # fmt: skip
+
+
+def test_an_order_that_a_fraction_decides_is_warned_about(tmp_path, caplog):
+    # cam1.10: version 1.10 (after 1.2) or the decimal 1.1 (before)? Read as decimals, said
+    for name in ("cam1.10.png", "cam1.2.png", "cam2.png"):
+        (tmp_path / name).write_bytes(b"")
+    with caplog.at_level("WARNING", logger="flyvpr.images"):
+        got = [p.name for p in im.list_images(tmp_path)]
+    assert got == ["cam1.10.png", "cam1.2.png", "cam2.png"]
+    assert "cam1.10.png before cam1.2.png as decimals, after as whole numbers" in caplog.text
+    caplog.clear()
+    for stamp in ("1600000000.100", "1600000000.200"):  # zero-padded: either reading agrees
+        (tmp_path / "padded").mkdir(exist_ok=True)
+        (tmp_path / "padded" / f"{stamp}.png").write_bytes(b"")
+    with caplog.at_level("WARNING", logger="flyvpr.images"):
+        im.list_images(tmp_path / "padded")
+    assert caplog.text == ""
 
 
 def test_natural_order_breaks_ties_by_name_not_by_listing(tmp_path):

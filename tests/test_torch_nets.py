@@ -460,7 +460,18 @@ def test_a_saved_netvlad_loads_its_backbone_from_anywhere_and_refuses_other_weig
         r"fitted with",
     ):
         load_method(model)
-    (work / "bb.pth").unlink()  # gone: a model file error too, not a FileNotFoundError
+    # the model moved with its weights to another folder: the path it was given, from the
+    # working directory, serves (the same weights, by their hash)
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    _copy_default_weights(torch, moved / "bb.pth")
+    (work / "bb.pth").unlink()
+    monkeypatch.chdir(moved)
+    np.testing.assert_array_equal(load_method(model).score(places[1]), S)
+    _copy_default_weights(torch, moved / "bb.pth", scale=1.5)  # other weights there: refused
+    with pytest.raises(ModelFileError, match=r"backbone_weights .*bb\.pth differ from"):
+        load_method(model)
+    (moved / "bb.pth").unlink()  # gone: a model file error too, not a FileNotFoundError
     with pytest.raises(ModelFileError, match=r"nv\.npz: .*weights file not found: .*bb\.pth"):
         load_method(model)
 

@@ -107,7 +107,8 @@ FOLDER_RULES = (
     "- frames: regular files (or links to them) ending in "
     + " ".join(IMAGE_EXTENSIONS)
     + " (any case), in natural name order: numbers by value, decimals too (2.png before "
-    "10.png, 1.05.png before 1.1.png), names equal but for that (1.png, 01.png) by name;\n"
+    "10.png, 1.05.png before 1.1.png; a warning where that decides the order), names equal "
+    "but for that (1.png, 01.png) by name;\n"
     "- skipped, counted with `flyvpr --verbose COMMAND`: hidden entries, whose name starts "
     "with '.' (.DS_Store, ._* AppleDouble files);\n"
     "- refused: anything else (another extension such as .gif, .webp or .txt, a sub-folder, a "
@@ -344,6 +345,14 @@ def _decode(path: Path, bayer: str | None, high_byte: list | None = None) -> np.
             _check_pixels(path, img)
             _check_mode(path, img)
             rawmode = _high_byte_rawmode(img)  # (from the tiles, which load() clears)
+            if bayer is not None and img.format == "TIFF" and _orientation(path, img) != 1:
+                # Pillow turns a TIFF itself while loading it: a mosaic turned before it is
+                # demosaiced changes its pattern, and the tag is gone by then
+                raise ImageReadError(
+                    f"{path}: a raw Bayer TIFF with an orientation tag (Pillow turns it before "
+                    "it can be demosaiced, which changes its pattern); save it without the tag "
+                    "or as PNG"
+                )
             img.load()
             # (Pillow turns a TIFF itself while loading it, and drops the tag)
             transpose = _ORIENTATION.get(_orientation(path, img))
@@ -456,15 +465,19 @@ def _warn_high_byte(found: list, n_frames: int | None = None) -> None:
 
 
 def _orientation(path: Path, img) -> int:
-    """The EXIF Orientation of an opened file (1, upright, when it has none)."""
+    """The EXIF Orientation of an opened file (1, upright, when it has none, or when its EXIF
+    block cannot be read: a warning names the file, as Pillow reads such a JPEG as stored)."""
     try:
         value = img.getexif().get(ExifTags.Base.Orientation, 1)
     except (SyntaxError, ValueError, TypeError, KeyError, IndexError, OSError, struct.error) as exc:
         # (the kinds Pillow's EXIF parser raises on a damaged block)
-        raise ImageReadError(
-            f"{path}: its EXIF metadata cannot be read, so its orientation is unknown ({exc}); "
-            "save the image again without the EXIF block, turned upright"
-        ) from None
+        logger.warning(
+            "%s: its EXIF metadata cannot be read (%s): read as stored, not turned by an "
+            "orientation tag",
+            path,
+            exc,
+        )
+        return 1
     return value if isinstance(value, int) else 1
 
 
@@ -505,9 +518,10 @@ def load_image(path, size=DEFAULT_SIZE, *, bayer: str | None = None) -> np.ndarr
         If the file does not exist.
     ImageReadError
         If it is corrupt, truncated or not an image, holds float values outside [0, 1] or
-        NaN, has a colour mode that is not RGB in some form (LAB, HSV) or an EXIF block that
-        cannot be read (its orientation unknown), or declares more pixels than
-        ``PIL.Image.MAX_IMAGE_PIXELS`` (the message names the file).
+        NaN, has a colour mode that is not RGB in some form (LAB, HSV), is a raw Bayer TIFF
+        with an orientation tag, or declares more pixels than ``PIL.Image.MAX_IMAGE_PIXELS``
+        (the message names the file).  An EXIF block that cannot be read is warned about and
+        the frame read as stored.
     ValueError, TypeError
         For a ``bayer`` that is not one of the patterns, or a bad ``size``.
     """
@@ -521,18 +535,43 @@ def load_image(path, size=DEFAULT_SIZE, *, bayer: str | None = None) -> np.ndarr
     return resize_area(gray, size)
 
 
-_NUMBER = re.compile(r"(\d+\.\d+|\d+)")
+#: a number: a decimal (digits, a dot, digits, not part of a longer dotted run such as
+#: ``v1.10.0`` or ``10.0.0.2``, whose parts are whole numbers), else a run of digits
+_NUMBER = re.compile(r"((?<!\d\.)(?<!\d)\d+\.\d+(?!\d)(?!\.\d)|\d+)")
+_WHOLE = re.compile(r"(\d+)")
 
 
-def _natural_key(path: Path):
+def _natural_key(path: Path, number=_NUMBER):
     """Natural order: runs of digits by value, a decimal fraction too (``1600000000.05.png``,
-    a timestamp written by ``str(float)``, before ``1600000000.1.png``), text without case;
-    names equal but for that (``1.png``, ``01.png``; ``a2.png``, ``A2.png``) by the name
-    itself, so the order never depends on the folder listing's."""
-    parts = _NUMBER.split(path.name)
+    a timestamp written by ``str(float)``, before ``1600000000.1.png``; a dotted run of more
+    than two numbers, ``v1.10.0``, is whole numbers), text without case; names equal but for
+    that (``1.png``, ``01.png``; ``a2.png``, ``A2.png``) by the name itself, so the order never
+    depends on the folder listing's.  ``number``: :data:`_WHOLE` reads every run of digits as
+    a whole number (``1.10`` after ``1.2``)."""
+    parts = number.split(path.name)
     # split alternates text and number, so equal positions always hold the same type
     key = [Decimal(p) if i % 2 else p.lower() for i, p in enumerate(parts)]
     return key, path.name
+
+
+def _sorted_frames(folder: Path, files: list[Path]) -> list[Path]:
+    """``files`` in natural order, with a warning where reading a fraction as a decimal or
+    as a whole number gives another order (``cam1.10``, ``1600000000.300``: a version, or
+    nanoseconds without their zeros?)."""
+    ordered = sorted(files, key=_natural_key)
+    whole = sorted(files, key=lambda f: _natural_key(f, _WHOLE))
+    if ordered != whole:
+        first = next(i for i, (a, b) in enumerate(zip(ordered, whole, strict=True)) if a != b)
+        logger.warning(
+            "%s: the numbers with a fraction in the frames' names sort one way read as decimals "
+            "and another read as whole numbers (%s before %s as decimals, after as whole "
+            "numbers): read as decimals; zero-pad the fractions to the same length, or rename "
+            "the frames, if that is not their order",
+            folder,
+            ordered[first].name,
+            whole[first].name,
+        )
+    return ordered
 
 
 def _refusal(entry: os.DirEntry, extensions: tuple[str, ...]) -> str | None:
@@ -621,7 +660,7 @@ def list_images(folder, extensions: Sequence[str] = IMAGE_EXTENSIONS) -> list[Pa
         logger.info("%s: skipped %d hidden entries (names starting with '.')", folder, hidden)
     if not files:
         raise ValueError(f"no image files ({', '.join(exts)}) in folder {folder}")
-    return sorted(files, key=_natural_key)
+    return _sorted_frames(folder, files)
 
 
 def default_cache_dir() -> Path:

@@ -586,6 +586,13 @@ class NetVLADNet(TorchClassifier):
         state = dict(state)
         fitted_with = state.pop("backbone_sha256_", None)
         weights = state.pop("backbone_weights_", self.backbone_weights)
+        if weights is not None and not os.path.exists(weights):
+            # Moved with its weights (another folder, another machine): the path the model
+            # was given, from the working directory, if it is there (the hash below still
+            # checks that they are the same weights).
+            given = self.backbone_weights
+            if given is not None and os.path.exists(os.fspath(given)):
+                weights = os.fspath(given)
         super()._set_state(state)
         self._build_backbone(import_torch(self._who(), self.extra), weights)
         source = (
