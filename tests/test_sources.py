@@ -675,6 +675,31 @@ def test_every_metres_allows_for_rounding(tmp_path, origin):
     assert src.read_all(SIZE, every="0.2m", positions=short).indices.tolist()[:3] == [0, 3, 5]
 
 
+def test_positions_read_twice_keep_their_interval():
+    # every message of a 0.5 Hz GPS twice (two connections of one topic): the median interval
+    # was 0, so every interval was a gap of more than 1 s and no frame between fixes got one
+    keys = np.repeat(1000.0 + 2.0 * np.arange(30), 2)
+    xy = np.c_[np.repeat(np.arange(30.0), 2), np.zeros(60)]
+    twice = Positions(keys, xy, "timestamp", "gps")
+    assert twice.interval == 2.0 and len(twice.gaps) == 0
+    frames = 1000.0 + 0.1 * np.arange(580)
+    got = twice.at(np.arange(580), frames, interpolate=True)
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got[:, 0], 0.05 * np.arange(580), atol=1e-9)
+
+
+@pytest.mark.parametrize("start", [1000.0, 1_700_000_000.013])  # bag time, Unix time
+def test_every_metres_allows_for_rounding_of_interpolated_unix_times(tmp_path, start):
+    # a 1 Hz GPS at 1 m/s under a 10 Hz camera: each frame's point is interpolated at its
+    # timestamp, whose float64 rounding at Unix time (0.2 us) moved the points by as much,
+    # and every=0.3m kept steps of 4, 4, 4, 4, 3 (54 frames of 200 instead of 67)
+    stamps = np.array([start + i * 0.1 for i in range(200)])
+    fixes = np.array([start + i for i in range(21)])
+    gps = Positions(fixes, np.c_[np.arange(21.0), np.zeros(21)], "timestamp", "gps")
+    got = _Stamped(tmp_path / "cam", stamps).read_all(SIZE, every="0.3m", positions=gps)
+    assert got.indices.tolist() == list(range(0, 200, 3))
+
+
 @pytest.mark.parametrize("start", [1000.0, 1_700_000_000.013])  # bag time, Unix time
 def test_every_seconds_allows_for_rounding(tmp_path, start):
     # Unix timestamps hold about 0.2 us in a float64: 0.3 s between two of them came out

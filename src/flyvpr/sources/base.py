@@ -34,6 +34,8 @@ _WARNED_STEP_BACK: set[tuple] = set()
 #: as the full step: rounding, such as 0.1 m steps adding up to 0.30000000000000004 m or
 #: Unix timestamps (float64 holds them to about 0.2 us), does not drop a frame
 EVERY_SLACK = 1e-9
+#: ... and this share of the step (a millionth: a micrometre in a metre)
+EVERY_RELATIVE_SLACK = 1e-6
 
 #: frames per batch unless a caller asks for another number
 DEFAULT_BATCH = 32
@@ -135,9 +137,12 @@ class Batch:
 def _short(step: float, every: float, *values) -> bool:
     """Whether ``step`` falls short of ``every`` by more than rounding: :data:`EVERY_SLACK`
     plus 4 units in the last place of the largest of ``values`` (what ``step`` is computed
-    from), so that the test does not depend on where the clock or the coordinates start."""
+    from), so that the test does not depend on where the clock or the coordinates start, plus
+    :data:`EVERY_RELATIVE_SLACK` of ``every`` (positions interpolated at Unix timestamps carry
+    the timestamps' rounding too, times the speed)."""
     scale = max((abs(float(v)) for v in values), default=0.0)
-    return step < every - (EVERY_SLACK + 4 * math.ulp(scale))
+    slack = EVERY_SLACK + 4 * math.ulp(scale) + EVERY_RELATIVE_SLACK * every
+    return step < every - slack
 
 
 class _Thinner:

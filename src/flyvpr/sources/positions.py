@@ -63,8 +63,15 @@ class Positions:
         self.xy = np.asarray(xy, np.float64).reshape(-1, 2)[order]
         self.by = by
         self.origin = origin
+        # contiguous columns: np.interp copies a strided one on every call (a frame at a
+        # time, as --every reads them, that was a copy of the whole table per frame)
+        self._x = np.ascontiguousarray(self.xy[:, 0])
+        self._y = np.ascontiguousarray(self.xy[:, 1])
         steps = np.diff(self.keys)
-        self.interval = float(np.median(steps)) if len(steps) else 0.0
+        # over the distinct keys: a message read twice (two connections of one topic) must not
+        # make the usual interval 0, and every interval a gap
+        distinct = steps[steps > 0]
+        self.interval = float(np.median(distinct)) if len(distinct) else 0.0
         limit = GAP_INTERVALS * self.interval
         if by == "timestamp":
             limit = max(limit, GAP_MIN_SECONDS)
@@ -181,7 +188,7 @@ class Positions:
 
     def _interp(self, q: np.ndarray) -> np.ndarray:
         """Linear interpolation between rows (the first/last row's position beyond them)."""
-        return np.c_[np.interp(q, self.keys, self.xy[:, 0]), np.interp(q, self.keys, self.xy[:, 1])]
+        return np.c_[np.interp(q, self.keys, self._x), np.interp(q, self.keys, self._y)]
 
 
 def _read_csv(path: Path) -> Positions:

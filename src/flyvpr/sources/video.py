@@ -10,8 +10,9 @@ takes for the same area resize (``frame.reformat(..., interpolation="AREA")``), 
 the path for every other pixel format (RGB, 10-bit, palette ...): converted to full-size gray
 first, then averaged the same way.
 
-Which stream: the one FFmpeg itself would play (``av_find_best_stream``: the default-flagged
-video stream, else the one with the most frames), said at info level when there are several.
+Which stream: the one a player picks (of the default-flagged video streams if any, else of
+all, the one with the largest picture, as the ``ffmpeg`` command picks, then the most frames;
+a cover picture only where there is nothing else), said at info level when there are several.
 A display matrix that turns the picture by a multiple of 90 degrees (what phones write
 instead of rotating the pixels) is applied, so frames come upright as a player shows them.
 
@@ -118,7 +119,7 @@ class VideoSource(Source):
             else:
                 reached = _stream_start(stream)
             missing = ends - reached
-            if missing > 3 * step + _CLOCK_SLACK_S:
+            if missing > 0.5 * step + _CLOCK_SLACK_S:  # (a frame missing at the end, or more)
                 expected, says = _expected_frames(
                     stream, decoded=index, missing_s=missing, interval=step
                 )
@@ -134,10 +135,23 @@ _CLOCK_SLACK_S = 0.002
 
 
 def _video_stream(container):
-    """The video stream FFmpeg would pick (``av_find_best_stream``): the default-flagged one,
-    else the one with the most decodable frames (a cover picture loses to the video)."""
-    best = container.streams.best("video")
-    return best if best is not None else container.streams.video[0]
+    """The video stream a player picks: of the default-flagged ones if any, else of all, the
+    one with the largest picture (as the ``ffmpeg`` command picks), then the most frames; a
+    cover picture (an attached picture) only where there is nothing else; the first on a tie."""
+    import av
+
+    streams = list(container.streams.video)
+    cover = int(av.stream.Disposition.attached_pic)
+    default = int(av.stream.Disposition.default)
+    flags = [int(getattr(s, "disposition", 0) or 0) for s in streams]
+    moving = [s for s, f in zip(streams, flags, strict=True) if not f & cover] or streams
+    chosen = [s for s in moving if int(getattr(s, "disposition", 0) or 0) & default] or moving
+
+    def size(s):
+        ctx = s.codec_context
+        return (int(ctx.width or 0) * int(ctx.height or 0), int(s.frames or 0))
+
+    return max(chosen, key=size)  # (max keeps the first of equals)
 
 
 def _describe_stream(stream) -> str:
@@ -265,6 +279,15 @@ def _quarter_turns(frame) -> int:
         return 0
     if not math.isfinite(angle):  # a singular matrix
         return 0
+    if _mirrored(frame):
+        if "mirrored" not in _WARNED_ANGLES:
+            _WARNED_ANGLES.add("mirrored")
+            logger.warning(
+                "a video's display matrix mirrors it (and turns it by %.1f degrees); mirrored "
+                "matrices are not applied, so its frames are read as stored",
+                angle,
+            )
+        return 0
     turns = round(angle / 90)
     if abs(angle - 90 * turns) > 1.0:
         if angle not in _WARNED_ANGLES:
@@ -278,8 +301,22 @@ def _quarter_turns(frame) -> int:
     return turns % 4
 
 
-#: angles (None: no rotation in this PyAV) warned of already
-_WARNED_ANGLES: set[float | None] = set()
+#: angles (None: no rotation in this PyAV; "mirrored": a mirroring matrix) warned of already
+_WARNED_ANGLES: set[float | str | None] = set()
+
+
+def _mirrored(frame) -> bool:
+    """Whether the frame's display matrix mirrors it (its 2x2 part has a negative
+    determinant: a flip, alone or with a turn), which ``frame.rotation`` cannot say."""
+    side = getattr(frame, "side_data", None)
+    try:
+        matrix = side.get("DISPLAYMATRIX") if side is not None else None
+        if matrix is None:
+            return False
+        a, b, _, c, d = np.frombuffer(bytes(matrix), np.int32)[:5].astype(np.float64)
+    except (TypeError, ValueError, AttributeError):  # (no such side data in this PyAV)
+        return False
+    return a * d - b * c < 0
 
 
 def _decoder(frame):
