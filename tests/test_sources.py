@@ -870,6 +870,29 @@ def test_display_rotation_other_than_quarter_turns_is_not_applied(caplog, monkey
     assert "rotated videos are read as stored: pip install 'av>=14.1'" in caplog.text
 
 
+def test_a_mirroring_display_matrix_is_not_applied(caplog, monkeypatch):
+    # frame.rotation cannot say a matrix mirrors: an hflip reads as -180 degrees, and turning
+    # the frame by it put the picture upside down where a player only mirrors it
+    from types import SimpleNamespace as NS
+
+    from flyvpr.sources import video
+    from flyvpr.sources.video import _mirrored, _quarter_turns
+
+    monkeypatch.setattr(video, "_WARNED_ANGLES", set())
+
+    def frame(a, b, c, d, rotation):  # a 16.16 fixed-point display matrix, FFmpeg's layout
+        m = np.array([a << 16, b << 16, 0, c << 16, d << 16, 0, 0, 0, 1 << 30], np.int32)
+        return NS(rotation=rotation, side_data={"DISPLAYMATRIX": m.tobytes()})
+
+    hflip, turned = frame(-1, 0, 0, 1, -180.0), frame(0, -1, 1, 0, 90.0)
+    assert _mirrored(hflip) and not _mirrored(turned) and not _mirrored(NS(rotation=90.0))
+    assert _quarter_turns(turned) == 1
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        assert _quarter_turns(hflip) == 0
+        assert _quarter_turns(frame(0, -1, -1, 0, 90.0)) == 0  # a turn and a flip
+    assert caplog.text.count("mirrors it") == 1  # said once
+
+
 def test_several_video_streams_read_the_default_one(route, tmp_path, caplog):
     # stream 0: a small preview (5 frames); stream 1: the main track, flagged default
     small = np.stack([f[::2, ::2] for f in _rgb(route, "winter", 5)])
