@@ -675,6 +675,26 @@ def test_every_metres_allows_for_rounding(tmp_path, origin):
     assert src.read_all(SIZE, every="0.2m", positions=short).indices.tolist()[:3] == [0, 3, 5]
 
 
+def test_gaps_at_either_end_of_the_rows_and_their_edges():
+    # rows 1 s apart with gaps after the first row (10 s) and before the last (17 s): the
+    # half-interval margin (0.5 s) holds on the gap's side of each row, boundary included
+    keys = np.array([0.0, 10, 11, 12, 13, 30])
+    pos = Positions(keys, np.c_[2 * keys, np.zeros(6)], "timestamp", "gps")
+    assert pos.gaps.tolist() == [[0.0, 10.0], [13.0, 30.0]]
+    q = np.array([0.0, 0.4, 0.6, 9.4, 9.5, 10.0, 13.5, 13.6, 29.4, 29.5, 30.0, 30.5, 31.0])
+    want = [0, 0, None, None, 20, 20, 26, None, None, 60, 60, 60, None]
+    for interpolate in (False, True):
+        x = pos.at(np.zeros(len(q)), q, interpolate=interpolate)[:, 0]
+        assert [None if np.isnan(v) else v for v in x] == want, interpolate
+    two = Positions(np.array([0.0, 1.0, 2.0, 3.0, 9.0, 10.0, 11.0]), np.zeros((7, 2)),
+                    "timestamp", "gps")  # fmt: skip
+    more = Positions(np.r_[0:4, 10:14, 20:24, 30:34, 40:44] * 1.0, np.zeros((20, 2)),
+                     "timestamp", "gps")  # fmt: skip
+    assert two.describe_gaps() == "1 gap: timestamps 3-9 s"
+    assert more.describe_gaps(most=4) == ("4 gaps: timestamps 3-10 s, 13-20 s, 23-30 s, 33-40 s")
+    assert more.describe_gaps(most=3).endswith("23-30 s and 1 more")
+
+
 def test_positions_read_twice_keep_their_interval():
     # every message of a 0.5 Hz GPS twice (two connections of one topic): the median interval
     # was 0, so every interval was a gap of more than 1 s and no frame between fixes got one
