@@ -525,3 +525,29 @@ def test_an_interrupt_inside_a_compiled_kernel_exits_as_an_interrupt(
     chosen[0] = other
     with pytest.raises(SystemError, match="something else"):
         cli.main([])
+
+
+def test_fit_reads_the_reference_traverse_only(tmp_path, capsys):
+    # a generic root with the reference folder alone: the default query folder ("query") is
+    # not there, and fit does not need it (it failed: image folder not found)
+    from PIL import Image
+
+    from flyvpr.modelio import load_method
+    from flyvpr.synthetic import make_route
+
+    route = make_route(12, size=(32, 64), conditions=("summer",), random_state=2)
+    folder = tmp_path / "root" / "reference"
+    folder.mkdir(parents=True)
+    for i, frame in enumerate(route.images["summer"]):
+        Image.fromarray(np.rint(frame * 255).astype(np.uint8)).save(folder / f"{i:03d}.png")
+    positions = tmp_path / "xy.csv"  # ground truth only: its query rows name other images
+    positions.write_text("traverse,filename,x,y\nquery,x.png,0,0\n")
+    model = tmp_path / "m.npz"
+    argv = ["fit", "--dataset", "generic", "--root", str(tmp_path / "root"),
+            "--method", "pixels", "--save", str(model)]  # fmt: skip
+    assert main([*argv, "--positions-csv", str(positions), "--radius", "5"]) == 0
+    assert "fitted on 12 reference places" in capsys.readouterr().out
+    assert load_method(model).frontend.n_reference_ == 12
+    # a query that is given must be there
+    assert main([*argv, "--query", "winter"]) == 1
+    assert "image folder not found" in capsys.readouterr().err

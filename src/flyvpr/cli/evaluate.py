@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import logging
 import time
 from pathlib import Path
@@ -140,12 +141,30 @@ def _check_fitted_here(model, ref, path) -> None:
         )  # fmt: skip
 
 
+def _reference_only(args) -> dict:
+    """The dataset options of ``fit``, which reads the reference traverse only: without
+    ``--query``, the layout's query is the reference itself (so that a missing default query
+    folder does not stop a fit), and the ground-truth options are not read."""
+    from ..datasets import DATASETS
+
+    kwargs = dataset_kwargs(args)
+    spec = DATASETS[args.dataset]
+    if "query" in spec.options and "query" not in kwargs:
+        reference = kwargs.get("reference")
+        if reference is None:
+            reference = inspect.signature(spec.loader).parameters["reference"].default
+        kwargs["query"] = reference
+        if kwargs.pop("positions_csv", None) is not None:  # (its query rows name other images)
+            kwargs.pop("radius", None)
+    return kwargs
+
+
 def cmd_fit(args) -> int:
     from ..methods import make_method
     from ..modelio import save_method
 
     front_params, filt_params = split_params(args.method, args.param)
-    bench = load_benchmark(args.dataset, **dataset_kwargs(args))
+    bench = load_benchmark(args.dataset, **_reference_only(args))
     check_outputs(args, bench.input_files(), ("save",))
     check_run_memory(args, bench.n_reference, 0)
     ref = bench.reference.load_images(size=args.size, **image_options(args))
@@ -191,7 +210,9 @@ def register(sub) -> None:
         description=(
             "Fit METHOD on the reference traverse of a dataset and save front end and filter to "
             "an .npz model file (no pickle: loading it cannot run code). Use it with "
-            "`flyvpr evaluate --load MODEL.npz`."
+            "`flyvpr evaluate --load MODEL.npz`. Only the reference traverse is read: without "
+            "--query the layout's query folder need not exist, and ground-truth options "
+            "(--positions-csv, --radius) are not read."
         ),
     )
     add_dataset_args(p)
