@@ -876,41 +876,47 @@ def test_display_rotation_other_than_quarter_turns_is_not_applied(caplog, monkey
     from types import SimpleNamespace as NS
 
     from flyvpr.sources import video
-    from flyvpr.sources.video import _quarter_turns
+    from flyvpr.sources.video import _display_ops
 
     monkeypatch.setattr(video, "_WARNED_ANGLES", set())  # each warning is said once
-
-    assert [_quarter_turns(NS(rotation=r)) for r in (0, -90, 90, 180, -180, 89.6)] == [
-        0, 3, 1, 2, 2, 1,
-    ]  # fmt: skip
+    # the angle alone (no matrix in the side data): a pure turn; PyAV's angle counter-clockwise
+    turns = [_display_ops(NS(rotation=r)) for r in (0, -90, 90, 180, -180, 89.6)]
+    assert turns == [(), ("clock",), ("cclock",), ("hflip", "vflip"), ("hflip", "vflip"),
+                     ("cclock",)]  # fmt: skip
     with caplog.at_level("WARNING", logger="flyvpr"):
-        assert _quarter_turns(NS(rotation=45.0)) == 0
-        assert _quarter_turns(NS()) == 0  # a frame of a PyAV without the attribute
+        assert _display_ops(NS(rotation=45.0)) == ()
+        assert _display_ops(NS()) == ()  # a frame of a PyAV without the attribute
     assert "rotates it by 45.0 degrees; only multiples of 90" in caplog.text
     assert "rotated videos are read as stored: pip install 'av>=14.1'" in caplog.text
 
 
-def test_a_mirroring_display_matrix_is_not_applied(caplog, monkeypatch):
-    # frame.rotation cannot say a matrix mirrors: an hflip reads as -180 degrees, and turning
-    # the frame by it put the picture upside down where a player only mirrors it
+def test_a_display_matrix_is_applied_as_the_ffmpeg_command_does():
+    # the eight matrices of quarter turns and flips, as ffmpeg's autorotate shows them (checked
+    # against ffmpeg itself by a second reader); frame.rotation alone cannot tell a mirror
     from types import SimpleNamespace as NS
 
-    from flyvpr.sources import video
-    from flyvpr.sources.video import _mirrored, _quarter_turns
-
-    monkeypatch.setattr(video, "_WARNED_ANGLES", set())
+    from flyvpr.sources.video import _OPS, _display_ops
 
     def frame(a, b, c, d, rotation):  # a 16.16 fixed-point display matrix, FFmpeg's layout
         m = np.array([a << 16, b << 16, 0, c << 16, d << 16, 0, 0, 0, 1 << 30], np.int32)
         return NS(rotation=rotation, side_data={"DISPLAYMATRIX": m.tobytes()})
 
-    hflip, turned = frame(-1, 0, 0, 1, -180.0), frame(0, -1, 1, 0, 90.0)
-    assert _mirrored(hflip) and not _mirrored(turned) and not _mirrored(NS(rotation=90.0))
-    assert _quarter_turns(turned) == 1
-    with caplog.at_level("WARNING", logger="flyvpr"):
-        assert _quarter_turns(hflip) == 0
-        assert _quarter_turns(frame(0, -1, -1, 0, 90.0)) == 0  # a turn and a flip
-    assert caplog.text.count("mirrors it") == 1  # said once
+    y = np.arange(12).reshape(3, 4)
+    cases = {  # matrix, PyAV's angle: the picture a player shows
+        (1, 0, 0, 1, 0.0): y,
+        (0, -1, 1, 0, 90.0): np.rot90(y, 1),
+        (0, 1, -1, 0, -90.0): np.rot90(y, -1),
+        (-1, 0, 0, -1, -180.0): np.rot90(y, 2),
+        (-1, 0, 0, 1, -180.0): y[:, ::-1],  # hflip
+        (1, 0, 0, -1, 0.0): y[::-1],  # vflip
+        (0, 1, 1, 0, -90.0): y.T,  # transpose
+        (0, -1, -1, 0, 90.0): y[::-1, ::-1].T,  # anti-transpose
+    }
+    for (a, b, c, d, rotation), shown in cases.items():
+        got = y
+        for op in _display_ops(frame(a, b, c, d, rotation)):
+            got = _OPS[op](got)
+        np.testing.assert_array_equal(got, shown, err_msg=str((a, b, c, d)))
 
 
 def test_several_video_streams_read_the_default_one(route, tmp_path, caplog):

@@ -14,7 +14,8 @@ Which stream: the one a player picks (of the default-flagged video streams if an
 all, the one with the largest picture, as the ``ffmpeg`` command picks, then the most frames;
 a cover picture only where there is nothing else), said at info level when there are several.
 A display matrix that turns the picture by a multiple of 90 degrees (what phones write
-instead of rotating the pixels) is applied, so frames come upright as a player shows them.
+instead of rotating the pixels), and mirrors it too, is applied as the ``ffmpeg`` command's
+autorotate applies it, so frames come upright as a player shows them.
 
 A truncated file is refused: by the demuxer's or decoder's own error where it raises one
 (MP4, H.264 ...), and otherwise by time.  The video stream's header says when it ends (its
@@ -264,68 +265,87 @@ def _luma(frame) -> tuple[np.ndarray, bool]:
     return frame.reformat(format="gray").to_ndarray(), True
 
 
-def _quarter_turns(frame) -> int:
-    """Counter-clockwise quarter turns that bring the frame upright, from its display matrix
-    (FFmpeg's side data, as ``ffmpeg`` and players apply it); 0 without one, or for an angle
-    that is not a multiple of 90 degrees (said once per angle)."""
-    angle = getattr(frame, "rotation", None)
-    if angle is None:  # PyAV before 14.1 has no VideoFrame.rotation
+#: how each step of :func:`_display_ops` changes a picture (rows top to bottom): the
+#: ``transpose`` filter's directions and the flips, as the ``ffmpeg`` command's autorotate
+_OPS = {
+    "clock": lambda y: np.rot90(y, -1),  # 90 degrees clockwise
+    "cclock": lambda y: np.rot90(y, 1),  # 90 degrees counter-clockwise
+    "cclock_flip": lambda y: y.T,  # counter-clockwise, then upside down: the transpose
+    "clock_flip": lambda y: np.rot90(y, -1)[::-1],  # clockwise, then upside down
+    "hflip": lambda y: y[:, ::-1],
+    "vflip": lambda y: y[::-1],
+}
+
+
+def _display_ops(frame) -> tuple[str, ...]:
+    """The steps of :data:`_OPS` that show the frame as the ``ffmpeg`` command does, from its
+    display matrix (FFmpeg's side data: what phones write instead of turning the pixels):
+    FFmpeg's clockwise angle, ``-frame.rotation``, in [0, 360), and the matrix's signs, which
+    say a mirror (``fftools``' autorotate, to the letter).  An angle that is not a multiple of
+    90 degrees is not applied (said once per angle)."""
+    rotation = getattr(frame, "rotation", None)
+    if rotation is None:  # PyAV before 14.1 has no VideoFrame.rotation
         if None not in _WARNED_ANGLES:
             _WARNED_ANGLES.add(None)
             logger.warning(
                 "this PyAV does not expose a video's display rotation (VideoFrame.rotation); "
                 "rotated videos are read as stored: pip install 'av>=14.1'"
             )
-        return 0
-    if not math.isfinite(angle):  # a singular matrix
-        return 0
-    if _mirrored(frame):
-        if "mirrored" not in _WARNED_ANGLES:
-            _WARNED_ANGLES.add("mirrored")
-            logger.warning(
-                "a video's display matrix mirrors it (and turns it by %.1f degrees); mirrored "
-                "matrices are not applied, so its frames are read as stored",
-                angle,
-            )
-        return 0
-    turns = round(angle / 90)
-    if abs(angle - 90 * turns) > 1.0:
-        if angle not in _WARNED_ANGLES:
-            _WARNED_ANGLES.add(angle)
-            logger.warning(
-                "a video's display matrix rotates it by %.1f degrees; only multiples of 90 "
-                "are applied, so its frames are read unrotated",
-                angle,
-            )
-        return 0
-    return turns % 4
+        return ()
+    if not math.isfinite(rotation):  # a singular matrix
+        return ()
+    m = _display_matrix(frame)
+    if m is None:  # the angle alone: the matrix of a pure turn by it
+        r = math.radians(rotation)
+        m = (math.cos(r), -math.sin(r), math.sin(r), math.cos(r))
+    m0, _, m3, m4 = m  # (FFmpeg reads these three)
+    theta = -round(rotation)
+    theta -= 360 * math.floor(theta / 360 + 0.9 / 360)
+    if abs(theta - 90) < 1:
+        return ("cclock_flip",) if m3 > 0 else ("clock",)
+    if abs(theta - 180) < 1:
+        return (("hflip",) if m0 < 0 else ()) + (("vflip",) if m4 < 0 else ())
+    if abs(theta - 270) < 1:
+        return ("clock_flip",) if m3 < 0 else ("cclock",)
+    if abs(theta) < 1 or abs(theta - 360) < 1:
+        return ("vflip",) if m4 < 0 else ()
+    if rotation not in _WARNED_ANGLES:
+        _WARNED_ANGLES.add(rotation)
+        logger.warning(
+            "a video's display matrix rotates it by %.1f degrees; only multiples of 90 are "
+            "applied, so its frames are read unrotated",
+            rotation,
+        )
+    return ()
 
 
-#: angles (None: no rotation in this PyAV; "mirrored": a mirroring matrix) warned of already
-_WARNED_ANGLES: set[float | str | None] = set()
+#: angles (None: no rotation in this PyAV) warned of already
+_WARNED_ANGLES: set[float | None] = set()
 
 
-def _mirrored(frame) -> bool:
-    """Whether the frame's display matrix mirrors it (its 2x2 part has a negative
-    determinant: a flip, alone or with a turn), which ``frame.rotation`` cannot say."""
+def _display_matrix(frame) -> tuple[float, float, float, float] | None:
+    """Entries 0, 1, 3 and 4 of the frame's display matrix (FFmpeg's 3x3, row by row, 16.16
+    fixed point), or None without one."""
     side = getattr(frame, "side_data", None)
     try:
         matrix = side.get("DISPLAYMATRIX") if side is not None else None
         if matrix is None:
-            return False
-        a, b, _, c, d = np.frombuffer(bytes(matrix), np.int32)[:5].astype(np.float64)
+            return None
+        m = np.frombuffer(bytes(matrix), np.int32)[:5].astype(np.float64) / 65536.0
     except (TypeError, ValueError, AttributeError):  # (no such side data in this PyAV)
-        return False
-    return a * d - b * c < 0
+        return None
+    return float(m[0]), float(m[1]), float(m[3]), float(m[4])
 
 
 def _decoder(frame):
     def decode(size):
         h, w = size
         y, full = _luma(frame)
-        turns = _quarter_turns(frame)
-        if turns:
-            y = np.ascontiguousarray(np.rot90(y, turns))
+        ops = _display_ops(frame)
+        for op in ops:
+            y = _OPS[op](y)
+        if ops:
+            y = np.ascontiguousarray(y)
         small = area_resize(y, h, w)
         if full:
             small *= np.float32(1.0 / 255.0)
