@@ -11,6 +11,10 @@ sample and one batch of frames, plus 16 bytes per place for the timestamps and f
 The map file keeps what a later run needs to encode its frames exactly as the places were
 encoded: the encoder's settings (in the JSON metadata) and its arrays (``encoder.*``), each
 place's ``timestamps`` and source ``frames``, and ``positions`` when the recording had them.
+The metadata also says where the places came from (``source``, ``source_kind``, ``topic``,
+``every``, ``positions_from``) and, for a video, how its frames were decoded
+(``video_decode``, as in a full map: :mod:`flyvpr.localization.maps`); all of it is covered
+by the file's ``map_id``.
 :func:`open_compact_map` checks all of it; :func:`compact_localizer` puts a
 :class:`~flyvpr.large.LargeLocalizer` on it.  ``flyvpr map --compact`` and ``flyvpr
 localize --map`` are the command line of this module.
@@ -38,7 +42,9 @@ from .._chunks import ChunkRunner
 from .._validation import check_memory
 from .._version import __version__
 from ..images import DEFAULT_SIZE
+from ..localization.maps import _warn_unrotated
 from ..sources import Positions, RecordingError, Source, open_source, parse_every, read_positions
+from ..sources.video import _DECODE_VERSION as _VIDEO_DECODE
 from .codes import CompactEncoder
 from .mapfile import MAGIC, LargeMap, LargeMapWriter, MapFileError, open_large_map
 
@@ -101,7 +107,7 @@ class CompactMap:
     positions : ndarray of float64, shape (n_places, 2), or None
     info : dict
         ``source``, ``source_kind``, ``topic``, ``every``, ``positions_from``, ``seed``,
-        ``fit_frames``.
+        ``fit_frames``; for a video, ``video_decode`` (how its frames were decoded).
     """
 
     large_map: LargeMap
@@ -279,6 +285,8 @@ def build_compact_map(
             "every": str(every),
             "positions_from": None if pos is None else pos.origin,
         }
+        if src.kind == "video":
+            meta["video_decode"] = _VIDEO_DECODE
         encode = functools.partial(_encode_rows, encoder)
         timestamps, frames = [], []
         written = placed = 0
@@ -362,6 +370,11 @@ def open_compact_map(path, verify: bool = True) -> CompactMap:
     MapFileError
         If it is not such a map, or anything in it is missing or does not fit (the message
         names the file and the field), or, with ``verify``, its content does not match.
+
+    Notes
+    -----
+    A map of a video built before flyvpr applied a video's rotation (no ``video_decode``)
+    opens with a warning, as :meth:`flyvpr.localization.maps.Map.load` says it.
     """
     m = open_large_map(path)
     meta = m.metadata
@@ -373,6 +386,9 @@ def open_compact_map(path, verify: bool = True) -> CompactMap:
     for key in _INFO:
         if key not in meta or not isinstance(meta[key], (str, type(None))):
             raise MapFileError(f"{path}: metadata.{key} is missing or not a string")
+    decode = meta.get("video_decode", 1)  # (maps of a video from before it have none)
+    if type(decode) is not int or decode < 1:
+        raise MapFileError(f"{path}: metadata.video_decode must be an integer >= 1; got {decode!r}")
     arrays = {name: m.arrays.get(f"encoder.{name}") for name in _ENCODER_ARRAYS}
     missing = [f"encoder.{k}" for k, v in arrays.items() if v is None]
     if missing:
@@ -396,8 +412,11 @@ def open_compact_map(path, verify: bool = True) -> CompactMap:
     info = {key: meta[key] for key in _INFO}
     info["seed"] = meta.get("seed")
     info["fit_frames"] = meta.get("fit_frames")
+    if "video_decode" in meta:
+        info["video_decode"] = decode
     if verify:
         m.verify()
+    _warn_unrotated(path, info, "flyvpr map --compact")
     return CompactMap(m, encoder, columns["timestamps"], columns["frames"], pos, info)
 
 

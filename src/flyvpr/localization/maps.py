@@ -4,7 +4,12 @@ A :class:`Map` is the method fitted on the kept frames of one recording (the ref
 traverse) together with, per place, the frame's timestamp, its index in the recording, its
 position (x, y in metres) when known, and a small gray thumbnail (the pre-processed frame as
 8-bit) for traces.  It is saved as a model file (see :mod:`flyvpr.modelio`) with one more
-section, ``map``: the same safe, versioned and checksummed format, no pickle.
+section, ``map``: the same safe, versioned and checksummed format, no pickle.  The section
+says where the places came from (``source``, ``source_kind``, ``topic``, ``every``,
+``positions_from``) and, for a video, how its frames were decoded (``video_decode``, the
+version of :mod:`flyvpr.sources.video`'s decoding).  A map of a video without it was built
+before flyvpr applied a video's rotation, and loading it warns: rebuild it if the video was
+recorded rotated.
 
 Examples
 --------
@@ -36,6 +41,7 @@ from ..sources import (
     parse_every,
     read_positions,
 )
+from ..sources.video import _DECODE_VERSION as _VIDEO_DECODE
 from .localizer import online_method
 
 __all__ = ["Map", "MAP_VERSION", "MapFileError"]
@@ -52,7 +58,11 @@ _MAP_FIELDS: dict[str, type | tuple[type, ...]] = {
     "topic": (str, type(None)),
     "every": str,
     "positions_from": (str, type(None)),
+    "video_decode": int,
 }
+#: fields a file may lack: maps not of a video have no ``video_decode``, nor maps of a video
+#: from before flyvpr applied its rotation (read as version 1, the frames as stored)
+_OPTIONAL_MAP_FIELDS = ("video_decode",)
 
 
 class MapFileError(ValueError):
@@ -77,7 +87,7 @@ class Map:
     thumbnails : ndarray, shape (n_places, H, W), uint8, optional
     info : dict, optional
         ``source``, ``source_kind``, ``topic``, ``every``, ``positions_from`` (where they came
-        from).
+        from); for a video, ``video_decode`` (how its frames were decoded).
     """
 
     def __init__(
@@ -254,6 +264,8 @@ class Map:
             "every": str(every),
             "positions_from": None if pos is None else pos.origin,
         }
+        if src.kind == "video":
+            info["video_decode"] = _VIDEO_DECODE
         logger.info("map: %d places from %s", n, src.describe())
         return cls(m, size, frames.timestamps, frames.indices, xy, thumbs, info)
 
@@ -279,6 +291,12 @@ class Map:
         flyvpr.modelio.ModelFileError
             For anything wrong with the model part (another format version, image size, a
             failed checksum ...), and for a bare model file without a map.
+
+        Notes
+        -----
+        A map of a video built before flyvpr applied a video's rotation (no ``video_decode``)
+        loads with a warning: its places are the frames as stored, so rebuild it if the video
+        was recorded rotated.
         """
         method, found = _load(path, size, {"map": _read_section}, "map file")
         section = found["map"]
@@ -289,15 +307,37 @@ class Map:
                 f"{n} places"
             )
         image_size = tuple(method.frontend.image_shape_)
-        return cls(
+        info = {
+            k: section[k]
+            for k in _MAP_FIELDS
+            if k in section and k not in ("map_version", "n_places")
+        }
+        m = cls(
             method,
             image_size,
             section["timestamps"],
             section["source_index"],
             section.get("positions"),
             section.get("thumbnails"),
-            {k: section[k] for k in ("source", "source_kind", "topic", "every", "positions_from")},
+            info,
         )
+        _warn_unrotated(path, m.info)
+        return m
+
+
+def _warn_unrotated(path, info: dict, command: str = "flyvpr map") -> None:
+    """Warn of a map of a video whose frames were decoded as stored: built before flyvpr
+    applied a video's display matrix, so its places may be sideways or upside down against
+    the upright frames a query now gives (also said of compact maps, with their ``command``)."""
+    if info.get("source_kind") != "video" or info.get("video_decode", 1) >= _VIDEO_DECODE:
+        return
+    logger.warning(
+        "map file %s was built from a video before flyvpr applied a video's rotation: its "
+        "places are the frames as stored, while query frames now come upright; if the video "
+        "was recorded rotated (a phone held sideways, a camera mounted upside down), rebuild "
+        "the map with `%s`",
+        path, command,
+    )  # fmt: skip
 
 
 def _read_frames(src: Source, size, every, positions, progress: bool):
@@ -323,6 +363,8 @@ def _read_frames(src: Source, size, every, positions, progress: bool):
 def _read_section(r, section: dict) -> dict:
     """Check the ``map`` section of a model file and read its arrays (``r`` is modelio's reader)."""
     for key, kind in _MAP_FIELDS.items():
+        if key not in section and key in _OPTIONAL_MAP_FIELDS:
+            continue
         if key not in section:
             raise r.error(f"map.{key}", "missing")
         if not isinstance(section[key], kind) or isinstance(section[key], bool):
@@ -339,6 +381,8 @@ def _read_section(r, section: dict) -> dict:
     n = section["n_places"]
     if n < 1:
         raise r.error("map.n_places", f"must be >= 1; got {n}")
+    if section.get("video_decode", 1) < 1:
+        raise r.error("map.video_decode", f"must be >= 1; got {section['video_decode']}")
     out = dict(section)
     out["timestamps"] = r.array(
         "map/timestamps", "map.timestamps", ArraySpec("float64", (n,), False)

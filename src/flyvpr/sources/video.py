@@ -45,6 +45,10 @@ logger = logging.getLogger(__name__)
 
 #: file suffixes read as video
 VIDEO_EXTENSIONS = (".mp4", ".mkv", ".avi", ".mov", ".webm", ".m4v", ".mpg", ".mpeg", ".ts")
+#: Version of the decoding of a video's frames, recorded in the maps built from a video
+#: (``video_decode``): a map of an older one warns when loaded.  1 (maps without the field):
+#: the frames as stored; 2: the display matrix applied (rotation and mirrors).
+_DECODE_VERSION = 2
 
 
 class VideoSource(Source):
