@@ -230,6 +230,29 @@ def test_live_usage_errors(route, capsys, extra, match):
     assert code == 2 and match in err
 
 
+@pytest.mark.parametrize("text", ["rtsp_transport", "=tcp", " =tcp"])
+def test_a_stream_option_without_a_key_is_one_line(route, capsys, text):
+    code, _, err = _run(capsys, "localize", "--map", route["map"], "udp://127.0.0.1:9",
+                        "--stream-option", text)  # fmt: skip
+    assert code == 2 and err.count("\n") == 1
+    assert f"--stream-option: expected KEY=VALUE (an FFmpeg option); got {text!r}" in err
+
+
+def test_a_stream_option_ffmpeg_does_not_have_is_named(route, capsys):
+    # a misspelt option: FFmpeg would ignore it without a word; the run goes on
+    with MjpegServer(route["jpegs"], fps=None, n_frames=N) as srv:
+        code, stdout, err = _run(
+            capsys, "localize", "--map", route["map"], srv.url, "--retries", 0,
+            "--stream-option", "rw_timeout=5000000", "--stream-option", "timout=5000000",
+        )  # fmt: skip
+    assert code == 0, err
+    assert err.splitlines() == [
+        f"flyvpr localize: stream {srv.url}: FFmpeg did not use the option 'timout': no "
+        "FFmpeg format, device, protocol or codec has an option of that name"
+    ]
+    assert f"{N} frames received" in stdout
+
+
 def test_live_calibration_is_read_and_needs_the_cann(route, tmp_path, capsys):
     # the live path reads the table too: a missing file, then a map without the CANN
     code, _, err = _run(capsys, "localize", "--map", route["map"], "udp://127.0.0.1:9",

@@ -127,6 +127,72 @@ def test_an_upper_case_scheme_is_read_as_its_lower_case():
     assert len(got) + src.n_dropped == 5 and src.n_received == 5
 
 
+#: the line naming an option FFmpeg does not have
+UNUSED = (
+    "{source}: FFmpeg did not use the option '{key}': no FFmpeg format, device, protocol or "
+    "codec has an option of that name"
+)
+
+
+@pytest.mark.parametrize("typo", ["rtsp_transprt", "timout", "stimeout"])
+def test_an_option_ffmpeg_does_not_have_is_named(typo):
+    # FFmpeg ignores an option it does not know without a word (stimeout: the RTSP socket
+    # timeout's name before FFmpeg 5, now timeout); the stream is read all the same
+    messages = []
+    with MjpegServer(_gray_jpegs(), fps=None, n_frames=5) as srv:
+        src = LiveSource(srv.url, options={typo: "5000000", "user_agent": "flyvpr"},
+                         stall_timeout=2, retries=0, notify=messages.append)  # fmt: skip
+        got = list(src.frames((8, 16)))
+    assert messages == [UNUSED.format(source=f"stream {srv.url}", key=typo)]
+    assert got and src.n_received == 5
+
+
+def test_options_ffmpeg_has_are_not_named():
+    # the format's, the protocols' (HTTP, TCP, UDP, RTSP) and the generic ones: whether this
+    # stream uses them or not, FFmpeg has them
+    valid = {
+        "timeout": "5000000", "rw_timeout": "5000000", "user_agent": "flyvpr",
+        "headers": "X-Flyvpr: 1\r\n", "reconnect": "0", "rtsp_transport": "tcp",
+        "buffer_size": "65536", "fflags": "nobuffer", "probesize": "32",
+        "analyzeduration": "0", "threads": "1",
+    }  # fmt: skip
+    messages = []
+    with MjpegServer(_gray_jpegs(), fps=None, n_frames=5) as srv:
+        src = LiveSource(srv.url, options=valid, stall_timeout=2, retries=0,
+                         notify=messages.append)  # fmt: skip
+        got = list(src.frames((8, 16)))
+    assert messages == [] and got  # (probesize=32: the probe may take the first frame)
+
+
+def test_camera_options_are_checked_before_the_device_is_opened(monkeypatch):
+    def busy(*args, **kwargs):
+        raise av.error.OSError(errno.EBUSY, "Device or resource busy", args[0])
+
+    monkeypatch.setattr(av, "open", busy)
+    options = {"video_size": "640x480", "framerate": "30", "input_format": "mjpeg",
+               "pixel_format": "yuyv422", "vidoe_size": "640x480"}  # fmt: skip
+    messages = []
+    with pytest.raises(RecordingError, match="the device is busy"):
+        LiveSource("/dev/null", options=options, notify=messages.append)
+    assert messages == [UNUSED.format(source="camera /dev/null", key="vidoe_size")]
+
+
+def test_options_are_not_checked_without_ffmpegs_libraries(monkeypatch):
+    from flyvpr.sources import live
+
+    monkeypatch.setattr(live, "_ffmpeg_libraries", lambda av: {})
+    live._ffmpeg_option_lookup.cache_clear()
+    try:
+        assert live._ffmpeg_option_lookup() is None
+        messages = []
+        with MjpegServer(_gray_jpegs(), fps=None, n_frames=5) as srv:
+            src = LiveSource(srv.url, options={"timout": "1"}, notify=messages.append)
+            src.close()
+        assert messages == []
+    finally:
+        live._ffmpeg_option_lookup.cache_clear()
+
+
 def test_a_stall_is_retried_then_raises():
     messages = []
     with MjpegServer(_gray_jpegs(), fps=100, n_frames=10, stall_after=30) as srv:

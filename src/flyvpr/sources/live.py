@@ -24,6 +24,7 @@ Needs the ``recordings`` extra (PyAV); it is imported only when a live source is
 from __future__ import annotations
 
 import errno
+import functools
 import logging
 import math
 import os
@@ -31,6 +32,7 @@ import re
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
@@ -52,6 +54,14 @@ _NO_CLOCK_FORMATS = frozenset({"mpjpeg", "mjpeg", "jpeg_pipe", "image2pipe", "h2
 
 _SCHEME_RE = re.compile(r"^([a-zA-Z][a-zA-Z0-9+.-]*)://")
 
+#: av_opt_find's AV_OPT_SEARCH_CHILDREN | AV_OPT_SEARCH_FAKE_OBJ (libavutil/opt.h): search a
+#: class and every class below it, without an object of it
+_SEARCH_ALL_CLASSES = 1 | 2
+
+#: file names of FFmpeg's libraries: libavformat-4639def2.so.62.12.102 (in PyAV's wheels),
+#: libavformat.so.62, libavformat.62.dylib, avformat-62.dll
+_FFMPEG_LIB_RE = re.compile(r"^(?:lib)?(avutil|avcodec|avformat)[-.]")
+
 
 def is_live(source) -> bool:
     """Whether ``source`` names a live source: a URL of :data:`LIVE_SCHEMES` or a device
@@ -70,6 +80,61 @@ def is_live(source) -> bool:
 def _redacted(url: str) -> str:
     """``url`` without a password (``rtsp://user:secret@host`` -> ``rtsp://user:***@host``)."""
     return re.sub(r"^([a-zA-Z][a-zA-Z0-9+.-]*://[^/@:]*):[^/@]*@", r"\1:***@", url)
+
+
+def _ffmpeg_libraries(av) -> dict[str, str]:
+    """Paths of the FFmpeg libraries PyAV uses, by name (``"avformat"``...): those PyAV's wheel
+    bundles, else those this process has loaded (Linux: PyAV built on the system's FFmpeg);
+    a name is missing where none is found."""
+    package = Path(av.__file__).resolve().parent
+    paths = [str(p) for d in (package.parent / "av.libs", package / ".dylibs") for p in d.glob("*")]
+    try:
+        with open("/proc/self/maps") as maps:
+            # address perms offset dev inode path: the path (which may hold spaces) last
+            fields = (line.rstrip("\n").split(maxsplit=5) for line in maps)
+            paths += [f[5] for f in fields if len(f) == 6]
+    except OSError:
+        pass
+    found: dict[str, str] = {}
+    for path in paths:
+        m = _FFMPEG_LIB_RE.match(os.path.basename(path))
+        if m is not None:
+            found.setdefault(m.group(1), path)
+    return found
+
+
+@functools.cache
+def _ffmpeg_option_lookup() -> Callable[[str], bool] | None:
+    """A function telling whether FFmpeg has an option of a given name for some format,
+    device, protocol or codec; None where PyAV's FFmpeg libraries cannot be found.
+
+    PyAV cannot say which options FFmpeg did not use: ``avformat_open_input`` hands them back,
+    but ``av.open`` frees them, and PyAV 18 exposes no option descriptors.  So the names are
+    looked up as the ``ffmpeg`` program does before it opens anything (``opt_default`` in
+    fftools/cmdutils.c): ``av_opt_find`` on the classes of AVFormatContext and AVCodecContext
+    and every class below them (demuxers, devices, protocols, codecs), in PyAV's libraries.
+    """
+    import ctypes
+
+    libs = _ffmpeg_libraries(require_extra("av"))
+    try:
+        util, codec, fmt = (ctypes.CDLL(libs[name]) for name in ("avutil", "avcodec", "avformat"))
+        find, getters = util.av_opt_find, (fmt.avformat_get_class, codec.avcodec_get_class)
+    except (KeyError, OSError, AttributeError) as exc:
+        logger.debug("stream options not checked: FFmpeg's libraries not found (%s)", exc)
+        return None
+    find.restype = ctypes.c_void_p
+    find.argtypes = [ctypes.c_void_p, ctypes.c_char_p, ctypes.c_char_p, ctypes.c_int, ctypes.c_int]
+    for getter in getters:
+        getter.restype = ctypes.c_void_p
+    # a "fake object": a pointer to the class, as the first field of every object points to it
+    classes = [ctypes.c_void_p(getter()) for getter in getters]
+
+    def has_option(name: str) -> bool:
+        key = name.encode()
+        return any(find(ctypes.byref(c), key, None, 0, _SEARCH_ALL_CLASSES) for c in classes)
+
+    return has_option
 
 
 class _OpenFailed(Exception):
@@ -122,7 +187,9 @@ class LiveSource:
     options : dict of str to str, optional
         FFmpeg options for the format or protocol, such as ``{"rtsp_transport": "tcp"}`` or,
         for a camera, ``{"video_size": "640x480", "framerate": "30",
-        "input_format": "mjpeg"}``.
+        "input_format": "mjpeg"}``.  FFmpeg ignores a name it does not know; each name that
+        no FFmpeg format, device, protocol or codec has (a misspelling) is named to
+        ``notify``.  An option of another format or protocol than this source's is not.
     stall_timeout : float
         Seconds without a frame after which the stream counts as stalled and is reopened.
     open_timeout : float
@@ -130,8 +197,8 @@ class LiveSource:
     retries : int
         Reopenings in a row (without a frame in between) before giving up.
     notify : callable, optional
-        Called with a one-line message when the stream stalls and is reopened; default a
-        warning on this module's logger.
+        Called with a one-line message when the stream stalls and is reopened, and for each
+        option FFmpeg did not use (above); default a warning on this module's logger.
 
     Attributes
     ----------
@@ -218,6 +285,7 @@ class LiveSource:
             raise FileNotFoundError(
                 f"camera {self.url}: no such device (expected a V4L2 camera such as /dev/video0)"
             )
+        self._check_options()
         self._container = self._open()
 
     def describe(self) -> str:
@@ -225,6 +293,19 @@ class LiveSource:
         return f"{self.kind} {_redacted(self.url)}"
 
     # -- opening ----------------------------------------------------------------------------
+    def _check_options(self) -> None:
+        """Name to ``notify`` each option of a name FFmpeg does not have (it would ignore it
+        without a word): before the open, which may wait ``open_timeout``."""
+        has_option = _ffmpeg_option_lookup() if self.options else None
+        if has_option is None:
+            return
+        for key in self.options:
+            if not has_option(key):
+                self.notify(
+                    f"{self.describe()}: FFmpeg did not use the option {key!r}: no FFmpeg "
+                    "format, device, protocol or codec has an option of that name"
+                )
+
     def _open(self):
         """Open the source, or raise RecordingError naming it and saying why.
 
