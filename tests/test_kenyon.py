@@ -1,11 +1,14 @@
 """The ``kenyon`` front end: optic lobe, Kenyon-cell expansion, packed codes, overlap scores."""
 
 import json
+import re
+import tracemalloc
+import warnings
 
 import numpy as np
 import pytest
 
-from flyvpr._validation import NotFittedError
+from flyvpr._validation import InsufficientMemoryError, NotFittedError
 from flyvpr.frontends import FRONTENDS, KenyonEncoder
 from flyvpr.frontends.kenyon import balanced_connections, code_overlap
 from flyvpr.frontends.optic_lobe import (
@@ -438,7 +441,7 @@ def test_gabor_bank_defaults_are_the_optic_lobes():
     ("params", "message"),
     [
         ({"n_orientations": 0}, "n_orientations must be >= 1; got 0"),
-        ({"wavelength": -1.0}, r"wavelength must be > 0\.0; got -1\.0"),
+        ({"wavelength": -1.0}, r"wavelength must be in \[2\.0, 1000000\.0\] pixels; got -1\.0"),
         ({"size": 1}, "size must be >= 3; got 1"),
     ],
 )
@@ -450,11 +453,20 @@ def test_gabor_bank_names_a_bad_parameter(params, message):
 @pytest.mark.parametrize(
     ("params", "error", "message"),
     [
-        ({"lcn_sigma": 0.0}, ValueError, r"lcn_sigma must be > 0\.0; got 0\.0"),
-        ({"lcn_eps": -1.0}, ValueError, r"lcn_eps must be > 0\.0; got -1\.0"),
+        (
+            {"lcn_sigma": 0.0},
+            ValueError,
+            r"lcn_sigma must be in \[0\.25, 1000000\.0\] pixels; got 0\.0",
+        ),
+        ({"lcn_eps": -1.0}, ValueError, r"lcn_eps must be in \[1e-08, 1\.0\]; got -1\.0"),
         ({"lcn_eps": "a"}, TypeError, "lcn_eps must be a number; got str"),
         ({"pool_size": 0}, ValueError, "pool_size must be >= 1; got 0"),
-        ({"kernel_size": 1}, ValueError, "size must be >= 3; got 1"),
+        ({"kernel_size": 1}, ValueError, "kernel_size must be >= 3; got 1"),
+        (
+            {"kernel_size": 10},
+            ValueError,
+            r"kernel_size must be odd \(a kernel centred on a pixel\); got 10",
+        ),
     ],
 )
 def test_optic_lobe_names_a_bad_parameter(params, error, message):
@@ -470,3 +482,181 @@ def test_optic_lobe_names_a_bad_parameter(params, error, message):
     }
     with pytest.raises(error, match=f"^{message}$"):
         OpticLobe(**{**base, **params})
+
+
+# -- settings out of range: one-line errors, raised before anything big is allocated ------------
+#: the accepted ranges, as the messages give them
+_RANGES = {
+    "wavelength": r"wavelength must be in \[2\.0, 1000000\.0\] pixels",
+    "lcn_sigma": r"lcn_sigma must be in \[0\.25, 1000000\.0\] pixels",
+    "lcn_eps": r"lcn_eps must be in \[1e-08, 1\.0\]",
+}
+
+
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [
+        # what each did before it was checked
+        ("wavelength", 1e308),  # (0.56 * wavelength) ** 2: OverflowError
+        ("wavelength", 1e41),  # 1 / z past float32: inf factors, NaN features
+        ("wavelength", 1e-308),  # divide by zero: NaN kernels and features
+        ("wavelength", 1.0),  # below Nyquist: a flat carrier, kernels of rounding noise
+        ("wavelength", 0.0),
+        ("wavelength", -6.0),
+        ("lcn_sigma", 1e308),  # OverflowError: cannot convert float infinity to integer
+        ("lcn_sigma", 1e20),  # numpy's ValueError: Maximum allowed size exceeded
+        ("lcn_sigma", 1e-308),  # ZeroDivisionError
+        ("lcn_sigma", 1e-160),  # NaN features
+        ("lcn_sigma", 0.1),  # the window holds the pixel alone: every feature 0
+        ("lcn_sigma", -4.0),
+        ("lcn_eps", 1e308),  # every feature 0
+        ("lcn_eps", 1e30),  # overflow in the cast of eps**2 to float32
+        ("lcn_eps", 1e-30),  # eps**2 is 0 in float32: ZeroDivisionError on a black frame
+        ("lcn_eps", 0.0),
+    ],
+)
+def test_real_settings_out_of_range_are_one_line_value_errors(route, name, value):
+    method = make_method("kenyon", 0, frontend_params={name: value})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (no numpy warning on the way either)
+        with pytest.raises(ValueError, match=rf"^{_RANGES[name]}; got {re.escape(str(value))}$"):
+            method.fit(route[0])
+
+
+@pytest.mark.parametrize("name", ["wavelength", "lcn_sigma", "lcn_eps"])
+@pytest.mark.parametrize("value", [float("inf"), float("-inf"), float("nan")])
+def test_real_settings_must_be_finite(route, name, value):
+    method = make_method("kenyon", 0, frontend_params={name: value})
+    with pytest.raises(ValueError, match=rf"^{name} must be finite; got {value}$"):
+        method.fit(route[0])
+
+
+@pytest.mark.parametrize(
+    "settings",
+    [
+        {"wavelength": 2.0},
+        {"wavelength": 1e6},
+        {"wavelength": 1e6, "kernel_size": 3},
+        {"lcn_sigma": 0.25},
+        {"lcn_eps": 1e-8},
+        {"lcn_eps": 1.0},
+    ],
+)
+def test_the_ends_of_the_ranges_give_finite_features(settings):
+    x = np.random.default_rng(0).random((3, 32, 64), dtype=np.float32)
+    x[1] = 0.0  # black: flat everywhere
+    x[2, :, :20] = 0.5  # a flat patch
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f = optic_lobe(x, **settings)
+    assert np.isfinite(f).all()
+    assert not f[1].any()
+    np.testing.assert_allclose(f[[0, 2]].std(axis=1), 1.0, atol=1e-4)
+
+
+def test_the_functions_name_their_own_real_parameters():
+    x = np.zeros((1, 8, 8))
+    with pytest.raises(
+        ValueError, match=r"^sigma must be in \[0\.25, 1000000\.0\] pixels; got 1e\+308$"
+    ):
+        local_contrast_normalize(x, sigma=1e308)
+    with pytest.raises(ValueError, match=r"^eps must be in \[1e-08, 1\.0\]; got 1e-30$"):
+        local_contrast_normalize(x, eps=1e-30)
+    with pytest.raises(ValueError, match=rf"^{_RANGES['wavelength']}; got 1e-308$"):
+        gabor_bank(wavelength=1e-308)
+
+
+def _peak_bytes(func):
+    """The exception ``func`` raises and the most memory Python and numpy held on the way."""
+    tracemalloc.start()
+    try:
+        func()
+    except Exception as exc:
+        return exc, tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    raise AssertionError("nothing raised")
+
+
+def test_a_billion_orientations_are_refused_before_allocating(route, monkeypatch):
+    # they allocated 7.45 GiB (the orientations' angles, int64) before any check
+    monkeypatch.setenv("FLYVPR_MAX_MEMORY", "4G")  # (5.81 TB is refused anywhere, then)
+    method = make_method("kenyon", 0, frontend_params={"n_orientations": 10**9})
+    exc, peak = _peak_bytes(lambda: method.fit(route[0]))
+    assert isinstance(exc, InsufficientMemoryError)
+    assert re.match(
+        r"n_orientations=1000000000 with kernel_size=11 would need [\d.]+ TB of memory; "
+        r"[\d.,]+ [kMGT]?B is available$",
+        str(exc),
+    )
+    assert peak < 1 << 20
+
+
+@pytest.mark.parametrize(
+    ("settings", "mask", "message"),
+    [
+        # the kernels: 10**5 x 11 x 11 complex128, with the temporaries that make them
+        ({"n_orientations": 10**5}, False, "n_orientations=100000 with kernel_size=11"),
+        ({"kernel_size": 1001}, False, "n_orientations=4 with kernel_size=1001"),
+        # the compiled filter's buffers for 32x64 frames: two float32 lines per orientation
+        (
+            {"n_orientations": 10**4},
+            False,
+            "n_orientations=10000 with kernel_size=11 on images of 32x64",
+        ),
+        # the window: 8 * lcn_sigma taps, and the frame's lines padded by as many pixels
+        ({"lcn_sigma": 1e5}, False, "lcn_sigma=100000 on images of 32x64"),
+        ({"lcn_sigma": 1e5}, True, "lcn_sigma=100000 on images of 32x64"),
+    ],
+)
+def test_settings_that_would_not_fit_in_memory_are_refused_first(
+    monkeypatch, settings, mask, message
+):
+    monkeypatch.setenv("FLYVPR_MAX_MEMORY", "100M")
+    x = np.random.default_rng(0).random((1, 32, 64), dtype=np.float32)
+    valid = np.ones((32, 64), bool)
+    valid[:, :8] = False  # (the window weights of a mask come after the check too)
+    exc, peak = _peak_bytes(lambda: optic_lobe(x, **settings, valid_pixels=valid if mask else None))
+    assert isinstance(exc, InsufficientMemoryError)
+    assert re.match(rf"{message} would need [\d.]+ MB of memory; 105 MB is available$", str(exc))
+    assert peak < 100 << 20  # (the 52 MB kernels of 10**4 orientations fit, their buffers not)
+
+
+def test_balanced_connections_that_would_not_fit_in_memory_are_refused_first(monkeypatch):
+    # (a million cells of 10 inputs took 20,000 permutations of the 512 features, 80 MB)
+    monkeypatch.setenv("FLYVPR_MAX_MEMORY", "10M")
+    exc, peak = _peak_bytes(lambda: balanced_connections(10**6, 512, 10, 0))
+    assert isinstance(exc, InsufficientMemoryError)
+    assert str(exc) == (
+        "n_kenyon=1000000 with n_inputs=10 would need 320 MB of memory; 10.5 MB is available"
+    )
+    assert peak < 1 << 20
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "problem"),
+    [
+        ("wavelength", 1e308, _RANGES["wavelength"] + r"; got 1e\+308"),
+        ("lcn_sigma", 1e-308, _RANGES["lcn_sigma"] + "; got 1e-308"),
+        ("lcn_eps", 1e308, _RANGES["lcn_eps"] + r"; got 1e\+308"),
+        ("kernel_size", 12, r"kernel_size must be odd \(a kernel centred on a pixel\); got 12"),
+        (
+            "n_orientations",
+            10**9,
+            r"n_orientations=1000000000 with kernel_size=11 would need [\d.]+ TB of memory; "
+            r"[\d.,]+ [kMGT]?B is available",
+        ),
+    ],
+)
+def test_model_file_with_settings_out_of_range_is_refused(route, tmp_path, name, value, problem):
+    path = save_method(make_method("kenyon", 0).fit(route[0]), tmp_path / "k.npz")
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays.pop("__meta__").tobytes())
+    meta["frontend"]["params"][name] = value
+    out = _write_archive(tmp_path / "bad.npz", meta, arrays)
+    with pytest.raises(
+        ModelFileError,
+        match=rf"bad\.npz: frontend\.state: does not restore a kenyon \({problem}\)$",
+    ):
+        load_method(out)

@@ -181,9 +181,15 @@ def test_bad_images(fn):
 @pytest.mark.parametrize(
     ("params", "error", "match"),
     [
-        ({"sigma": -1.0}, ValueError, "^sigma must be > 0.0; got -1.0"),
-        ({"eps": 0.0}, ValueError, "^eps must be > 0.0; got 0.0"),
-        ({"sigma": "4"}, TypeError, "^sigma must be a number; got str"),
+        ({"sigma": -1.0}, ValueError, r"^sigma must be in \[0\.25, 1000000\.0\] pixels; got -1\.0"),
+        (
+            {"sigma": 1e308},
+            ValueError,
+            r"^sigma must be in \[0\.25, 1000000\.0\] pixels; got 1e\+308",
+        ),
+        ({"eps": 0.0}, ValueError, r"^eps must be in \[1e-08, 1\.0\]; got 0\.0"),
+        ({"eps": 1e-30}, ValueError, r"^eps must be in \[1e-08, 1\.0\]; got 1e-30"),
+        ({"sigma": "4"}, TypeError, "^sigma must be a number of pixels; got str"),
     ],
 )
 def test_lcn_bad_parameters(params, error, match):
@@ -330,15 +336,29 @@ def test_memory_checks_ask_for_what_fit_and_the_lobe_need(route, monkeypatch):
     disc = _disc()
     ref = _with_border(np.concatenate([route[0], route[1]])[:65], disc, 0.05)
     enc = KenyonEncoder(n_kenyon=1024, n_inputs=6, random_state=0).fit(ref)
+    lobe = [
+        # the Gabor kernels (complex128) and two temporaries of their size
+        (48 * 4 * 11 * 11, "n_orientations=4 with kernel_size=11"),
+        # once per image size: the compiled filter's float32 buffers (2 per orientation and 5
+        # more, of the frame widened by the kernels' radius, 5) and one frame's features twice
+        (
+            4 * (2 * 4 + 5) * (32 + 10) * (64 + 10) + 8 * 4 * 8 * 16,
+            "n_orientations=4 with kernel_size=11 on images of 32x64",
+        ),
+        # the LCN's taps and border indices (radius 16), padded lines (float64) and images
+        (64 * (32 + 32 + 64) + 8 * (32 + 32) * 64 + 20 * 32 * 64, "lcn_sigma=4 on images of 32x64"),
+    ]
     assert calls == [
         (1024 * 6 * 16 + 65 * 1024 * 9, "n_kenyon=1024 with n_inputs=6"),
+        *lobe,
         (65 * 368 * 4, "optic_lobe on 65 images of 32x64"),  # the features kept
+        (32 * 1024 * 6 + 16 * 368, "n_kenyon=1024 with n_inputs=6"),  # drawing the connections
     ]
     calls.clear()
-    enc.encode(ref[:64])  # up to 64 images: no check
+    enc.encode(ref[:64])  # up to 64 images, a lobe set up for the size: no check
     assert calls == []
     optic_lobe(ref)
-    assert calls == [(65 * 512 * 4, "optic_lobe on 65 images of 32x64")]
+    assert calls == [*lobe, (65 * 512 * 4, "optic_lobe on 65 images of 32x64")]
 
 
 # -- model files -----------------------------------------------------------------

@@ -322,8 +322,8 @@ def saved(tmp_path_factory, data):
     "name, part, key, value, problem",
     [
         ("kenyon", "frontend", "wavelength", 1e308,
-         r"frontend\.state: does not restore a kenyon \(a parameter or value out of range: "
-         r"OverflowError"),
+         r"frontend\.state: does not restore a kenyon \(wavelength must be in \[2\.0, "
+         r"1000000\.0\] pixels; got 1e\+308\)"),
         ("seqslam", "filter", "v_max", 1e308,
          r"filter\.state: does not restore a seqslam \(v_min=0\.8 to v_max=1e\+308 in steps "
          r"of v_step=0\.1 are more velocities than can be counted"),

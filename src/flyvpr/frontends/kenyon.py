@@ -92,6 +92,13 @@ def balanced_connections(n_kenyon: int, n_features: int, n_inputs: int, random_s
     -------
     ndarray of int32, shape (n_kenyon, n_inputs)
         Sorted indices per row.
+
+    Raises
+    ------
+    ValueError, TypeError
+        For counts that are not positive ints, or ``n_inputs > n_features``.
+    flyvpr._validation.InsufficientMemoryError
+        If the connections would not fit in memory; raised before drawing them.
     """
     rng = check_random_state(random_state)
     n_kenyon = check_positive_int(n_kenyon, "n_kenyon")
@@ -100,6 +107,10 @@ def balanced_connections(n_kenyon: int, n_features: int, n_inputs: int, random_s
         raise ValueError(
             f"n_inputs must be <= the number of optic-lobe features ({n_features}); got {n_inputs}"
         )
+    # the permutations (int64, drawn one by one, then joined), the sorted rows and the result
+    check_memory(
+        32 * n_kenyon * n_inputs + 16 * n_features, f"n_kenyon={n_kenyon} with n_inputs={n_inputs}"
+    )
     n_perm = -(-n_kenyon * n_inputs // n_features)
     flat = np.concatenate([rng.permutation(n_features) for _ in range(n_perm)])
     rows = np.sort(flat[: n_kenyon * n_inputs].reshape(n_kenyon, n_inputs), axis=1)
@@ -195,7 +206,9 @@ class KenyonEncoder(Encoder):
     n_projections : int, default 1
         Independent Kenyon-cell populations, each with its own winner-take-all.
     lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size
-        The optic lobe's settings, see ``flyvpr.frontends.optic_lobe.optic_lobe``.
+        The optic lobe's settings, see ``flyvpr.frontends.optic_lobe.optic_lobe``: ``lcn_sigma``
+        in [0.25, 1e6] pixels, ``lcn_eps`` in [1e-8, 1], ``wavelength`` in [2, 1e6] pixels,
+        ``kernel_size`` odd and at least 3.
     intensity : bool, default False
         Also feed the Kenyon cells the intensity channel: the contrast-normalised image summed
         over each pooling cell (static pixels count 0, so a cell at the mask's edge weighs by
@@ -226,7 +239,10 @@ class KenyonEncoder(Encoder):
     ------
     ValueError
         From ``fit``, for a parameter out of range, or where the varying pixels leave fewer
-        than ``n_inputs`` optic-lobe features.
+        than ``n_inputs`` optic-lobe features; ``flyvpr._validation.InsufficientMemoryError``
+        (a ValueError) where the Kenyon cells (``n_kenyon``, ``n_inputs``) or the optic lobe
+        (``n_orientations``, ``kernel_size``, ``lcn_sigma``) would not fit in memory, before
+        anything of that size is allocated.
 
     Examples
     --------

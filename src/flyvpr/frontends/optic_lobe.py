@@ -56,6 +56,13 @@ _BLOCK = 256
 _MIN_RELATIVE_SPREAD = 0.05
 _SPREAD_PERCENTILE = 90
 
+#: Accepted ranges of the real-valued settings, inclusive (the docstrings of
+#: :func:`local_contrast_normalize` and :func:`gabor_bank` say why): the Gaussian window's
+#: ``sigma`` and the Gabor ``wavelength`` in pixels, ``eps`` in gray levels of images in [0, 1]
+_SIGMA_RANGE = (0.25, 1e6)
+_EPS_RANGE = (1e-8, 1.0)
+_WAVELENGTH_RANGE = (2.0, 1e6)
+
 
 def varying_pixels(images) -> np.ndarray:
     """Pixels whose value varies along a traverse; False marks the static ones.
@@ -132,9 +139,16 @@ def local_contrast_normalize(
     images : array-like, shape (N, H, W)
         Gray images in [0, 1].
     sigma : float, default 4.0
-        Width of the neighbourhood in pixels.
+        Width of the neighbourhood in pixels, in [0.25, 1e6].  The window is cut off at
+        ``4 * sigma``, so from 0.25 on it reaches the neighbouring pixels (below, their weight
+        is under ``exp(-8)``, and below 0.125 every normalised image is 0); once wider than the
+        image it averages the whole (reflected) image, and 1e6 is past any image.
     eps : float, default 0.05
-        Contrast floor, in gray levels.
+        Contrast floor, in gray levels, in [1e-8, 1].  A smaller floor is under the float32
+        resolution of gray levels (``2**-24``, 6e-8, near 1) and blows rounding noise up to full
+        contrast (below about 1e-22 its square is 0 in float32, and a flat patch divides 0 by
+        0); one above 1 exceeds the contrast of any image in [0, 1] (a standard deviation of at
+        most 0.5) and only shrinks the output.
     valid_pixels : ndarray of bool, shape (H, W), optional
         E.g. from :func:`varying_pixels`; None or all True: every pixel is valid.
 
@@ -146,6 +160,9 @@ def local_contrast_normalize(
     ------
     ValueError, TypeError
         For a parameter out of range or a mask of another shape or dtype.
+    flyvpr._validation.InsufficientMemoryError
+        If the window (``sigma``) would not fit in memory for images of this size; raised
+        before allocating.
 
     Examples
     --------
@@ -156,8 +173,7 @@ def local_contrast_normalize(
     0.0
     """
     x = check_images(images, "images")
-    sigma = check_real(sigma, "sigma")
-    eps = check_real(eps, "eps")
+    sigma, eps = _check_lcn(sigma, eps)
     valid = _check_valid_pixels(valid_pixels, *x.shape[1:])
     if valid is None:
         return _lcn(x, sigma, eps)
@@ -166,6 +182,16 @@ def local_contrast_normalize(
     out = np.empty((n, h, w), dtype=np.float32)
     gm = _window_weight(valid, sigma)
     return _kernels().lcn_masked(x, valid, gm, taps, index_h, index_w, eps2, out)
+
+
+def _check_lcn(sigma, eps, prefix: str = "") -> tuple[float, float]:
+    """``sigma`` and ``eps`` of the contrast normalisation in their ranges, as floats; the
+    messages name them with ``prefix`` (``"lcn_"`` for the optic lobe's settings)."""
+    low, high = _SIGMA_RANGE
+    sigma = check_real(sigma, f"{prefix}sigma", low=low, inclusive=True, high=high, unit="pixels")
+    low, high = _EPS_RANGE
+    eps = check_real(eps, f"{prefix}eps", low=low, inclusive=True, high=high)
+    return sigma, eps
 
 
 def _window_weight(valid: np.ndarray, sigma: float) -> np.ndarray:
@@ -181,8 +207,21 @@ def _kernels():
     return _kenyon_kernels
 
 
-def _lcn_plan(sigma: float, eps: float, h: int, w: int) -> tuple:
-    """What the LCN kernel needs for images of size (h, w): Gaussian taps, border indices."""
+def _lcn_plan(sigma: float, eps: float, h: int, w: int, name: str = "sigma") -> tuple:
+    """What the LCN kernel needs for images of size (h, w): Gaussian taps, border indices.
+
+    ``sigma`` (checked, in range; ``name`` in the messages): a window that would not fit in
+    memory with the kernel's buffers is refused here, before anything is allocated.
+    """
+    radius = int(4.0 * sigma + 0.5)  # as gaussian_taps cuts the window off
+    # taps and border indices (a few float64 and int64 lines of up to 2r + h + w values), the
+    # compiled filter's lines padded by r (float64) and its float32 images
+    check_memory(
+        64 * (2 * radius + h + w)
+        + 8 * max((h + 2 * radius) * w, (w + 2 * radius) * h)
+        + 20 * h * w,
+        f"{name}={sigma:g} on images of {h}x{w}",
+    )
     k = _kernels()
     taps = k.gaussian_taps(sigma)
     r = len(taps) - 1
@@ -220,12 +259,24 @@ def _gabor_factors(n_orientations: int, wavelength: float, size: int) -> tuple:
     return g, a, b, dc, z
 
 
-def _check_gabor(n_orientations, wavelength, size) -> tuple[int, float, int]:
+def _check_gabor(
+    n_orientations, wavelength, size, size_name: str = "size"
+) -> tuple[int, float, int]:
+    """The settings of :func:`gabor_bank`, checked (``size`` named ``size_name`` in the
+    messages); kernels that would not fit in memory are refused before anything is allocated."""
     n_orientations = check_positive_int(n_orientations, "n_orientations")
-    wavelength = check_real(wavelength, "wavelength")
-    size = check_positive_int(size, "size", minimum=3)
+    low, high = _WAVELENGTH_RANGE
+    wavelength = check_real(
+        wavelength, "wavelength", low=low, inclusive=True, high=high, unit="pixels"
+    )
+    size = check_positive_int(size, size_name, minimum=3)
     if size % 2 == 0:
-        raise ValueError(f"size must be odd (a kernel centred on a pixel); got {size}")
+        raise ValueError(f"{size_name} must be odd (a kernel centred on a pixel); got {size}")
+    # the kernels and the two temporaries of their size that make them (complex128)
+    check_memory(
+        48 * n_orientations * size * size,
+        f"n_orientations={n_orientations} with {size_name}={size}",
+    )
     return n_orientations, wavelength, size
 
 
@@ -236,10 +287,30 @@ def gabor_bank(n_orientations: int = 4, wavelength: float = 6.0, size: int = 11)
     standard deviation ``0.56 * wavelength`` (a bandwidth of about one octave), zero mean (the
     even part's DC is removed, so flat regions give no response) and unit L1 norm.
 
+    Parameters
+    ----------
+    n_orientations : int, default 4
+        Orientations, evenly spaced over 180 degrees.
+    wavelength : float, default 6.0
+        Period of the carrier in pixels, in [2, 1e6].  2 is the Nyquist limit: a shorter
+        period aliases to a longer one (at 1 the carrier is flat and the kernels vanish).  Once
+        the period is a few kernels long the kernels hardly change any more (the even part
+        fades, the odd part tends to a ramp); 1e6 keeps them well inside float32's range.
+    size : int, default 11
+        Side of the kernels in pixels, odd, at least 3.
+
     Returns
     -------
     ndarray of complex128, shape (n_orientations, size, size)
         Axis 1 is y (rows), axis 2 is x (columns).
+
+    Raises
+    ------
+    ValueError, TypeError
+        For a parameter out of range or of the wrong type.
+    flyvpr._validation.InsufficientMemoryError
+        If the kernels would not fit in memory (``n_orientations * size**2`` complex numbers);
+        raised before allocating.
     """
     return _compose(*_gabor_factors(*_check_gabor(n_orientations, wavelength, size)))
 
@@ -292,6 +363,10 @@ def optic_lobe(
         ``valid_pixels`` has another shape or no valid pixel.
     TypeError
         If ``valid_pixels`` is not a bool array.
+    flyvpr._validation.InsufficientMemoryError
+        If the kernels (``n_orientations``, ``kernel_size``), the window (``lcn_sigma``) or
+        the compiled filter's buffers for this image size would not fit in memory; raised
+        before allocating.
 
     Examples
     --------
@@ -313,9 +388,10 @@ class OpticLobe:
     """
 
     def __init__(self, lcn_sigma, lcn_eps, n_orientations, wavelength, kernel_size, pool_size):
-        self.lcn_sigma = check_real(lcn_sigma, "lcn_sigma")
-        self.lcn_eps = check_real(lcn_eps, "lcn_eps")
-        factors = _gabor_factors(*_check_gabor(n_orientations, wavelength, kernel_size))
+        self.lcn_sigma, self.lcn_eps = _check_lcn(lcn_sigma, lcn_eps, "lcn_")
+        factors = _gabor_factors(
+            *_check_gabor(n_orientations, wavelength, kernel_size, "kernel_size")
+        )
         self.bank = _compose(*factors)
         # the kernels' 1-d factors as the compiled filter takes them, float32
         g, a, b, dc, z = factors
@@ -354,9 +430,18 @@ class OpticLobe:
         return np.flatnonzero(np.tile(kept, self.bank.shape[0])).astype(np.uint32)
 
     def _plan(self, h: int, w: int) -> tuple:
-        """The LCN set-up for images of (h, w), made once."""
+        """The LCN set-up for images of (h, w), made once; buffers of the compiled filter that
+        would not fit in memory for that size are refused first."""
         if (h, w) not in self._cache:
-            self._cache[(h, w)] = _lcn_plan(self.lcn_sigma, self.lcn_eps, h, w)
+            n, size = self.bank.shape[:2]
+            r, p = size // 2, self.pool
+            # two float32 lines per orientation and five more, of the image widened by the
+            # kernels' radius, and one image's features (twice under a mask)
+            check_memory(
+                4 * (2 * n + 5) * (h + 2 * r) * (w + 2 * r) + 8 * n * (h // p) * (w // p),
+                f"n_orientations={n} with kernel_size={size} on images of {h}x{w}",
+            )
+            self._cache[(h, w)] = _lcn_plan(self.lcn_sigma, self.lcn_eps, h, w, "lcn_sigma")
         return self._cache[(h, w)]
 
     def _masked(self, valid: np.ndarray) -> tuple:
@@ -374,15 +459,17 @@ class OpticLobe:
         set-up cached (:func:`local_contrast_normalize` with the lobe's settings)."""
         n, h, w = x.shape
         x = np.ascontiguousarray(x)
+        plan = self._plan(h, w)  # (first: it checks the memory)
         if valid_pixels is None:
-            return _lcn(x, self.lcn_sigma, self.lcn_eps, self._plan(h, w))
+            return _lcn(x, self.lcn_sigma, self.lcn_eps, plan)
         out = np.empty((n, h, w), dtype=np.float32)
         gm = self._masked(valid_pixels)[0]
-        return _kernels().lcn_masked(x, valid_pixels, gm, *self._plan(h, w), out)
+        return _kernels().lcn_masked(x, valid_pixels, gm, *plan, out)
 
     def __call__(self, x: np.ndarray, valid_pixels: np.ndarray | None = None) -> np.ndarray:
         n, h, w = x.shape
         n_features = self.n_features(h, w)
+        plan = self._plan(h, w)  # (first: it checks the memory)
         if valid_pixels is not None:
             gm, kept = self._masked(valid_pixels)
             n_features = len(kept)
@@ -394,7 +481,7 @@ class OpticLobe:
         # image has no edges: every feature is equal and the row stays all zeros), compiled,
         # one image at a time
         if valid_pixels is None:
-            return _kernels().optic_lobe(x, *self._plan(h, w), *self._factors, self.pool, features)
+            return _kernels().optic_lobe(x, *plan, *self._factors, self.pool, features)
         return _kernels().optic_lobe_masked(
-            x, valid_pixels, gm, *self._plan(h, w), *self._factors, self.pool, kept, features
+            x, valid_pixels, gm, *plan, *self._factors, self.pool, kept, features
         )
