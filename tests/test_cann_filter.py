@@ -15,6 +15,7 @@ import pytest
 from flyvpr._validation import InsufficientMemoryError
 from flyvpr.temporal.cann import CANN, LAYER_VELOCITIES, _kernels
 from flyvpr.temporal.cann._filter import _FRONT_RATE, CALIBRATION, _shape
+from oracles import odometry_scale
 
 KNOTS = np.linspace(0.0, 1.0, 11)
 
@@ -106,6 +107,9 @@ def reference_filter(S, velocity=None, **params):
     vel = np.unique(np.r_[vel, -vel] if q["bidirectional"] else vel)
     prior = ref_velocity_weights(vel, q["reverse_weight"], q["speed_prior"], q["speed_prior_width"])
     redraw = ref_velocity_weights(vel, q["reverse_weight"])
+    if velocity is not None and q["odometry"] == "scaled":
+        # the rows are scales of the odometry: their prior is the speed prior's shape around 1
+        prior = ref_velocity_weights(vel, q["reverse_weight"], 1.0, q["speed_prior_width"])
     n = S.shape[1]
     tol, memory, outlier = q["tolerance"], q["support_memory"], q["outlier"]
     layer = np.tile(prior[:, None] / n, (1, n))
@@ -469,6 +473,9 @@ def test_matches_reference_with_odometry():
     frames = assert_matches_reference(S, velocity, **WIDE)
     scales = [f["velocity_"] / v for f, v in zip(frames, velocity, strict=True)]
     assert all(0.0 < k < 3.5 for k in scales) and len(set(np.round(scales, 6))) > 1
+    # the scales' prior is around 1 whatever the speed prior (which weighs the speeds)
+    for odometry in ("scaled", "exact"):
+        assert_matches_reference(S, velocity, **WIDE, speed_prior=1.5, odometry=odometry)
 
 
 def test_matches_reference_with_odometry_through_stands():
@@ -2282,6 +2289,109 @@ def test_scaled_odometry_follows_a_robot_reversing_while_its_odometry_counts_dis
     # exact odometry moves the packet forwards: the sequence is never found
     _, exact = run(CANN(odometry="exact"), S, np.ones(T))
     assert np.mean([f["state_"] == "localized" for f in exact[30:]]) < 0.2
+
+
+def _gappy_run(f, S, odometry):
+    """Step ``f`` through ``S`` with ``odometry[t]`` (NaN: none that frame): answers, the
+    velocity_ of every frame."""
+    f.reset()
+    answers, speeds = [], []
+    for t, row in enumerate(S):
+        v = None if np.isnan(odometry[t]) else float(odometry[t])
+        answers.append(int(np.argmax(f.step(row, velocity=v))))
+        speeds.append(f.velocity_)
+    return np.array(answers), np.array(speeds)
+
+
+@pytest.mark.parametrize("odometry", [2.0, 1.0, 0.8])
+def test_a_gap_in_scaled_odometry_keeps_the_speed_and_the_scale(odometry):
+    # The robot drives 2 places per frame, its odometry says `odometry` (a scale of 2 /
+    # odometry: 1, 2, 2.5); frames 40-59 have none (a GPS outage).  In the gap the layer goes
+    # on at the speed it had (its scales times the last odometry), and after it at the scale
+    # it had learned: read as speeds, the scales would move 1, 2 or 2.5 places per frame in
+    # the gap, and the speed learned in it would be read as a scale after it.
+    T = 100
+    pos = 4 + 2.0 * np.arange(T)
+    S = bump_rows(pos, 220, amp=2.0, noise=0.5, seed=1)
+    given = np.full(T, odometry)
+    given[40:60] = np.nan
+    answers, speeds = _gappy_run(CANN(), S, given)
+    assert np.max(np.abs(answers - pos)[10:]) <= 1
+    assert np.all(np.abs(speeds[40:60] - 2.0) < 0.25)
+    assert np.all(np.abs(speeds[60:] - 2.0) < 0.25)
+    scale = CANN()
+    _gappy_run(scale, S, given)
+    assert odometry_scale(scale) == pytest.approx(2.0 / odometry, abs=0.1)
+
+
+def test_scaled_odometry_that_starts_late_takes_the_scale_not_the_speed():
+    # 30 frames without odometry at 2 places per frame (a GPS that starts after the camera),
+    # then odometry that is right: the rows become scales of 1, not speeds of 2 read as scales
+    # (4 places per frame); and a robot standing at the start (odometry 0) keeps its speeds
+    # until it moves.
+    T = 90
+    pos = 4 + 2.0 * np.arange(T)
+    S = bump_rows(pos, 200, amp=2.0, noise=0.5, seed=2)
+    for first in (np.nan, 0.0):
+        given = np.full(T, 2.0)
+        given[:30] = first if np.isnan(first) else np.nan
+        given[0] = first
+        answers, speeds = _gappy_run(CANN(), S, given)
+        assert np.max(np.abs(answers - pos)[40:]) <= 1
+        assert np.all(np.abs(speeds[30:] - 2.0) < 0.25)
+
+
+def test_odometry_rows_turn_from_scales_to_speeds_and_back():
+    # The rows' activity goes to the rows of scale times the last odometry, shared linearly
+    # between the two nearest (the ends take what lies beyond); when the odometry is back each
+    # place's activity is shared as the scales were when it stopped.
+    f = CANN(velocities=(0.5, 1.0, 1.5, 2.0, 3.0), odometry="scaled")
+    S = bump_rows(4 + np.arange(6.0), 30)
+    for t in range(3):
+        f.step(S[t], velocity=1.25)
+    assert f._scaled
+    layer = np.zeros_like(f._p)
+    layer[:, 7] = [1.0, 2.0, 4.0, 8.0, 16.0]  # one place; rows of scale 0.5, 1, 1.5, 2, 3
+    f._p[:] = layer
+    scales = np.array([0.1, 0.2, 0.3, 0.25, 0.15])
+    f._row_mass[:] = scales
+    f._offsets[:] = 0.4
+    f._rows_for(None, 3)
+    assert not f._scaled
+    # speeds 0.625, 1.25, 1.875, 2.5, 3.75 (beyond the bank: 3)
+    want = [0.75 * 1.0, 0.25 * 1.0 + 0.5 * 2.0, 0.5 * 2.0 + 0.25 * 4.0, 0.75 * 4.0 + 0.5 * 8.0]
+    want.append(0.5 * 8.0 + 16.0)
+    np.testing.assert_allclose(f._p[:, 7], want, rtol=1e-6)
+    assert f._p.sum() == pytest.approx(31.0) and not f._p[:, 8].any()
+    assert not f._offsets.any()
+    f._rows_for(None, 4)  # still none: the rows stay speeds
+    np.testing.assert_allclose(f._p[:, 7], want, rtol=1e-6)
+    f._offsets[:] = 0.4
+    f._rows_for(0.0, 5)  # a stand: nothing to scale by yet
+    assert not f._scaled
+    f._rows_for(2.0, 6)
+    assert f._scaled and not f._offsets.any()
+    np.testing.assert_allclose(f._p[:, 7], 31.0 * scales, rtol=1e-6)
+    assert f._last_odometry == 2.0
+    # a bank of one velocity: a scale and a speed alike, nothing moves
+    one = CANN(velocities=(1.0,))
+    one.step(S[0], velocity=2.0)
+    before = one._p.copy()
+    one._rows_for(None, 1)
+    np.testing.assert_array_equal(one._p, before)
+
+
+def test_scaled_odometry_starts_from_scales_around_one():
+    # The scales' prior is the speed prior's shape around 1 (the odometry right), whatever the
+    # speed prior: a robot at 2 places per frame with a speed prior of 2 and right odometry
+    # holds scales near 1, and exact odometry keeps the speeds' prior.
+    vel = np.asarray(LAYER_VELOCITIES)
+    for odometry, mode in (("scaled", 1.0), ("exact", 2.0)):
+        f = CANN(speed_prior=2.0, odometry=odometry)
+        f.step(np.zeros(40), velocity=2.0)
+        assert vel[np.argmax(f._row_mass)] == mode
+        forward = f._row_mass[vel > 0]  # (a tenth backwards: the reverse weight)
+        assert forward @ vel[vel > 0] / forward.sum() == pytest.approx(mode, abs=0.1)
 
 
 def test_odometry_mode_is_checked():

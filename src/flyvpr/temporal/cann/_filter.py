@@ -266,7 +266,10 @@ class CANN(OdometryFilter):
         odometry as it learns a speed without it: a map spacing or a wheel calibration that is
         off, or a robot reversing along the map while its odometry counts distance, is
         followed.  The scale drifts between neighbouring rows (``velocity_change``) but is
-        never drawn afresh: the odometry carries the stops and starts.  ``"exact"``: every row
+        never drawn afresh: the odometry carries the stops and starts.  The scales' prior is
+        the speed prior's shape around 1.  A frame without odometry after frames with it
+        turns the rows back into speeds (scale times the last odometry) until the odometry is
+        back, with the scales as they were.  ``"exact"``: every row
         moves by the odometry itself (the velocities stay as they are); right odometry then
         follows a little closer, odometry 10% off falls behind the filter without it.
 
@@ -448,6 +451,13 @@ class CANN(OdometryFilter):
                 f"{p['speed_prior_width']} gives no weight to any of the velocities"
             )
         p["prior"] = _split(prior, vel < 0, p["reverse_weight"])
+        # With scaled odometry a row is a scale of the odometry: 1 where it is right in places.
+        # Its prior is the speed prior's shape around 1 (a robot reversing along the map while
+        # its odometry counts distance: -1, as likely as driving backwards without odometry).
+        scale = np.exp(-0.5 * ((np.abs(vel) - 1.0) / p["speed_prior_width"]) ** 2)
+        p["scale_prior"] = (
+            _split(scale, vel < 0, p["reverse_weight"]) if scale.sum() > 0.0 else p["prior"]
+        )
         # A velocity drawn afresh may be any of them (a robot stops or starts at any speed),
         # backwards with probability reverse_weight.
         p["redraw"] = _split(np.ones(vel.size), vel < 0, p["reverse_weight"])
@@ -537,6 +547,11 @@ class CANN(OdometryFilter):
         self._last_out = np.zeros(n, np.float32)
         self._tied = np.arange(1, n, dtype=np.int32)
         self._odometry_offset = 0.0
+        # Whether the rows are scales of the odometry (scaled odometry) or speeds, the last
+        # odometry, and the scales' posterior when the odometry last stopped (see _rows_for)
+        self._scaled = False
+        self._last_odometry = 0.0
+        self._scale_mass: np.ndarray | None = None
         self._stride = max(1, n // _SAMPLES)
         # The sequence test's rank model: the share u of places at least as good as the
         # predicted one has density shape * u**(shape - 1) on the route (learned), 1 off it.
@@ -596,6 +611,48 @@ class CANN(OdometryFilter):
         rounded = np.floor(total + 0.5)
         self._offsets = total - rounded
         return rounded.astype(np.int64)
+
+    def _rows_for(self, velocity: float | None, t: int) -> None:
+        """Make the rows scales of the odometry or speeds, as this frame needs (scaled
+        odometry only).
+
+        The first frame with odometry (or the first that moves, after a start without it)
+        makes them scales: each place's activity shared over the rows as the scales' posterior
+        was when the odometry last stopped (the scale learned before a gap), or as their prior
+        at first.  A frame without odometry after frames with it makes them speeds: each row's
+        activity goes to the rows of its scale times the last odometry (the robot keeps the
+        speed it had), shared linearly between the two nearest (the bank's end rows take what
+        lies beyond them).  Without this a row's scale would be read as a speed in a gap of
+        the odometry (a robot at 2 places per frame would go on at 1), and a speed learned
+        without odometry as a scale when it starts."""
+        p = self._params
+        vel = p["velocities"]
+        if vel.size == 1:  # one row: a scale and a speed alike
+            return
+        if velocity is not None and not self._scaled and (t == 0 or velocity != 0.0):
+            mass = p["scale_prior"] if self._scale_mass is None else self._scale_mass
+            if t == 0:  # the layer is its prior: the scales' instead
+                self._p[:] = (mass.astype(np.float32) / np.float32(self._n))[:, None]
+            else:
+                np.multiply(mass.astype(np.float32)[:, None], self._p.sum(axis=0), out=self._spare)
+                self._p, self._spare = self._spare, self._p
+            self._offsets[:] = 0.0
+            self._scaled = True
+        elif velocity is None and self._scaled:
+            self._scale_mass = self._row_mass.copy()
+            target = np.clip(vel * self._last_odometry, vel[0], vel[-1])
+            upper = np.clip(np.searchsorted(vel, target, side="right"), 1, vel.size - 1)
+            lower = upper - 1
+            high = (target - vel[lower]) / (vel[upper] - vel[lower])
+            move = np.zeros((vel.size, vel.size), np.float32)  # move[to, from]
+            np.add.at(move, (lower, np.arange(vel.size)), 1.0 - high)
+            np.add.at(move, (upper, np.arange(vel.size)), high)
+            np.matmul(move, self._p, out=self._spare)
+            self._p, self._spare = self._spare, self._p
+            self._offsets[:] = 0.0
+            self._scaled = False
+        if velocity is not None:
+            self._last_odometry = velocity
 
     def _holds(self, row: np.ndarray) -> bool:
         """Whether ``row`` repeats the last frame's and the map does not repeat a frame at the
@@ -710,6 +767,8 @@ class CANN(OdometryFilter):
             row = row.astype(np.float64)
         if p["hold_repeats"] and velocity is None and t > 0 and self._holds(row):
             return self._hold()
+        if p["odometry"] == "scaled":
+            self._rows_for(velocity, t)
         radius = p["tolerance"]
         x = self._input(row)
         memory = p["support_memory"]
@@ -755,7 +814,7 @@ class CANN(OdometryFilter):
             change,
             jump,
             self._redraw,
-            p["prior"],
+            p["scale_prior"] if self._scaled else p["prior"],
             floor_rate,
             weight,
             self._predicted,
