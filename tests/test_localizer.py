@@ -113,7 +113,7 @@ def test_raw_camera_frames_are_pointed_to_to_gray(route):
         expected = (
             f"image must be one gray frame of shape (H, W) = (32, 64); got shape {frame.shape} "
             f"(a colour frame, dtype {frame.dtype}: convert camera frames with "
-            "flyvpr.images.to_gray)"
+            "flyvpr.images.resize_area(flyvpr.images.to_gray(frame), (32, 64)))"
         )
         with pytest.raises(ValueError, match=re.escape(expected) + "$"):
             loc.update(frame)
@@ -127,6 +127,15 @@ def test_raw_camera_frames_are_pointed_to_to_gray(route):
     assert loc.n_frames_ == 0
     # what the message points to does convert the frame
     np.testing.assert_allclose(loc.scores(im.to_gray(u8)), loc.scores(u8 / np.float32(255)))
+    # a camera's frame of another size: the message names the resize that fits it
+    big = np.zeros((64, 128, 3), np.uint8)
+    expected = (
+        "image must have image size (H, W) = (32, 64) as at fit time; got (64, 128) (resize "
+        "frames of another size with flyvpr.images.resize_area(frame, (32, 64)))"
+    )
+    with pytest.raises(ValueError, match=re.escape(expected) + "$"):
+        loc.update(im.to_gray(big))
+    assert loc.update(im.resize_area(im.to_gray(big), (32, 64))).place >= 0
 
 
 @pytest.mark.parametrize("call", ["update", "scores", "n_places"])

@@ -94,7 +94,8 @@ def check_images(images, name: str = "images", shape: tuple[int, int] | None = N
     if shape is not None and tuple(arr.shape[1:]) != tuple(shape):
         raise ValueError(
             f"{name} must have image size (H, W) = {tuple(shape)} as at fit time; "
-            f"got {tuple(arr.shape[1:])}"
+            f"got {tuple(arr.shape[1:])} (resize frames of another size with "
+            f"flyvpr.images.resize_area(frame, {tuple(shape)}))"
         )
     # Other floats are checked before the cast to float32, which would turn a value past its
     # range into inf; the rest after it.

@@ -322,7 +322,8 @@ class Localizer:
         if image.ndim != 2:
             hint = (
                 f"(a colour frame, dtype {image.dtype}: convert camera frames with "
-                "flyvpr.images.to_gray)"
+                "flyvpr.images.resize_area(flyvpr.images.to_gray(frame), "
+                f"{tuple(frontend.image_shape_)}))"
                 if image.ndim == 3 and image.shape[-1] in (3, 4)
                 else "(update_batch takes a stack of frames)"
             )
