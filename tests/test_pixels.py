@@ -130,6 +130,54 @@ def test_sad_matrix_auto_is_the_numba_kernel(rng, monkeypatch):
     assert len(calls) == 2  # scipy's cdist, not the kernel
 
 
+def test_sad_matrix_same_bits_for_any_batch_and_thread_count(rng):
+    numba = pytest.importorskip("numba")
+    query = rng.standard_normal((67, 2048)).astype(np.float32)
+    reference = rng.standard_normal((9, 2048)).astype(np.float32)
+    whole = sad_matrix(query, reference)
+    one_by_one = np.concatenate([sad_matrix(q[None], reference) for q in query])
+    np.testing.assert_array_equal(one_by_one, whole)
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        np.testing.assert_array_equal(sad_matrix(query, reference), whole)
+    finally:
+        numba.set_num_threads(before)
+
+
+_SAD_BITS = """
+import hashlib, numpy as np
+from flyvpr.frontends.pixels import sad_matrix
+rng = np.random.default_rng(0)
+q = rng.standard_normal((70, 2048)).astype(np.float32)
+r = rng.standard_normal((50, 2048)).astype(np.float32)
+print(hashlib.sha1(sad_matrix(q, r).tobytes()).hexdigest())
+"""
+
+
+def test_sad_matrix_same_bits_compiled_and_cached(tmp_path):
+    """The run that compiles the kernel and the runs that load it from numba's disk cache give
+    the same bits (a ``parallel=True`` kernel with reassociation did not: its cached code
+    summed in another order)."""
+    import os
+    import subprocess
+    import sys
+
+    pytest.importorskip("numba")
+    import flyvpr
+
+    path = os.pathsep.join([os.path.dirname(os.path.dirname(flyvpr.__file__)), *sys.path])
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "PYTHONPATH": path}
+    runs = [
+        subprocess.run(
+            [sys.executable, "-c", _SAD_BITS], env=env, capture_output=True, text=True, check=True
+        ).stdout
+        for _ in range(2)
+    ]
+    assert any(tmp_path.rglob("*.nbi")), "the first run wrote no cache"
+    assert runs[0] == runs[1]
+
+
 @pytest.mark.parametrize(
     ("query", "reference", "error", "match"),
     [
@@ -204,3 +252,13 @@ def test_pixels_encoder_errors(random_images):
         encoder.score(random_images(1, 16, 64))
     with pytest.raises(ValueError, match="2048 features"):
         encoder.score_codes(np.zeros((1, 100)))
+
+
+def test_jit_refuses_a_parallel_kernel_with_reassociation():
+    # its disk-cached code may sum in another order than the code compiled in the process
+    pytest.importorskip("numba")
+    from flyvpr._numba import jit
+
+    with pytest.raises(ValueError, match=r"parallel=True with fastmath=True"):
+        jit(lambda x: x, parallel=True, fastmath=True)
+    assert jit(lambda x: x + 1, fastmath=True)(1) == 2

@@ -17,9 +17,17 @@ The policy:
   one exception, ``fastmath=True``, allows reassociation only (with ``nnan``, ``ninf`` and
   ``nsz``): LLVM may then split a float sum into SIMD lanes.  It is used where the order of a
   sum's terms is not part of the result's meaning and the tests compare to a tolerance: the
-  CANN's per-frame updates and ``pixels``' sums of absolute differences.  Never fused
-  multiply-adds (``contract``) or approximate functions (``afn``, ``arcp``): the compiled
-  results stay within float rounding of numpy's.
+  CANN's per-frame updates and ``pixels``' sums of absolute differences (both serial: see
+  below).  Never fused multiply-adds (``contract``) or approximate functions (``afn``,
+  ``arcp``): the compiled results stay within float rounding of numpy's.
+* **Never ``parallel=True`` with ``fastmath=True``.**  numba compiles a ``prange`` loop's body
+  as a library of its own and links it into the function, and the object code it caches is
+  optimised again after that linking: with reassociation the cached code may sum in another
+  order than the code the compiling process ran, so results changed in the last bit between
+  the run that compiled a kernel and the runs that loaded it (``pixels``' distances did, and the
+  CANN's thresholds turned that into different benchmark rows).  A reassociated kernel is
+  serial (``nogil``), and its caller spreads it over threads (see
+  ``frontends/_pixels_kernels.py``).
 """
 
 from __future__ import annotations
@@ -45,6 +53,11 @@ def jit(fn=None, *, parallel: bool = False, fastmath: bool = False, **options):
     **options
         Other ``numba.njit`` options (``nogil``, ``error_model``).
     """
+    if parallel and fastmath:
+        raise ValueError(
+            "parallel=True with fastmath=True: the cached code may sum in another order than "
+            "the compiled code (see flyvpr._numba); make the kernel serial and thread its caller"
+        )
     flags = {"parallel": parallel, **options}
     if fastmath:
         flags["fastmath"] = set(REASSOCIATE)
