@@ -137,6 +137,8 @@ def run_task(task: Task) -> dict:
                     out = frames
                 elif view.group == "robot" and _has_state(filt):
                     out, states = _stream(filt, frames, velocity)
+                elif velocity is not None and np.isnan(velocity).any():  # outages: no odometry
+                    out, _ = _stream(filt, frames, velocity)
                 elif velocity is not None:
                     out = filt.filter(frames, velocity=velocity)
                 else:
@@ -250,14 +252,15 @@ def _has_state(filt) -> bool:
 
 
 def _stream(filt, S, velocity):
-    """The filter's rows frame by frame, with whether each frame was ``localized``."""
+    """The filter's rows frame by frame, with whether each frame was ``localized`` (all False
+    for a filter that does not say); a NaN odometry is none for that frame."""
     filt.reset()
     out = np.empty(S.shape, np.float32)
     states = np.zeros(len(S), bool)
     for t in range(len(S)):
-        v = None if velocity is None or t == 0 else float(velocity[t])
+        v = None if velocity is None or t == 0 or np.isnan(velocity[t]) else float(velocity[t])
         out[t] = filt.step(S[t]) if v is None else filt.step(S[t], velocity=v)
-        states[t] = filt.state_ == "localized"
+        states[t] = getattr(filt, "state_", None) == "localized"
     return out, states
 
 

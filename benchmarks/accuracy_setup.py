@@ -137,6 +137,18 @@ def fisheye(images: np.ndarray) -> np.ndarray:
     return out
 
 
+#: where the odometry of a view with ``odometry_outage`` stops: shares of its frames
+ODOMETRY_OUTAGES = (0.25, 0.5, 0.75)
+
+
+def outage_starts(n_frames: int, length: int) -> list[int]:
+    """First frames of the odometry outages of ``length`` frames in a view of ``n_frames``
+    (none for a length of 0)."""
+    if length <= 0:
+        return []
+    return [min(int(share * n_frames), max(n_frames - length, 0)) for share in ODOMETRY_OUTAGES]
+
+
 @dataclass(frozen=True)
 class View:
     """Query frames of a data set, scored at one or more tolerances (frames).
@@ -166,6 +178,9 @@ class View:
     odometry: bool = False
     #: ... times this (odometry off by a map spacing or a wheel calibration: 1.2 reads 20% long)
     odometry_scale: float = 1.0
+    #: ... missing (NaN: the filter estimates those steps) on ODOMETRY_OUTAGES stretches of this
+    #: many frames, a GPS outage (0: none)
+    odometry_outage: int = 0
     #: a detour: the reference places from ``gap[0] * n`` to ``gap[1] * n`` are not in the map
     gap: tuple[float, float] | None = None
     #: a camera with sensor noise: every query frame of the view gets its own Gaussian noise
@@ -185,7 +200,10 @@ class View:
         if not self.odometry:
             return None
         ids = np.asarray(ids)
-        return np.abs(np.diff(ids, prepend=ids[:1])).astype(np.float64) * self.odometry_scale
+        steps = np.abs(np.diff(ids, prepend=ids[:1])).astype(np.float64) * self.odometry_scale
+        for start in outage_starts(ids.size, self.odometry_outage):
+            steps[start : start + self.odometry_outage] = np.nan
+        return steps
 
     def indices(self, n_query: int) -> np.ndarray:
         """Positions of the kept query frames, in the order they are fed to the methods."""
@@ -217,6 +235,13 @@ class View:
                 out["odometry"] = (
                     f"true places moved per frame (unsigned) times {self.odometry_scale:g} (off "
                     "by that factor), given to filters that take it"
+                )
+            if self.odometry_outage:
+                out["odometry"] += (
+                    f"; none on {len(ODOMETRY_OUTAGES)} stretches of {self.odometry_outage} "
+                    "frames (a GPS outage: the filter estimates those steps), from "
+                    + ", ".join(f"{a:g}" for a in ODOMETRY_OUTAGES)
+                    + " of the way"
                 )
         if self.camera_noise:
             out["camera_noise"] = CAMERA_NOISE.format(sd=self.camera_noise)
@@ -495,6 +520,14 @@ ROBOT_VIEWS: list[View] = [
     _motion("r-0.6x-odo", "n64-0", "0-999 at 0.6x, odometry", "0.6x", odometry=True),
     _motion("r-walk", "n64-0", "0-999, random 0.4-1.6x", "walk"),
     _motion("r-walk-odo", "n64-0", "0-999, random 0.4-1.6x, odometry", "walk", odometry=True),
+    _motion(
+        "r-walk-odo-gaps",
+        "n64-0",
+        "0-999, random 0.4-1.6x, odometry with 3 outages of 40 frames",
+        "walk",
+        odometry=True,
+        odometry_outage=40,
+    ),
     _motion("r-stopgo", "n64-0", "0-999, stop-and-go", "stopgo"),
     _motion("r-stopgo-odo", "n64-0", "0-999, stop-and-go, odometry", "stopgo", odometry=True),
     _motion(
@@ -584,6 +617,14 @@ ROBOT_VIEWS: list[View] = [
         "2000-2399 held out, random 0.4-1.6x, odometry",
         "walk",
         odometry=True,
+    ),
+    _motion(
+        "r-walk-odo-gaps-2000",
+        "n64-2000",
+        "2000-2399 held out, random 0.4-1.6x, odometry with 3 outages of 40 frames",
+        "walk",
+        odometry=True,
+        odometry_outage=40,
     ),
     _motion(
         "r-walk-odo-long-2000",

@@ -460,6 +460,35 @@ def test_odometry_steps_are_unsigned_places_moved_times_the_scale():
     assert steps.dtype == np.float64 and steps.tolist() == [0.0, 1.0, 2.0, 0.0]
     long = views["r-walk-odo-long"].odometry_steps(np.array([4, 5, 7]))
     assert long.tolist() == pytest.approx([0.0, 1.2, 2.4])
+    # outages: NaN on 3 stretches from a quarter, a half and three quarters of the frames
+    gaps = views["r-walk-odo-gaps"]
+    assert gaps.odometry_outage == 40 and "3 stretches of 40 frames" in gaps.protocol()["odometry"]
+    steps = gaps.odometry_steps(np.arange(400))
+    assert np.flatnonzero(np.isnan(steps)).tolist() == [
+        *range(100, 140),
+        *range(200, 240),
+        *range(300, 340),
+    ]
+    assert accuracy_setup.outage_starts(100, 40) == [25, 50, 60]  # (the last one ends at 100)
+    assert accuracy_setup.outage_starts(100, 0) == []
+
+
+def test_stream_gives_no_odometry_where_it_is_nan():
+    class Recorder:
+        state_ = "localized"
+
+        def reset(self):
+            self.seen = []
+
+        def step(self, row, velocity=None):
+            self.seen.append(velocity)
+            return row
+
+    f = Recorder()
+    out, states = accuracy_run._stream(f, np.ones((4, 3)), np.array([0.0, 1.5, np.nan, 2.0]))
+    assert f.seen == [None, 1.5, None, 2.0] and states.all() and out.shape == (4, 3)
+    del Recorder.state_  # a filter that does not say: never localized
+    assert not accuracy_run._stream(f, np.ones((2, 3)), None)[1].any()
 
 
 def _rows_answering(answers, n_ref):
