@@ -1,5 +1,6 @@
 """The paper's single-frame comparison networks: FC, FC+Dropout, CNN and NetVLAD."""
 
+import os
 import re
 import subprocess
 import sys
@@ -147,6 +148,56 @@ def test_seed_leaves_global_torch_rng_alone(torch, places):
     torch.manual_seed(123)
     FCDropoutNet(epochs=3, random_state=0).fit(places[0])
     np.testing.assert_array_equal(torch.rand(3).numpy(), expected.numpy())
+
+
+@pytest.mark.parametrize("name", ["fc", "cnn"])
+def test_same_results_whatever_the_torch_threads(name, torch, places):
+    # Torch's matrix products and convolution gradients split their sums over its threads:
+    # before n_threads, one seed trained another network on 2 threads than on 1.
+    ref, qry = places
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (2, 1):
+            torch.set_num_threads(threads)
+            net = _make(name, random_state=0, epochs=10).fit(ref)
+            results.append((net.loss_history_, net.layers_, net.encode(qry), net.score(qry)))
+            assert torch.get_num_threads() == threads  # the caller's setting restored
+    finally:
+        torch.set_num_threads(before)
+    (loss_a, layers_a, codes_a, S_a), (loss_b, layers_b, codes_b, S_b) = results
+    np.testing.assert_array_equal(loss_a, loss_b)
+    for key in layers_a:
+        np.testing.assert_array_equal(layers_a[key], layers_b[key])
+    np.testing.assert_array_equal(codes_a, codes_b)
+    np.testing.assert_array_equal(S_a, S_b)
+
+
+def test_n_threads_is_torch_s_setting_while_fitting_and_encoding(torch, places, monkeypatch):
+    seen = []
+    forward = FCNet._forward
+
+    def spy(self, torch, layers, x, generator):
+        seen.append(torch.get_num_threads())
+        return forward(self, torch, layers, x, generator)
+
+    monkeypatch.setattr(FCNet, "_forward", spy)
+    ref = places[0][:5]
+    cores = os.cpu_count() or 1
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        for n_threads, expected in [(None, 1), (2, min(2, cores)), (cores + 1, cores)]:
+            net = FCNet(epochs=2, random_state=0, n_threads=n_threads).fit(ref)
+            assert seen and set(seen) == {expected}  # training and the training accuracy
+            seen.clear()
+            net.encode(ref)
+            assert seen and set(seen) == {expected}
+            seen.clear()
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert FCNet().get_params()["n_threads"] is None
 
 
 def test_dropout_is_the_only_difference_and_only_in_training(torch, places):
@@ -514,6 +565,28 @@ def test_a_netvlad_file_from_before_the_backbone_hash_loads_with_a_warning(
     assert again.frontend.backbone_sha256_ == net.backbone_sha256_  # a new save pins them
 
 
+@pytest.mark.parametrize("name", NAMES)
+def test_a_file_from_before_n_threads_loads_with_the_default(
+    name, torch, tmp_path, fitted, places, monkeypatch
+):
+    from flyvpr.methods import Method
+    from flyvpr.modelio import load_method, save_method
+
+    net = fitted(name)
+    cls = type(net)
+    older = [p for p in cls._param_names() if p != "n_threads"]
+    with monkeypatch.context() as m:
+        m.setattr(cls, "_param_names", classmethod(lambda c: older))
+        path = save_method(Method(name, net), tmp_path / "old.npz")
+    again = load_method(path)
+    assert again.frontend.n_threads is None
+    np.testing.assert_array_equal(again.score(places[1]), net.score(places[1]))
+    # a new file keeps it
+    again.frontend.set_params(n_threads=2)
+    path = save_method(again, tmp_path / "new.npz")
+    assert load_method(path).frontend.n_threads == 2
+
+
 # -- parameters, errors, optional dependency ----------------------------------------------------
 @pytest.mark.parametrize(
     "make, error, match",
@@ -537,6 +610,8 @@ def test_a_netvlad_file_from_before_the_backbone_hash_loads_with_a_warning(
         (lambda: NetVLADNet(input_size=(8, 8)), ValueError, "input_size"),
         (lambda: NetVLADNet(backbone="vgg16"), ValueError, "backbone must be one of"),
         (lambda: NetVLADNet(n_clusters=0), ValueError, "n_clusters"),
+        (lambda: FCNet(n_threads=0), ValueError, "n_threads must be >= 1"),
+        (lambda: ConvNet(n_threads=1.5), TypeError, "n_threads must be an int"),
     ],
 )
 def test_bad_params(make, error, match):

@@ -415,6 +415,11 @@ class NetVLADNet(TorchClassifier):
         Mini-batch size; ``None`` trains on the whole traverse at once.
     random_state : None, int or numpy.random.Generator
         Seeds k-means, the random projection columns and the classifier, and the batch order.
+    n_threads : int, optional
+        Torch threads while fitting and encoding (the backbone included), capped at the
+        machine's cores; the previous setting is restored afterwards.  ``None`` uses one, so
+        that a seed gives the same network and scores whatever the machine's or the job's
+        thread count (:mod:`~flyvpr.frontends.torch_nets`).
 
     Attributes
     ----------
@@ -454,6 +459,7 @@ class NetVLADNet(TorchClassifier):
         learning_rate=0.001,
         batch_size=None,
         random_state=None,
+        n_threads=None,
     ):
         self.n_clusters = n_clusters
         self.n_components = n_components
@@ -465,6 +471,7 @@ class NetVLADNet(TorchClassifier):
         self.learning_rate = learning_rate
         self.batch_size = batch_size
         self.random_state = random_state
+        self.n_threads = n_threads
 
     # -- hooks of TorchClassifier -----------------------------------------------------------
     def _check_architecture(self, image_shape) -> None:

@@ -42,6 +42,12 @@ Conventions shared by these networks
   (:func:`~flyvpr._validation.check_random_state`), which seeds one ``torch.Generator`` that
   draws the initial weights, the dropout masks and the batch order.  Torch's global random
   state is never used or changed, so equal seeds give equal networks.
+* **Threads.**  Torch runs on ``n_threads`` threads (one by default) while a network is
+  fitted or encodes, and the previous setting is restored afterwards.  Torch's matrix
+  products and convolution gradients split their sums over the threads, and another split
+  rounds differently: over the epochs another thread count trains another network.  With one
+  thread a seed gives the same network and scores whatever the machine's or the job's thread
+  count.
 * **Codes and scores.**  :meth:`encode` returns the classifier's input (the last hidden
   layer: 64 values for ``fc``, 384 for ``cnn``); ``score`` is the softmax of the classifier's
   outputs, shape (n_query, n_reference), each row summing to one.
@@ -61,7 +67,7 @@ import numbers
 
 import numpy as np
 
-from .._torch import import_torch
+from .._torch import check_threads, import_torch, torch_threads
 from .._validation import ArraySpec, check_positive_int, check_random_state, check_real
 from .base import Encoder
 from .flynet import softmax
@@ -153,12 +159,15 @@ class TorchClassifier(Encoder):
 
     name = "torch-classifier"
     requires: tuple[str, ...] = ("torch",)
+    #: model files written before ``n_threads`` existed load with its default
+    _added_params = ("n_threads",)
 
     # the training parameters every subclass's __init__ stores
     epochs: int
     learning_rate: float
     batch_size: int | None
     random_state: int | np.random.Generator | None
+    n_threads: int | None
 
     # -- validation -----------------------------------------------------------------------
     def _check_training(self) -> tuple[int, float, int | None]:
@@ -175,27 +184,29 @@ class TorchClassifier(Encoder):
     # -- public calls (through Encoder) -----------------------------------------------------
     def _fit(self, images: np.ndarray) -> None:
         epochs, lr, batch = self._check_training()
+        n_threads = check_threads(self.n_threads)
         self._check_architecture(images.shape[1:])
         rng = check_random_state(self.random_state)
         torch = import_torch(self._who(), getattr(self, "extra", "torch"))
-        self._setup(torch)
-        generator = torch_generator(torch, rng)
-        n = images.shape[0]
-        with torch.no_grad():
-            inputs = self._network_inputs(torch, images)
-            layers = self._init_layers(torch, inputs, generator)
-            n_features = self._forward(torch, layers, inputs[:1], None).shape[1]
-        weights = _uniform(torch, (n_features, n), 1.0 / np.sqrt(n_features), generator)
-        losses, accs = _train(
-            torch, self, layers, weights, inputs, epochs, lr, min(batch or n, n), generator
-        )
-        self.layers_ = {k: v.detach().numpy() for k, v in layers.items()}
-        self.weights_ = weights.detach().numpy()
-        self.loss_history_ = losses
-        self.accuracy_history_ = accs
-        codes = self._codes(torch, inputs)
-        pred = np.argmax(codes @ self.weights_, axis=1)
-        self.train_accuracy_ = float(np.mean(pred == np.arange(n)))
+        with torch_threads(torch, n_threads):
+            self._setup(torch)
+            generator = torch_generator(torch, rng)
+            n = images.shape[0]
+            with torch.no_grad():
+                inputs = self._network_inputs(torch, images)
+                layers = self._init_layers(torch, inputs, generator)
+                n_features = self._forward(torch, layers, inputs[:1], None).shape[1]
+            weights = _uniform(torch, (n_features, n), 1.0 / np.sqrt(n_features), generator)
+            losses, accs = _train(
+                torch, self, layers, weights, inputs, epochs, lr, min(batch or n, n), generator
+            )
+            self.layers_ = {k: v.detach().numpy() for k, v in layers.items()}
+            self.weights_ = weights.detach().numpy()
+            self.loss_history_ = losses
+            self.accuracy_history_ = accs
+            codes = self._codes(torch, inputs)
+            pred = np.argmax(codes @ self.weights_, axis=1)
+            self.train_accuracy_ = float(np.mean(pred == np.arange(n)))
         logger.info(
             "%s trained on %d places, %d epochs: loss %.3f -> %.3f, train accuracy %.3f",
             type(self).__name__,
@@ -209,10 +220,11 @@ class TorchClassifier(Encoder):
     def _encode(self, images: np.ndarray) -> np.ndarray:
         torch = import_torch(self._who(), getattr(self, "extra", "torch"))
         out = []
-        for start in range(0, images.shape[0], _ENCODE_CHUNK):
-            with torch.no_grad():
-                inputs = self._network_inputs(torch, images[start : start + _ENCODE_CHUNK])
-            out.append(self._codes(torch, inputs))
+        with torch_threads(torch, check_threads(self.n_threads)):
+            for start in range(0, images.shape[0], _ENCODE_CHUNK):
+                with torch.no_grad():
+                    inputs = self._network_inputs(torch, images[start : start + _ENCODE_CHUNK])
+                out.append(self._codes(torch, inputs))
         return np.concatenate(out)
 
     def logits(self, codes) -> np.ndarray:
@@ -361,6 +373,11 @@ class FCNet(TorchClassifier):
         Mini-batch size; ``None`` trains on the whole traverse at once.
     random_state : None, int or numpy.random.Generator
         Seeds initial weights, dropout masks and batch order.
+    n_threads : int, optional
+        Torch threads while fitting and encoding, capped at the machine's cores; the previous
+        setting is restored afterwards.  ``None`` uses one, so that a seed gives the same
+        network and scores whatever the machine's or the job's thread count (torch splits
+        sums over its threads, and another split rounds differently: module docstring).
 
     Attributes
     ----------
@@ -388,6 +405,7 @@ class FCNet(TorchClassifier):
         learning_rate=0.001,
         batch_size=None,
         random_state=None,
+        n_threads=None,
     ):
         self.hidden_sizes = hidden_sizes
         self.dropout = dropout
@@ -395,6 +413,7 @@ class FCNet(TorchClassifier):
         self.learning_rate = learning_rate
         self.batch_size = batch_size
         self.random_state = random_state
+        self.n_threads = n_threads
 
     def _sizes(self) -> tuple[int, ...]:
         return _check_int_tuple(self.hidden_sizes, "hidden_sizes")
@@ -459,6 +478,7 @@ class FCDropoutNet(FCNet):
         learning_rate=0.001,
         batch_size=100,
         random_state=None,
+        n_threads=None,
     ):
         super().__init__(
             hidden_sizes=hidden_sizes,
@@ -467,6 +487,7 @@ class FCDropoutNet(FCNet):
             learning_rate=learning_rate,
             batch_size=batch_size,
             random_state=random_state,
+            n_threads=n_threads,
         )
 
 
@@ -486,7 +507,7 @@ class ConvNet(TorchClassifier):
         Square kernel side of each convolution.
     strides : sequence of int, default (4, 2)
         Stride of each convolution.
-    epochs, learning_rate, batch_size, random_state
+    epochs, learning_rate, batch_size, random_state, n_threads
         As :class:`FCNet`.
 
     Attributes
@@ -511,6 +532,7 @@ class ConvNet(TorchClassifier):
         learning_rate=0.001,
         batch_size=None,
         random_state=None,
+        n_threads=None,
     ):
         self.channels = channels
         self.kernel_sizes = kernel_sizes
@@ -519,6 +541,7 @@ class ConvNet(TorchClassifier):
         self.learning_rate = learning_rate
         self.batch_size = batch_size
         self.random_state = random_state
+        self.n_threads = n_threads
 
     def _spec(self):
         channels = _check_int_tuple(self.channels, "channels")

@@ -7,7 +7,6 @@ stays free of torch.  The design is documented in :mod:`flyvpr.temporal.rnn`.
 
 from __future__ import annotations
 
-import contextlib
 from typing import NamedTuple
 
 import numpy as np
@@ -29,17 +28,6 @@ GATE_BIAS = 6.0
 def import_torch():
     """``import torch`` or an ImportError naming the pip extra."""
     return _import_torch("RNNFilter (method 'flynet+rnn')")
-
-
-@contextlib.contextmanager
-def torch_threads(torch, n_threads: int):
-    """Run torch on ``n_threads`` threads inside the block, then restore the setting."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(n_threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 def normalise(S: np.ndarray, log_input: bool) -> np.ndarray:

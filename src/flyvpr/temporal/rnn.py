@@ -98,10 +98,10 @@ from __future__ import annotations
 
 import logging
 import numbers
-import os
 
 import numpy as np
 
+from .._torch import check_threads, torch_threads
 from .._validation import (
     NotFittedError,
     check_positive_int,
@@ -298,9 +298,7 @@ class RNNFilter(OnlineFilter):
         return speeds
 
     def _threads(self) -> int:
-        if self.n_threads is None:
-            return 1
-        return min(check_positive_int(self.n_threads, "n_threads"), os.cpu_count() or 1)
+        return check_threads(self.n_threads)
 
     # ----------------------------------------------------------------------------------------
     # training
@@ -364,7 +362,7 @@ class RNNFilter(OnlineFilter):
         log_input = _is_probability_matrix(R)
         Z = net.normalise(R, log_input)
         generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
-        with net.torch_threads(torch, n_threads):
+        with torch_threads(torch, n_threads):
             module = net.build_module(torch, cell, n, hidden, generator, prior)
             losses = net.train(
                 torch,
@@ -420,7 +418,7 @@ class RNNFilter(OnlineFilter):
         """Rows of S through the network from the current hidden state; keeps the new state."""
         torch = net.import_torch()
         x = torch.from_numpy(net.normalise(S, self.log_input_))[None]
-        with net.torch_threads(torch, self._threads()), torch.no_grad():
+        with torch_threads(torch, self._threads()), torch.no_grad():
             h, self._hidden = self.module_["recurrent"](x, self._hidden)
             out = torch.softmax(self.module_["readout"](h[0]), dim=-1)
         return out.numpy().astype(S.dtype, copy=False)
