@@ -2324,6 +2324,25 @@ def test_a_gap_in_scaled_odometry_keeps_the_speed_and_the_scale(odometry):
     assert odometry_scale(scale) == pytest.approx(2.0 / odometry, abs=0.1)
 
 
+def test_a_gap_after_repeated_frames_moves_a_place_per_new_frame():
+    # Half a place per frame recorded as every image twice: odometry 1, 0, 1, 0 ...  In a gap
+    # the repeats are held and the layer moves on the new frames only, so its speed is the
+    # odometry per new frame (1), not per frame (0.5): the repeats' odometry is left out of
+    # the running mean that sets it.
+    T = 180
+    places = 4 + np.arange(T) // 2
+    S = bump_rows(4 + np.arange(T // 2), 110, amp=2.0, noise=0.5, seed=3)[np.arange(T) // 2]
+    given = np.r_[0.0, np.diff(places)].astype(np.float64)
+    given[70:130] = np.nan
+    answers, _ = _gappy_run(CANN(), S, given)
+    assert np.min((answers - places)[70:130]) >= -1  # (at 0.5 per new frame: 3 places behind)
+    assert np.mean(np.abs(answers - places)[20:] <= 1) > 0.95
+    f = CANN()
+    f.step(S[0], velocity=1.0)
+    f._rows_for(0.0, 1, repeat=True)
+    assert f._odometry_mean == 1.0
+
+
 def test_scaled_odometry_that_starts_late_takes_the_scale_not_the_speed():
     # 30 frames without odometry at 2 places per frame (a GPS that starts after the camera),
     # then odometry that is right: the rows become scales of 1, not speeds of 2 read as scales
@@ -2372,7 +2391,13 @@ def test_odometry_rows_turn_from_scales_to_speeds_and_back():
     f._rows_for(2.0, 6)
     assert f._scaled and not f._offsets.any()
     np.testing.assert_allclose(f._p[:, 7], 31.0 * scales, rtol=1e-6)
-    assert f._last_odometry == 2.0
+    # the speed is the odometry's running mean (rate 0.2), not the last frame's alone:
+    # 1.25, 1.25, 1.25, then 0 and 2 give 1.2
+    assert f._odometry_mean == pytest.approx(1.2)
+    f._p[:] = 0.0
+    f._p[1, 3] = 1.0  # scale 1 at place 3: speed 1.2, 0.6 at 1 and 0.4 at 1.5
+    f._rows_for(None, 7)
+    np.testing.assert_allclose(f._p[:, 3], [0.0, 0.6, 0.4, 0.0, 0.0], rtol=1e-6)
     # a bank of one velocity: a scale and a speed alike, nothing moves
     one = CANN(velocities=(1.0,))
     one.step(S[0], velocity=2.0)

@@ -45,6 +45,8 @@ _KNOTS = np.linspace(0.0, 1.0, 11)
 CALIBRATION_ROOT = 4
 #: the rank model learns from frames whose support reaches this
 _LEARN_ABOVE = 0.5
+#: the rate of the odometry's running mean (a robot's recent speed, for a gap in the odometry)
+_ODOMETRY_RATE = 0.2
 
 
 def _shape(log_rank: float) -> float:
@@ -268,7 +270,7 @@ class CANN(OdometryFilter):
         followed.  The scale drifts between neighbouring rows (``velocity_change``) but is
         never drawn afresh: the odometry carries the stops and starts.  The scales' prior is
         the speed prior's shape around 1.  A frame without odometry after frames with it
-        turns the rows back into speeds (scale times the last odometry) until the odometry is
+        turns the rows back into speeds (scale times the recent odometry) until the odometry is
         back, with the scales as they were.  ``"exact"``: every row
         moves by the odometry itself (the velocities stay as they are); right odometry then
         follows a little closer, odometry 10% off falls behind the filter without it.
@@ -547,10 +549,11 @@ class CANN(OdometryFilter):
         self._last_out = np.zeros(n, np.float32)
         self._tied = np.arange(1, n, dtype=np.int32)
         self._odometry_offset = 0.0
-        # Whether the rows are scales of the odometry (scaled odometry) or speeds, the last
-        # odometry, and the scales' posterior when the odometry last stopped (see _rows_for)
+        # Whether the rows are scales of the odometry (scaled odometry) or speeds, the recent
+        # odometry's running mean, and the scales' posterior when the odometry last stopped
+        # (see _rows_for)
         self._scaled = False
-        self._last_odometry = 0.0
+        self._odometry_mean: float | None = None
         self._scale_mass: np.ndarray | None = None
         self._stride = max(1, n // _SAMPLES)
         # The sequence test's rank model: the share u of places at least as good as the
@@ -612,7 +615,7 @@ class CANN(OdometryFilter):
         self._offsets = total - rounded
         return rounded.astype(np.int64)
 
-    def _rows_for(self, velocity: float | None, t: int) -> None:
+    def _rows_for(self, velocity: float | None, t: int, repeat: bool = False) -> None:
         """Make the rows scales of the odometry or speeds, as this frame needs (scaled
         odometry only).
 
@@ -620,11 +623,15 @@ class CANN(OdometryFilter):
         makes them scales: each place's activity shared over the rows as the scales' posterior
         was when the odometry last stopped (the scale learned before a gap), or as their prior
         at first.  A frame without odometry after frames with it makes them speeds: each row's
-        activity goes to the rows of its scale times the last odometry (the robot keeps the
-        speed it had), shared linearly between the two nearest (the bank's end rows take what
-        lies beyond them).  Without this a row's scale would be read as a speed in a gap of
-        the odometry (a robot at 2 places per frame would go on at 1), and a speed learned
-        without odometry as a scale when it starts."""
+        activity goes to the rows of its scale times the recent odometry (its running mean
+        over about ``1 / _ODOMETRY_RATE`` frames: the robot keeps the speed it had, and one
+        frame's step, which may be 0 or 2 places where the odometry counts whole places, does
+        not set it alone), shared linearly between the two nearest (the bank's end rows take
+        what lies beyond them).  The mean leaves out the frames that ``repeat`` the one before
+        (``hold_repeats``): without odometry those are held, and the layer moves on the new
+        frames only, so its speed is the odometry per new frame.  Without this a row's scale
+        would be read as a speed in a gap of the odometry (a robot at 2 places per frame would
+        go on at 1), and a speed learned without odometry as a scale when it starts."""
         p = self._params
         vel = p["velocities"]
         if vel.size == 1:  # one row: a scale and a speed alike
@@ -640,7 +647,7 @@ class CANN(OdometryFilter):
             self._scaled = True
         elif velocity is None and self._scaled:
             self._scale_mass = self._row_mass.copy()
-            target = np.clip(vel * self._last_odometry, vel[0], vel[-1])
+            target = np.clip(vel * (self._odometry_mean or 0.0), vel[0], vel[-1])
             upper = np.clip(np.searchsorted(vel, target, side="right"), 1, vel.size - 1)
             lower = upper - 1
             high = (target - vel[lower]) / (vel[upper] - vel[lower])
@@ -651,8 +658,9 @@ class CANN(OdometryFilter):
             self._p, self._spare = self._spare, self._p
             self._offsets[:] = 0.0
             self._scaled = False
-        if velocity is not None:
-            self._last_odometry = velocity
+        if velocity is not None and not repeat:
+            mean = velocity if self._odometry_mean is None else self._odometry_mean
+            self._odometry_mean = mean + _ODOMETRY_RATE * (velocity - mean)
 
     def _holds(self, row: np.ndarray) -> bool:
         """Whether ``row`` repeats the last frame's and the map does not repeat a frame at the
@@ -768,7 +776,10 @@ class CANN(OdometryFilter):
         if p["hold_repeats"] and velocity is None and t > 0 and self._holds(row):
             return self._hold()
         if p["odometry"] == "scaled":
-            self._rows_for(velocity, t)
+            # (a repeated frame's odometry is left out of the running mean: in a gap of the
+            # odometry the layer moves on new frames only, repeats being held)
+            repeat = p["hold_repeats"] and velocity is not None and t > 0 and self._holds(row)
+            self._rows_for(velocity, t, repeat)
         radius = p["tolerance"]
         x = self._input(row)
         memory = p["support_memory"]
