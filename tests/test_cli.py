@@ -98,6 +98,56 @@ def test_evaluate_window(route_dir, tmp_path):
     assert (data["first"], data["count"], data["n_reference"]) == (10, 20, 20)
 
 
+def _route_with_positions(route_dir, folder, offset: float):
+    """A copy of the route with a positions CSV: reference frame i at (10 i, 0), query frame
+    i at (10 i + offset, 0)."""
+    import shutil
+
+    root = folder / "route"
+    shutil.copytree(route_dir, root)
+    lines = ["traverse,filename,x,y"]
+    for role, season, shift in (("reference", "summer", 0.0), ("query", "winter", offset)):
+        for i, path in enumerate(sorted((root / season).iterdir())):
+            lines.append(f"{role},{path.name},{10 * i + shift},0")
+    (root / "positions.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return root
+
+
+def _generic_args(root, radius, *extra):
+    return [
+        "evaluate", "--dataset", "generic", "--root", str(root), "--reference", "summer",
+        "--query", "winter", "--positions-csv", "positions.csv", "--radius", str(radius),
+        "--method", "pixels", "--quiet", "--no-cache", *extra,
+    ]  # fmt: skip
+
+
+def test_evaluate_records_the_paths_resolved(route_dir, tmp_path, monkeypatch):
+    # given relative to the working directory, recorded absolute: the JSON names the files
+    # wherever it is read, as experiment run files do
+    root = _route_with_positions(route_dir, tmp_path, offset=3.0)
+    monkeypatch.chdir(tmp_path)
+    assert main(_generic_args("route", 5, "--out", "r.json")) == 0
+    protocol = json.loads((tmp_path / "r.json").read_text())["protocol"]
+    assert protocol["root"] == str(root.resolve())
+    assert protocol["sources"] == [str(root.resolve() / "positions.csv")]
+    assert protocol["reference_dir"] == str(root.resolve() / "summer")
+
+
+def test_evaluate_refuses_a_ground_truth_without_a_match_before_the_work(
+    route_dir, tmp_path, capsys, monkeypatch
+):
+    import flyvpr.cli.evaluate as evaluate_cli
+
+    root = _route_with_positions(route_dir, tmp_path, offset=3.0)
+    monkeypatch.setattr(evaluate_cli, "evaluate_method", lambda *a, **k: pytest.fail("fitted"))
+    out = tmp_path / "r.json"
+    assert main(_generic_args(root, 1, "--out", str(out))) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("flyvpr evaluate: error: the ground truth gives no query a true match")
+    assert "(1.0 metres)" in err and err.count("\n") == 1
+    assert not out.exists()
+
+
 def test_corrupt_png_exits_1_naming_the_file(route_dir, tmp_path, capsys):
     import shutil
 

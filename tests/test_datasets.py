@@ -278,6 +278,40 @@ def test_benchmark_validation():
         Benchmark("x", b.reference, b.query, b.ground_truth, 20)
 
 
+def test_benchmark_fingerprint_follows_the_files_and_the_ground_truth(tmp_path):
+    import os
+    import shutil
+
+    for season in ("summer", "winter"):
+        make_season(tmp_path / "a", season, range(1, 7))
+    first = load_nordland(tmp_path / "a", tolerance=1).fingerprint()
+    json.dumps(first)
+    assert first == load_nordland(tmp_path / "a", tolerance=1).fingerprint()
+    assert first["reference"]["n_images"] == first["query"]["n_images"] == 6
+    assert first["ground_truth"]["shape"] == [6, 6] and first["ground_truth"]["n_true"] == 16
+    # a copy that keeps the modification times, elsewhere: the same data
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    assert load_nordland(tmp_path / "b", tolerance=1).fingerprint() == first
+    # the same files, another tolerance: another ground truth
+    wider = load_nordland(tmp_path / "a", tolerance=2).fingerprint()
+    assert wider["reference"] == first["reference"] and wider["query"] == first["query"]
+    assert wider["ground_truth"] != first["ground_truth"]
+    # a picture written again (a new modification time)
+    os.utime(tmp_path / "a" / "winter" / "images-00003.png", (1e9, 1e9))
+    touched = load_nordland(tmp_path / "a", tolerance=1).fingerprint()
+    assert touched["reference"] == first["reference"]
+    assert touched["query"]["files"] != first["query"]["files"]
+    assert touched["ground_truth"] == first["ground_truth"]
+    # fewer frames
+    fewer = load_nordland(tmp_path / "a", tolerance=1, count=5).fingerprint()
+    assert fewer["query"]["n_images"] == 5 and fewer["ground_truth"]["shape"] == [5, 5]
+    # a file gone since the benchmark was loaded is named
+    bench = load_nordland(tmp_path / "b", tolerance=1)
+    (tmp_path / "b" / "summer" / "images-00002.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"image file not found: .*images-00002\.png"):
+        bench.fingerprint()
+
+
 # -- registry ------------------------------------------------------------------------------------
 def test_registry_names_and_specs():
     assert set(DATASETS) == {"nordland", "robotcar", "vprbench", "generic"}

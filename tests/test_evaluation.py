@@ -38,6 +38,34 @@ def test_evaluate_method_fields(random_images):
     assert res["frontend_params"]["random_state"] == "from seed 0"
 
 
+def test_evaluate_method_counts_the_queries_with_a_match(random_images):
+    # recall's denominator, so that R@1 and the curve can be recomputed from a result file
+    ref, qry = random_images(20), random_images(26)
+    gt = np.abs(np.arange(26)[:, None] - np.arange(20)[None, :]) <= 1  # queries 21..25: none
+    res, S = evaluate_method("pixels", ref, qry, gt, return_scores=True)
+    assert res["n_query_with_match"] == 21
+    best = S.argmax(axis=1)
+    assert res["recall_at_1"] == gt[np.arange(26), best].sum() / 21
+
+
+def test_check_true_matches_refuses_a_ground_truth_without_any():
+    from flyvpr.datasets import Benchmark, Traverse
+    from flyvpr.evaluation import check_true_matches
+
+    ref = Traverse("ref", [f"r{i}.png" for i in range(3)])
+    qry = Traverse("qry", [f"q{i}.png" for i in range(2)])
+    gt = np.zeros((2, 3), dtype=bool)
+    none = Benchmark("generic", ref, qry, gt, {"metres": 5.0})
+    with pytest.raises(
+        ValueError,
+        match=r"^the ground truth gives no query a true match: none of the 2 queries lies "
+        r"within the tolerance \(5\.0 metres\) of any of the 3 references, so recall is undef",
+    ):
+        check_true_matches(none)
+    gt[1, 2] = True
+    assert check_true_matches(Benchmark("generic", ref, qry, gt, {"metres": 5.0})) is None
+
+
 def test_evaluate_method_checks_gt_shape(random_images):
     ref = random_images(5)
     with pytest.raises(ValueError, match="ground_truth must have shape"):

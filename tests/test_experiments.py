@@ -123,6 +123,30 @@ def test_run_id_is_stable_and_readable(tmp_path):
     assert run_id_of(changed) != run.run_id
 
 
+def test_a_whole_number_names_one_run_whether_written_as_int_or_float(tmp_path):
+    # cann's speed_prior and adaptation default to 1.0 and 50.0, seqslam's enhance_window to 10
+    def runs(method_params=None):
+        text = grid(methods='["kenyon+cann", "seqslam"]', method_params=method_params)
+        return {r.spec["method"]: r for r in load_config(write_config(tmp_path, text)).runs()}
+
+    default = runs()
+    spelled = runs(
+        '{ "kenyon+cann" = { speed_prior = 1, adaptation = 50 }, '
+        "seqslam = { enhance_window = 10.0, v_max = 1.2 } }"
+    )
+    assert {m: r.run_id for m, r in spelled.items()} == {m: r.run_id for m, r in default.items()}
+    # only the identity is normalised: the method receives the values as written
+    filt = spelled["kenyon+cann"].spec["filter_params"]
+    assert filt["speed_prior"] == 1 and type(filt["speed_prior"]) is int
+    assert type(spelled["seqslam"].spec["filter_params"]["enhance_window"]) is float
+    # a boolean is not a number: fallback = 1 is not the default true
+    other = runs('{ "kenyon+cann" = { fallback = 1 } }')
+    assert other["kenyon+cann"].run_id != default["kenyon+cann"].run_id
+    assert other["seqslam"].run_id == default["seqslam"].run_id
+    # and a value that differs still makes a new run
+    assert runs("{ seqslam = { v_max = 2 } }")["seqslam"].run_id != default["seqslam"].run_id
+
+
 def test_parameters_route_to_front_end_and_filter(tmp_path):
     grids = """
     [[grids]]
@@ -446,6 +470,136 @@ def test_speed_profile_subsets_the_queries(workdir):
     assert record["protocol"]["speed"] == 2.0
 
 
+GENERIC = """
+[settings]
+cache = "cache"
+
+[[datasets]]
+name = "syn"
+loader = "generic"
+root = "route"
+reference = "summer"
+query = "winter"
+tolerance = 2
+"""
+
+QUICK_GRID = """
+[[grids]]
+name = "eval"
+kind = "evaluate"
+datasets = ["syn"]
+methods = ["pixels", "seqslam"]
+"""
+
+
+def _warnings(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+def test_a_run_whose_data_changed_since_runs_again(tmp_path, route_dir, caplog):
+    import shutil
+
+    shutil.copytree(route_dir, tmp_path / "route")
+    config, out = write_config(tmp_path, QUICK_GRID, GENERIC), tmp_path / "out"
+    first = run_experiment(config, out, progress=False)
+    assert len(first["ran"]) == 2
+    record = json.loads(run_files(out)[first["ran"][0]].read_text())
+    assert record["data_fingerprint"]["query"]["n_images"] == N_PLACES
+    with caplog.at_level(logging.WARNING, logger="flyvpr.experiments"):
+        assert run_experiment(config, out, progress=False)["ran"] == []
+    assert _warnings(caplog) == []
+
+    # five query frames deleted: the runs are done again, for the data as they are now
+    for path in sorted((tmp_path / "route" / "winter").iterdir())[-5:]:
+        path.unlink()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="flyvpr.experiments"):
+        again = run_experiment(config, out, progress=False)
+    assert sorted(again["ran"]) == sorted(first["ran"]) and again["n_skipped"] == 0
+    assert _warnings(caplog) == [
+        f"dataset 'syn': data changed since the run: query: {N_PLACES - 5} images, were "
+        f"{N_PLACES}; running 2 finished runs again"
+    ]
+    record = json.loads(run_files(out)[first["ran"][0]].read_text())
+    assert record["protocol"]["n_query"] == len(record["predictions"]) == N_PLACES - 5
+
+    # a picture rewritten in place (same name, new modification time)
+    picture = sorted((tmp_path / "route" / "summer").iterdir())[3]
+    os.utime(picture, (1e9, 1e9))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="flyvpr.experiments"):
+        assert len(run_experiment(config, out, progress=False)["ran"]) == 2
+    (message,) = _warnings(caplog)
+    assert "data changed since the run: reference: other image files, sizes or modific" in message
+
+    # a run file of an older flyvpr, without a fingerprint: run again, not trusted
+    victim = run_files(out)[first["ran"][1]]
+    _drop_key(victim, "data_fingerprint")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="flyvpr.experiments"):
+        assert run_experiment(config, out, progress=False)["ran"] == [victim.stem]
+    assert _warnings(caplog) == [
+        "dataset 'syn': the files of 1 finished run, written by an older flyvpr, record no "
+        "fingerprint of their data, which may have changed since; running them again"
+    ]
+    assert "data_fingerprint" in json.loads(victim.read_text())
+
+
+def test_the_data_are_fingerprinted_once_per_dataset_and_invocation(workdir, monkeypatch):
+    from flyvpr.datasets import Benchmark
+
+    calls = []
+    real = Benchmark.fingerprint
+    monkeypatch.setattr(Benchmark, "fingerprint", lambda self: calls.append(1) or real(self))
+    grids = EVAL_GRID.replace("seeds = [0, 1]", "seeds = [0, 1]\nspeed = 2.0")
+    config, out = write_config(workdir, grids), workdir / "out"
+    assert len(run_experiment(config, out, n_jobs=1, progress=False)["ran"]) == 6
+    assert len(calls) == 1
+    assert run_experiment(config, out, n_jobs=1, progress=False)["n_skipped"] == 6
+    assert len(calls) == 2
+
+
+def _positions_csv(root: Path, offset: float) -> Path:
+    """Reference frame i at (10 i, 0), query frame i at (10 i + offset, 0)."""
+    lines = ["traverse,filename,x,y"]
+    for role, folder, shift in (("reference", "summer", 0.0), ("query", "winter", offset)):
+        for i, path in enumerate(sorted((root / folder).iterdir())):
+            lines.append(f"{role},{path.name},{10 * i + shift},0")
+    path = root / "positions.csv"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def test_a_ground_truth_without_a_true_match_is_refused_before_any_run(
+    tmp_path, route_dir, monkeypatch
+):
+    import shutil
+
+    from flyvpr.experiments import runner
+
+    shutil.copytree(route_dir, tmp_path / "route")
+    _positions_csv(tmp_path / "route", offset=3.0)
+    base = GENERIC.replace("tolerance = 2", 'positions_csv = "route/positions.csv"\nradius = 1')
+    config, out = write_config(tmp_path, QUICK_GRID, base), tmp_path / "out"
+    monkeypatch.setattr(runner, "execute_run", lambda run: pytest.fail("a run started"))
+    with pytest.raises(ValueError) as info:
+        run_experiment(config, out, progress=False)
+    assert str(info.value) == (
+        f"{config} [[datasets]] #1 ('syn'): the ground truth gives no query a true match: none "
+        f"of the {N_PLACES} queries lies within the tolerance (1.0 metres) of any of the "
+        f"{N_PLACES} references, so recall is undefined; widen the tolerance (or radius), or "
+        "check the frames (or positions) of the two traverses"
+    )
+    assert not out.exists()
+    # a training curve needs no ground truth: it runs
+    curves = QUICK_GRID.replace('"evaluate"', '"training_curve"').replace(
+        '["pixels", "seqslam"]', '["flynet"]\nparams = { epochs = 2 }'
+    )
+    monkeypatch.undo()
+    summary = run_experiment(write_config(tmp_path, curves, base), out, progress=False)
+    assert len(summary["ran"]) == 1 and not summary["errors"]
+
+
 def test_missing_data_fails_before_any_run(tmp_path):
     out = tmp_path / "out"
     config = write_config(tmp_path, EVAL_GRID)
@@ -703,6 +857,78 @@ def test_sigterm_takes_the_worker_processes_down(workdir, entry):
     assert not [p for p in out.rglob("*") if p.name.endswith(".tmp")]
     assert not run_files(out)
     assert b"Traceback" not in err
+
+
+def test_worker_processes_leave_ctrl_c_to_the_calling_process(workdir, monkeypatch):
+    # Ctrl-C signals the whole process group: a worker between two runs printed its own
+    # KeyboardInterrupt traceback, while the calling process stops the workers anyway
+    from flyvpr.experiments import runner
+
+    real = runner.execute_run
+
+    def execute_and_look(run):  # (a local function: sent to the workers by value)
+        return {**real(run), "sigint": str(signal.getsignal(signal.SIGINT))}
+
+    monkeypatch.setattr(runner, "execute_run", execute_and_look)
+    grids = QUICK_GRID.replace('"seqslam"]', '"seqslam"]\nseeds = [0, 1]')
+    config, out = write_config(workdir, grids), workdir / "out"
+    assert len(run_experiment(config, out, n_jobs=2, progress=False)["ran"]) == 4
+    handlers = {json.loads(p.read_text())["sigint"] for p in run_files(out).values()}
+    assert handlers == {str(signal.SIG_IGN)}
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # not here
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux /proc")
+def test_ctrl_c_stops_the_workers_without_their_tracebacks(workdir):
+    # Ctrl-C (or `timeout -s INT`) signals the whole process group, the workers included
+    grid = EVAL_GRID.replace('"pixels", "flynet", "seqslam"', '"flynet"').replace(
+        "epochs = 5", "epochs = 100000"
+    )
+    config, out = write_config(workdir, grid), workdir / "out"
+    code = "from flyvpr.cli import main; import sys; sys.exit(main(sys.argv[1:]))"
+    args = ["experiment", str(config), "--out", str(out), "--jobs", "2", "--quiet"]
+    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, *args],
+        env=env,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
+    try:
+        workers: set[int] = set()
+        deadline = time.monotonic() + 120
+        while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+            workers = {p for p in _descendants(proc.pid) if "Loky" in _cmdline(p)}
+        assert len(workers) >= 2, "the two workers never started"
+        # (a worker still starting up, before it set SIGINT aside, could yet print a traceback)
+        deadline = time.monotonic() + 60
+        while not all(map(_ignores_sigint, workers)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert all(map(_ignores_sigint, workers)), "the workers do not leave SIGINT to the parent"
+        time.sleep(1.0)  # the workers are in the middle of their runs (100000 epochs)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:  # (a failed check: the experiment must not run on)
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert err.decode() == "flyvpr: interrupted\n"
+    deadline = time.monotonic() + 10
+    while any(map(_alive, workers)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(map(_alive, workers)), "worker processes outlived the experiment"
+
+
+def _ignores_sigint(pid: int) -> bool:
+    """Whether process ``pid`` ignores SIGINT (Linux /proc: the SigIgn mask)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    mask = next(line.split()[1] for line in status.splitlines() if line.startswith("SigIgn:"))
+    return bool(int(mask, 16) >> (signal.SIGINT - 1) & 1)
 
 
 def _cmdline(pid: int) -> str:

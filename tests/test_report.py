@@ -165,6 +165,55 @@ def test_report_states_the_protocol_and_machine(report):
     assert machine_info()["cpu"] in text
 
 
+UNEQUAL = """
+title = "A longer query traverse"
+
+[settings]
+cache = "cache"
+
+[[datasets]]
+name = "longer"
+loader = "generic"
+root = "route"
+reference = "summer"
+query = "winter"
+tolerance = 2
+
+[[grids]]
+name = "eval"
+kind = "evaluate"
+datasets = ["longer"]
+methods = ["pixels"]
+"""
+
+
+def test_report_of_traverses_of_other_lengths_and_queries_without_a_match(tmp_path):
+    # 18 references, 24 queries: queries 20..23 lie beyond the reference's last place + 2
+    save_route(make_route(24, random_state=1), tmp_path / "route")
+    for path in sorted((tmp_path / "route" / "summer").iterdir())[18:]:
+        path.unlink()
+    config = tmp_path / "unequal.toml"
+    config.write_text(textwrap.dedent(UNEQUAL), encoding="utf-8")
+    out = tmp_path / "out"
+    run_experiment(config, out, progress=False)
+    _, md_path = write_report(out, figures=False)
+    text = md_path.read_text(encoding="utf-8")
+    assert (
+        "reference positions 0..17, query positions 0..23, 18 references x 24 queries "
+        "(20 with a true match), tolerance 2 frames"
+    ) in text
+    # R@1 is counted over the queries that have a match, as the table prints it
+    assert "share of queries whose" not in text
+    assert "R@1 the share of matchable queries whose best match is correct" in text
+    record = json.loads(_a_run_file(out, "evaluate-longer-pixels-s0-").read_text())
+    assert record["protocol"]["n_query_with_match"] == 20
+    result = record["result"]
+    assert result["n_query_with_match"] == 20
+    assert result["recall_at_1"] == sum(record["correct"]) / result["n_query_with_match"]
+    auc, r1 = 100 * result["auc"], 100 * result["recall_at_1"]
+    assert f"| longer | pixels | {auc:.1f} | {r1:.1f} |" in text  # (one seed: no spread)
+
+
 def test_report_tables_hold_every_method_and_the_failures(report):
     text = report[1].read_text(encoding="utf-8")
     for method in ("pixels", "flynet", "seqslam"):

@@ -14,7 +14,7 @@ from . import metrics
 from ._validation import check_positive_int
 from .methods import Method, make_method
 
-__all__ = ["evaluate_method", "RESULT_FIELDS", "self_match_share"]
+__all__ = ["evaluate_method", "RESULT_FIELDS", "self_match_share", "check_true_matches"]
 
 #: fields every result dict carries (the JSON written by ``flyvpr evaluate``)
 RESULT_FIELDS = (
@@ -33,6 +33,7 @@ RESULT_FIELDS = (
     "seed",
     "n_reference",
     "n_query",
+    "n_query_with_match",
 )
 
 
@@ -107,6 +108,9 @@ def evaluate_method(
         "seed": seed,
         "n_reference": n_ref,
         "n_query": n_query,
+        # recall's denominator: with it and each query's confidence and correctness, the
+        # curve, AUC, R@1 and R@100%P can be recomputed from a result file
+        "n_query_with_match": scores["n_query_with_match"],
         "auc": scores["auc"],
         "recall_at_1": scores["recall_at_1"],
         "recall_at_5": scores["recall_at_5"],
@@ -135,6 +139,33 @@ def evaluate_method(
     if return_scores:
         return result, S
     return result
+
+
+def check_true_matches(benchmark) -> None:
+    """Refuse, before any work, a benchmark whose ground truth gives no query a true match.
+
+    Recall, and with it every metric of :func:`evaluate_method`, is undefined then
+    (:mod:`flyvpr.metrics`), so fitting and scoring would be wasted.
+
+    Parameters
+    ----------
+    benchmark : flyvpr.datasets.Benchmark
+
+    Raises
+    ------
+    ValueError
+        If ``benchmark.ground_truth`` holds no True; the message gives the tolerance and the
+        numbers of frames.
+    """
+    if np.any(benchmark.ground_truth):
+        return
+    tolerance = ", ".join(f"{v} {unit}" for unit, v in benchmark.tolerance.items()) or "none"
+    raise ValueError(
+        f"the ground truth gives no query a true match: none of the {benchmark.n_query} "
+        f"queries lies within the tolerance ({tolerance}) of any of the "
+        f"{benchmark.n_reference} references, so recall is undefined; widen the tolerance (or "
+        "radius), or check the frames (or positions) of the two traverses"
+    )
 
 
 def self_match_share(model: Method, reference_images, *, radius: int = 2, sample: int = 200):

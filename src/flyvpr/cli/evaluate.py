@@ -10,7 +10,7 @@ from pathlib import Path
 from .._io import write_json_atomic
 from .._version import __version__
 from ..datasets import load_benchmark
-from ..evaluation import evaluate_method, self_match_share
+from ..evaluation import check_true_matches, evaluate_method, self_match_share
 from ..images import DEFAULT_SIZE
 from ._common import (
     RESULT_COLUMNS,
@@ -34,7 +34,7 @@ logger = logging.getLogger(__name__)
 
 
 def cmd_evaluate(args) -> int:
-    kwargs = dataset_kwargs(args)
+    kwargs = _resolved(dataset_kwargs(args))
     if args.load is not None:
         if args.param:
             raise UsageError("--param cannot change a model loaded with --load")
@@ -60,6 +60,7 @@ def cmd_evaluate(args) -> int:
         args.seed = 0 if args.seed is None else args.seed
         args.size = args.size or DEFAULT_SIZE
     bench = load_benchmark(args.dataset, **kwargs)
+    check_true_matches(bench)  # before the work: every metric needs a query with a match
     loaded = [args.load] if args.load is not None else []
     check_outputs(args, [*bench.input_files(), *loaded], ("out",))
     check_run_memory(args, bench.n_reference, bench.n_query)
@@ -106,6 +107,29 @@ def cmd_evaluate(args) -> int:
         write_json_atomic(args.out, out)
         print(f"wrote {args.out}")
     return 0
+
+
+def _resolved(kwargs: dict) -> dict:
+    """The dataset options with their paths absolute, so that the protocol of ``--out`` names
+    the files wherever it is read (as experiment run files do).
+
+    The loaders read ``reference``, ``query`` and ``positions_csv`` under ``root``; the
+    generic layout without ``--root`` reads them from the working directory.  A relative
+    path is resolved, an absolute one kept as given (as a config's paths are).
+    """
+
+    def absolute(path) -> Path:
+        path = Path(path)
+        return path if path.is_absolute() else path.resolve()
+
+    out = dict(kwargs)
+    if out.get("root") is not None:
+        out["root"] = absolute(out["root"])
+    else:
+        for key in ("reference", "query", "positions_csv"):
+            if out.get(key) is not None:
+                out[key] = absolute(out[key])
+    return out
 
 
 #: warn when fewer reference frames find their own place than this share of those expected

@@ -11,8 +11,11 @@ on Oxford RobotCar).
 
 from __future__ import annotations
 
+import hashlib
 import itertools
+import json
 import logging
+import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -391,6 +394,50 @@ class Benchmark:
         """Every file this benchmark reads: the images of both traverses and its ``sources``."""
         return [*self.reference.paths, *self.query.paths, *self.sources]
 
+    def fingerprint(self) -> dict:
+        """What a result computed on this benchmark depends on, cheaply: to tell later whether
+        the data are still the same.
+
+        Each traverse is summed up by its image files in order: each file's path relative to
+        ``root``, its size and its modification time (whole seconds, which copies made with
+        ``cp -p``, ``rsync -a`` or ``tar`` keep); the files are not read, only ``stat``-ed.  The
+        ground truth is hashed itself (its bits), which covers the files it was built from
+        (``sources``) and the tolerance.  Two traverses of 2400 frames take about 50 ms.
+
+        Returns
+        -------
+        dict
+            ``reference`` and ``query``: ``{"n_images": int, "files": str}`` (the SHA-256 of
+            the file list, 16 hex digits); ``ground_truth``: ``{"shape": [n_query,
+            n_reference], "n_true": int, "sha256": str}`` (16 hex digits).  JSON values: equal
+            dicts mean the same data, as far as paths, sizes and times tell.
+
+        Raises
+        ------
+        FileNotFoundError
+            If an image file is gone (the message names it).
+        """
+        root = None if self.root is None else os.path.abspath(self.root)
+        out: dict = {}
+        for role in ("reference", "query"):
+            paths = getattr(self, role).paths
+            entries = []
+            for p in paths:
+                try:
+                    st = p.stat()
+                except FileNotFoundError:
+                    raise FileNotFoundError(f"image file not found: {p}") from None
+                entries.append([_relative(p, root), st.st_size, st.st_mtime_ns // 1_000_000_000])
+            out[role] = {"n_images": len(paths), "files": _digest(json.dumps(entries))}
+        gt = self.ground_truth
+        packed = np.packbits(gt, axis=None).tobytes()
+        out["ground_truth"] = {
+            "shape": list(gt.shape),
+            "n_true": int(np.count_nonzero(gt)),
+            "sha256": _digest(f"{gt.shape}".encode() + packed),
+        }
+        return out
+
     def load_images(self, size=DEFAULT_SIZE, cache=True, progress=None):
         """Decode both traverses: returns ``(reference_images, query_images)``.
 
@@ -416,6 +463,23 @@ class Benchmark:
             ground_truth=self.ground_truth[idx],
             details=details,
         )
+
+
+def _relative(path: Path, root: str | None) -> str:
+    """``path`` relative to ``root`` (so that moving the dataset keeps it), else absolute."""
+    if root is not None:
+        try:
+            return os.path.relpath(path, root)
+        except ValueError:  # (Windows: another drive)
+            pass
+    return os.path.abspath(path)
+
+
+def _digest(data: str | bytes) -> str:
+    """16 hex digits of the SHA-256 of ``data``."""
+    if isinstance(data, str):
+        data = data.encode("utf-8")
+    return hashlib.sha256(data).hexdigest()[:16]
 
 
 # -- ground truth --------------------------------------------------------------------------------

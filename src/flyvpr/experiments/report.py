@@ -136,16 +136,26 @@ def _dataset_protocol_text(ds, proto: dict | None) -> str:
             f"(no finished run yet)"
         )
     first = proto.get("first", 0) or 0
-    n_ref = proto.get("n_reference")
+    n_ref, n_query = proto.get("n_reference"), proto.get("n_query")
     rng = proto.get("frame_number_range")
-    frames = f"positions {first}..{first + n_ref - 1}" if n_ref else "all frames"
+    if not n_ref:
+        frames = "all frames"
+    elif n_query == n_ref and not proto.get("query_subset"):
+        frames = f"positions {first}..{first + n_ref - 1}"
+    else:  # traverses of other lengths; a query subset (speed) says which it kept below
+        frames = f"reference positions {first}..{first + n_ref - 1}"
+        if n_query and not proto.get("query_subset"):
+            frames += f", query positions {first}..{first + n_query - 1}"
     if rng:
         frames += f" (file frames {rng[0]}..{rng[1]})"
     text = (
         f"{proto.get('dataset')} reference={proto.get('reference')} query={proto.get('query')}, "
-        f"{frames}, {n_ref} references x {proto.get('n_query')} queries, "
-        f"tolerance {_tolerance_text(proto.get('tolerance'))}"
+        f"{frames}, {n_ref} references x {n_query} queries"
     )
+    matchable = proto.get("n_query_with_match")  # (absent from older run files)
+    if matchable is not None and matchable != n_query:
+        text += f" ({matchable} with a true match)"
+    text += f", tolerance {_tolerance_text(proto.get('tolerance'))}"
     if proto.get("query_subset"):
         text += f", {proto['query_subset']}"
     return text
@@ -246,9 +256,11 @@ def _data_section(doc: Document, config: ExperimentConfig, protocols: dict) -> N
         f"Every image is converted to gray in [0, 1] and area-resized to {size[0]}x{size[1]} "
         "(HxW). Methods are fitted on the reference traverse only. Score matrices have one row "
         "per query; a query's prediction is its highest-scoring reference. Precision-recall: "
-        "queries ranked by that score; a prediction is correct when within the tolerance. "
-        "AUC is the area under that curve; R@1 the share of queries whose best match is "
-        "correct; R@100%P the largest recall at precision 1."
+        "queries ranked by that score; a prediction is correct when within the tolerance; "
+        "recall counts the matchable queries (those with a reference within the tolerance), "
+        "so a query without one lowers precision only. AUC is the area under that curve; R@1 "
+        "the share of matchable queries whose best match is correct; R@100%P the largest "
+        "recall at precision 1."
     )
 
 

@@ -7,17 +7,26 @@ Layout of the results folder ``DIR``::
     DIR/runs/<run-id>.json   one file per run, written atomically
 
 A run file holds ``status`` (``"ok"`` or ``"error"``), the run's ``spec``,
-the benchmark ``protocol`` (data, frame range, roles, tolerance), the
+the benchmark ``protocol`` (data, frame range, roles, tolerance, the number
+of queries with a true match), the
 ``machine`` it ran on and, when it succeeded, its ``result``; evaluation runs
 also store ``predictions`` (best reference per query), ``confidence`` (that
 score) and ``correct`` (1 where the prediction is within tolerance).
 
-Resuming: runs whose file exists with status ``"ok"`` are skipped, so an
-interrupted experiment continues where it stopped.  A run file that is not
-JSON at all (cut short) counts as not done: a warning names it and the run
-runs again; a parsed file of the wrong shape stops the experiment.  A run that raises is
-recorded with status ``"error"`` and the exception, the other runs go on, the
-report lists the failure, and the next invocation tries that run again.
+Every run file also holds ``data_fingerprint``, the fingerprint of its dataset
+(:meth:`flyvpr.datasets.Benchmark.fingerprint`: the image files' paths, sizes
+and modification times, and the ground truth), taken once per dataset and
+invocation.
+
+Resuming: runs whose file exists with status ``"ok"`` and the fingerprint of the
+data as they are now are skipped, so an interrupted experiment continues where
+it stopped.  A finished run whose data changed since, or whose file records no
+fingerprint (written by an older flyvpr), runs again, with one warning per
+dataset saying why.  A run file that is not JSON at all (cut short) counts as
+not done: a warning names it and the run runs again; a parsed file of the wrong
+shape stops the experiment.  A run that raises is recorded with status
+``"error"`` and the exception, the other runs go on, the report lists the
+failure, and the next invocation tries that run again.
 
 Parallelism: runs are spread over processes with :class:`joblib.Parallel`
 (backend ``loky`` by default).  ``backend="dask"`` sends them to a Dask
@@ -143,6 +152,7 @@ def execute_run(run: RunSpec) -> dict:
         bench = load_benchmark_of(run)
         record["protocol"] = {
             **bench.protocol(),
+            "n_query_with_match": int(np.count_nonzero(bench.ground_truth.any(axis=1))),
             "image_size": run.spec["image_size"],
             "speed": run.spec["speed"],
         }
@@ -242,21 +252,80 @@ def _train(run: RunSpec, bench) -> dict:
 
 
 # -- the experiment ------------------------------------------------------------------------------
-def _finished(path: Path) -> bool:
-    """True if the run file exists and records a finished run.
+def _finished(path: Path) -> dict | None:
+    """The record of a finished run from its file; None if there is none.
 
     A file that is not JSON at all (cut short by a full disk or a copy that stopped) holds
     no run, so that run is not done: one warning, and it runs again.  A parsed file of
     another shape (a missing key, another run's id) is refused, as it may hold results.
     """
     if not path.exists():
-        return False
+        return None
     try:
         record = read_run(path)
     except MalformedJSONError as exc:
         logger.warning("%s; running it again", exc)
-        return False
-    return record["status"] == "ok"
+        return None
+    return record if record["status"] == "ok" else None
+
+
+def _data_change(old: dict, new: dict) -> str | None:
+    """What differs between a run's recorded data fingerprint and the data's now, in words;
+    None when they are the same."""
+    if old == new:
+        return None
+    changes = []
+    for role in ("reference", "query"):
+        was, now = old.get(role) or {}, new[role]
+        if was.get("n_images") != now["n_images"]:
+            changes.append(f"{role}: {now['n_images']} images, were {was.get('n_images', '?')}")
+        elif was.get("files") != now["files"]:
+            changes.append(f"{role}: other image files, sizes or modification times")
+    was, now = old.get("ground_truth") or {}, new["ground_truth"]
+    if not changes and was != now:
+        changes.append(f"ground truth: {now['n_true']} true matches, were {was.get('n_true', '?')}")
+    return "; ".join(changes) or "another fingerprint"
+
+
+def _pending(runs: list[RunSpec], runs_dir: Path, fingerprints: dict[str, dict]) -> list:
+    """The runs to do: those without a finished run file, and those whose file was written
+    for other data than the dataset's now, or records no fingerprint of its data (a file of
+    an older flyvpr: the data cannot be shown to be the same), with one warning per dataset
+    and reason."""
+    pending = []
+    changed: dict[tuple[str, str], int] = {}
+    unknown: dict[str, int] = {}
+    for run in runs:
+        record = _finished(runs_dir / f"{run.run_id}.json")
+        if record is None:
+            pending.append(run)
+            continue
+        name = run.spec["dataset"]["name"]
+        old = record.get("data_fingerprint")
+        if not isinstance(old, dict):
+            unknown[name] = unknown.get(name, 0) + 1
+            pending.append(run)
+            continue
+        why = _data_change(old, fingerprints[name])
+        if why is not None:
+            changed[name, why] = changed.get((name, why), 0) + 1
+            pending.append(run)
+    for (name, why), n in changed.items():
+        logger.warning(
+            "dataset %r: data changed since the run: %s; running %s again",
+            name, why, _finished_runs(n),
+        )  # fmt: skip
+    for name, n in unknown.items():
+        logger.warning(
+            "dataset %r: the files of %s, written by an older flyvpr, record no fingerprint "
+            "of their data, which may have changed since; running them again",
+            name, _finished_runs(n),
+        )  # fmt: skip
+    return pending
+
+
+def _finished_runs(n: int) -> str:
+    return "1 finished run" if n == 1 else f"{n} finished runs"
 
 
 class Terminated(SystemExit):
@@ -333,9 +402,22 @@ def _backend_context(backend: str):
         register_ray()
         with parallel_config(backend="ray"):
             yield
+    elif backend in ("loky", "multiprocessing"):
+        with parallel_config(backend=backend, initializer=_ignore_interrupts):
+            yield
     else:
         with parallel_config(backend=backend):
             yield
+
+
+def _ignore_interrupts() -> None:
+    """Start of a local worker process: ignore SIGINT.
+
+    Ctrl-C (or ``timeout -s INT``) signals the whole process group, workers included; each
+    worker would print a KeyboardInterrupt traceback from wherever it was.  The calling
+    process handles the interrupt and terminates its workers, so they need not.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 #: loky restarts a worker whose memory grew by more than 300 MB since it started (its "memory
@@ -378,36 +460,61 @@ def _run_parallel(runs: list[RunSpec], n_jobs: int, backend: str):
         yield from parallel(tasks)
 
 
-def _prepare(config: ExperimentConfig, runs: list[RunSpec], progress: bool) -> dict[str, int]:
-    """Load every benchmark once here: missing data fails before any run starts (and before
-    anything is written), with the config's file and ``[[datasets]]`` block named, and the
-    image cache is filled before parallel workers would each decode the same files.
-    Returns the number of queries of each dataset loaded at every frame (no speed)."""
-    seen = set()
-    n_query: dict[str, int] = {}
-    names = list(config.datasets)
+def _where(config: ExperimentConfig, name: str) -> str:
+    """The config's file and the ``[[datasets]]`` block of dataset ``name``, for messages."""
+    number = list(config.datasets).index(name) + 1
+    return f"{config.path or 'config'} [[datasets]] #{number} ({name!r})"
+
+
+def _load_datasets(config: ExperimentConfig, runs: list[RunSpec]) -> dict:
+    """Load every dataset the runs read, once, with its fingerprint: missing data fails
+    before any run starts (and before anything is written), with the config's file and
+    ``[[datasets]]`` block named.  Returns name -> (benchmark, fingerprint)."""
+    from ..datasets import load_benchmark
+
+    loaded: dict = {}
+    for run in runs:
+        name = run.spec["dataset"]["name"]
+        if name in loaded:
+            continue
+        try:
+            bench = load_benchmark(run.spec["dataset"]["loader"], **run.dataset_options)
+            loaded[name] = (bench, bench.fingerprint())
+        except (OSError, ValueError) as exc:
+            raise _named(exc, _where(config, name)) from exc
+    return loaded
+
+
+def _prepare(config: ExperimentConfig, runs: list[RunSpec], datasets: dict, progress: bool):
+    """Check and decode, before the work, what the runs will read: a run that evaluates
+    needs a query with a true match (every metric is undefined without one), and the image
+    cache is filled here before parallel workers would each decode the same files."""
+    from ..evaluation import check_true_matches
+
+    checked: set = set()
+    decoded: set = set()
     for run in runs:
         spec = run.spec
         name = spec["dataset"]["name"]
-        key = (
-            name,
-            json.dumps(spec["speed"]),
-            spec["seed"] if spec["speed"] else None,
-            tuple(spec["image_size"]),
-        )
-        if key in seen:
+        queries = (name, json.dumps(spec["speed"]), spec["seed"] if spec["speed"] else None)
+        images = (*queries, tuple(spec["image_size"]))
+        check = run.task != "train" and queries not in checked
+        decode = run.task != "timing" and run.cache is not False and images not in decoded
+        if not (check or decode):
             continue
-        seen.add(key)
-        where = f"{config.path or 'config'} [[datasets]] #{names.index(name) + 1} ({name!r})"
+        where = _where(config, name)
+        if spec["speed"] is not None:
+            where += f" at speed {spec['speed']} (seed {spec['seed']})"
         try:
-            bench = load_benchmark_of(run)
-            if run.task != "timing" and run.cache is not False:
+            bench = load_benchmark_of(run, datasets[name][0])
+            if check:
+                check_true_matches(bench)
+                checked.add(queries)
+            if decode:
                 bench.load_images(tuple(spec["image_size"]), cache=run.cache, progress=progress)
+                decoded.add(images)
         except (OSError, ValueError) as exc:
             raise _named(exc, where) from exc
-        if spec["speed"] is None:
-            n_query[name] = bench.n_query
-    return n_query
 
 
 def _named(exc: Exception, where: str) -> Exception:
@@ -425,9 +532,7 @@ def _check_queries(config: ExperimentConfig, n_query: dict[str, int]) -> None:
         if grid.kind != "qualitative" or grid.queries is None:
             continue
         for name in grid.datasets:
-            n = n_query.get(name)
-            if n is None:  # (not loaded: its runs are finished; the report says so)
-                continue
+            n = n_query[name]
             beyond = [q for q in grid.queries if q >= n]
             if beyond:
                 raise ValueError(
@@ -494,13 +599,16 @@ def _run(config_path, out_dir, n_jobs: int, backend: str, progress) -> dict:
 
     runs = config.runs()
     plan = config.plan()
-    pending = [run for run in runs if not _finished(runs_dir / f"{run.run_id}.json")]
+    # the data first: a dataset that fails to load leaves the results folder as it was
+    datasets = _load_datasets(config, runs)
+    fingerprints = {name: fingerprint for name, (_, fingerprint) in datasets.items()}
+    _check_queries(config, {name: bench.n_query for name, (bench, _) in datasets.items()})
+    pending = _pending(runs, runs_dir, fingerprints)
     n_skipped = len(runs) - len(pending)
     logger.info("%d runs, %d already finished, %d to run", len(runs), n_skipped, len(pending))
 
     show = _want_progress(progress)
-    # the data first: a dataset that fails to load leaves the results folder as it was
-    _check_queries(config, _prepare(config, pending, show))
+    _prepare(config, pending, datasets, show)
     runs_dir.mkdir(parents=True, exist_ok=True)
     experiment_file = out_dir / "experiment.json"
     sessions = read_experiment(experiment_file)["sessions"] if experiment_file.exists() else []
@@ -529,6 +637,9 @@ def _run(config_path, out_dir, n_jobs: int, backend: str, progress) -> dict:
     with tqdm(total=len(pending), desc="runs", unit="run", disable=not show) as bar:
 
         def store(record: dict) -> None:
+            # the data as they were when this invocation began: data changed while the
+            # runs went on then differ from it next time, and those runs run again
+            record["data_fingerprint"] = fingerprints[record["spec"]["dataset"]["name"]]
             write_json_atomic(runs_dir / f"{record['run_id']}.json", record)
             ran.append(record["run_id"])
             if record["status"] != "ok":

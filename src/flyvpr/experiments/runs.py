@@ -3,9 +3,13 @@
 A run is (task, dataset block, method, seed, every front-end and filter
 constructor argument with defaults filled in, speed, image size).  Its id is a
 readable slug plus a hash of that spec, so the same run requested by two
-grids is computed once (spelling out a default value changes nothing), and an
-edited grid only adds the runs that are new.  Dataset options enter as written
-in the file, so moving the checkout keeps the ids.
+grids is computed once (spelling out a default value changes nothing, nor does
+writing a whole number as ``1`` or ``1.0``), and an edited grid only adds the
+runs that are new.  Dataset options enter as written in the file, so moving
+the checkout keeps the ids.  The data themselves are not part of the identity:
+each run file records their fingerprint
+(:meth:`flyvpr.datasets.Benchmark.fingerprint`), and a resumed experiment runs
+again a run whose data changed since.
 """
 
 from __future__ import annotations
@@ -58,12 +62,14 @@ class RunSpec:
         return self.spec["task"]
 
 
-def load_benchmark_of(run: RunSpec):
+def load_benchmark_of(run: RunSpec, dataset=None):
     """The benchmark a run reads: its dataset, its queries thinned to its speed profile.
 
     Parameters
     ----------
     run : RunSpec
+    dataset : flyvpr.datasets.Benchmark, optional
+        The run's dataset, already loaded (every query frame); ``None`` loads it.
 
     Returns
     -------
@@ -78,7 +84,9 @@ def load_benchmark_of(run: RunSpec):
     from ..evaluation import speed_profile
 
     spec = run.spec
-    bench = load_benchmark(spec["dataset"]["loader"], **run.dataset_options)
+    bench = dataset
+    if bench is None:
+        bench = load_benchmark(spec["dataset"]["loader"], **run.dataset_options)
     if spec["speed"] is not None:
         keep = speed_profile(bench.n_query, spec["speed"], random_state=spec["seed"])
         bench = bench.subset_queries(keep)
@@ -97,12 +105,33 @@ def run_id_of(spec: dict) -> str:
     -------
     str
         ``<task>-<dataset>-<method>-s<seed>-<hash12>``.
+
+    Notes
+    -----
+    The hash is taken of a canonical form of the spec in which a float that is a whole
+    number is written as an int, so ``1`` and ``1.0`` give one id; the spec itself, which
+    the method receives, keeps the values as given.
     """
-    canonical = json.dumps(spec, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    canonical = json.dumps(_canonical(spec), sort_keys=True, separators=(",", ":"), allow_nan=False)
     digest = hashlib.sha256(canonical.encode("utf-8")).hexdigest()[:12]
     slug = f"{spec['task']}-{spec['dataset']['name']}-{spec['method']}-s{spec['seed']}"
     slug = re.sub(r"[^A-Za-z0-9._+-]", "_", slug)
     return f"{slug}-{digest}"
+
+
+def _canonical(value):
+    """``value`` with every float that is a whole number written as an int (``1.0`` -> ``1``).
+
+    So ``speed_prior = 1`` names the same run as its default ``1.0``.  Booleans stay
+    booleans (``True`` is not ``1``), other floats stay floats, and nothing else changes.
+    """
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(value, dict):
+        return {key: _canonical(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_canonical(item) for item in value]
+    return value
 
 
 def _defaults(cls) -> dict:
