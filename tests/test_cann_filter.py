@@ -2338,9 +2338,63 @@ def test_a_gap_after_repeated_frames_moves_a_place_per_new_frame():
     assert np.min((answers - places)[70:130]) >= -1  # (at 0.5 per new frame: 3 places behind)
     assert np.mean(np.abs(answers - places)[20:] <= 1) > 0.95
     f = CANN()
-    f.step(S[0], velocity=1.0)
-    f._rows_for(0.0, 1, repeat=True)
-    assert f._odometry_mean == 1.0
+    f.step(S[0], velocity=7.0)  # (the first frame's odometry moves nothing: not in the mean)
+    assert f._odometry_mean is None
+    f.step(S[2], velocity=1.0)
+    f._rows_for(0.5, 2, repeat=True)  # a repeat's odometry waits for the next new frame
+    assert f._odometry_mean == 1.0 and f._pending_odometry == 0.5
+    f._rows_for(0.5, 3)
+    assert f._odometry_mean == 1.0 and f._pending_odometry == 0.0
+
+
+def test_repeated_frames_odometry_counts_with_the_next_new_frame():
+    # Every image twice while the odometry ticks 0.5 a frame: a place per new image.  In a gap
+    # the layer moves on the new frames only (repeats are held), at the odometry per new frame.
+    T = 180
+    places = 4 + np.arange(T) // 2
+    S = bump_rows(4 + np.arange(T // 2), 110, amp=2.0, noise=0.5, seed=4)[np.arange(T) // 2]
+    given = np.full(T, 0.5)
+    given[70:130] = np.nan
+    answers, _ = _gappy_run(CANN(), S, given)
+    assert np.min((answers - places)[70:130]) >= -1  # (at 0.5 a new frame: 3 places behind)
+    assert np.mean(np.abs(answers - places)[20:] <= 1) > 0.95
+
+
+def test_a_gap_right_after_the_first_frame_moves_at_the_speeds_prior():
+    # Odometry on the first frame only (which moves nothing): no step of it to keep, so the
+    # gap's speeds are the speeds' prior, not all 0 (a first entry of 0 is a common
+    # convention) nor the first entry's.
+    T = 60
+    pos = 3 + np.arange(T, dtype=np.float64)
+    S = bump_rows(pos, 100, amp=2.0, noise=0.5, seed=5)
+    reference = _gappy_run(CANN(), S, np.full(T, np.nan))[0]
+    for first in (0.0, 50.0):
+        given = np.full(T, np.nan)
+        given[0] = first
+        answers, speeds = _gappy_run(CANN(), S, given)
+        np.testing.assert_array_equal(answers, reference)
+        assert speeds[5] > 0.5
+
+
+def test_a_refused_frame_leaves_the_odometry_state_as_it_was():
+    f = CANN(input_transform="log")
+    rows = np.abs(bump_rows(3 + np.arange(6.0), 40)) + 0.1
+    for t in range(4):
+        f.step(rows[t], velocity=1.0)
+    before = (f._scaled, f._odometry_mean, f._p.copy())
+    with pytest.raises(ValueError, match="log"):
+        f.step(-rows[4])
+    assert (f._scaled, f._odometry_mean) == before[:2]
+    np.testing.assert_array_equal(f._p, before[2])
+
+
+def test_huge_odometry_keeps_the_layer_finite():
+    f = CANN()
+    S = bump_rows(3 + np.arange(5.0), 40)
+    for t, v in enumerate([1.0, 1e308, -1e308, 1e308]):
+        f.step(S[t], velocity=v)
+    f.step(S[4])  # a gap: rows become speeds at the clipped mean
+    assert np.isfinite(f._odometry_mean) and np.isfinite(f._p).all() and f._p.sum() > 0
 
 
 def test_scaled_odometry_that_starts_late_takes_the_scale_not_the_speed():

@@ -554,6 +554,7 @@ class CANN(OdometryFilter):
         # (see _rows_for)
         self._scaled = False
         self._odometry_mean: float | None = None
+        self._pending_odometry = 0.0  # the odometry of repeated frames since the last new one
         self._scale_mass: np.ndarray | None = None
         self._stride = max(1, n // _SAMPLES)
         # The sequence test's rank model: the share u of places at least as good as the
@@ -604,7 +605,7 @@ class CANN(OdometryFilter):
         vel = self._params["velocities"]
         bound = 2.0 * (self._n or 0) + 2.0
         if velocity is not None and self._params["odometry"] == "scaled":
-            vel = velocity * vel  # each row: the odometry times its scale
+            vel = min(max(velocity, -bound), bound) * vel  # each row: odometry times its scale
         elif velocity is not None:
             total = min(max(self._odometry_offset + velocity, -bound), bound)
             k = math.floor(total + 0.5)
@@ -627,9 +628,11 @@ class CANN(OdometryFilter):
         over about ``1 / _ODOMETRY_RATE`` frames: the robot keeps the speed it had, and one
         frame's step, which may be 0 or 2 places where the odometry counts whole places, does
         not set it alone), shared linearly between the two nearest (the bank's end rows take
-        what lies beyond them).  The mean leaves out the frames that ``repeat`` the one before
-        (``hold_repeats``): without odometry those are held, and the layer moves on the new
-        frames only, so its speed is the odometry per new frame.  Without this a row's scale
+        what lies beyond them); before any step of the odometry (the first frame's moves
+        nothing), as the speeds' prior.  The odometry of frames that ``repeat`` the one before
+        (``hold_repeats``) counts with the next new frame's: without odometry repeats are
+        held, and the layer moves on the new frames only, so its speed is the odometry per new
+        frame.  Without this a row's scale
         would be read as a speed in a gap of the odometry (a robot at 2 places per frame would
         go on at 1), and a speed learned without odometry as a scale when it starts."""
         p = self._params
@@ -647,20 +650,31 @@ class CANN(OdometryFilter):
             self._scaled = True
         elif velocity is None and self._scaled:
             self._scale_mass = self._row_mass.copy()
-            target = np.clip(vel * (self._odometry_mean or 0.0), vel[0], vel[-1])
-            upper = np.clip(np.searchsorted(vel, target, side="right"), 1, vel.size - 1)
-            lower = upper - 1
-            high = (target - vel[lower]) / (vel[upper] - vel[lower])
-            move = np.zeros((vel.size, vel.size), np.float32)  # move[to, from]
-            np.add.at(move, (lower, np.arange(vel.size)), 1.0 - high)
-            np.add.at(move, (upper, np.arange(vel.size)), high)
-            np.matmul(move, self._p, out=self._spare)
+            if self._odometry_mean is None:  # no step of the odometry seen: the speeds' prior
+                prior = p["prior"].astype(np.float32)[:, None]
+                np.multiply(prior, self._p.sum(axis=0), out=self._spare)
+            else:
+                target = np.clip(vel * self._odometry_mean, vel[0], vel[-1])
+                upper = np.clip(np.searchsorted(vel, target, side="right"), 1, vel.size - 1)
+                lower = upper - 1
+                high = (target - vel[lower]) / (vel[upper] - vel[lower])
+                move = np.zeros((vel.size, vel.size), np.float32)  # move[to, from]
+                np.add.at(move, (lower, np.arange(vel.size)), 1.0 - high)
+                np.add.at(move, (upper, np.arange(vel.size)), high)
+                np.matmul(move, self._p, out=self._spare)
             self._p, self._spare = self._spare, self._p
             self._offsets[:] = 0.0
+            self._pending_odometry = 0.0
             self._scaled = False
-        if velocity is not None and not repeat:
-            mean = velocity if self._odometry_mean is None else self._odometry_mean
-            self._odometry_mean = mean + _ODOMETRY_RATE * (velocity - mean)
+        if velocity is not None and t > 0:  # (the first frame's odometry moves nothing)
+            if repeat:  # counted with the next new frame's
+                self._pending_odometry += velocity
+                return
+            bound = 2.0 * self._n + 2.0  # (past the bank's speeds, as the moves' bound)
+            step = min(max(self._pending_odometry + velocity, -bound), bound)
+            self._pending_odometry = 0.0
+            mean = step if self._odometry_mean is None else self._odometry_mean
+            self._odometry_mean = (1.0 - _ODOMETRY_RATE) * mean + _ODOMETRY_RATE * step
 
     def _holds(self, row: np.ndarray) -> bool:
         """Whether ``row`` repeats the last frame's and the map does not repeat a frame at the
@@ -775,13 +789,13 @@ class CANN(OdometryFilter):
             row = row.astype(np.float64)
         if p["hold_repeats"] and velocity is None and t > 0 and self._holds(row):
             return self._hold()
+        radius = p["tolerance"]
+        x = self._input(row)  # (which refuses a row before anything changes)
         if p["odometry"] == "scaled":
-            # (a repeated frame's odometry is left out of the running mean: in a gap of the
+            # (a repeated frame's odometry counts with the next new frame's: in a gap of the
             # odometry the layer moves on new frames only, repeats being held)
             repeat = p["hold_repeats"] and velocity is not None and t > 0 and self._holds(row)
             self._rows_for(velocity, t, repeat)
-        radius = p["tolerance"]
-        x = self._input(row)
         memory = p["support_memory"]
         if self._tied.size:
             tied = self._tied
