@@ -180,7 +180,7 @@ def test_camera_options_are_checked_before_the_device_is_opened(monkeypatch):
 def test_options_are_not_checked_without_ffmpegs_libraries(monkeypatch):
     from flyvpr.sources import live
 
-    monkeypatch.setattr(live, "_ffmpeg_libraries", lambda av: {})
+    monkeypatch.setattr(live, "_pyav_binary", lambda: None)
     live._ffmpeg_option_lookup.cache_clear()
     try:
         assert live._ffmpeg_option_lookup() is None

@@ -32,7 +32,6 @@ import re
 import threading
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
@@ -58,10 +57,6 @@ _SCHEME_RE = re.compile(r"^([a-zA-Z][a-zA-Z0-9+.-]*)://")
 #: class and every class below it, without an object of it
 _SEARCH_ALL_CLASSES = 1 | 2
 
-#: file names of FFmpeg's libraries: libavformat-4639def2.so.62.12.102 (in PyAV's wheels),
-#: libavformat.so.62, libavformat.62.dylib, avformat-62.dll
-_FFMPEG_LIB_RE = re.compile(r"^(?:lib)?(avutil|avcodec|avformat)[-.]")
-
 
 def is_live(source) -> bool:
     """Whether ``source`` names a live source: a URL of :data:`LIVE_SCHEMES` or a device
@@ -82,25 +77,22 @@ def _redacted(url: str) -> str:
     return re.sub(r"^([a-zA-Z][a-zA-Z0-9+.-]*://[^/@:]*):[^/@]*@", r"\1:***@", url)
 
 
-def _ffmpeg_libraries(av) -> dict[str, str]:
-    """Paths of the FFmpeg libraries PyAV uses, by name (``"avformat"``...): those PyAV's wheel
-    bundles, else those this process has loaded (Linux: PyAV built on the system's FFmpeg);
-    a name is missing where none is found."""
-    package = Path(av.__file__).resolve().parent
-    paths = [str(p) for d in (package.parent / "av.libs", package / ".dylibs") for p in d.glob("*")]
-    try:
-        with open("/proc/self/maps") as maps:
-            # address perms offset dev inode path: the path (which may hold spaces) last
-            fields = (line.rstrip("\n").split(maxsplit=5) for line in maps)
-            paths += [f[5] for f in fields if len(f) == 6]
-    except OSError:
-        pass
-    found: dict[str, str] = {}
-    for path in paths:
-        m = _FFMPEG_LIB_RE.match(os.path.basename(path))
-        if m is not None:
-            found.setdefault(m.group(1), path)
-    return found
+#: PyAV's compiled modules, any of which links PyAV's own FFmpeg libraries
+_PYAV_BINARIES = ("av._core", "av.format", "av.container.core")
+
+
+def _pyav_binary() -> str | None:
+    """The file of a compiled PyAV module (its FFmpeg is reached through it), or None."""
+    import importlib
+
+    for name in _PYAV_BINARIES:
+        try:
+            path = getattr(importlib.import_module(name), "__file__", None)
+        except ImportError:
+            continue
+        if path and not path.endswith(".py"):
+            return path
+    return None
 
 
 @functools.cache
@@ -116,11 +108,16 @@ def _ffmpeg_option_lookup() -> Callable[[str], bool] | None:
     """
     import ctypes
 
-    libs = _ffmpeg_libraries(require_extra("av"))
+    require_extra("av")
+    # The symbols are looked up through a PyAV binary: the loader resolves them in the
+    # libraries it links, so another FFmpeg in the process (another package's) is never used.
+    path = _pyav_binary()
     try:
-        util, codec, fmt = (ctypes.CDLL(libs[name]) for name in ("avutil", "avcodec", "avformat"))
-        find, getters = util.av_opt_find, (fmt.avformat_get_class, codec.avcodec_get_class)
-    except (KeyError, OSError, AttributeError) as exc:
+        if path is None:
+            raise OSError("no compiled PyAV module found")
+        lib = ctypes.CDLL(path)
+        find, getters = lib.av_opt_find, (lib.avformat_get_class, lib.avcodec_get_class)
+    except (OSError, AttributeError) as exc:
         logger.debug("stream options not checked: FFmpeg's libraries not found (%s)", exc)
         return None
     find.restype = ctypes.c_void_p
