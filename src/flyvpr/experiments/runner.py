@@ -609,6 +609,7 @@ def _run(config_path, out_dir, n_jobs: int, backend: str, progress) -> dict:
 
     show = _want_progress(progress)
     _prepare(config, pending, datasets, show)
+    del datasets  # (each run loads its own; the ground truths need not stay in this process)
     runs_dir.mkdir(parents=True, exist_ok=True)
     experiment_file = out_dir / "experiment.json"
     sessions = read_experiment(experiment_file)["sessions"] if experiment_file.exists() else []
