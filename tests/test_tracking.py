@@ -82,6 +82,25 @@ def test_frames_before_and_after_timestamped_positions_get_no_odometry(images):
     assert loc.method.filter.velocities == [None, None, None, 1.0, 1.0, None]
 
 
+def test_frames_given_a_copied_fix_get_no_odometry():
+    # fixes every 0.4 s (a GPS slower than the 10 Hz camera) from 0 to 0.8 s, none from 0.8 to
+    # 2.4 s (a gap), then to 3.2 s: a frame within 0.2 s past the ends or into the gap gets the
+    # row's own position for its place, but no odometry (two frames with one copied position
+    # read as a stand: the filter stopped beside every outage)
+    images = np.random.default_rng(2).random((34, 32, 64), dtype=np.float32)
+    t = np.array([0.0, 0.4, 0.8, 2.4, 2.8, 3.2])
+    positions = Positions(t, np.c_[t * 40.0, np.zeros(6)], "timestamp", "t")
+    loc = _loc(images, spacing=4.0)
+    list(track(loc, Frames(images), positions=positions, odometry=True, batch=8))
+    got = loc.method.filter.velocities
+    assert got[1:9] == pytest.approx([1.0] * 8)  # 0.1-0.8 s: interpolated, 4 m each
+    assert got[9:25] == [None] * 16  # 0.9-2.4 s: copies of 0.8 s's fix, the gap, then 2.4 s
+    assert got[25:33] == pytest.approx([1.0] * 8)  # 2.5-3.2 s
+    assert got[33] is None  # 3.3 s: a copy of the last fix
+    xy = positions.at(np.arange(34), np.arange(34) / 10)  # (places still get the copies)
+    assert xy[9, 0] == 32.0 and xy[33, 0] == 128.0 and np.isnan(xy[15]).all()
+
+
 def test_without_odometry_the_filter_gets_none(images):
     positions = Positions(np.arange(N), np.c_[np.arange(N) * 2.0, np.zeros(N)], "frame", "t")
     loc = _loc(images)

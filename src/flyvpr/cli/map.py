@@ -53,7 +53,7 @@ def add_recording_args(p, positions: bool = True) -> None:
             "--position-topic",
             metavar="T",
             help="frame positions from a sensor_msgs/NavSatFix or nav_msgs/Odometry topic of "
-            "the same bag (nearest timestamp)",
+            "the same bag (interpolated between messages by timestamp)",
         )
 
 

@@ -127,9 +127,11 @@ def track(
 def distances_moved(positions, batch: Batch, last_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Metres each frame of ``batch`` moved since the previous kept frame, from the
     recording's ``positions`` (interpolated between their rows; NaN where either position is
-    unknown), and the batch's last position (the next call's ``last_xy``, shape (1, 2); all
-    NaN before the first frame)."""
-    xy = positions.at(batch.indices, batch.timestamps, interpolate=True)
+    unknown, or would be a row's own copied beyond it: past the first or last fix, or into a
+    gap, where two frames with one copied position would read as a stand), and the batch's
+    last position (the next call's ``last_xy``, shape (1, 2); all NaN before the first
+    frame)."""
+    xy = positions.at(batch.indices, batch.timestamps, interpolate=True, copies=False)
     moved = xy - np.concatenate([last_xy, xy[:-1]])
     return np.hypot(moved[:, 0], moved[:, 1]), xy[-1:]
 

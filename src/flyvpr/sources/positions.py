@@ -92,7 +92,9 @@ class Positions:
         margin = self._margin()
         return first - margin, last + margin
 
-    def at(self, indices, timestamps, *, interpolate: bool = False) -> np.ndarray:
+    def at(
+        self, indices, timestamps, *, interpolate: bool = False, copies: bool = True
+    ) -> np.ndarray:
         """Positions (n, 2) of frames; NaN where a frame index has no row, or a timestamp lies
         outside :meth:`span` (a recording that goes on before or after its positions), and
         for a frame inside one of the ``gaps`` (more than half the median interval from
@@ -103,6 +105,11 @@ class Positions:
         distances between consecutive frames follow the motion when positions are sparser than
         frames (map places, ``every='2m'``, odometry); outside the rows' range and in a gap it
         is as without.
+
+        ``copies=False``: NaN for a frame whose position would be a row's own beyond it (a
+        timestamp within half an interval past the first or last row, or into a gap), where
+        frames are not between two rows: odometry, for which a copied position would read as
+        a stand.
         """
         if self.by == "frame":
             q = np.asarray(indices, np.float64)
@@ -127,21 +134,22 @@ class Positions:
             left = right - 1
             nearer_left = np.abs(q - self.keys[left]) <= np.abs(self.keys[right] - q)
             out = self.xy[np.where(nearer_left, left, right)]
-        lo, hi = self.span()
+        lo, hi = self.span() if copies else (self.keys[0], self.keys[-1])
         out[(q < lo) | (q > hi)] = np.nan
         if len(self.gaps):
-            self._blank_gaps(q, out)
+            self._blank_gaps(q, out, copies)
         return out
 
-    def _blank_gaps(self, q: np.ndarray, out: np.ndarray) -> None:
+    def _blank_gaps(self, q: np.ndarray, out: np.ndarray, copies: bool = True) -> None:
         """NaN for the keys ``q`` inside a gap; the row's own position within the margin of
-        either side (as at the ends), in place of an interpolated one."""
+        either side (as at the ends), in place of an interpolated one, or NaN there too
+        without ``copies``."""
         n = len(self.keys)
         right = np.searchsorted(self.keys, q, side="right")  # the first row after q
         left = np.clip(right - 1, 0, n - 2)
         right = np.clip(right, 1, n - 1)
         inside = (q > self.keys[0]) & (q < self.keys[-1]) & self._gap_after[left]
-        margin = self._margin()
+        margin = self._margin() if copies else 0.0  # (a frame at a row is not a copy)
         near_left = inside & (q - self.keys[left] <= margin)
         near_right = inside & ~near_left & (self.keys[right] - q <= margin)
         out[near_left] = self.xy[left[near_left]]

@@ -670,7 +670,7 @@ class CANN(OdometryFilter):
             if repeat:  # counted with the next new frame's
                 self._pending_odometry += velocity
                 return
-            bound = 2.0 * self._n + 2.0  # (past the bank's speeds, as the moves' bound)
+            bound = 2.0 * (self._n or 0) + 2.0  # (past the bank's speeds, as the moves' bound)
             step = min(max(self._pending_odometry + velocity, -bound), bound)
             self._pending_odometry = 0.0
             mean = step if self._odometry_mean is None else self._odometry_mean
