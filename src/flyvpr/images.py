@@ -680,6 +680,15 @@ _CACHE_FORMAT = "flyvpr-image-cache"
 _CACHE_VERSION = 3  # 3: exact area weights at any factor (Pillow's box filter before)
 
 
+def stat_image(path: Path) -> os.stat_result:
+    """``path.stat()``, or a FileNotFoundError naming the image file (one that went between
+    listing and reading)."""
+    try:
+        return path.stat()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"image file not found: {path}") from None
+
+
 def _cache_key(paths: Sequence[Path], size, bayer) -> str:
     """Key of a stack: every file's path, size, mtime, device, inode and ctime, and settings.
 
@@ -689,10 +698,7 @@ def _cache_key(paths: Sequence[Path], size, bayer) -> str:
     """
     entries = []
     for p in paths:
-        try:
-            st = p.stat()
-        except FileNotFoundError:
-            raise FileNotFoundError(f"image file not found: {p}") from None
+        st = stat_image(p)
         # (device, inode) names the file itself, so the path need not be resolved (slow)
         entries.append(
             [os.path.abspath(p), st.st_size, st.st_mtime_ns, st.st_dev, st.st_ino, st.st_ctime_ns]

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .._validation import check_positive_int, check_real
-from ..images import DEFAULT_SIZE, ImageFolderError, list_images, load_images
+from ..images import DEFAULT_SIZE, ImageFolderError, list_images, load_images, stat_image
 
 __all__ = [
     "Traverse",
@@ -423,10 +423,7 @@ class Benchmark:
             paths = getattr(self, role).paths
             entries = []
             for p in paths:
-                try:
-                    st = p.stat()
-                except FileNotFoundError:
-                    raise FileNotFoundError(f"image file not found: {p}") from None
+                st = stat_image(p)
                 entries.append([_relative(p, root), st.st_size, st.st_mtime_ns // 1_000_000_000])
             out[role] = {"n_images": len(paths), "files": _digest(json.dumps(entries))}
         gt = self.ground_truth
