@@ -231,6 +231,15 @@ def test_filters_without_odometry_ignore_it(ref):
     assert Localizer("pixels+cann").uses_odometry
 
 
+def test_odometry_taken_from_an_array_is_its_number(ref):
+    # a robot's code indexing a 0-d array (odom[t] of a structured array, a numpy reduction)
+    loc = _loc(ref, Scripted(), place_spacing=2.0)
+    loc.update(ref[0], velocity=np.array(1.5))
+    loc.update(ref[1], distance=np.array(3.0, np.float32))
+    loc.update(ref[2], velocity=np.float64(-1.0))  # (backwards: signed odometry)
+    assert loc.method.filter.velocities == [1.5, 1.5, -1.0]
+
+
 @pytest.mark.parametrize(
     "kwargs, error, match",
     [
@@ -242,6 +251,8 @@ def test_filters_without_odometry_ignore_it(ref):
         ({"distance": "3"}, TypeError, "distance must be a number; got str"),
         ({"distance": True}, TypeError, "distance must be a number; got bool"),
         ({"velocity": math.nan}, ValueError, "velocity must be finite; got nan"),
+        ({"velocity": np.array([1.0])}, TypeError, "velocity must be a number; got ndarray"),
+        ({"distance": np.array(np.nan)}, ValueError, "distance must be finite; got nan"),
         ({"velocity": None, "distance": None}, None, None),
     ],
 )

@@ -242,7 +242,12 @@ class Localizer:
         return step(row, velocity=velocity)
 
     def _velocity(self, velocity, distance) -> float | None:
-        """One frame's odometry in places (None: the filter estimates the movement itself)."""
+        """One frame's odometry in places (None: the filter estimates the movement itself); a
+        0-d array (an element a robot's code took from an array) is its number."""
+        velocity, distance = (
+            v.item() if isinstance(v, np.ndarray) and v.ndim == 0 else v
+            for v in (velocity, distance)
+        )
         if distance is None:
             return None if velocity is None else check_real(velocity, "velocity", low=None)
         if velocity is not None:
@@ -401,7 +406,8 @@ class Localizer:
         velocity : float, optional
             Places moved since the previous frame (odometry), for filters that use it
             (:attr:`uses_odometry`: path integration in the CANN; other filters ignore it);
-            without it the CANN estimates the movement from the images.
+            without it the CANN estimates the movement from the images.  Negative: backwards
+            along the map (odometry that knows its direction; a distance has none).
         distance : float, optional
             Metres moved since the previous frame (odometry, GPS), instead of ``velocity``:
             the filter gets ``distance / place_spacing`` places.
