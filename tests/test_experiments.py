@@ -918,7 +918,11 @@ def test_ctrl_c_stops_the_workers_without_their_tracebacks(workdir):
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
     assert proc.returncode == 130, err
-    assert err.decode() == "flyvpr: interrupted\n"
+    text = err.decode()
+    # one line, and no worker's traceback (loky's resource tracker, a process of its own, may
+    # yet warn of a semaphore it cleans up at shutdown)
+    assert text.startswith("flyvpr: interrupted\n")
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text, text
     deadline = time.monotonic() + 10
     while any(map(_alive, workers)) and time.monotonic() < deadline:
         time.sleep(0.1)
