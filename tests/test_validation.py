@@ -39,6 +39,8 @@ def test_check_real_accepts(value, kwargs, expected):
         ("1", {"unit": "seconds"}, TypeError, "x must be a number of seconds; got str"),
         (math.nan, {"low": None}, ValueError, "x must be finite; got nan"),
         (-math.inf, {"low": None}, ValueError, "x must be finite; got -inf"),
+        (10**400, {"low": None}, ValueError, "x must be finite; got a number past a float's range"),
+        (-(10**400), {}, ValueError, "x must be finite; got a number past a float's range"),
         (0.0, {}, ValueError, "x must be > 0.0; got 0.0"),
         (-1, {"low": 0, "inclusive": True}, ValueError, "x must be >= 0; got -1.0"),
         (1.5, {"low": None, "high": 1.0}, ValueError, "x must be <= 1.0; got 1.5"),

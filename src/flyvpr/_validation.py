@@ -198,7 +198,10 @@ def check_real(
     of = f" of {unit}" if unit else ""
     if not is_real(value):
         raise TypeError(f"{name} must be a number{of}; got {type(value).__name__}")
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:  # an int past the floats' range, such as 10**400
+        raise ValueError(f"{name} must be finite; got a number past a float's range") from None
     if not math.isfinite(value):
         raise ValueError(f"{name} must be finite; got {value}")
     too_low = low is not None and (value < low or (value == low and not inclusive))
