@@ -529,8 +529,9 @@ def test_odometry_from_a_positions_csv(recordings, maps, scripted, tmp_path, cap
     xy = tmp_path / "night_xy.csv"  # 1.5 m per frame, from frame 5 on
     xy.write_text("frame,x,y\n" + "".join(f"{i},{1.5 * i},7\n" for i in range(5, N)))
     code, out, err = _run(
-        capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY], "--positions", xy
-    )
+        capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY], "--positions", xy,
+        "--out", tmp_path / "o.csv",
+    )  # fmt: skip
     assert code == 0, err
     assert (
         f"\nodometry: path integration from --positions {xy} (map spacing 3 m per place); "
@@ -538,6 +539,18 @@ def test_odometry_from_a_positions_csv(recordings, maps, scripted, tmp_path, cap
     )
     # frames 0-4 have no position and frame 5 none before it: no odometry for them
     assert scripted[-1].velocities == [None] * 6 + [0.5] * (N - 6)
+    # and the records say what the filter was given, frame by frame
+    rows = list(csv.DictReader((tmp_path / "o.csv").open()))
+    assert list(rows[0])[-1] == "odometry"
+    assert [r["odometry"] for r in rows] == [""] * 6 + ["0.5"] * (N - 6)
+    code, _, err = _run(
+        capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY], "--positions", xy,
+        "--every", "2", "--out", tmp_path / "o.jsonl",
+    )  # fmt: skip
+    assert code == 0, err
+    records = [json.loads(line) for line in (tmp_path / "o.jsonl").read_text().splitlines()]
+    # kept frames 0, 2, 4 have no position and 6 none before it
+    assert [r["odometry"] for r in records] == [None] * 4 + [1.0] * (N // 2 - 4)
 
 
 def test_positions_that_cover_no_frame_are_said_to_give_none(

@@ -298,13 +298,15 @@ def test_localize_records_the_maps_positions_and_drives_odometry(
     rows = [json.loads(line) for line in records.read_text().splitlines()]
     assert len(rows) == N and set(rows[0]) >= {"x", "y", "place", "state", "confidence"}
     assert all(r["x"] == 2.0 * r["place"] and r["y"] == 5.0 for r in rows)
+    assert [r["odometry"] for r in rows] == seen  # what the filter was given, None for none
     seen.clear()
     code, out, err = _run(
         capsys, "localize", "--map", built, route["winter"], "--positions", query_xy,
-        "--no-odometry", "--every", "2",
+        "--no-odometry", "--every", "2", "--out", records,
     )  # fmt: skip
     assert code == 0, err
     assert "\nodometry: off (--no-odometry)\n" in out and seen == [None] * (N // 2)
+    assert "odometry" not in json.loads(records.read_text().splitlines()[0])
 
 
 def test_ground_truth_by_positions(built, route, capsys):

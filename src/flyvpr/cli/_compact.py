@@ -10,6 +10,7 @@ Nothing outside :mod:`flyvpr.cli` imports this module.
 from __future__ import annotations
 
 import contextlib
+import math
 import sys
 import time
 
@@ -187,6 +188,8 @@ def cmd_localize_compact(args) -> int:
     columns = ["frame", "timestamp", "place", "confidence", "state", "relocated"]
     if cmap.positions is not None:
         columns += ["x", "y"]
+    if odometry:
+        columns.append("odometry")
     if args.ground_truth is not None:
         columns.append("correct")
     show = not args.quiet and sys.stderr.isatty()
@@ -237,6 +240,8 @@ def cmd_localize_compact(args) -> int:
                 }
                 if cmap.positions is not None:
                     row["x"], row["y"] = (float(v) for v in cmap.positions[places[i]])
+                if odometry:  # places moved, as the filter was given them
+                    row["odometry"] = math.nan if velocity[i] is None else velocity[i]
                 if right is not None:
                     row["correct"] = int(right[i]) if known[i] else None
                 if out is not None:

@@ -208,10 +208,15 @@ COLUMN_SCHEMAS = {
     "relocated": {"type": "integer", "description": "1 when the filter jumped to a new place"},
     "x": {"type": "number", "description": "map x of the matched place (m)"},
     "y": {"type": "number", "description": "map y of the matched place (m)"},
+    "odometry": {
+        "type": "number",
+        "description": "places moved since the previous frame, as the filter was given them "
+        "(absent on a frame without odometry)",
+    },
     "correct": {"type": "integer", "description": "1 when the place is a true match"},
 }
 #: the known columns that may be unknown (NaN) in a record
-NULLABLE = frozenset({"timestamp", "confidence", "x", "y"})
+NULLABLE = frozenset({"timestamp", "confidence", "x", "y", "odometry"})
 
 
 def _json_type(value) -> dict:

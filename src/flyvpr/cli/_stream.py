@@ -146,6 +146,8 @@ def cmd_localize_recording(args) -> int:
     columns = ["frame", "timestamp", "place", "confidence", "state", "relocated"]
     if m.has_positions:
         columns += ["x", "y"]
+    if odometry:
+        columns.append("odometry")
     if args.ground_truth is not None:
         columns.append("correct")
     show = not args.quiet and sys.stderr.isatty()
@@ -197,6 +199,8 @@ def cmd_localize_recording(args) -> int:
                 }
                 if step.positions is not None:  # the map's positions, where it has them
                     row["x"], row["y"] = (float(v) for v in step.positions[i])
+                if step.odometry is not None:  # places moved, as the filter was given them
+                    row["odometry"] = float(step.odometry[i])
                 if gt is not None and known is not None:
                     row["correct"] = int(gt[i, step.places[i]]) if known[i] else None
                     if known[i]:

@@ -45,6 +45,10 @@ class Step:
         ``"localized"`` or ``"lost"`` (see :class:`flyvpr.localization.Fix`).
     positions : ndarray, shape (n, 2), or None
         The map positions of the matched places, when the map has positions.
+    odometry : ndarray, shape (n,), or None
+        With ``odometry``: the places each frame moved since the previous kept frame, as the
+        filter was given them (metres over the localizer's ``place_spacing``); NaN on a frame
+        that got none.  None without ``odometry``.
     """
 
     batch: Batch
@@ -54,6 +58,7 @@ class Step:
     relocated: np.ndarray
     states: np.ndarray
     positions: np.ndarray | None
+    odometry: np.ndarray | None = None
 
 
 def track(
@@ -112,16 +117,19 @@ def track(
             delay = (float(b.timestamps[0]) - start_t) - (time.monotonic() - start_wall)
             if delay > 0:
                 time.sleep(delay)
-        distances = None
+        distances = moved = None
         if odometry:
             distances, last_xy = distances_moved(positions, b, last_xy)
         fixes = localizer.update_batch(b.images, distances=distances)
+        if distances is not None:  # update_batch checked that the localizer has a spacing
+            moved = distances / localizer.place_spacing
         xy = None
         if m is not None and m.positions is not None:
             xy = m.positions[fixes.places]
         yield Step(
-            b, fixes.places, fixes.confidences, fixes.scores, fixes.relocated, fixes.states, xy
-        )
+            b, fixes.places, fixes.confidences, fixes.scores, fixes.relocated, fixes.states, xy,
+            moved,
+        )  # fmt: skip
 
 
 def distances_moved(positions, batch: Batch, last_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
