@@ -250,7 +250,9 @@ def test_bad_inputs_one_line_exit_1_nothing_written(recordings, tmp_path, capsys
         (["localize", "--map", tmp_path / "r.map", cut, "--out", tmp_path / "o.csv"], "cut.mp4"),
         (["localize", "--map", tmp_path / "r.map", recordings["ros2"][QUERY], "--every", "5m",
           "--positions", elsewhere, "--out", tmp_path / "o.csv"],
-         "--every 5m keeps frames by distance, and no frame has a position in"),
+         f"--every 5m keeps frames by distance, and no frame has a position in {elsewhere} "
+         f"(its rows: frames 1000-1000; its frames 0-{N - 1}): a frame,x,y row names a frame's "
+         "index in the recording"),
     ]  # fmt: skip
     for argv, needle in cases:
         code, out, err = _run(capsys, *argv)

@@ -993,3 +993,21 @@ def test_navsatfix_that_never_fixed_is_refused(tmp_path):
         r"\(status < 0\)\)",
     ):
         read_positions(bag=bag, topic="/fix")
+
+
+def test_every_metres_with_no_frame_placed_names_both_spans(tmp_path):
+    # GPS on another clock: the message gives the recording's timestamps beside the rows'
+    gps = Positions(np.array([5000.0, 5001.0]), np.zeros((2, 2)), "timestamp", "gps.csv")
+    with pytest.raises(RecordingError) as info:
+        _Stamped(tmp_path / "cam", 100.0 + 0.5 * np.arange(8)).read_all(
+            SIZE, every="2m", positions=gps
+        )
+    assert str(info.value).endswith(
+        "every=2m keeps frames by distance, and no frame has a position in gps.csv (its rows: "
+        "timestamps 5000-5001 s; its frames' timestamps 100-103.5 s): the positions and the "
+        "recording must share a clock"
+    )
+    # rows by frame, none of this recording's
+    by_frame = Positions(np.array([50, 60]), np.zeros((2, 2)), "frame", "f.csv")
+    with pytest.raises(RecordingError, match=r"\(its rows: frames 50-60; its frames 0-7\): a "):
+        _Stamped(tmp_path / "cam", np.arange(8.0)).read_all(SIZE, every="2m", positions=by_frame)

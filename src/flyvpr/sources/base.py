@@ -261,8 +261,15 @@ class Source:
         idx = np.empty(batch, np.int64)
         n = 0
         seen = 0
+        ends = [-1, -1]  # the first and last frame's index, and the timestamps' range
+        times = [math.inf, -math.inf]
         for index, timestamp, decode in self._frames():
             seen += 1
+            if seen == 1:
+                ends[0] = index
+            ends[1] = index
+            if timestamp == timestamp:  # not NaN
+                times[:] = min(times[0], timestamp), max(times[1], timestamp)
             if not thin.keep(index, timestamp):
                 continue
             images[n] = decode((h, w))
@@ -275,9 +282,11 @@ class Source:
         if seen == 0:
             raise RecordingError(f"{self.describe()}: the recording holds no frame")
         if positions is not None and thin.unplaced == seen:
+            frames, hint = positions.describe_frames(ends, times)
             raise RecordingError(
                 f"{self.describe()}: every={thin.every} keeps frames by distance, and no frame "
-                f"has a position in {positions.origin} (its rows: {positions.describe_span()})"
+                f"has a position in {positions.origin} (its rows: {positions.describe_span()}; "
+                f"{frames}): {hint}"
             )
         said = (self.describe(), str(thin.every), positions.origin if positions else None)
         if thin.unplaced and said not in _WARNED_UNPLACED:  # once, though a map reads twice

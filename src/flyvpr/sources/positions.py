@@ -181,18 +181,23 @@ class Positions:
         xy = np.asarray(xy, np.float64)
         if not len(xy) or np.isfinite(xy).all(axis=1).any():
             return
-        if self.by == "timestamp":
-            t = np.asarray(timestamps, np.float64)
-            frames = f"its frames' timestamps {np.nanmin(t):.10g}-{np.nanmax(t):.10g} s"
-            hint = "the positions and the recording must share a clock"
-        else:
-            i = np.asarray(indices)
-            frames = f"its frames {int(i.min())}-{int(i.max())}"
-            hint = "a frame,x,y row names a frame's index in the recording"
+        frames, hint = self.describe_frames(indices, timestamps)
         raise RecordingError(
             f"{where}: no frame has a position in {self.origin} (its rows: "
             f"{self.describe_span()}; {frames}): {hint}"
         )
+
+    def describe_frames(self, indices, timestamps) -> tuple[str, str]:
+        """A recording's frames (``indices``, ``timestamps``; not empty) in the words of the
+        rows' key, and what a file that gives none of them a position is likely to have got
+        wrong: ``("its frames 0-99", "a frame,x,y row names ...")``."""
+        if self.by == "timestamp":
+            t = np.asarray(timestamps, np.float64)  # a recording without any is refused before
+            frames = f"its frames' timestamps {np.nanmin(t):.10g}-{np.nanmax(t):.10g} s"
+            return frames, "the positions and the recording must share a clock"
+        i = np.asarray(indices)
+        frames = f"its frames {int(i.min())}-{int(i.max())}"
+        return frames, "a frame,x,y row names a frame's index in the recording"
 
     def _interp(self, q: np.ndarray) -> np.ndarray:
         """Linear interpolation between rows (the first/last row's position beyond them)."""
