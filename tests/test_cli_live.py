@@ -238,6 +238,19 @@ def test_a_stream_option_without_a_key_is_one_line(route, capsys, text):
     assert f"--stream-option: expected KEY=VALUE (an FFmpeg option); got {text!r}" in err
 
 
+def test_a_stream_option_given_twice_or_empty_is_refused(route, capsys):
+    code, _, err = _run(capsys, "localize", "--map", route["map"], "udp://127.0.0.1:9",
+                        "--stream-option", "rtsp_transport=tcp",
+                        "--stream-option", "fflags=nobuffer",
+                        "--stream-option", "rtsp_transport=udp")  # fmt: skip
+    assert code == 2 and err.count("\n") == 1
+    assert "--stream-option rtsp_transport: given twice ('tcp' and 'udp'); give it once" in err
+    code, _, err = _run(capsys, "localize", "--map", route["map"], "udp://127.0.0.1:9",
+                        "--stream-option", "rtsp_transport=")  # fmt: skip
+    assert code == 2 and err.count("\n") == 1
+    assert "--stream-option: expected KEY=VALUE with a value; got 'rtsp_transport='" in err
+
+
 def test_a_stream_option_ffmpeg_does_not_have_is_named(route, capsys):
     # a misspelt option: FFmpeg would ignore it without a word; the run goes on
     with MjpegServer(route["jpegs"], fps=None, n_frames=N) as srv:

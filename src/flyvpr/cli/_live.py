@@ -46,7 +46,22 @@ def _stream_option(text: str) -> tuple[str, str]:
     if "=" not in text or not text.split("=", 1)[0].strip():
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE (an FFmpeg option); got {text!r}")
     key, value = text.split("=", 1)
+    if not value:  # e.g. a shell variable that was not set
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE with a value; got {text!r}")
     return key.strip(), value
+
+
+def _stream_options(pairs) -> dict[str, str]:
+    """The ``--stream-option`` pairs as a dict; a key given twice is refused (which value the
+    user meant is not for flyvpr to guess)."""
+    options: dict[str, str] = {}
+    for key, value in pairs or []:
+        if key in options:
+            raise UsageError(
+                f"--stream-option {key}: given twice ({options[key]!r} and {value!r}); give it once"
+            )
+        options[key] = value
+    return options
 
 
 def add_live_args(p) -> None:
@@ -317,6 +332,7 @@ def cmd_localize_live(args) -> int:
             raise UsageError(
                 f"{flag(option)}: not with a live source ({args.source}); it needs a recording"
             )
+    options = _stream_options(args.stream_option)
     compact = is_compact_map(args.map)
     if compact:
         for option in ("view", "view_save", "mcap_thumbnails", "calibration", "size"):
@@ -341,7 +357,7 @@ def cmd_localize_live(args) -> int:
     given = {k: getattr(args, k) for k in _DEFAULTS if getattr(args, k) is not None}
     source = LiveSource(
         args.source,
-        options=dict(args.stream_option or []),
+        options=options,
         notify=notify,
         **{**_DEFAULTS, **given},
     )
