@@ -447,3 +447,52 @@ def test_timing_tables_say_whether_the_runs_were_warmed_up(report):
     assert "without a warm-up (warmup = false" in md
     # one caption each: the warmed grid does not claim the cold one's and the other way round
     assert md.count("after a warm-up") == 1 and md.count("without a warm-up") == 1
+
+
+SPEEDS = """
+title = "A thinned query and the whole one"
+
+[settings]
+cache = "cache"
+
+[[datasets]]
+name = "syn"
+loader = "generic"
+root = "route"
+reference = "summer"
+query = "winter"
+tolerance = 2
+
+[[grids]]
+name = "fast"
+kind = "evaluate"
+datasets = ["syn"]
+methods = ["pixels"]
+speed = 2
+
+[[grids]]
+name = "all"
+kind = "evaluate"
+datasets = ["syn"]
+methods = ["pixels"]
+"""
+
+
+def test_each_grid_states_its_own_protocol_and_the_data_section_the_whole_traverse(tmp_path):
+    # the grid that thins the query by speed comes first: its protocol was the dataset's
+    # for every grid and for the data section
+    save_route(make_route(24, random_state=1), tmp_path / "route")
+    config = tmp_path / "speeds.toml"
+    config.write_text(textwrap.dedent(SPEEDS), encoding="utf-8")
+    run_experiment(config, tmp_path / "out", progress=False)
+    _, md_path = write_report(tmp_path / "out", figures=False)
+    lines = md_path.read_text(encoding="utf-8").splitlines()
+    whole = "positions 0..23, 24 references x 24 queries, tolerance 2 frames"
+    thinned = "24 references x 12 queries, tolerance 2 frames, 12 of 24 query frames"
+    grid_lines = [line for line in lines if line.startswith("Data: ")]
+    assert len(grid_lines) == 2
+    assert thinned in grid_lines[0] and whole not in grid_lines[0]
+    assert whole in grid_lines[1] and "query frames" not in grid_lines[1]
+    data = lines[lines.index("## Protocol: data") :]
+    (row,) = [line for line in data if line.startswith("| syn |")]
+    assert whole in row and "query frames" not in row

@@ -210,22 +210,17 @@ def _build(config: ExperimentConfig, experiment: dict, records: dict, figures: b
     order: list[str] = []  # every method keeps one colour across the figures
     for grid in config.grids:
         order += [m for m in grid.methods if m not in order]
-    protocols: dict[str, dict] = {}
-    for g in grids:
-        for item in g.ok:
-            protocols.setdefault(item["dataset"], item["record"]["protocol"])
-
     for g in grids:
         doc.heading(2, g.grid.title, anchor=f"grid-{g.grid.name}")
         if g.grid.description:
             doc.para(g.grid.description)
-        doc.para(_protocol_line(g, protocols), "protocol")
+        doc.para(_protocol_line(g, _protocols([g])), "protocol")
         if not g.ok:
             doc.para("No finished run in this grid yet.", "error")
             continue
         SECTIONS[g.grid.kind](doc, g, figures, order)
 
-    _data_section(doc, config, protocols)
+    _data_section(doc, config, _protocols(grids))
     _machines_section(doc, mine, experiment["sessions"])
     doc.heading(2, "Failed runs", anchor="errors")
     failed = [r for r in mine.values() if r["status"] != "ok"]
@@ -236,6 +231,19 @@ def _build(config: ExperimentConfig, experiment: dict, records: dict, figures: b
     doc.heading(2, "Configuration")
     doc.code(config.text.strip())
     return doc
+
+
+def _protocols(grids: list[GridRuns]) -> dict[str, dict]:
+    """Each dataset's protocol, from the first finished run of ``grids`` on it that took the
+    whole query traverse (a grid's ``speed`` keeps a subset of it), or else from the first."""
+    protocols: dict[str, dict] = {}
+    for g in grids:
+        for item in g.ok:
+            proto = item["record"]["protocol"]
+            held = protocols.get(item["dataset"])
+            if held is None or (held.get("query_subset") and not proto.get("query_subset")):
+                protocols[item["dataset"]] = proto
+    return protocols
 
 
 def _data_section(doc: Document, config: ExperimentConfig, protocols: dict) -> None:
