@@ -329,6 +329,39 @@ def test_a_stream_of_damaged_jpegs_raises():
     assert src.n_corrupt > 10
 
 
+def test_a_torn_jpeg_is_told_from_a_whole_one():
+    from flyvpr.sources.live import _whole_jpeg
+
+    good = jpeg_bytes(np.full((48, 64), 120, np.uint8))
+    assert _whole_jpeg(good) and _whole_jpeg(good + b"\0" * 600)  # padded after its end
+    sos = good.rfind(b"\xff\xda")
+    for cut in (len(good) - 2, (sos + len(good)) // 2, sos + 4, sos, 100):
+        assert not _whole_jpeg(good[:cut]), cut
+    # an EXIF-like thumbnail (a whole JPEG inside) before the picture: its end marker does not
+    # make a torn picture whole
+    inner = jpeg_bytes(np.zeros((8, 8), np.uint8))
+    framed = good[:2] + b"\xff\xe1" + (len(inner) + 2).to_bytes(2, "big") + inner + good[2:]
+    assert _whole_jpeg(framed) and not _whole_jpeg(framed[: len(framed) - 40])
+
+
+def test_a_torn_jpeg_is_skipped_not_localized():
+    """FFmpeg decodes half a JPEG without an error (the rest gray): it must not become a frame."""
+    rng = np.random.default_rng(0)
+    noise = rng.integers(-8, 9, (6, 120, 160))
+    frames = [jpeg_bytes((LEVELS[i] + noise[i]).astype(np.uint8), quality=90) for i in range(6)]
+    torn = frames[3][: len(frames[3]) * 7 // 10]
+    assert av.CodecContext.create("mjpeg", "r").decode(av.Packet(torn))  # what FFmpeg does
+    # slow enough that the consumer takes every frame after the first ones
+    with MjpegServer(frames[:3] + [torn] + frames[4:], fps=5, n_frames=6) as srv:
+        src = LiveSource(srv.url, stall_timeout=2, retries=0)
+        got = list(src.frames((8, 16)))
+    seen = {f.index: float(f.frame.to_ndarray(format="gray").mean()) for f in got}
+    assert 3 not in seen and {4, 5} <= set(seen)
+    assert all(abs(level - LEVELS[i]) <= 1 for i, level in seen.items()), seen
+    assert len(got) + src.n_dropped + src.n_undecodable == src.n_received == 6
+    assert src.n_undecodable == src.n_corrupt == 1
+
+
 def test_a_camera_that_hangs_in_the_middle_of_a_jpeg_is_reconnected():
     """The first connection sends 20 frames and half a JPEG, then hangs: after the stall the
     reader reconnects; the torn JPEG it hands over after the silence is not a stream of

@@ -165,10 +165,25 @@ class LiveFrame(NamedTuple):
     frame: object
 
 
-#: a JPEG's end-of-image marker, and how far from a packet's end it is looked for (a camera may
-#: pad its JPEGs after it)
+#: a JPEG's end-of-image marker, and how far from a packet's end it is looked for first (a
+#: camera may pad its JPEGs after it); its start-of-scan marker
 _EOI = b"\xff\xd9"
 _EOI_REACH = 16
+_SOS = b"\xff\xda"
+
+
+def _whole_jpeg(packet) -> bool:
+    """Whether an MJPEG packet (bytes or a buffer) holds a whole JPEG: an end-of-image marker
+    after its last start-of-scan.  A torn one (cut in its scan data) has none: the scan data
+    cannot hold the marker (a 0xff byte there is followed by 0), and an EXIF thumbnail's own
+    markers come before the picture's scan.  FFmpeg decodes a torn JPEG without an error,
+    the missing rows gray, so it must be told apart here."""
+    view = memoryview(packet)
+    if _EOI in bytes(view[-_EOI_REACH:]):
+        return True
+    data = bytes(view)
+    sos = data.rfind(_SOS)
+    return sos >= 0 and data.find(_EOI, sos) >= 0
 
 
 class LiveSource:
@@ -420,7 +435,7 @@ class LiveSource:
                     return "stop"
                 if lazy:
                     if packet.size:
-                        whole = _EOI in bytes(memoryview(packet)[-_EOI_REACH:])
+                        whole = _whole_jpeg(packet)
                         last = time.monotonic()
                         t = None if packet.pts is None else float(packet.pts * stream.time_base)
                         self._publish(packet, t, last)
@@ -576,11 +591,14 @@ class LiveSource:
             self.close()
 
     def _decode_jpeg(self, codec, packet):
-        """The picture of one MJPEG packet (None, counted as damaged, if it has none)."""
-        try:
-            frames = codec.decode(packet)
-        except self._av.FFmpegError:
-            frames = []
+        """The picture of one MJPEG packet (None, counted as damaged, if it has none or is
+        torn: see :func:`_whole_jpeg`)."""
+        frames = []
+        if _whole_jpeg(packet):
+            try:
+                frames = codec.decode(packet)
+            except self._av.FFmpegError:
+                frames = []
         if not frames:
             self.n_corrupt += 1
             self.n_undecodable += 1
