@@ -395,6 +395,8 @@ DATASETS: list[Dataset] = [
         "Nordland viewpoint summer->winter 0-999",
         0,
         folder="nordland_64x32_viewpoint",
+        tuning="the kenyon front end's defaults were chosen here (with Nordland 0-999 and "
+        "1000-1999; as kenyon+cann, tolerance 20)",
     ),
     _nordland(
         "vp-1000",
