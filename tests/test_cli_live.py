@@ -202,6 +202,19 @@ def test_bad_sources_one_line_exit_1(route, tmp_path, capsys, source, match):
     assert not out.exists()
 
 
+def test_a_stream_that_never_sends_a_whole_picture_leaves_no_records(route, tmp_path, capsys):
+    # torn JPEGs only: no frame is localized; no file of a header only, no "wrote"
+    good = jpeg_bytes(np.zeros((48, 64), np.uint8))
+    torn = [good[: len(good) // 2]] * 200
+    out = tmp_path / "never.csv"
+    with MjpegServer(torn, fps=50, duration=6) as srv:
+        code, stdout, err = _run(capsys, "localize", "--map", route["map"], srv.url, "--retries",
+                                 0, "--stall-timeout", 1, "--out", out)  # fmt: skip
+    assert code == 1 and "no decodable frame" in err
+    assert " 0 localized" in stdout and "wrote" not in stdout
+    assert not out.exists()
+
+
 def test_garbage_stream_one_line_exit_1(route, tmp_path, capsys):
     with MjpegServer([], garbage=True, duration=3) as srv:
         code, _, err = _run(capsys, "localize", "--map", route["map"], srv.url,
@@ -223,6 +236,8 @@ def test_garbage_stream_one_line_exit_1(route, tmp_path, capsys):
         (["--view-port", "9001"], "--view-port: only with --view"),
         (["--view-data-port", "9002"], "--view-data-port: only with --view"),
         (["--view", "--view-port", "70000"], "--view-port 70000: a port is 1-65535"),
+        (["--mcap-thumbnails"], "--mcap-thumbnails needs --out FILE.mcap"),
+        (["--mcap-thumbnails", "--out", "t.csv"], "--mcap-thumbnails needs --out FILE.mcap"),
     ],
 )
 def test_live_usage_errors(route, capsys, extra, match):

@@ -388,6 +388,41 @@ def test_realtime_paces_to_the_timestamps(tmp_path, capsys):
     assert "were not paced" not in out
 
 
+def test_an_interrupted_realtime_replay_keeps_its_records(tmp_path, capsys, monkeypatch):
+    # a replay as if live: SIGTERM after the third frame keeps the three records, whole;
+    # without --realtime the same run leaves no file (written atomically)
+    import flyvpr.cli as cli
+    import flyvpr.localization.tracking as tracking
+
+    frames = np.zeros((6, 16, 32), np.uint8) + np.arange(6, dtype=np.uint8)[:, None, None] * 40
+    bag = write_bag(tmp_path / "r.bag", frames, version=1, fps=50)
+    assert main(["map", str(bag), "--out", str(tmp_path / "r.map"), "--size", "8x16"]) == 0
+    real = tracking.track
+
+    def cut(*args, **kwargs):  # SIGTERM once 3 frames are done (or when the steps end)
+        done = 0
+        for step in real(*args, **kwargs):
+            if done >= 3:
+                raise cli.Terminated
+            done += len(step.batch)
+            yield step
+        raise cli.Terminated
+
+    monkeypatch.setattr(tracking, "track", cut)
+    out = tmp_path / "rt.csv"
+    code, _, err = _run(capsys, "localize", "--map", tmp_path / "r.map", bag, "--realtime",
+                        "--out", out)  # fmt: skip
+    assert code == 143
+    assert err == (
+        f"flyvpr: terminated by SIGTERM; the records written until then are kept in {out}\n"
+    )
+    assert [r["frame"] for r in csv.DictReader(out.open())] == ["0", "1", "2"]
+    out.unlink()
+    code, _, err = _run(capsys, "localize", "--map", tmp_path / "r.map", bag, "--out", out)
+    assert code == 143 and err == "flyvpr: terminated by SIGTERM; no half-written file left\n"
+    assert not out.exists() and not list(tmp_path.glob(".*tmp*"))
+
+
 def test_realtime_says_when_a_folder_has_no_timestamps(recordings, tmp_path, capsys):
     rec = recordings["png"]
     m = tmp_path / "f.map"

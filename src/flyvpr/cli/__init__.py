@@ -109,6 +109,15 @@ def _interrupt_in(exc: BaseException) -> BaseException | None:
     return None
 
 
+def _terminated(args) -> str:
+    """The line for a run ended by SIGTERM: a run that writes its records as it goes (live,
+    or ``--realtime``) sets ``args.records_kept`` to the file that keeps them."""
+    kept = getattr(args, "records_kept", None)
+    if kept is not None:
+        return f"flyvpr: terminated by SIGTERM; the records written until then are kept in {kept}"
+    return "flyvpr: terminated by SIGTERM; no half-written file left"
+
+
 def main(argv=None) -> int:
     """Run the CLI; returns the process exit code.
 
@@ -131,7 +140,7 @@ def main(argv=None) -> int:
             sys.stdout.flush()  # a closed pipe shows here, inside the handlers below
         return code
     except Terminated:
-        print("flyvpr: terminated by SIGTERM; no half-written file left", file=sys.stderr)
+        print(_terminated(args), file=sys.stderr)
         return 143
     except BrokenPipeError:
         # `flyvpr methods | head`: the reader left; stop quietly, as `ls | head` does.
@@ -148,7 +157,7 @@ def main(argv=None) -> int:
         # with an exception set", the interrupt chained to it
         cause = _interrupt_in(exc)
         if isinstance(cause, Terminated):
-            print("flyvpr: terminated by SIGTERM; no half-written file left", file=sys.stderr)
+            print(_terminated(args), file=sys.stderr)
             return 143
         if isinstance(cause, KeyboardInterrupt):
             print("flyvpr: interrupted", file=sys.stderr)

@@ -333,6 +333,8 @@ def cmd_localize_live(args) -> int:
                 f"{flag(option)}: not with a live source ({args.source}); it needs a recording"
             )
     options = _stream_options(args.stream_option)
+    if args.mcap_thumbnails and (args.out is None or args.out.suffix.lower() != ".mcap"):
+        raise UsageError("--mcap-thumbnails needs --out FILE.mcap (the thumbnails go in it)")
     compact = is_compact_map(args.map)
     if compact:
         for option in ("view", "view_save", "mcap_thumbnails", "calibration", "size"):
@@ -381,6 +383,7 @@ def cmd_localize_live(args) -> int:
             from ._records import open_records
             from ._stream import run_metadata
 
+            args.records_kept = args.out  # whatever ends the run (see cli.main)
             out = stack.enter_context(
                 open_records(
                     args.out,
@@ -465,6 +468,11 @@ def cmd_localize_live(args) -> int:
             f"timestamps: {clock.get(source.clock, 'none')}"
         )
     print_view_summary(view)
+    if n_frames == 0 and args.out is not None:
+        # no frame was localized (a stream that never sent a decodable one): no file that
+        # holds a header only
+        args.out.unlink(missing_ok=True)
+        args.out = None
     for path in (args.out, args.view_save):
         if path is not None:
             print(f"wrote {path}")

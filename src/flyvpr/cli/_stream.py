@@ -158,10 +158,14 @@ def cmd_localize_recording(args) -> int:
     with ExitStack() as stack:
         out = None
         if args.out is not None:
+            if args.realtime:
+                args.records_kept = args.out  # whatever ends the run (see cli.main)
             out = stack.enter_context(
                 open_records(
                     args.out,
                     columns,
+                    # replayed as if live: an interrupted run keeps the frames it localized
+                    keep_partial=args.realtime,
                     thumbnails=args.mcap_thumbnails,
                     metadata=run_metadata(args, m.method.name, m.n_places, source),
                 )
