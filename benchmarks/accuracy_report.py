@@ -233,32 +233,43 @@ def _kidnap_lines(data: dict) -> list[str]:
     return lines
 
 
-#: the two sets of robot views the reliability tables pool: those whose window chose the
-#: defaults and fitted the calibration table, and the held-out window's
+#: the sets of robot views the reliability tables pool: those whose window chose the
+#: defaults and fitted the calibration table, the held-out window's, and the subset's (a
+#: front end right on almost every frame); a view's set is named by the start of its
+#: condition's ``tuning`` text ("held out", "subset"; anything else: "dev")
 RELIABILITY_SETS = (
     ("dev", "the dev views (frames 0-999: they chose the defaults and fitted the calibration)"),
     ("held out", "the held-out views (frames 2000-2399: they tuned nothing)"),
+    (
+        "subset",
+        "the 100-place subset's robot views (summer -> fall, where the front end alone is "
+        "right on almost every frame: they tuned nothing)",
+    ),
 )
 
 
-def _held_out_views(data: dict) -> set[str]:
-    """View keys whose conditions say they are held out (tuned nothing)."""
-    return {
-        c["view_key"]
-        for c in data.get("conditions", [])
-        if str(c.get("tuning", "")).startswith("held out")
-    }
+def _view_sets(data: dict) -> dict[str, str]:
+    """Each view key's reliability set (see ``RELIABILITY_SETS``), from its tuning text."""
+    sets = {}
+    for c in data.get("conditions", []):
+        if "view_key" not in c:
+            continue
+        tuning = str(c.get("tuning", ""))
+        named = [k for k, _ in RELIABILITY_SETS[1:] if tuning.startswith(k)]
+        sets[c["view_key"]] = named[0] if named else "dev"
+    return sets
 
 
 def reliability_table(data: dict, method: str, views: str | None = None) -> list[list[str]]:
     """Rows (confidence bin, frames, mean confidence, share right, gap) of ``method``'s answers
     on the robot views at their strictest tolerance, pooled over views and seeds; ``views``:
-    ``"dev"`` or ``"held out"`` (see ``RELIABILITY_SETS``) pools only those, None all."""
-    held = _held_out_views(data)
+    a set of ``RELIABILITY_SETS`` (``"dev"``, ``"held out"``, ``"subset"``) pools only those,
+    None all."""
+    sets = _view_sets(data)
     parts = [
         x
         for x in data.get("reliability", [])
-        if x["method"] == method and (views is None or (x["view"] in held) == (views == "held out"))
+        if x["method"] == method and (views is None or sets.get(x["view"], "dev") == views)
     ]
     if not parts:
         return []

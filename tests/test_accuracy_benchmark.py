@@ -342,18 +342,22 @@ def test_merge_replaces_rerun_methods_and_keeps_the_rest(tmp_path):
 
 
 def test_reliability_tables_keep_dev_and_held_out_apart():
-    # two views, one held out: bin 9 of the dev view is right 3 of 4 at mean confidence 0.95,
-    # the held-out view's 1 of 2 at 0.9; pooled, 4 of 6 at 0.933
+    # three views, one held out, one of the subset: bin 9 of the dev view is right 3 of 4 at
+    # mean confidence 0.95, the held-out view's 1 of 2 at 0.9, the subset's 1 of 1 at 0.7;
+    # pooled, 5 of 7 at 0.9
     data = {
         "conditions": [
             {"key": "a@2", "view_key": "a", "label": "a", "tuning": "tuned the defaults"},
             {"key": "b@2", "view_key": "b", "label": "b", "tuning": "held out: tuned nothing"},
+            {"key": "c@2", "view_key": "c", "label": "c", "tuning": "subset: tuned nothing"},
         ],
         "reliability": [
             {"method": "m", "view": "a", "seed": 0, "n": [0] * 9 + [4],
              "confidence": [0.0] * 9 + [3.8], "right": [0] * 9 + [3]},
             {"method": "m", "view": "b", "seed": 0, "n": [1] + [0] * 8 + [2],
              "confidence": [0.05] + [0.0] * 8 + [1.8], "right": [0] * 9 + [1]},
+            {"method": "m", "view": "c", "seed": 0, "n": [0] * 9 + [1],
+             "confidence": [0.0] * 9 + [0.7], "right": [0] * 9 + [1]},
         ],
     }  # fmt: skip
     dev = accuracy_report.reliability_table(data, "m", "dev")
@@ -364,7 +368,10 @@ def test_reliability_tables_keep_dev_and_held_out_apart():
         ["0.0-0.1", "1", "0.050", "0.000", "-0.050"],
         ["0.9-1.0", "2", "0.900", "0.500", "-0.400"],
     ]
-    assert both[-1] == ["0.9-1.0", "6", "0.933", "0.667", "-0.267"]
+    assert accuracy_report.reliability_table(data, "m", "subset") == [
+        ["0.9-1.0", "1", "0.700", "1.000", "0.300"]
+    ]
+    assert both[-1] == ["0.9-1.0", "7", "0.900", "0.714", "-0.186"]
     assert accuracy_report.reliability_table(data, "other") == []
     doc = _document()
     doc["conditions"] += data["conditions"]
@@ -372,6 +379,7 @@ def test_reliability_tables_keep_dev_and_held_out_apart():
     md = accuracy_report.render_markdown(doc)
     assert md.index("On the dev views") < md.index("| 0.9-1.0 | 4 | 0.950 |")
     assert md.index("On the held-out views") < md.index("| 0.9-1.0 | 2 | 0.900 |")
+    assert md.index("On the 100-place subset's robot views") < md.index("| 0.9-1.0 | 1 | 0.700 |")
     text = accuracy_report.render_text(doc)
     assert "on the held-out views" in text
 
