@@ -607,3 +607,21 @@ def test_a_rebuilt_map_drops_or_ignores_the_tables_of_the_map_it_replaced(
     assert _run(capsys, "map", route["summer"], "--out", path, "--compact", "-q",
                 "--seed", "5")[0] == 0  # fmt: skip
     assert sidecar.read_bytes() == tables
+
+
+def test_maps_x_and_x_fvmap_share_x_mih_and_neither_build_harms_the_others(route, tmp_path, caplog):
+    # route.fvmap's tables are route.mih, as are those of a map named route (no suffix)
+    fvmap, bare, sidecar = tmp_path / "route.fvmap", tmp_path / "route", tmp_path / "route.mih"
+    build_compact_map(route["summer"], fvmap, index="mih")
+    tables = sidecar.read_bytes()
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        build_compact_map(route["summer"], bare, random_state=5)  # not removed: not stale
+    assert sidecar.read_bytes() == tables
+    assert any(f"holds the tables of the map {fvmap}" in r.getMessage() for r in caplog.records)
+    with pytest.raises(ValueError, match=f"holds those of the map {fvmap}; name this map"):
+        build_compact_map(route["summer"], bare, random_state=5, index="mih")
+    assert sidecar.read_bytes() == tables
+    # with route.fvmap gone, the file is stale for route: written over
+    fvmap.unlink()
+    build_compact_map(route["summer"], bare, random_state=5, index="mih")
+    assert sidecar.read_bytes() != tables

@@ -333,8 +333,6 @@ def cmd_localize_live(args) -> int:
                 f"{flag(option)}: not with a live source ({args.source}); it needs a recording"
             )
     options = _stream_options(args.stream_option)
-    if args.mcap_thumbnails and (args.out is None or args.out.suffix.lower() != ".mcap"):
-        raise UsageError("--mcap-thumbnails needs --out FILE.mcap (the thumbnails go in it)")
     compact = is_compact_map(args.map)
     if compact:
         for option in ("view", "view_save", "mcap_thumbnails", "calibration", "size"):
@@ -347,6 +345,8 @@ def cmd_localize_live(args) -> int:
         raise UsageError(
             f"--index: only with a compact map (`flyvpr map --compact`); {args.map} is not one"
         )
+    if args.mcap_thumbnails and (args.out is None or args.out.suffix.lower() != ".mcap"):
+        raise UsageError("--mcap-thumbnails needs --out FILE.mcap (the thumbnails go in it)")
     inputs = [args.map] + ([args.calibration] if args.calibration is not None else [])
     check_outputs(args, inputs, ("out",))
     check_view_args(args, inputs)

@@ -153,8 +153,9 @@ def register(sub) -> None:
     )
     c = p.add_argument_group(
         "compact map (millions of places)",
-        "With --compact the map keeps 32 bytes per place (256 bits: signs of the kenyon optic "
-        "lobe's principal directions), memory-mapped, instead of a fitted METHOD; `flyvpr "
+        "With --compact the map keeps a 32-byte code per place (256 bits: signs of the kenyon "
+        "optic lobe's principal directions; with each place's frame number and timestamp, 48 "
+        "bytes a place, 64 with positions), memory-mapped, instead of a fitted METHOD; `flyvpr "
         "localize --map` then tracks a window of the CANN around the robot and relocates "
         "through an index, so a frame's cost does not grow with the map (see the large-maps "
         "guide). The recording is read twice: once to fit the encoder on a sample, once to "

@@ -238,7 +238,10 @@ def build_compact_map(
         If the recording cannot be read, keeps fewer than 2 frames, or changes between the
         two passes.
     ValueError, TypeError
-        For a bad ``n_bits``, ``fit_frames``, ``index``, ``n_jobs`` or ``scheduler``.
+        For a bad ``n_bits``, ``fit_frames``, ``index``, ``n_jobs`` or ``scheduler``; with
+        ``index="mih"``, when :func:`index_path` holds the tables of another map than the
+        one ``path`` replaces (``X`` and ``X.fvmap`` share ``X.mih``): raised before any
+        work, and that file is never written over (nor, without it, removed).
     """
     from tqdm.auto import tqdm
 
@@ -251,6 +254,17 @@ def build_compact_map(
         raise ValueError(f"fit_frames must be >= 2; got {fit_frames}")
     if index not in (None, "mih"):
         raise ValueError(f"index must be None or 'mih'; got {index!r}")
+    path = Path(path)
+    sidecar = index_path(path)
+    # the tables beside the map's name: stale ones (of the map this build replaces, or of an
+    # earlier one), or another map's (X and X.fvmap share X.mih): never written over nor removed
+    owner = _map_id(sidecar, "mih")
+    other = _other_owner(path, sidecar, owner)
+    if index == "mih" and other is not None:
+        raise ValueError(
+            f"{sidecar}, where the tables of {path} go, holds those of the map {other}; name "
+            "this map otherwise"
+        )
     encoder = CompactEncoder(n_bits=n_bits, random_state=random_state)
     encoder._check_params()
     h, w = size
@@ -326,29 +340,46 @@ def build_compact_map(
             for name, array in encoder.state()[1].items():
                 writer.add_array(f"encoder.{name}", array)
     cmap = open_compact_map(path)
-    sidecar = index_path(path)
     if index == "mih":
         save_index(sidecar, MultiIndexHash(radius=1).build(cmap.large_map.codes), cmap.large_map)
-    elif sidecar.is_file() and _foreign(sidecar, cmap):
-        # the tables of the map this one replaced: they index nothing any more
-        sidecar.unlink()
+    elif other is not None:
+        logger.warning(
+            "%s holds the tables of the map %s (left as it is): `--index mih` on %s builds "
+            "its tables in memory; a map of another name gets its own file",
+            sidecar, other, path,
+        )  # fmt: skip
+    elif owner is not None and owner != cmap.large_map.map_id:
+        # the tables of the map this one replaced (or of an earlier one): they index nothing
+        sidecar.unlink(missing_ok=True)
         logger.warning("removed %s: it indexed the map %s replaced", sidecar, path)
     logger.info("compact map: %d places from %s", n, src.describe())
     return cmap
 
 
-def _foreign(sidecar: Path, cmap) -> bool:
-    """Whether the index file ``sidecar`` was written for another map than ``cmap`` (a file
-    that is not an index file at all is left to its owner: False)."""
-    from .mapfile import ForeignIndexError, load_index
+def _other_owner(path: Path, sidecar: Path, owner: str | None) -> Path | None:
+    """The other map whose tables the index file ``sidecar`` (recording ``owner``, its map's
+    id) holds, if one is there: ``X`` and ``X.fvmap`` share ``X.mih``; None where the file
+    indexes no map beside ``path`` (stale, or ``path``'s own)."""
+    if owner is None:
+        return None
+    stem = sidecar.with_suffix("")
+    for other in (stem.with_name(stem.name + ".fvmap"), stem):
+        if other != path and index_path(other) == sidecar and _map_id(other, "map") == owner:
+            return other
+    return None
+
+
+def _map_id(path: Path, kind: str) -> str | None:
+    """The ``map_id`` a flyvpr ``kind`` file (``"map"`` or ``"mih"``) at ``path`` records:
+    the map's own, or the indexed map's; None where there is no such file (or another file,
+    which is left to its owner)."""
+    from .mapfile import _read_container
 
     try:
-        load_index(sidecar, cmap.large_map)
-    except ForeignIndexError:
-        return True
+        header, _ = _read_container(path, kind)
     except (OSError, ValueError):
-        return False
-    return False
+        return None
+    return str(header.get("map_id") or "") or None
 
 
 def open_compact_map(path, verify: bool = True) -> CompactMap:
@@ -466,7 +497,9 @@ def compact_localizer(cmap: CompactMap, index: str = "exhaustive", **params):
             except ForeignIndexError:
                 logger.warning(
                     "%s indexes another map than %s: its tables are built in memory instead "
-                    "(`flyvpr map --compact --mih` writes them again)", sidecar, cmap.path,
+                    "(a map named %s shares the file; else it is stale: remove it, and "
+                    "`flyvpr map --compact --mih` writes this map's)",
+                    sidecar, cmap.path, sidecar.with_suffix(""),
                 )  # fmt: skip
                 source = f"multi-index hashing, tables built ({sidecar.name} indexes another map)"
         else:
