@@ -625,3 +625,42 @@ def test_maps_x_and_x_fvmap_share_x_mih_and_neither_build_harms_the_others(route
     fvmap.unlink()
     build_compact_map(route["summer"], bare, random_state=5, index="mih")
     assert sidecar.read_bytes() != tables
+
+
+def test_ground_truth_by_positions_at_the_radius_agrees_with_the_full_maps():
+    # a KD-tree's distance and hypot's may differ in the last bit; at a radius of exactly
+    # one of them the frame could be judged unmatchable but its answer right (the run then
+    # failed in evaluate_answers): both now take the full map's sqrt(sum((q - r) ** 2))
+    import types
+
+    from scipy.spatial import cKDTree
+
+    from flyvpr.cli._compact import _truth
+    from flyvpr.localization.tracking import ground_truth_positions
+
+    place = np.array([[5_700_000.3, 620_000.7]])  # UTM-sized metres
+    rng = np.random.default_rng(0)
+    differ = []
+    for _ in range(20000):
+        q = place + rng.normal(0.0, 30.0, (1, 2))
+        exact = float(np.sqrt(((place - q) ** 2).sum()))
+        if exact != float(np.hypot(*(place - q)[0])):
+            differ.append((q, exact, float(np.hypot(*(place - q)[0]))))
+        if len(differ) == 8:
+            break
+    assert len(differ) == 8
+
+    class Batch(types.SimpleNamespace):
+        def __len__(self):
+            return len(self.indices)
+
+    batch = Batch(indices=np.array([0]), timestamps=np.array([0.0]))
+    for q, exact, other in differ:
+        for radius in (exact, other):
+            args = types.SimpleNamespace(ground_truth="gt.csv", radius=radius, tolerance=None)
+            positions = types.SimpleNamespace(at=lambda i, t, interpolate=True, q=q: q)
+            can, judge, known = _truth(
+                args, types.SimpleNamespace(positions=place), batch, positions, cKDTree(place)
+            )
+            full = bool(ground_truth_positions(q, place, radius)[0, 0])
+            assert known[0] and bool(can[0]) == bool(judge(np.array([0]))[0]) == full

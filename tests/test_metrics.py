@@ -493,6 +493,11 @@ def test_reliability_bins_hold_their_lower_edge_and_name_their_edges():
         "0.875-1.000",
     ]
     assert [r["bin"] for r in reliability([0.5], [1], bins=2)] == ["0.5-1.0"]
+    # sixteenths need four decimals, not three (0.062 would not be the edge 0.0625)
+    assert [r["bin"] for r in reliability([0.07, 0.99], [1, 1], bins=16)] == [
+        "0.0625-0.1250",
+        "0.9375-1.0000",
+    ]
 
 
 @pytest.mark.parametrize(
@@ -528,3 +533,17 @@ def test_evaluate_answers_refuses_confidences_that_are_not_numbers():
         evaluate_answers(["x"], [True], [True])
     with pytest.raises(TypeError, match="^confidence must be an array of numbers"):
         evaluate_answers([[0.5], [0.5, 0.6]], [True, True], [True, True])
+
+
+def test_evaluate_answers_takes_flags_as_every_metric_does():
+    # 0/1 integers as booleans (as gt and the reliability counts take them); other values or
+    # dtypes refused, naming the parameter
+    from flyvpr.metrics import evaluate_answers
+
+    flags = evaluate_answers([0.9, 0.8, 0.3], [True, False, True], [True, True, True])
+    ints = evaluate_answers([0.9, 0.8, 0.3], np.array([1, 0, 1]), [1, 1, 1])
+    assert ints == flags
+    with pytest.raises(ValueError, match="correct must be boolean .* other than 0 and 1"):
+        evaluate_answers([0.9, 0.8], [2, 0], [True, True])
+    with pytest.raises(TypeError, match="has_match must be a boolean array .* got dtype float64"):
+        evaluate_answers([0.9, 0.8], [True, False], [1.0, 1.0])

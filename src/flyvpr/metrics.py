@@ -79,19 +79,23 @@ def _check_S(S) -> np.ndarray:
     return arr
 
 
-def _check_gt(gt, shape: tuple[int, int]) -> np.ndarray:
-    arr = np.asarray(gt)
+def _as_flags(values, name: str) -> np.ndarray:
+    """``values`` as a bool array: booleans, or integers 0/1 (masks loaded from text files are
+    common); other integers are a bug (ValueError), other dtypes a TypeError."""
+    arr = np.asarray(values)
     if arr.dtype == np.bool_:
-        pass
-    elif np.issubdtype(arr.dtype, np.integer):
-        # 0/1 integer masks are common (e.g. loaded from text files); anything else is a bug.
+        return arr
+    if np.issubdtype(arr.dtype, np.integer):
         if arr.size and not np.isin(arr, (0, 1)).all():
             raise ValueError(
-                "gt must be boolean (or integers 0/1); got integer values other than 0 and 1"
+                f"{name} must be boolean (or integers 0/1); got integer values other than 0 and 1"
             )
-        arr = arr.astype(np.bool_)
-    else:
-        raise TypeError(f"gt must be a boolean array (or integers 0/1); got dtype {arr.dtype}")
+        return arr.astype(np.bool_)
+    raise TypeError(f"{name} must be a boolean array (or integers 0/1); got dtype {arr.dtype}")
+
+
+def _check_gt(gt, shape: tuple[int, int]) -> np.ndarray:
+    arr = _as_flags(gt, "gt")
     if arr.shape != tuple(shape):
         raise ValueError(f"gt must have shape {tuple(shape)}; got {arr.shape}")
     return arr
@@ -327,8 +331,8 @@ def pr_auc(S, gt) -> float:
     Returns
     -------
     float
-        In [0, 1]. Equals 1 exactly when every query has a true match and every prediction is
-        correct.
+        In [0, 1]. Equals 1 when every query has a true match and every prediction is
+        correct (to the last bit: the trapezoids' float sum may give 0.9999999999999999).
 
     Raises
     ------
@@ -429,9 +433,11 @@ def recall_at_100_precision(S, gt) -> float:
 
 
 def extended_precision(S, gt) -> float:
-    """VPR-Bench's Extended Precision: ``EP = (P_R0 + R_P100) / 2``.
+    """Extended Precision: ``EP = (P_R0 + R_P100) / 2``.
 
-    Zaffar et al., "VPR-Bench", IJCV 129, 2021, Sec. 3.2: ``P_R0`` is the precision at the
+    Ferrarini et al., "Exploring Performance Bounds of Visual Place Recognition Using Extended
+    Precision", IEEE RA-L 5(2), 2020, as VPR-Bench uses it (Zaffar et al., IJCV 129, 2021):
+    ``P_R0`` is the precision at the
     lowest recall of the precision-recall curve and ``R_P100`` the largest recall at 100%
     precision (:func:`recall_at_100_precision`).  Here ``P_R0`` is the precision of the
     curve's first point (:func:`precision_recall_curve`): the share of correct predictions
@@ -542,9 +548,9 @@ def evaluate_answers(confidence, correct, has_match) -> dict:
     ----------
     confidence : array_like of float, shape (n_query,)
         Finite; higher = surer.
-    correct : array_like of bool, shape (n_query,)
+    correct : array_like of bool (or integers 0/1), shape (n_query,)
         Whether the answer is an acceptable match.
-    has_match : array_like of bool, shape (n_query,)
+    has_match : array_like of bool (or integers 0/1), shape (n_query,)
         Whether the query has any acceptable match (recall's denominator counts these).
 
     Returns
@@ -556,8 +562,10 @@ def evaluate_answers(confidence, correct, has_match) -> dict:
     Raises
     ------
     ValueError
-        For shapes that differ, a non-finite confidence, no query with a match, or a correct
-        answer for a query without one.
+        For shapes that differ, a non-finite confidence, integer flags other than 0 and 1, no
+        query with a match, or a correct answer for a query without one.
+    TypeError
+        For confidences that are not numbers, or flags that are neither booleans nor integers.
 
     Examples
     --------
@@ -566,15 +574,13 @@ def evaluate_answers(confidence, correct, has_match) -> dict:
     (0.5278, 0.6667)
     """
     conf = as_floats(confidence, "confidence")
-    right = np.asarray(correct)
-    match = np.asarray(has_match)
+    right = _as_flags(correct, "correct")
+    match = _as_flags(has_match, "has_match")
     if conf.ndim != 1 or right.shape != conf.shape or match.shape != conf.shape:
         raise ValueError(
             "confidence, correct and has_match must be 1-d of one length; got shapes "
             f"{conf.shape}, {right.shape} and {match.shape}"
         )
-    if right.dtype != bool or match.dtype != bool:
-        raise ValueError(f"correct and has_match must be bool; got {right.dtype} and {match.dtype}")
     if not np.isfinite(conf).all():
         raise ValueError("confidence must be finite")
     if (right & ~match).any():
@@ -657,10 +663,10 @@ def reliability(confidence, right, bins: int = 10) -> list[dict]:
     [('0.0-0.1', 1, 0.0), ('0.9-1.0', 2, 0.5)]
     """
     n, total, hits = reliability_counts(confidence, right, bins)
-    # The fewest decimals that write every edge exactly (0.1 for ten bins, 0.05 for twenty),
-    # three where none does (thirds: 0.333-0.667).
+    # The fewest decimals that write every edge exactly (0.1 for ten bins, 0.05 for twenty,
+    # 0.0625 for sixteen), up to six; three where none does (thirds: 0.333-0.667).
     edges = np.arange(bins + 1) / bins
-    digits = next((d for d in range(1, 4) if np.allclose(edges.round(d), edges, 0, 1e-12)), 3)
+    digits = next((d for d in range(1, 7) if np.allclose(edges.round(d), edges, 0, 1e-12)), 3)
     return [
         {
             "bin": f"{k / bins:.{digits}f}-{(k + 1) / bins:.{digits}f}",

@@ -129,12 +129,15 @@ def _truth(args, cmap, b, gt_positions, lookup):
     xy = gt_positions.at(b.indices, b.timestamps, interpolate=True)  # (as the map's places)
     known = np.isfinite(xy).all(axis=1)
     near = np.zeros(len(b), bool)
+    # distances as ground_truth_from_positions takes them, sqrt(sum((q - r) ** 2)), so that
+    # both maps judge a frame at the radius alike
     if known.any():
-        dist, _ = lookup.query(xy[known], k=1)
-        near[known] = dist <= args.radius
+        _, nearest = lookup.query(xy[known], k=1)
+        found = lookup.data[nearest]  # (the tree holds the map's places that have a position)
+        near[known] = np.sqrt(((xy[known] - found) ** 2).sum(axis=1)) <= args.radius
 
     def right(places):
-        d = np.hypot(*(cmap.positions[places] - xy).T)
+        d = np.sqrt(((cmap.positions[places] - xy) ** 2).sum(axis=1))
         return np.isfinite(d) & (d <= args.radius)
 
     return near, right, known
@@ -225,6 +228,9 @@ def cmd_localize_compact(args) -> int:
             if args.ground_truth is not None:
                 can, judge, known = _truth(args, cmap, b, gt_positions, lookup)
                 right = judge(places)
+                # a right answer is a match the frame has (the tree's distance and the
+                # answer's may differ in the last bit at the radius)
+                can = can | right
                 rights.append(right[known])
                 matchable.append(can[known])
                 scored.append(conf[known])
