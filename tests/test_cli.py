@@ -601,3 +601,38 @@ def test_fit_reads_the_reference_traverse_only(tmp_path, capsys):
     # a query that is given must be there
     assert main([*argv, "--query", "winter"]) == 1
     assert "image folder not found" in capsys.readouterr().err
+
+
+def test_evaluate_says_how_many_queries_have_a_true_match(route_dir, tmp_path, capsys):
+    # queries 0-9 of the 60 lie 400 m off (no reference within 5 m): recall counts 50
+    root = _route_with_positions(route_dir, tmp_path, offset=3.0)
+    csv_path = root / "positions.csv"
+    rows = [line.split(",") for line in csv_path.read_text().splitlines()]
+    for row in rows:
+        if row[0] == "query" and float(row[2]) < 100:  # query frames 0-9: x 3-93
+            row[3] = "400"
+    csv_path.write_text("\n".join(",".join(row) for row in rows) + "\n")
+    assert main(_generic_args(root, 5)) == 0
+    header = capsys.readouterr().out.splitlines()[0]
+    assert "n_query=60 (50 with a true match)" in header
+    (tmp_path / "b").mkdir()
+    assert main(_generic_args(_route_with_positions(route_dir, tmp_path / "b", 3.0), 5)) == 0
+    assert "with a true match" not in capsys.readouterr().out
+
+
+def test_an_output_into_an_image_folder_of_the_run_is_refused(route_dir, tmp_path, capsys):
+    # the next run on that folder would refuse the file: refused before any work
+    import shutil
+
+    root = tmp_path / "route"
+    shutil.copytree(route_dir, root)
+    for out, folder in (
+        (root / "winter" / "result.json", root / "winter"),
+        (root / "summer" / "sub" / "r.json", root / "summer"),
+    ):
+        assert main(_eval_args(root, "--method", "pixels", "--out", str(out))) == 2
+        assert f"--out {out} would go into {folder}, a folder" in capsys.readouterr().err
+        assert not out.exists() and not (root / "summer" / "sub").exists()
+    assert main(["map", str(root / "summer"), "--out", str(root / "summer" / "r.map")]) == 2
+    assert "a folder of images this run reads" in capsys.readouterr().err
+    assert main(_eval_args(root, "--method", "pixels", "--out", str(root / "r.json"))) == 0

@@ -228,8 +228,8 @@ def test_evaluate_answers_equals_evaluate_on_the_answers_matrix():
 def test_evaluate_answers_refusals():
     with pytest.raises(ValueError, match="1-d of one length"):
         evaluate_answers([0.5, 0.4], [True], [True, True])
-    with pytest.raises(ValueError, match="must be bool"):
-        evaluate_answers([0.5], [1], [True])
+    with pytest.raises(ValueError, match="correct must be boolean .* other than 0 and 1"):
+        evaluate_answers([0.5], [2], [True])
     with pytest.raises(ValueError, match="confidence must be finite"):
         evaluate_answers([np.nan], [True], [True])
     with pytest.raises(ValueError, match="correct is True for a query whose has_match is False"):

@@ -66,6 +66,28 @@ def test_check_true_matches_refuses_a_ground_truth_without_any():
     assert check_true_matches(Benchmark("generic", ref, qry, gt, {"metres": 5.0})) is None
 
 
+def test_check_true_matches_warns_of_a_ground_truth_that_matches_everything(caplog):
+    # a tolerance as long as the traverses, or degrees read as metres: every method scores 1
+    from flyvpr.datasets import Benchmark, Traverse
+    from flyvpr.evaluation import check_true_matches
+
+    ref = Traverse("ref", [f"r{i}.png" for i in range(3)])
+    qry = Traverse("qry", [f"q{i}.png" for i in range(2)])
+    gt = np.ones((2, 3), dtype=bool)
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        check_true_matches(Benchmark("generic", ref, qry, gt, {"frames": 30}))
+    (record,) = caplog.records
+    assert record.getMessage().startswith(
+        "the ground truth matches every one of the 2 queries with every one of the 3 references "
+        "(tolerance 30 frames): every method scores 1 whatever it answers"
+    )
+    caplog.clear()
+    gt[0, 0] = False
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        check_true_matches(Benchmark("generic", ref, qry, gt, {"frames": 30}))
+    assert not caplog.records
+
+
 def test_evaluate_method_checks_gt_shape(random_images):
     ref = random_images(5)
     with pytest.raises(ValueError, match="ground_truth must have shape"):

@@ -17,6 +17,7 @@ from flyvpr._io import (
     write_json_atomic,
     write_text_atomic,
 )
+from flyvpr.images import IMAGE_EXTENSIONS
 
 
 def _mode(path):
@@ -112,14 +113,36 @@ def test_full_disk_is_named_and_cleaned(tmp_path, monkeypatch):
 
 
 def test_output_that_is_an_input_is_refused(tmp_path):
-    image = tmp_path / "1.png"
+    (tmp_path / "in").mkdir()
+    image = tmp_path / "in" / "1.png"
     image.write_bytes(b"x")
     link = tmp_path / "alias.png"
     link.symlink_to(image)
-    for out in (image, link, tmp_path / "." / "1.png"):
+    for out in (image, link, tmp_path / "in" / "." / "1.png"):
         with pytest.raises(OutputPathError, match="is an input of this run"):
             check_output_path(out, [image], what="--out")
     assert check_output_path(tmp_path / "new.json", [image]) == tmp_path / "new.json"
+
+
+def test_output_into_a_folder_of_images_the_run_reads_is_refused(tmp_path):
+    # a later run on that folder would refuse the file (an image folder holds images only)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "0001.png").write_bytes(b"x")
+    (tmp_path / "route.csv").write_text("frame,x,y\n")
+    bag = tmp_path / "bag2"  # a folder without images (a ROS 2 bag's): not refused
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("")
+    for inputs in ([frames / "0001.png"], [frames], [tmp_path / "route.csv", frames]):
+        for out in (frames / "r.json", frames / "." / "r.map", frames / "x.png", frames / "s/r"):
+            with pytest.raises(OutputPathError, match=f"--out {out} would go into {frames}, a "):
+                check_output_path(out, inputs, what="--out", image_extensions=IMAGE_EXTENSIONS)
+            # without the image suffixes, no folder is one of images
+            assert check_output_path(out, inputs, what="--out") == frames / out.relative_to(frames)
+    inputs = [frames / "0001.png", tmp_path / "route.csv"]
+    assert check_output_path(tmp_path / "r.json", inputs, image_extensions=IMAGE_EXTENSIONS)
+    kept = check_output_path(bag / "where.csv", [bag], image_extensions=IMAGE_EXTENSIONS)
+    assert kept == bag / "where.csv"
 
 
 def test_output_folder_checks(tmp_path):

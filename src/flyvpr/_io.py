@@ -106,7 +106,9 @@ def _same_file(a: Path, b: Path) -> bool:
         return os.path.realpath(a) == os.path.realpath(b)
 
 
-def check_output_path(path, inputs: Iterable = (), *, what: str = "output") -> Path:
+def check_output_path(
+    path, inputs: Iterable = (), *, what: str = "output", image_extensions: Iterable[str] = ()
+) -> Path:
     """Check, before any work, that ``path`` can and may be written; return the file to write.
 
     Parameters
@@ -118,6 +120,11 @@ def check_output_path(path, inputs: Iterable = (), *, what: str = "output") -> P
         be none of them.  Folders among them are skipped.
     what : str
         How the message names the output, e.g. ``"--out"``.
+    image_extensions : iterable of str
+        Suffixes of image files (``flyvpr.images.IMAGE_EXTENSIONS``): given, the output may not
+        go into a folder of images among the inputs, nor below one (a folder an input image
+        file lies in, or an input folder holding an image file): a later run on that folder
+        would refuse the file, or the sub-folder.
 
     Returns
     -------
@@ -147,6 +154,16 @@ def check_output_path(path, inputs: Iterable = (), *, what: str = "output") -> P
                 f"{shown} is an input of this run ({item}): refusing to overwrite it; "
                 "choose another output file"
             )
+    # Not into a folder of images the run reads, nor below it: the next run on that folder
+    # would refuse the file or the sub-folder (an image folder holds images only)
+    where = Path(os.path.realpath(target.parent))
+    for folder in _image_folders(inputs, tuple(image_extensions)) if image_extensions else ():
+        real = Path(os.path.realpath(folder))
+        if where == real or real in where.parents:
+            raise OutputPathError(
+                f"{shown} would go into {folder}, a folder of images this run reads, where every "
+                "later run would refuse it (not an image): choose another folder"
+            )
     # Missing folders are created when the file is written; here, only check that they can be.
     missing = _missing_folders(target.parent)
     folder = missing[0].parent if missing else target.parent
@@ -158,6 +175,23 @@ def check_output_path(path, inputs: Iterable = (), *, what: str = "output") -> P
         _check_name_length(sub, shown)
     _check_name_length(target, shown)  # a symlink's target has a name of its own
     return target
+
+
+def _image_folders(inputs: Iterable, extensions: tuple[str, ...]) -> list[Path]:
+    """The folders of images among a run's inputs: those of its image files (``extensions``),
+    and input folders that hold an image file (a recording's folder; not a ROS 2 bag's)."""
+    folders: list[Path] = []
+    for item in map(Path, inputs):
+        if item.suffix.lower() in extensions and item.parent not in folders:
+            folders.append(item.parent)
+        elif item.is_dir() and item not in folders:
+            try:
+                with os.scandir(item) as entries:
+                    if any(Path(e.name).suffix.lower() in extensions for e in entries):
+                        folders.append(item)
+            except OSError:
+                continue
+    return folders
 
 
 def _missing_folders(folder: Path) -> list[Path]:

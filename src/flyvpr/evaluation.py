@@ -6,6 +6,7 @@ every number is produced by the same code path.
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
@@ -13,6 +14,8 @@ import numpy as np
 from . import metrics
 from ._validation import check_positive_int
 from .methods import Method, make_method
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["evaluate_method", "RESULT_FIELDS", "self_match_share", "check_true_matches"]
 
@@ -156,10 +159,22 @@ def check_true_matches(benchmark) -> None:
     ValueError
         If ``benchmark.ground_truth`` holds no True; the message gives the tolerance and the
         numbers of frames.
+
+    A ground truth in which every query matches every reference is let through with a
+    warning: every method then scores 1, whatever it does (a tolerance as long as the
+    traverses, or positions in degrees read as metres).
     """
-    if np.any(benchmark.ground_truth):
-        return
+    gt = benchmark.ground_truth
     tolerance = ", ".join(f"{v} {unit}" for unit, v in benchmark.tolerance.items()) or "none"
+    if gt.size and np.all(gt):
+        logger.warning(
+            "the ground truth matches every one of the %d queries with every one of the %d "
+            "references (tolerance %s): every method scores 1 whatever it answers; check the "
+            "tolerance (or radius: positions in degrees are not metres)",
+            benchmark.n_query, benchmark.n_reference, tolerance,
+        )  # fmt: skip
+    if np.any(gt):
+        return
     raise ValueError(
         f"the ground truth gives no query a true match: none of the {benchmark.n_query} "
         f"queries lies within the tolerance ({tolerance}) of any of the "

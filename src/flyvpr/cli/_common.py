@@ -17,7 +17,7 @@ import numpy as np
 from .._io import OutputPathError, check_output_path
 from .._validation import check_memory
 from ..datasets import DATASETS
-from ..images import DEFAULT_SIZE
+from ..images import DEFAULT_SIZE, IMAGE_EXTENSIONS
 from ..methods import METHODS
 
 logger = logging.getLogger("flyvpr")
@@ -372,7 +372,7 @@ def check_outputs(args, inputs=(), options=("out",)) -> None:
         if value is None:
             continue
         try:
-            check_output_path(value, inputs, what=flag(option))
+            check_output_path(value, inputs, what=flag(option), image_extensions=IMAGE_EXTENSIONS)
         except OutputPathError as exc:
             raise UsageError(str(exc)) from None
 
@@ -415,6 +415,9 @@ def print_protocol(protocol: dict, args) -> None:
         "tolerance",
     )
     parts = [f"{k}={protocol[k]}" for k in keys[:-1] if protocol.get(k) is not None]
+    matchable = protocol.get("n_query_with_match")
+    if matchable is not None and matchable != protocol.get("n_query"):
+        parts.append(f"({matchable} with a true match)")
     tol = protocol.get("tolerance")
     if tol is not None:
         parts.append(f"tolerance={tolerance_value(tol)} {tolerance_unit(tol) or ''}".rstrip())

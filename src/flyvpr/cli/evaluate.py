@@ -101,7 +101,7 @@ def cmd_evaluate(args) -> int:
         "protocol": protocol,
         "flyvpr_version": __version__,
     }
-    print_protocol(protocol, args)
+    print_protocol({**protocol, "n_query_with_match": result["n_query_with_match"]}, args)
     print(format_table(table_rows([result]), RESULT_COLUMNS))
     if args.out is not None:
         write_json_atomic(args.out, out)
