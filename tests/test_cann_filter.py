@@ -2530,6 +2530,7 @@ def test_any_finite_odometry_past_the_route_moves_the_layer_off_it(odometry, hug
     # A move longer than the route leaves nothing on it, however long: the same frame as a
     # move of ten routes, with no overflow on the way, and the filter goes on from there (the
     # fraction of a place a huge move leaves, which phases the rows' later moves, is none).
+    # (The first odometry: no recent distance yet to call it a glitch.)
     rng = np.random.default_rng(4)
     S = rng.normal(size=(12, 40))
     rows = {}
@@ -2537,10 +2538,61 @@ def test_any_finite_odometry_past_the_route_moves_the_layer_off_it(odometry, hug
         f = CANN(odometry=odometry)
         with np.errstate(all="raise"):
             f.step(S[0])
-            f.step(S[1], velocity=1.0)
-            rows[move] = [f.step(S[2], velocity=move)]
-            rows[move] += [f.step(S[k], velocity=1.0) for k in range(3, 12)]
+            rows[move] = [f.step(S[1], velocity=move)]
+            rows[move] += [f.step(S[k], velocity=1.0) for k in range(2, 12)]
+        assert f.n_odometry_refused_ == 0
     far, tens = rows.values()
     np.testing.assert_array_equal(far[0], tens[0])
     assert all(np.isfinite(row).all() for row in far)
     assert [int(row.argmax()) for row in far] == [int(row.argmax()) for row in tens]
+
+
+@pytest.mark.parametrize("odometry", ["scaled", "exact"])
+def test_a_glitch_in_the_odometry_is_refused_and_the_frame_filtered_without_it(odometry):
+    # a robot at 1 place per frame whose GPS jumps 30 places on one frame: without the
+    # refusal the packet went 30 places ahead, `localized` for frames (a second reader's
+    # 1 km jump: 99 places off at confidence 0.92-0.98 for 8 frames)
+    rng = np.random.default_rng(0)
+    T, n = 120, 300
+    S = rng.normal(size=(T, n))
+    S[np.arange(T), 20 + np.arange(T)] += 3.0
+    steps = [None] + [1.0] * (T - 1)
+    steps[60] = 30.0
+    f = CANN(odometry=odometry)
+    wrong = []
+    for t in range(T):
+        out = f.step(S[t], velocity=steps[t])
+        if f.state_ == "localized" and abs(int(out.argmax()) - (20 + t)) > 2:
+            wrong.append(t)
+    assert f.n_odometry_refused_ == 1 and wrong == []
+    # a new drive forgets the recent distance: its first step may be anything
+    f.reset()
+    assert f.n_odometry_refused_ == 0
+    f.step(S[0], velocity=1.0)
+    f.step(S[1], velocity=30.0)
+    assert f.n_odometry_refused_ == 0
+
+
+@pytest.mark.parametrize(
+    ("before", "step", "refused"),
+    [
+        ([1.0] * 10, 7.9, 0),  # 8 times the recent distance: a robot speeding up, taken
+        ([1.0] * 10, 8.1, 1),
+        ([0.0] * 30, 7.9, 0),  # after a stand: 8 places at least
+        ([0.0] * 30, 8.1, 1),
+        ([3.0] * 20, 23.5, 0),  # 8 times 3
+        ([3.0] * 20, 24.5, 1),
+        ([-3.0] * 20, -24.5, 1),  # the size, whatever the direction
+        ([1.0] * 10 + [4.0], 12.7, 0),  # the recent distance is a running mean: 1.6 here
+        ([1.0] * 10 + [4.0], 12.9, 1),
+        ([100.0] + [1.0] * 10, 8.1, 1),  # the first frame's odometry (it moves nothing) left out
+        ([1.0, 40.0], 8.1, 0),  # the first step sets it: 40
+    ],
+)
+def test_odometry_is_a_glitch_past_eight_times_the_recent_distance(before, step, refused):
+    steps = [*before, step]
+    f = CANN(odometry="exact")
+    S = np.random.default_rng(1).normal(size=(len(steps), 60))
+    for t, v in enumerate(steps):
+        f.step(S[t], velocity=v)
+    assert f.n_odometry_refused_ == refused

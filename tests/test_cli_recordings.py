@@ -650,6 +650,28 @@ def test_odometry_off_when_the_map_has_no_positions(recordings, maps, scripted, 
     assert scripted[-1].velocities == [None] * N
 
 
+def test_a_glitch_of_the_positions_is_refused_and_said(recordings, maps, tmp_path, capsys):
+    # 1.5 m per frame (half a place), one fix 600 m off: that frame's distance, and the next's
+    # back, are glitches to the real CANN (more than 8 times the recent distance)
+    xy = tmp_path / "glitch.csv"
+    rows = [f"{i},{600.0 if i == 30 else 1.5 * i},7" for i in range(N)]
+    xy.write_text("frame,x,y\n" + "\n".join(rows) + "\n")
+    code, out, err = _run(capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY],
+                          "--positions", xy, "--out", tmp_path / "g.csv")  # fmt: skip
+    assert code == 0, err
+    assert (
+        "\nodometry: 2 frames refused the distance moved as a glitch (more than 8 times the "
+        "recent distance per frame) and were localized without it\n" in out
+    )
+    records = list(csv.DictReader((tmp_path / "g.csv").open()))
+    assert float(records[30]["odometry"]) > 150  # the records keep what the filter was given
+    clean = tmp_path / "clean.csv"
+    clean.write_text("frame,x,y\n" + "".join(f"{i},{1.5 * i},7\n" for i in range(N)))
+    code, out, err = _run(capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY],
+                          "--positions", clean)  # fmt: skip
+    assert code == 0 and "refused the distance" not in out
+
+
 def test_odometry_off_for_a_filter_without_it(recordings, maps, capsys):
     code, out, err = _run(
         capsys, "localize", "--map", maps["xy"], recordings["ros1"][QUERY],

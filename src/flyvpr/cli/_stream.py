@@ -240,6 +240,12 @@ def cmd_localize_recording(args) -> int:
     if note is not None:
         print(coverage_note(note, positions, placed, n_frames, source.describe()) if odometry
               else note)  # fmt: skip
+    refused = getattr(loc.method.filter, "n_odometry_refused_", 0) if odometry else 0
+    if refused:
+        print(
+            f"odometry: {counted(refused, 'frame')} refused the distance moved as a glitch "
+            "(more than 8 times the recent distance per frame) and were localized without it"
+        )
     if args.realtime and not timed:
         print(
             f"--realtime: {source.describe()} has no timestamps (an image folder has none; "

@@ -47,6 +47,9 @@ CALIBRATION_ROOT = 4
 _LEARN_ABOVE = 0.5
 #: the rate of the odometry's running mean (a robot's recent speed, for a gap in the odometry)
 _ODOMETRY_RATE = 0.2
+#: a frame's odometry more than this many times the recent distance per frame (at least one
+#: place) is a glitch, refused (see CANN._odometry_glitch)
+_ODOMETRY_JUMP = 8.0
 
 
 def _shape(log_rank: float) -> float:
@@ -273,7 +276,10 @@ class CANN(OdometryFilter):
         turns the rows back into speeds (scale times the recent odometry) until the odometry is
         back, with the scales as they were.  ``"exact"``: every row
         moves by the odometry itself (the velocities stay as they are); right odometry then
-        follows a little closer, odometry 10% off falls behind the filter without it.
+        follows a little closer, odometry 10% off falls behind the filter without it.  In
+        either mode a frame's odometry more than 8 times the recent distance per frame (its
+        running mean over about 5 frames), and more than 8 places, is a glitch (a GPS jump):
+        refused, the frame filtered as one without odometry (``n_odometry_refused_``).
 
     Attributes
     ----------
@@ -305,6 +311,8 @@ class CANN(OdometryFilter):
     n_held_ : int
         Frames since :meth:`reset` that repeated the last one and were held (not counted in
         ``n_frames_``).
+    n_odometry_refused_ : int
+        Frames since :meth:`reset` whose odometry was refused as a glitch (see ``odometry``).
     source_ : str
         ``"sequence"`` or ``"front end"``: where the last answer came from.
     n_frames_, n_relocations_ : int
@@ -506,6 +514,7 @@ class CANN(OdometryFilter):
         self.n_relocations_ = 0
         self.velocity_ = float("nan")
         self.n_held_ = 0
+        self.n_odometry_refused_ = 0
         self.confidence_ = 0.0
         self.support_ = 0.5
         self.novelty_ = 1.0
@@ -554,6 +563,7 @@ class CANN(OdometryFilter):
         # (see _rows_for)
         self._scaled = False
         self._odometry_mean: float | None = None
+        self._odometry_size: float | None = None  # the odometry's recent size (see _step)
         self._pending_odometry = 0.0  # the odometry of repeated frames since the last new one
         self._scale_mass: np.ndarray | None = None
         self._stride = max(1, n // _SAMPLES)
@@ -676,6 +686,22 @@ class CANN(OdometryFilter):
             mean = step if self._odometry_mean is None else self._odometry_mean
             self._odometry_mean = (1.0 - _ODOMETRY_RATE) * mean + _ODOMETRY_RATE * step
 
+    def _odometry_glitch(self, velocity: float) -> bool:
+        """Whether a frame's odometry is a glitch: more than ``_ODOMETRY_JUMP`` (8) times the
+        recent distance per frame (the running mean of the accepted odometry's size over about
+        ``1 / _ODOMETRY_RATE`` frames), and at least that many places.  A GPS that jumps, a
+        wheel that spins, a fix of another robot: no robot moves so much further than it
+        just did, and moving the layer by it would put the packet that far off, still
+        `localized`.  A glitch is refused (counted in ``n_odometry_refused_``) and the frame
+        filtered as one without odometry; other odometry enters the running mean."""
+        size = abs(velocity)
+        recent = self._odometry_size
+        if recent is not None and size > _ODOMETRY_JUMP * max(recent, 1.0):
+            self.n_odometry_refused_ += 1
+            return True
+        self._odometry_size = size if recent is None else recent + _ODOMETRY_RATE * (size - recent)
+        return False
+
     def _holds(self, row: np.ndarray) -> bool:
         """Whether ``row`` repeats the last frame's and the map does not repeat a frame at the
         last answer (see ``hold_repeats``)."""
@@ -791,6 +817,8 @@ class CANN(OdometryFilter):
             return self._hold()
         radius = p["tolerance"]
         x = self._input(row)  # (which refuses a row before anything changes)
+        if velocity is not None and t > 0 and self._odometry_glitch(velocity):
+            velocity = None  # this frame as one without odometry
         if p["odometry"] == "scaled":
             # (a repeated frame's odometry counts with the next new frame's: in a gap of the
             # odometry the layer moves on new frames only, repeats being held)
