@@ -498,7 +498,9 @@ def test_evaluate_load_takes_the_models_image_size(route_dir, tmp_path, capsys):
     assert json.loads(out.read_text())["image_size"] == [16, 32]
     # a --size that is given must be the model's
     assert main(["evaluate", *common, "--load", str(model), "--size", "32x64"]) == 1
-    assert "was fitted on 16x32 images; got size 32x64 (--size)" in capsys.readouterr().err
+    assert "was fitted on 16x32 images; got size 32x64 (the size to load it at: --size" in (
+        capsys.readouterr().err
+    )
     # without --load the default stays 32x64
     assert main(["evaluate", *common, "--method", "pixels", "--out", str(out)]) == 0
     assert json.loads(out.read_text())["image_size"] == [32, 64]

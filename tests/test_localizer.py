@@ -124,6 +124,14 @@ def test_raw_camera_frames_are_pointed_to_to_gray(route):
         loc.update(u8.astype(np.float32))
     with pytest.raises(ValueError, match=r"\(update_batch takes a stack of frames\)$"):
         loc.update(np.zeros((3, 32, 64), np.float32))
+    with pytest.raises(ValueError, match=r"got shape \(64,\)$"):  # no hint that does not apply
+        loc.update(np.zeros(64, np.float32))
+    # not an image at all: a TypeError naming what was given (a complex frame's imaginary
+    # part was dropped with only numpy's warning)
+    for given, what in ((None, "NoneType of dtype object"), ("f.png", "str of dtype <U5"),
+                        (np.zeros((32, 64), complex), "ndarray of dtype complex128")):  # fmt: skip
+        with pytest.raises(TypeError, match=rf"an array of numbers .*; got {re.escape(what)}$"):
+            loc.update(given)
     assert loc.n_frames_ == 0
     # what the message points to does convert the frame
     np.testing.assert_allclose(loc.scores(im.to_gray(u8)), loc.scores(u8 / np.float32(255)))
@@ -359,3 +367,19 @@ def test_a_distance_too_large_for_places_names_the_distance(ref):
     with pytest.raises(ValueError, match="distances over place_spacing 0.5 m must be a finite"):
         loc.update_batch(ref[:2], distances=[1.0, 1e308])
     assert loc.n_frames_ == 0 and loc.method.filter.velocities == []
+
+
+def test_odometry_is_given_by_keyword_only(random_images):
+    # `update(image, 10.0)` read 10 as places where metres were meant: a number by position
+    # could be either unit, so it is refused
+    ref = random_images(5)
+    loc = Localizer("kenyon+cann").fit(ref)
+    with pytest.raises(TypeError, match="positional argument"):
+        loc.update(ref[0], 10.0)
+    with pytest.raises(TypeError, match="positional argument"):
+        loc.update_batch(ref[:2], [None, 1.0])
+    with pytest.raises(TypeError, match="positional argument"):
+        loc.scores(ref[0], 1.0)
+    assert loc.n_frames_ == 0
+    loc.update(ref[0], velocity=None)
+    loc.update(ref[1], velocity=1.0)

@@ -508,7 +508,8 @@ def _check_fields(r: _Reader, meta: dict, size) -> tuple[int, int]:
     if size is not None and tuple(size) != tuple(saved):
         raise r.error(
             None,
-            f"was fitted on {saved[0]}x{saved[1]} images; got size {size[0]}x{size[1]} (--size)",
+            f"was fitted on {saved[0]}x{saved[1]} images; got size {size[0]}x{size[1]} (the "
+            "size to load it at: --size, or size=)",
         )
     spec = METHODS.get(meta["method"])
     front = meta["frontend"].get("name")

@@ -305,7 +305,7 @@ class Localizer:
                 )
         return [None if math.isnan(v) else float(v) for v in arr]
 
-    def scores(self, image, velocity=None, distance=None) -> np.ndarray:
+    def scores(self, image, *, velocity=None, distance=None) -> np.ndarray:
         """Advance by one frame and return the filtered score row (n_reference,).
 
         ``velocity`` and ``distance`` are as in :meth:`update`.
@@ -320,10 +320,16 @@ class Localizer:
 
     def _scores(self, image, velocity) -> np.ndarray:
         frontend = self.method.frontend
+        given = type(image).__name__
         try:
             image = np.asarray(image)
         except Exception as exc:  # ragged lists and such
             raise TypeError(f"image must be an array of shape (H, W); {exc}") from exc
+        if image.dtype.kind not in "biuf":  # None, a path, a complex or object array
+            raise TypeError(
+                f"image must be an array of numbers of shape (H, W) = "
+                f"{tuple(frontend.image_shape_)}; got {given} of dtype {image.dtype}"
+            )
         if image.ndim != 2:
             hint = (
                 f"(a colour frame, dtype {image.dtype}: convert camera frames with "
@@ -331,10 +337,12 @@ class Localizer:
                 f"{tuple(frontend.image_shape_)}))"
                 if image.ndim == 3 and image.shape[-1] in (3, 4)
                 else "(update_batch takes a stack of frames)"
+                if image.ndim == 3
+                else ""
             )
             raise ValueError(
                 f"image must be one gray frame of shape (H, W) = {tuple(frontend.image_shape_)}; "
-                f"got shape {image.shape} {hint}"
+                f"got shape {image.shape}" + (f" {hint}" if hint else "")
             )
         frame = check_images(image[None], "image", frontend.image_shape_)
         row = frontend.score_codes(frontend._encode(frame))[0]
@@ -347,7 +355,7 @@ class Localizer:
         state = getattr(self.method.filter, "state_", None)
         return LOCALIZED if state is None else str(state)
 
-    def update_batch(self, images, velocities=None, distances=None) -> Fixes:
+    def update_batch(self, images, *, velocities=None, distances=None) -> Fixes:
         """Process consecutive frames: the front end scores them in one vectorised call, then
         the filter steps through the rows in order (as :meth:`update` frame by frame).
 
@@ -396,7 +404,7 @@ class Localizer:
             places, S[np.arange(len(S)), places], S, relocated, np.array(states, dtype=np.str_)
         )
 
-    def update(self, image, velocity=None, distance=None) -> Fix:
+    def update(self, image, *, velocity=None, distance=None) -> Fix:
         """Process one frame.
 
         Parameters
@@ -410,7 +418,8 @@ class Localizer:
             along the map (odometry that knows its direction; a distance has none).
         distance : float, optional
             Metres moved since the previous frame (odometry, GPS), instead of ``velocity``:
-            the filter gets ``distance / place_spacing`` places.
+            the filter gets ``distance / place_spacing`` places.  Both are keyword-only: a
+            number given by position could be either unit.
 
         Returns
         -------
