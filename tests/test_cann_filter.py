@@ -2587,6 +2587,13 @@ def test_a_glitch_in_the_odometry_is_refused_and_the_frame_filtered_without_it(o
         ([1.0] * 10 + [4.0], 12.9, 1),
         ([100.0] + [1.0] * 10, 8.1, 1),  # the first frame's odometry (it moves nothing) left out
         ([1.0, 40.0], 8.1, 0),  # the first step sets it: 40
+        ([5.0, 1.0], 8.5, 1),  # the second frame's (the first that moves) counts
+        # a glitch enters the mean only up to the bound: after 30 places at 1.0, the mean is
+        # 1 + 0.2 * (8 - 1) = 2.4, the bound 19.2 (had it entered whole, 6.8 and 54.4)
+        ([1.0] * 10 + [30.0], 19.0, 1),
+        ([1.0] * 10 + [30.0], 19.5, 2),
+        # a robot that truly speeds up that much: refused once, then followed
+        ([0.0] * 30 + [10.0] * 5, 10.0, 1),
     ],
 )
 def test_odometry_is_a_glitch_past_eight_times_the_recent_distance(before, step, refused):

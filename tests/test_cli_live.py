@@ -206,13 +206,13 @@ def test_a_stream_that_never_sends_a_whole_picture_leaves_no_records(route, tmp_
     # torn JPEGs only: no frame is localized; no file of a header only, no "wrote"
     good = jpeg_bytes(np.zeros((48, 64), np.uint8))
     torn = [good[: len(good) // 2]] * 200
-    out = tmp_path / "never.csv"
+    out = tmp_path / "new" / "deep" / "never.csv"  # folders made for it go too
     with MjpegServer(torn, fps=50, duration=6) as srv:
         code, stdout, err = _run(capsys, "localize", "--map", route["map"], srv.url, "--retries",
                                  0, "--stall-timeout", 1, "--out", out)  # fmt: skip
     assert code == 1 and "no decodable frame" in err
     assert " 0 localized" in stdout and "wrote" not in stdout
-    assert not out.exists()
+    assert not (tmp_path / "new").exists()
 
 
 def test_garbage_stream_one_line_exit_1(route, tmp_path, capsys):

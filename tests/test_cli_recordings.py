@@ -423,6 +423,14 @@ def test_an_interrupted_realtime_replay_keeps_its_records(tmp_path, capsys, monk
     assert not out.exists() and not list(tmp_path.glob(".*tmp*"))
 
 
+def test_a_render_into_the_recordings_image_folder_is_refused(recordings, maps, tmp_path, capsys):
+    rec = recordings["png"][QUERY]
+    for render in (rec / "trace.html", rec / "sub" / "trace.mp4"):
+        code, _, err = _run(capsys, "localize", "--map", maps["bare"], rec, "--render", render)
+        assert code == 2 and f"--render {render} would go into {rec}, a folder of images" in err
+        assert not render.exists() and not (rec / "sub").exists()
+
+
 def test_realtime_says_when_a_folder_has_no_timestamps(recordings, tmp_path, capsys):
     rec = recordings["png"]
     m = tmp_path / "f.map"

@@ -139,6 +139,9 @@ def test_output_into_a_folder_of_images_the_run_reads_is_refused(tmp_path):
                 check_output_path(out, inputs, what="--out", image_extensions=IMAGE_EXTENSIONS)
             # without the image suffixes, no folder is one of images
             assert check_output_path(out, inputs, what="--out") == frames / out.relative_to(frames)
+    # inputs given as a generator are read once only: still refused
+    with pytest.raises(OutputPathError, match="a folder of images this run reads"):
+        check_output_path(frames / "r.json", iter([frames]), image_extensions=IMAGE_EXTENSIONS)
     inputs = [frames / "0001.png", tmp_path / "route.csv"]
     assert check_output_path(tmp_path / "r.json", inputs, image_extensions=IMAGE_EXTENSIONS)
     kept = check_output_path(bag / "where.csv", [bag], image_extensions=IMAGE_EXTENSIONS)

@@ -139,6 +139,7 @@ def check_output_path(
         name is too long for the file system.  Missing folders are not created here.
     """
     path = Path(path)
+    inputs = list(inputs)  # (read twice)
     shown = f"{what} {path}"
     # Before resolve_output: a name over the limit makes even stat fail (ENAMETOOLONG).
     _check_name_length(path, shown)
@@ -182,8 +183,9 @@ def _image_folders(inputs: Iterable, extensions: tuple[str, ...]) -> list[Path]:
     and input folders that hold an image file (a recording's folder; not a ROS 2 bag's)."""
     folders: list[Path] = []
     for item in map(Path, inputs):
-        if item.suffix.lower() in extensions and item.parent not in folders:
-            folders.append(item.parent)
+        if item.suffix.lower() in extensions:
+            if item.parent not in folders:
+                folders.append(item.parent)
         elif item.is_dir() and item not in folders:
             try:
                 with os.scandir(item) as entries:

@@ -113,7 +113,7 @@ def _terminated(args) -> str:
     """The line for a run ended by SIGTERM: a run that writes its records as it goes (live,
     or ``--realtime``) sets ``args.records_kept`` to the file that keeps them."""
     kept = getattr(args, "records_kept", None)
-    if kept is not None:
+    if kept is not None and os.path.lexists(kept):  # (none: no record was made)
         return f"flyvpr: terminated by SIGTERM; the records written until then are kept in {kept}"
     return "flyvpr: terminated by SIGTERM; no half-written file left"
 

@@ -130,11 +130,10 @@ def _truth(args, cmap, b, gt_positions, lookup):
     known = np.isfinite(xy).all(axis=1)
     near = np.zeros(len(b), bool)
     # distances as ground_truth_from_positions takes them, sqrt(sum((q - r) ** 2)), so that
-    # both maps judge a frame at the radius alike
+    # both maps judge a frame at the radius alike (hypot differs from it in the last bit)
     if known.any():
-        _, nearest = lookup.query(xy[known], k=1)
-        found = lookup.data[nearest]  # (the tree holds the map's places that have a position)
-        near[known] = np.sqrt(((xy[known] - found) ** 2).sum(axis=1)) <= args.radius
+        distance, _ = lookup.query(xy[known], k=1)  # (the tree's is sqrt(sum((q - r) ** 2)))
+        near[known] = distance <= args.radius
 
     def right(places):
         d = np.sqrt(((cmap.positions[places] - xy) ** 2).sum(axis=1))
@@ -228,9 +227,6 @@ def cmd_localize_compact(args) -> int:
             if args.ground_truth is not None:
                 can, judge, known = _truth(args, cmap, b, gt_positions, lookup)
                 right = judge(places)
-                # a right answer is a match the frame has (the tree's distance and the
-                # answer's may differ in the last bit at the radius)
-                can = can | right
                 rights.append(right[known])
                 matchable.append(can[known])
                 scored.append(conf[known])

@@ -345,8 +345,9 @@ def cmd_localize_live(args) -> int:
         raise UsageError(
             f"--index: only with a compact map (`flyvpr map --compact`); {args.map} is not one"
         )
-    if args.mcap_thumbnails and (args.out is None or args.out.suffix.lower() != ".mcap"):
-        raise UsageError("--mcap-thumbnails needs --out FILE.mcap (the thumbnails go in it)")
+    from ._records import check_thumbnails
+
+    check_thumbnails(args)
     inputs = [args.map] + ([args.calibration] if args.calibration is not None else [])
     check_outputs(args, inputs, ("out",))
     check_view_args(args, inputs)
@@ -468,10 +469,7 @@ def cmd_localize_live(args) -> int:
             f"timestamps: {clock.get(source.clock, 'none')}"
         )
     print_view_summary(view)
-    if n_frames == 0 and args.out is not None:
-        # no frame was localized (a stream that never sent a decodable one): no file that
-        # holds a header only
-        args.out.unlink(missing_ok=True)
+    if n_frames == 0:  # no frame localized: the records file, a header only, is gone
         args.out = None
     for path in (args.out, args.view_save):
         if path is not None:

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from .._io import atomic_open, make_folders, remove_folders, resolve_output
+from ._common import UsageError
 
 __all__ = [
     "COLUMN_SCHEMAS",
@@ -43,6 +44,7 @@ __all__ = [
     "JsonlRecords",
     "McapRecords",
     "Records",
+    "check_thumbnails",
     "csv_cell",
     "json_value",
     "open_records",
@@ -382,6 +384,13 @@ def record_format(path) -> type[Records]:
     return RECORD_FORMATS.get(Path(path).suffix.lower(), CsvRecords)
 
 
+def check_thumbnails(args) -> None:
+    """``--mcap-thumbnails`` needs ``--out`` of a format that holds images (MCAP): a usage
+    error before any work, for recordings and live sources alike."""
+    if args.mcap_thumbnails and (args.out is None or not record_format(args.out).carries_images):
+        raise UsageError("--mcap-thumbnails needs --out FILE.mcap (the thumbnails go in it)")
+
+
 @contextmanager
 def open_records(
     path,
@@ -402,7 +411,8 @@ def open_records(
         The keys of every record.
     flush : bool
         Write straight to ``path`` and flush each record as it is written, for ``tail -f``
-        on a live run; the file keeps every record written whatever ends the run.
+        on a live run; the file keeps every record written whatever ends the run.  A run that
+        writes no record leaves no file (nor the folders made for it).
     keep_partial : bool
         Without ``flush``: when the run ends by an exception (Ctrl-C, SIGTERM, an error),
         finish and keep the records written so far instead of leaving ``path`` untouched.
@@ -443,6 +453,9 @@ def open_records(
             finally:
                 records.close()
                 os.fsync(fh.fileno())
+        if records.n_records == 0:  # (after an exception too) no file of a header only
+            target.unlink(missing_ok=True)
+            remove_folders(created)
         return
     cut_short = None
     with atomic_open(path, kind.mode, **kind.open_kwargs) as fh:

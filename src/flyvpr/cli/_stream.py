@@ -13,10 +13,11 @@ import numpy as np
 
 from .._io import OutputPathError, check_output_path
 from .._validation import check_memory
+from ..images import IMAGE_EXTENSIONS
 from ._calibrate import apply_table, check_calibration_args, fit_and_write
 from ._common import UsageError, check_outputs, counted
 from ._live import check_view_args, open_view, print_view_summary
-from ._records import open_records
+from ._records import check_thumbnails, open_records
 from .map import recording_inputs
 
 
@@ -106,8 +107,7 @@ def cmd_localize_recording(args) -> int:
     if args.ground_truth == "frames" and args.tolerance is None:
         raise UsageError("--ground-truth frames needs --tolerance (frames)")
     check_calibration_args(args)
-    if args.mcap_thumbnails and (args.out is None or args.out.suffix.lower() != ".mcap"):
-        raise UsageError("--mcap-thumbnails needs --out FILE.mcap (the thumbnails go in it)")
+    check_thumbnails(args)
     renders = args.render or []
     for path in renders:
         if path.suffix.lower() not in (".mp4", ".mkv", ".html", ".htm"):
@@ -125,7 +125,9 @@ def cmd_localize_recording(args) -> int:
         if any(path.resolve() == t.resolve() for t in taken):
             raise UsageError(f"--render {path}: already an output of this run")
         try:
-            check_output_path(path, inputs + taken, what="--render")
+            check_output_path(
+                path, inputs + taken, what="--render", image_extensions=IMAGE_EXTENSIONS
+            )
         except OutputPathError as exc:
             raise UsageError(str(exc)) from None
         taken.append(path)
@@ -242,9 +244,12 @@ def cmd_localize_recording(args) -> int:
               else note)  # fmt: skip
     refused = getattr(loc.method.filter, "n_odometry_refused_", 0) if odometry else 0
     if refused:
+        from ..temporal.cann import ODOMETRY_JUMP
+
         print(
             f"odometry: {counted(refused, 'frame')} refused the distance moved as a glitch "
-            "(more than 8 times the recent distance per frame) and were localized without it"
+            f"(more than {ODOMETRY_JUMP:g} times the recent distance per frame) and were "
+            "localized without it"
         )
     if args.realtime and not timed:
         print(

@@ -495,11 +495,13 @@ def compact_localizer(cmap: CompactMap, index: str = "exhaustive", **params):
                 found = load_index(sidecar, cmap.large_map)
                 source = f"multi-index hashing from {sidecar.name}"
             except ForeignIndexError:
+                other = _other_owner(cmap.path, sidecar, _map_id(sidecar, "mih"))
                 logger.warning(
-                    "%s indexes another map than %s: its tables are built in memory instead "
-                    "(a map named %s shares the file; else it is stale: remove it, and "
-                    "`flyvpr map --compact --mih` writes this map's)",
-                    sidecar, cmap.path, sidecar.with_suffix(""),
+                    "%s indexes another map than %s: its tables are built in memory instead (%s)",
+                    sidecar, cmap.path,
+                    f"they are the map {other}'s: a map of another name gets its own file"
+                    if other is not None
+                    else "they are stale: `flyvpr map --compact --mih` writes this map's",
                 )  # fmt: skip
                 source = f"multi-index hashing, tables built ({sidecar.name} indexes another map)"
         else:

@@ -428,14 +428,14 @@ class LiveSource:
         # at once (a stream faster than the decoder would otherwise queue up in TCP buffers)
         lazy = stream.codec_context.name == "mjpeg"
         last = time.monotonic()
-        whole = False  # whether the last MJPEG packet ended a JPEG (its EOI marker)
+        newest = None  # the last MJPEG packet (whether it was whole is asked when a read fails)
         try:
             for packet in container.demux(stream):
                 if self._stopping:
                     return "stop"
                 if lazy:
                     if packet.size:
-                        whole = _whole_jpeg(packet)
+                        newest = packet
                         last = time.monotonic()
                         t = None if packet.pts is None else float(packet.pts * stream.time_base)
                         self._publish(packet, t, last)
@@ -458,7 +458,7 @@ class LiveSource:
         except av.ExitError:
             return f"stalled: no data for {self.stall_timeout:g} s"
         except (av.FFmpegError, OSError) as exc:
-            if whole and self._closed_by_server(exc):
+            if newest is not None and self._closed_by_server(exc) and _whole_jpeg(newest):
                 return "stop" if self._stopping else "end"
             reason = getattr(exc, "strerror", None) or _reason(exc)
             return f"the connection broke ({reason})"

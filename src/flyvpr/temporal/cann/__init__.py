@@ -20,7 +20,7 @@ compilation of both tables.
 
 from ._attractor import AttractorCANN
 from ._calibration import fit_calibration
-from ._filter import CANN, LAYER_VELOCITIES
+from ._filter import CANN, LAYER_VELOCITIES, ODOMETRY_JUMP
 from ._kernels import excitation_kernel
 from ._params import FAST_RECOVERY
 from ._window import WindowedCANN
@@ -30,6 +30,7 @@ __all__ = [
     "AttractorCANN",
     "FAST_RECOVERY",
     "LAYER_VELOCITIES",
+    "ODOMETRY_JUMP",
     "WindowedCANN",
     "excitation_kernel",
     "fit_calibration",

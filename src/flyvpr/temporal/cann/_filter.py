@@ -47,9 +47,9 @@ CALIBRATION_ROOT = 4
 _LEARN_ABOVE = 0.5
 #: the rate of the odometry's running mean (a robot's recent speed, for a gap in the odometry)
 _ODOMETRY_RATE = 0.2
-#: a frame's odometry more than this many times the recent distance per frame (at least one
-#: place) is a glitch, refused (see CANN._odometry_glitch)
-_ODOMETRY_JUMP = 8.0
+#: a frame's odometry more than this many times the recent distance per frame (that is at
+#: least one place) is a glitch, refused (see CANN._odometry_glitch)
+ODOMETRY_JUMP = 8.0
 
 
 def _shape(log_rank: float) -> float:
@@ -278,7 +278,7 @@ class CANN(OdometryFilter):
         moves by the odometry itself (the velocities stay as they are); right odometry then
         follows a little closer, odometry 10% off falls behind the filter without it.  In
         either mode a frame's odometry more than 8 times the recent distance per frame (its
-        running mean over about 5 frames), and more than 8 places, is a glitch (a GPS jump):
+        running mean over about 5 frames, taken as at least one place) is a glitch (a GPS jump):
         refused, the frame filtered as one without odometry (``n_odometry_refused_``).
 
     Attributes
@@ -687,19 +687,25 @@ class CANN(OdometryFilter):
             self._odometry_mean = (1.0 - _ODOMETRY_RATE) * mean + _ODOMETRY_RATE * step
 
     def _odometry_glitch(self, velocity: float) -> bool:
-        """Whether a frame's odometry is a glitch: more than ``_ODOMETRY_JUMP`` (8) times the
-        recent distance per frame (the running mean of the accepted odometry's size over about
-        ``1 / _ODOMETRY_RATE`` frames), and at least that many places.  A GPS that jumps, a
-        wheel that spins, a fix of another robot: no robot moves so much further than it
-        just did, and moving the layer by it would put the packet that far off, still
-        `localized`.  A glitch is refused (counted in ``n_odometry_refused_``) and the frame
-        filtered as one without odometry; other odometry enters the running mean."""
+        """Whether a frame's odometry is a glitch: more than ``ODOMETRY_JUMP`` (8) times the
+        recent distance per frame (the running mean of the odometry's size over about
+        ``1 / _ODOMETRY_RATE`` frames, at least one place).  A GPS that jumps, a wheel that
+        spins, a fix of another robot: no robot moves so much further than it just did, and
+        moving the layer by it would put the packet that far off, still `localized`.  A glitch
+        is refused (counted in ``n_odometry_refused_``) and the frame filtered as one without
+        odometry.  The running mean takes each frame's size, a glitch's only up to the bound:
+        one glitch moves it little, and a robot that truly speeds up that much (from a stand
+        to 10 places a frame) is followed after a frame or two rather than refused for good."""
         size = abs(velocity)
         recent = self._odometry_size
-        if recent is not None and size > _ODOMETRY_JUMP * max(recent, 1.0):
+        if recent is None:
+            self._odometry_size = size
+            return False
+        bound = ODOMETRY_JUMP * max(recent, 1.0)
+        self._odometry_size = recent + _ODOMETRY_RATE * (min(size, bound) - recent)
+        if size > bound:
             self.n_odometry_refused_ += 1
             return True
-        self._odometry_size = size if recent is None else recent + _ODOMETRY_RATE * (size - recent)
         return False
 
     def _holds(self, row: np.ndarray) -> bool:
