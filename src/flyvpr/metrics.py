@@ -83,8 +83,8 @@ def _as_flags(values, name: str) -> np.ndarray:
     """``values`` as a bool array: booleans, or integers 0/1 (masks loaded from text files are
     common); other integers are a bug (ValueError), other dtypes a TypeError."""
     arr = np.asarray(values)
-    if arr.dtype == np.bool_:
-        return arr
+    if arr.dtype == np.bool_ or (arr.size == 0 and arr.dtype.kind in "biuf"):  # ([] is float)
+        return arr.astype(np.bool_)
     if np.issubdtype(arr.dtype, np.integer):
         if arr.size and not np.isin(arr, (0, 1)).all():
             raise ValueError(
@@ -624,7 +624,7 @@ def reliability_counts(confidence, right, bins: int = 10) -> tuple:
     ------
     TypeError, ValueError
         For ``bins`` not an int >= 1, confidences not finite or outside [0, 1], or labels of
-        another length or not booleans (or 0 and 1).
+        another length or not booleans (or integers 0/1, as every metric takes them).
 
     Examples
     --------
@@ -634,20 +634,18 @@ def reliability_counts(confidence, right, bins: int = 10) -> tuple:
     """
     bins = _check_k(bins, "bins")
     c = as_floats(confidence, "confidence").ravel()
-    r = np.asarray(right).ravel()
+    r = _as_flags(right, "right").ravel()
     if r.shape != c.shape:
         raise ValueError(f"right must hold one label per confidence: {c.size}; got {r.size}")
     if c.size and not (np.isfinite(c).all() and c.min() >= 0.0 and c.max() <= 1.0):
         raise ValueError("confidence must be finite and lie in [0, 1]")
-    if r.dtype != bool and not np.isin(r, (0, 1)).all():
-        raise ValueError("right must hold booleans (or 0 and 1)")
     # The bin: how many of the inner edges 1/bins, 2/bins, ... lie at or below (compared with
     # the edges themselves: c * bins misplaces some, 0.29 * 100 = 28.999...).
     b = np.searchsorted(np.arange(1, bins) / bins, c, side="right")
     return (
         np.bincount(b, minlength=bins),
         np.bincount(b, c, minlength=bins),
-        np.bincount(b, r.astype(bool), minlength=bins).astype(np.int64),
+        np.bincount(b, r, minlength=bins).astype(np.int64),
     )
 
 
