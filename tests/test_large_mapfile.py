@@ -1,3 +1,5 @@
+import os
+import re
 import subprocess
 import sys
 
@@ -116,6 +118,67 @@ def test_a_deeply_nested_header_is_refused_by_name(tmp_path):
     with pytest.raises(MapFileError, match="corrupt header") as info:
         open_large_map(bad)
     assert str(bad) in str(info.value)
+
+
+def _rewritten_header(path, change):
+    """The map file at ``path`` with its JSON header passed through ``change`` (a function of
+    the decoded header returning the new header's bytes)."""
+    import json
+
+    raw = path.read_bytes()
+    (off, length, magic) = _TRAILER.unpack(raw[-_TRAILER.size :])
+    header = change(json.loads(raw[off : off + length]))
+    bad = path.with_name("bad.fvmap")
+    bad.write_bytes(raw[:off] + header + _TRAILER.pack(off, len(header), magic))
+    return bad
+
+
+@pytest.mark.parametrize(
+    ("shape", "match"),
+    [
+        ([2**62, 3], "truncated: array 'codes' needs bytes 4096..13835058055282167808"),
+        ([3, 6148914691236517206], "truncated: array 'codes' needs bytes"),  # 2**64 + 2 bytes
+        ([60.7, 32], "malformed entry for array 'codes'"),  # not read as 60
+        (["60", 32], "malformed entry for array 'codes'"),
+    ],
+)
+def test_a_header_declaring_an_impossible_shape_is_refused_by_name(tmp_path, codes, shape, match):
+    # the size as int64 wrapped: negative (np.memmap raised OverflowError) or 2 bytes
+    import json
+
+    def change(header):
+        header["arrays"]["codes"]["shape"] = shape
+        return json.dumps(header).encode()
+
+    bad = _rewritten_header(write_large_map(tmp_path / "m.fvmap", codes), change)
+    with pytest.raises(MapFileError, match=re.escape(f"{bad}: ") + match.replace("(", r"\(")):
+        open_large_map(bad)
+
+
+def test_a_header_with_an_integer_past_pythons_digit_limit_is_refused_by_name(tmp_path, codes):
+    def change(header):
+        import json
+
+        return json.dumps(header).replace('"version": 1', '"version": 1' + "0" * 5000).encode()
+
+    bad = _rewritten_header(write_large_map(tmp_path / "m.fvmap", codes), change)
+    with pytest.raises(MapFileError, match=re.escape(f"{bad}: corrupt header (not JSON)")):
+        open_large_map(bad)
+
+
+def test_a_pipe_is_no_compact_map(tmp_path):
+    # its first bytes were read to tell: the read blocked for ever
+    import threading
+
+    from flyvpr.large.recording import is_compact_map
+
+    fifo = tmp_path / "map.fifo"
+    os.mkfifo(fifo)
+    told = []
+    reader = threading.Thread(target=lambda: told.append(is_compact_map(fifo)), daemon=True)
+    reader.start()
+    reader.join(10)
+    assert told == [False]
 
 
 def test_missing_file(tmp_path):

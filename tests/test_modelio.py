@@ -60,6 +60,28 @@ def _meta_edit(path, edit):
     _rewrite(path, mutate)
 
 
+def test_metadata_with_an_integer_past_pythons_digit_limit_is_a_model_file_error(tmp_path, data):
+    # json.loads raises a plain ValueError there ("Exceeds the limit (4300 digits)"), which
+    # named no file and was no ModelFileError
+    from flyvpr.modelio import ModelFileError
+
+    path = save_method(make_method("flyhash", 0).fit(data[0]), tmp_path / "m.npz")
+
+    def huge(arrays):
+        text = (
+            arrays["__meta__"]
+            .tobytes()
+            .decode()
+            .replace('"format_version": ', '"format_version": ' + "9" * 5000 + ', "x": ', 1)
+        )
+        arrays["__meta__"] = np.frombuffer(text.encode(), dtype=np.uint8)
+
+    _rewrite(path, huge)
+    with pytest.raises(ModelFileError, match="metadata is not valid JSON") as info:
+        load_method(path)
+    assert str(path) in str(info.value)
+
+
 def test_wrong_format_version_refused(tmp_path, data):
     path = save_method(make_method("flyhash", 0).fit(data[0]), tmp_path / "m.npz")
     _meta_edit(path, lambda m: m.update(format_version=FORMAT_VERSION + 1))

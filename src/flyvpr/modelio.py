@@ -418,7 +418,7 @@ def _read_meta(r: _Reader) -> dict:
     del r.arrays["__meta__"]
     try:
         meta = json.loads(raw.tobytes().decode("utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError):
+    except ValueError:  # not UTF-8, not JSON, or an integer past Python's digit limit
         raise r.error("__meta__", "metadata is not valid JSON (file modified?)") from None
     except RecursionError:
         # json recurses once per level: "[" * 100000 fits in 1 MB but not on the stack

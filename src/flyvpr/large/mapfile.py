@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import struct
 import time
@@ -133,7 +134,7 @@ def _read_container(path, kind: str) -> tuple[dict, dict]:
         fh.seek(offset)
         try:
             header = json.loads(fh.read(length).decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError):
+        except ValueError:  # not UTF-8, not JSON, or an integer past Python's digit limit
             raise MapFileError(f"{what}: corrupt header (not JSON)") from None
         except RecursionError:  # json recurses once per level of nesting
             raise MapFileError(f"{what}: corrupt header (JSON nested too deeply)") from None
@@ -150,15 +151,17 @@ def _read_container(path, kind: str) -> tuple[dict, dict]:
     for name, spec in specs.items():
         try:
             dtype = np.dtype(spec["dtype"]) if spec["dtype"] in _DTYPES else None
-            shape = tuple(int(v) for v in spec["shape"])
-            start = int(spec["offset"])
+            shape = tuple(spec["shape"])
+            start = spec["offset"]
+            if not all(type(v) is int for v in (*shape, start)):  # (not 60.7 read as 60)
+                raise TypeError
         except (KeyError, TypeError, ValueError):
             raise MapFileError(f"{what}: malformed entry for array {name!r}") from None
         if dtype is None:
             raise MapFileError(f"{what}: array {name!r} has unsupported dtype {spec['dtype']!r}")
         if any(v < 0 for v in shape) or start < 16:
             raise MapFileError(f"{what}: array {name!r} has a bad shape or offset")
-        nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        nbytes = math.prod(shape) * dtype.itemsize  # Python ints: no wrap-around
         if start + nbytes > offset:
             raise MapFileError(
                 f"{what}: truncated: array {name!r} needs bytes {start}..{start + nbytes}, "

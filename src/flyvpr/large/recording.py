@@ -32,6 +32,8 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,6 +76,8 @@ def is_compact_map(path) -> bool:
     """Whether ``path`` is a map file of compact codes (by its first bytes; False for a
     missing or unreadable file, which the caller's own open then reports)."""
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):  # a pipe would block the read
+            return False
         with open(path, "rb") as fh:
             return fh.read(len(MAGIC)) == MAGIC
     except OSError:
