@@ -70,7 +70,8 @@ def _stream(filt: CANN, S, moved, gt):
     filt.reset()
     out = []
     for t in range(len(S)):
-        v = None if moved is None or t == 0 else float(moved[t])
+        # (no odometry on the first frame, nor in an outage of it: NaN)
+        v = None if moved is None or t == 0 or np.isnan(moved[t]) else float(moved[t])
         row = filt.step(S[t]) if v is None else filt.step(S[t], velocity=v)
         out.append((filt.confidence_, bool(gt[t, int(row.argmax())]), filt.source_ == "sequence"))
     return out

@@ -493,6 +493,25 @@ def test_slow_current_remembers_longer():
     assert both > 1.5 * fast
 
 
+def test_the_input_is_divided_by_a_spread_with_its_own_frame_in_it():
+    # The paper's attractor keeps the normalisation it was calibrated with: each place's
+    # running variance takes this frame's square first (weight 1 / (t + 2), at least
+    # 1 / adaptation; the prior 1 worth one frame), then divides it.  (The place-velocity
+    # CANN divides by the spread of the frames before.)
+    rng = np.random.default_rng(4)
+    S = rng.normal(size=(6, 30))
+    f = CANN(adaptation=2.5, input_clip=None, input_gain=1.0)
+    mean, var = np.zeros(30), np.ones(30)
+    for t, row in enumerate(S):
+        f.step(row)
+        z = (row - row.mean()) / row.std()
+        mean += max(1 / (t + 1), 1 / 2.5) * (z - mean)
+        v = z - mean
+        rate = max(1 / (t + 2), 1 / 2.5)
+        var = (1 - rate) * var + rate * v * v
+        np.testing.assert_allclose(f._x, v / np.sqrt(var + 0.1), rtol=1e-5, atol=1e-6)
+
+
 def test_variance_adaptation_equalises_noisy_places():
     # Place 7 is ten times noisier than the rest; without variance adaptation it dominates.
     rng = np.random.default_rng(6)

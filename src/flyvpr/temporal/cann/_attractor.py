@@ -358,7 +358,7 @@ class AttractorCANN(OdometryFilter):
 
     def _input(self, row: np.ndarray) -> np.ndarray:
         """This frame's input: the row normalised, adapted, clipped and scaled (see "Input")."""
-        return normalised_input(self, row, self._params["input_gain"])
+        return normalised_input(self, row, self._params["input_gain"], prior_var=False)
 
     def _step(self, row: np.ndarray, velocity: float | None = None) -> np.ndarray:
         begin_frame(self, row)

@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.0, 0.07, 0.071, 0.076, 0.233, 0.491, 0.616, 0.83, 0.864, 0.978, 1.0)
+CALIBRATION = (0.0, 0.01, 0.011, 0.012, 0.217, 0.549, 0.629, 0.848, 0.859, 0.979, 1.0)
 #: how odometry moves the layer (see the class's ``odometry`` parameter)
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
@@ -199,12 +199,14 @@ class CANN(OdometryFilter):
         Time constant, in frames, of each place's running mean input, subtracted from it;
         ``None``: off.
     adapt_variance : bool, default True
-        Also divide by the square root of each place's running input variance.
+        Also divide by the square root of each place's running input variance, of the frames
+        before this one (a place's peak does not damp itself).
     input_transform : {"auto", "log", "linear"}, default "auto"
         How a score row becomes the input before its z-score; ``"log"`` needs non-negative
         scores ("auto": log for rows that sum to 1).
-    input_clip : float or None, default 4.0
-        Bound on the normalised input, in standard deviations.
+    input_clip : float or None, default 6.0
+        Bound on the normalised input, in standard deviations (chosen on the accuracy
+        benchmark's views with every front end: see "Input" on the guide page).
     relocation : float, default 0.001
         Probability per frame that the robot is anywhere on the route (a kidnap).
     recovery : float, default 0.01
@@ -354,7 +356,7 @@ class CANN(OdometryFilter):
         adaptation=50.0,
         adapt_variance=True,
         input_transform="auto",
-        input_clip=4.0,
+        input_clip=6.0,
         relocation=0.001,
         recovery=0.01,
         tolerance=2,
@@ -587,7 +589,7 @@ class CANN(OdometryFilter):
 
     def _input(self, row: np.ndarray) -> np.ndarray:
         """The row as z-scores, adapted per place and clipped (see "Input" on the guide)."""
-        return normalised_input(self, row, 1.0)
+        return normalised_input(self, row, 1.0, prior_var=True)
 
     def _front_feature(self, strength: float, raw: float, rate: float) -> float:
         """The front end's peak z-score, standardised by its running mean and spread (within

@@ -31,13 +31,15 @@ def begin_frame(filt, row: np.ndarray) -> None:
         )
 
 
-def normalised_input(filt, row: np.ndarray, gain: float) -> np.ndarray:
+def normalised_input(filt, row: np.ndarray, gain: float, *, prior_var: bool) -> np.ndarray:
     """Frame ``filt.n_frames_``'s input: ``row`` as z-scores, adapted per place, clipped, times
     ``gain`` (see "Input" on the user guide's CANN page).
 
     Uses ``filt``'s validated parameters (``input_transform``, ``adaptation``,
     ``adapt_variance``, ``input_clip``), its buffers ``_x``, ``_mean`` and ``_var`` and its
-    ``normalise`` kernel; returns ``filt._x``.
+    ``normalise`` kernel; returns ``filt._x``.  ``prior_var``: each place's input is divided
+    by the spread of its frames before this one (the place-velocity CANN's), not with this
+    one's included (the paper's attractor, as it was calibrated).
     """
     p = filt._params
     t = filt.n_frames_
@@ -59,6 +61,10 @@ def normalised_input(filt, row: np.ndarray, gain: float) -> np.ndarray:
     adapt = p["adaptation"] is not None
     rate = max(1.0 / (t + 1), 1.0 / p["adaptation"]) if adapt else 0.0
     var_rate = max(1.0 / (t + 2), 1.0 / p["adaptation"]) if adapt else 0.0
+    if prior_var and adapt:
+        # The first frame's adapted input is 0 everywhere (its own mean): no sample of the
+        # spread.  The prior (1, worth one frame) then meets the second frame's.
+        var_rate = 0.0 if t == 0 else max(1.0 / (t + 1), 1.0 / p["adaptation"])
     x = filt._x
     x[:] = row
     if transform == "log":
@@ -76,6 +82,7 @@ def normalised_input(filt, row: np.ndarray, gain: float) -> np.ndarray:
         var_rate,
         adapt,
         p["adapt_variance"],
+        prior_var,
         VAR_FLOOR,
         np.inf if p["input_clip"] is None else p["input_clip"],
         gain,

@@ -75,13 +75,17 @@ def shift(a, k, fill):
         a[n + k :] = fill
 
 
-def normalise(x, mean, var, take_log, tiny, rate, var_rate, adapt, adapt_var, floor, clip, gain):
+def normalise(
+    x, mean, var, take_log, tiny, rate, var_rate, adapt, adapt_var, prior_var, floor, clip, gain
+):
     """The input row ``x`` (float32, in place) -> ``gain`` times its adapted, clipped z-scores.
 
     ``take_log``: first the log of the row (floored at ``tiny``).  A (numerically) constant row
     gives zeros.  ``adapt``: subtract each place's running mean ``mean`` (updated in place
     with weight ``rate``); ``adapt_var``: then divide by the square root of its running
-    variance ``var`` (weight ``var_rate``) plus ``floor``.  Then clip to ``[-clip, clip]``.
+    variance ``var`` (weight ``var_rate``) plus ``floor``: of the frames before this one when
+    ``prior_var`` (a frame's own peak then does not damp itself), else this one's included.
+    Then clip to ``[-clip, clip]``.
     Three passes over the row: its mean, its spread, then the rest fused.
     """
     if take_log:
@@ -112,9 +116,10 @@ def normalise(x, mean, var, take_log, tiny, rate, var_rate, adapt, adapt_var, fl
             mean[i] = m
             v = v - m
             if adapt_var:
-                q = var[i] * var_keep + (v * v) * var_fresh
+                before = var[i]
+                q = before * var_keep + (v * v) * var_fresh
                 var[i] = q
-                v = v / np.sqrt(q + floor32)
+                v = v / np.sqrt((before if prior_var else q) + floor32)
         x[i] = min(max(v, low), high) * gain32
 
 
