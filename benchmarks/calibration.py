@@ -7,9 +7,9 @@ Usage::
 
 Protocol: ``kenyon+cann`` (defaults) on the robot views of the held-out window (Nordland 64x32
 summer -> winter, frames 2000-2399, which tuned nothing: every robot view of
-``benchmarks/accuracy.py`` on that window, ``r-walk-2000``, ``r-walk-odo-2000``, ``r-walk-odo-gaps-2000``,
-``r-walk-odo-long-2000``, ``r-stopgo-2000``, ``r-stopgo-noisy-2000`` and ``r-detour-2000``),
-tolerance 2.  The runs of seeds 0-4 (the
+``benchmarks/accuracy.py`` on that window, ``r-walk-2000``, ``r-walk-odo-2000``,
+``r-walk-odo-gaps-2000``, ``r-walk-odo-long-2000``, ``r-stopgo-2000``, ``r-stopgo-noisy-2000``
+and ``r-detour-2000``), tolerance 2.  The runs of seeds 0-4 (the
 front end's random projection) are the labelled run: every frame's confidence and whether its
 answer was right give a table through :func:`flyvpr.temporal.cann.fit_calibration`.  The runs
 of seeds 5-9 are then scored twice, with the defaults and with ``recalibration`` set to the

@@ -1477,8 +1477,7 @@ def test_follows_a_bump_driven_backwards(params):
     assert np.abs(rows.argmax(axis=1) - pos)[5:].max() <= 1
     assert all(fr["source_"] == "sequence" for fr in frames[12:])
     assert all(fr["velocity_"] < -0.8 for fr in frames[12:])
-    # (the mean over the bank: the share on the other rows, redrawn, pulls it towards 0)
-    assert f.velocity_ == pytest.approx(-1.0, abs=0.07)
+    assert f.velocity_ == pytest.approx(-1.0, abs=0.06)
     assert f.confidence_ > 0.9 and f.n_relocations_ == frames[12]["n_relocations_"]
 
 
@@ -2325,8 +2324,8 @@ def test_a_gap_in_scaled_odometry_keeps_the_speed_and_the_scale(odometry):
     given = np.full(T, odometry)
     given[40:60] = np.nan
     answers, speeds = _gappy_run(CANN(), S, given)
-    # (after the start, whose dozen frames learn the scale: at odometry 2 one is 2 places off)
-    assert np.max(np.abs(answers - pos)[12:]) <= 1
+    # (after the start, whose first frames learn the scale: at odometry 2 frame 10 is 2 off)
+    assert np.max(np.abs(answers - pos)[11:]) <= 1
     assert np.all(np.abs(speeds[40:60] - 2.0) < 0.25)
     assert np.all(np.abs(speeds[60:] - 2.0) < 0.25)
     scale = CANN()
