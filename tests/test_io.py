@@ -169,9 +169,66 @@ def test_a_name_up_to_name_max_is_written_atomically(tmp_path, monkeypatch, name
     assert check_output_path(tmp_path / name, what="--out") == tmp_path / name
     write_json_atomic(tmp_path / name, {"x": 1})
     assert [p.name for p in tmp_path.iterdir()] == [name]
-    (tmp,) = seen
+    tmp, folder = seen  # the temporary file, then the folder synced after the rename
+    assert folder == tmp_path
     assert tmp.parent == tmp_path and tmp.name.startswith("." + name[:32] + ".")
     assert len(os.fsencode(tmp.name)) <= 1 + 4 * 32 + 1 + 8 + 4
+
+
+def test_the_data_is_on_the_disk_before_the_rename_and_the_folder_after(tmp_path, monkeypatch):
+    # A power cut between a rename and the page cache's write-back could leave the target
+    # renamed but empty: the temporary file is fsynced, whole, before the rename, and the
+    # folder (which holds the rename) after it.
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        path = os.readlink(f"/proc/self/fd/{fd}")
+        events.append(("fsync", os.path.basename(path), os.fstat(fd).st_size))
+        real_fsync(fd)
+
+    def replace(src, dst):
+        events.append(("replace", os.path.basename(src), os.path.basename(dst)))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(_io.os, "fsync", fsync)
+    monkeypatch.setattr(_io.os, "replace", replace)
+    out = tmp_path / "r.bin"
+    _io.write_bytes_atomic(out, b"x" * 5000)
+    (kind, tmp, size), (kind2, src, dst), (kind3, folder, _) = events
+    assert (kind, kind2, kind3) == ("fsync", "replace", "fsync")
+    assert tmp == src and tmp.endswith(".tmp") and size == 5000 and dst == "r.bin"
+    assert folder == tmp_path.name
+
+    # The file's own fsync failing fails the write (the target keeps its old contents) ...
+    def refuse(fd):
+        raise OSError(errno.EIO, "I/O error")
+
+    monkeypatch.setattr(_io.os, "fsync", refuse)
+    with pytest.raises(OSError, match="cannot write .*r.bin: I/O error"):
+        _io.write_bytes_atomic(out, b"y")
+    assert out.read_bytes() == b"x" * 5000 and [p.name for p in tmp_path.iterdir()] == ["r.bin"]
+
+    # ... a folder that cannot be synced does not: the rename is done (a file system that
+    # refuses a folder's fsync, a platform that cannot open a folder).
+    def files_only(fd):
+        if stat.S_ISDIR(os.fstat(fd).st_mode):
+            raise OSError(errno.EINVAL, "Invalid argument")
+        real_fsync(fd)
+
+    monkeypatch.setattr(_io.os, "fsync", files_only)
+    _io.write_bytes_atomic(out, b"z")
+    assert out.read_bytes() == b"z"
+    real_open = os.open
+
+    def no_folders(p, flags, *a):
+        if os.path.isdir(p):
+            raise PermissionError(errno.EACCES, "Permission denied", str(p))
+        return real_open(p, flags, *a)
+
+    monkeypatch.setattr(_io.os, "open", no_folders)
+    _io.write_bytes_atomic(out, b"w")
+    assert out.read_bytes() == b"w"
 
 
 def test_missing_folders_are_created_only_when_the_file_is_written(tmp_path):

@@ -289,7 +289,9 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
     CLI's SIGTERM exit) the temporary file is removed and ``path`` is left as it was.  Missing
     parent folders are created, and removed again if the write fails.  A symlink is followed
     (its target is written); a target that exists and is not a regular file is refused.  A new
-    file gets ``0666 & ~umask``; an existing one keeps its mode.
+    file gets ``0666 & ~umask``; an existing one keeps its mode.  The data is flushed to the
+    disk (``fsync``) before the rename and the folder after it, so that a power cut leaves the
+    old file or the whole new one.
 
     Raises
     ------
@@ -332,7 +334,12 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
         with os.fdopen(fd, mode, **kwargs) as fh:
             opened = True
             yield fh
+            # On the disk before the rename: after a power cut the target is the old file or
+            # the whole new one, never a renamed empty or partial one.
+            fh.flush()
+            os.fsync(fh.fileno())
         os.replace(tmp, target)
+        _sync_folder(target.parent)
     except BaseException as exc:
         if tmp is not None:
             _unlink(tmp)
@@ -344,6 +351,21 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
         ):
             raise _named(exc, path) from None
         raise
+
+
+def _sync_folder(folder: Path) -> None:
+    """Make a rename in ``folder`` durable where the platform allows (a folder cannot be
+    opened for that on Windows): best effort, the rename itself has been done."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def _unlink(path: Path) -> None:
