@@ -77,6 +77,11 @@ def test_generic_positions_csv(folders):
     "header, rows, match",
     [
         ("traverse,filename,x", [], r"missing column\(s\) y"),
+        (
+            "traverse,filename,x,y,x",
+            [("query", "frame0.png", 0, 0, 1)],
+            r"p.csv: column 'x' appears 2 times in the header \(columns 3, 5\)",
+        ),
         (None, [("ref", "frame0.png", 0, 0)], "line 2: traverse must be 'reference' or 'query'"),
         (None, [("reference", "nope.png", 0, 0)], "line 2: reference folder holds no image named"),
         (None, [("query", "frame0.png", "a", 0)], "line 2: x and y must be numbers"),

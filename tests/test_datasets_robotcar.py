@@ -307,6 +307,15 @@ def test_read_poses_reads_only_needed_columns(tmp_path):
         read_poses(tmp_path / "none.csv")
 
 
+def test_read_poses_refuses_a_needed_column_named_twice(tmp_path):
+    path = tmp_path / "poses.csv"
+    path.write_text("timestamp,northing,easting,northing\n1000,1.5,2.5,9\n2000,4.5,3.5,9\n")
+    with pytest.raises(ValueError, match=r"poses.csv: column 'northing' appears 2 times"):
+        read_poses(path)
+    path.write_text("timestamp,northing,easting,extra,extra\n1000,1.5,2.5,a,b\n")
+    assert read_poses(path)[1].tolist() == [[1.5, 2.5]]  # (a column not read may repeat)
+
+
 @pytest.mark.parametrize(
     "kwargs, err, match",
     [

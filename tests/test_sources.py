@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -173,6 +175,26 @@ def test_positions_csv_frames_are_indices(tmp_path, row, message):
     ok = tmp_path / "t.csv"
     ok.write_text("timestamp,x,y\n-5,0,0\n5.5,1,2\n")
     assert read_positions(ok).keys.tolist() == [-5.0, 5.5]
+
+
+@pytest.mark.parametrize(
+    ("header", "message"),
+    [
+        ("frame,x,y,x", r"column 'x' appears 2 times in the header \(columns 2, 4\)"),
+        ("y,frame,x,Y", r"column 'y' appears 2 times in the header \(columns 1, 4\)"),
+        ("timestamp,timestamp,x,y", r"column 'timestamp' appears 2 times .*columns 1, 2"),
+    ],
+)
+def test_positions_csv_with_a_column_named_twice_is_refused(tmp_path, header, message):
+    # which of the two columns holds the positions would be a guess (the last one was taken)
+    bad = tmp_path / "b.csv"
+    bad.write_text(f"{header}\n0,1,2,3\n")
+    with pytest.raises(ValueError, match=f"positions CSV {re.escape(str(bad))}: {message}"):
+        read_positions(bad)
+    # a column that is not read may repeat
+    ok = tmp_path / "ok.csv"
+    ok.write_text("frame,note,x,y,note\n0,a,1,2,b\n")
+    assert read_positions(ok).at(np.array([0]), np.array([np.nan])).tolist() == [[1.0, 2.0]]
 
 
 def test_every_metres_says_how_many_frames_had_no_position(route, tmp_path, caplog):

@@ -139,6 +139,18 @@ def _read_csv_text(path: Path, what: str) -> str:
         ) from None
 
 
+def _check_unique_columns(header, used, where: str) -> None:
+    """Refuse a CSV header that names one of the columns read (``used``) more than once:
+    which of the two holds the values would be a guess (``where`` starts the message)."""
+    for name in used:
+        at = [i + 1 for i, h in enumerate(header) if h == name]
+        if len(at) > 1:
+            raise ValueError(
+                f"{where}: column {name!r} appears {len(at)} times in the header (columns "
+                f"{', '.join(map(str, at))}); expected each column once"
+            )
+
+
 def _subfolders(root: Path) -> list[str]:
     return sorted(p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
 

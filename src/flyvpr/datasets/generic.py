@@ -28,6 +28,7 @@ from .._validation import check_positive_int, check_real
 from .base import (
     Benchmark,
     Traverse,
+    _check_unique_columns,
     _check_window,
     _list_images_or_explain,
     _read_csv_text,
@@ -75,10 +76,10 @@ def read_positions_csv(path, reference_paths, query_paths):
     FileNotFoundError
         If the CSV is missing.
     ValueError
-        For a file that is not UTF-8 text (a byte-order mark is fine), missing columns,
-        an unknown traverse, a non-numeric position, a file named twice or not in its
-        folder, or an image without a row (the message names the CSV, the line and the
-        file).
+        For a file that is not UTF-8 text (a byte-order mark is fine), missing columns or
+        one named twice, an unknown traverse, a non-numeric position, a file named twice or
+        not in its folder, or an image without a row (the message names the CSV, the line
+        and the file).
     """
     path = Path(path)
     text = _read_csv_text(path, "positions CSV")
@@ -96,6 +97,7 @@ def read_positions_csv(path, reference_paths, query_paths):
                 f"{path}: missing column(s) {', '.join(missing)} in the header; "
                 f"expected the header {','.join(CSV_COLUMNS)}"
             )
+        _check_unique_columns(header, CSV_COLUMNS, str(path))
         col = {c: header.index(c) for c in CSV_COLUMNS}
         for row in reader:
             if not row:

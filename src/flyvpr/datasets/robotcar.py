@@ -26,6 +26,7 @@ from .base import (
     Benchmark,
     Traverse,
     _check_root,
+    _check_unique_columns,
     _check_window,
     _list_images_or_explain,
     _read_csv_text,
@@ -116,10 +117,10 @@ def read_poses(path) -> tuple[np.ndarray, np.ndarray]:
     FileNotFoundError
         If the file does not exist.
     ValueError
-        For a file that is not UTF-8 text, an empty file, missing columns (named), a row
-        with the wrong number of fields, a non-numeric, overlong (over 18 digits) or
-        non-increasing time stamp, or a
-        non-numeric position (the message names the file and line).
+        For a file that is not UTF-8 text, an empty file, missing columns (named) or one
+        named twice, a row with the wrong number of fields, a non-numeric, overlong (over 18
+        digits) or non-increasing time stamp, or a non-numeric position (the message names
+        the file and line).
     """
     path = Path(path)
     text = _read_csv_text(path, "pose file")
@@ -151,6 +152,7 @@ def read_poses(path) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(
             f"{path}, line {lines[i]}: expected {width} fields as in the header; got {len(rows[i])}"
         )
+    _check_unique_columns(header, _NEEDED, str(path))
     where = {name: header.index(name) for name in _NEEDED}
     cols = {name: [row[i].strip() for row in rows] for name, i in where.items()}
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..datasets.base import _read_csv_text
+from ..datasets.base import _check_unique_columns, _read_csv_text
 from .base import RecordingError
 
 __all__ = ["Positions", "read_positions"]
@@ -215,6 +215,7 @@ def _read_csv(path: Path) -> Positions:
             f"positions CSV {path}: the header must name timestamp,x,y or frame,x,y; got "
             f"{','.join(header) or 'nothing'}"
         )
+    _check_unique_columns(header, (key, "x", "y"), f"positions CSV {path}")
     keys, xy = [], []
     first_line: dict[float, int] = {}
     for line, row in enumerate(rows, start=2):
