@@ -138,3 +138,21 @@ def test_generic_folder_errors(tmp_path):
         load_generic(tmp_path, "ref", "qry")
     with pytest.raises(NotADirectoryError, match="expected a folder of images"):
         load_generic(tmp_path, "ref", "qry/.readme.md")
+
+
+def test_traverses_of_another_aspect_ratio_are_named_in_a_warning(tmp_path, caplog):
+    for name, shape in (("wide", (36, 64)), ("square", (48, 48)), ("small", (18, 32))):
+        (tmp_path / name).mkdir()
+        for i in range(3):
+            Image.fromarray(np.full(shape, 40 * i, np.uint8)).save(tmp_path / name / f"f{i}.png")
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        ref, qry = load_generic(tmp_path, "wide", "square").load_images((32, 64), cache=False)
+    assert ref.shape == qry.shape == (3, 32, 64)
+    (record,) = [r for r in caplog.records if "aspect ratio" in r.getMessage()]
+    msg = record.getMessage()
+    assert f"reference's frames ({tmp_path / 'wide' / 'f0.png'}: 64x36)" in msg
+    assert f"the query's ({tmp_path / 'square' / 'f0.png'}: 48x48)" in msg
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="flyvpr"):  # another size, the same shape: fine
+        load_generic(tmp_path, "wide", "small").load_images((32, 64), cache=False)
+    assert not [r for r in caplog.records if "aspect ratio" in r.getMessage()]

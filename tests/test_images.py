@@ -607,3 +607,40 @@ def test_area_resize_refuses_what_is_not_real_numbers():
     for bad in (np.ones((4, 4), complex), np.full((4, 4), "a"), np.empty((4, 4), object)):
         with pytest.raises(TypeError, match=f"y must hold real numbers; got dtype {bad.dtype}"):
             im.area_resize(bad, 2, 2)
+
+
+# -- aspect ratios -------------------------------------------------------------------------------
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_upright_shape_reads_the_header_and_turns_by_the_tag(tmp_path, orientation):
+    upright = np.zeros((24, 40), np.uint8)
+    path = _save_oriented(tmp_path / "a.png", upright, orientation)
+    assert im.upright_shape(path) == (24, 40)
+    assert im.upright_shape(tmp_path / "missing.png") is None
+    (tmp_path / "bad.png").write_bytes(b"not an image")
+    assert im.upright_shape(tmp_path / "bad.png") is None
+
+
+def test_same_aspect_within_one_percent():
+    assert im.same_aspect((360, 640), (180, 320)) and im.same_aspect((100, 200), (100, 201))
+    assert im.same_aspect((100, 200), (100, 202)) and not im.same_aspect((100, 200), (100, 203))
+    assert not im.same_aspect((480, 640), (360, 640))
+    assert im.same_aspect((200, 100), (201, 100)) and not im.same_aspect((203, 100), (200, 100))
+
+
+def test_load_images_warns_once_of_frames_of_another_aspect_ratio(tmp_path, caplog):
+    paths = []
+    for i, shape in enumerate([(36, 64), (36, 64), (48, 64), (18, 32), (48, 64)]):
+        paths.append(tmp_path / f"f{i}.png")
+        Image.fromarray(np.full(shape, 50 * i, np.uint8)).save(paths[-1])
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        out = im.load_images(paths, (32, 64), cache=False, progress=False)
+    assert out.shape == (5, 32, 64)  # (squeezed all the same: a warning, not an error)
+    (record,) = [r for r in caplog.records if "aspect ratio" in r.getMessage()]
+    msg = record.getMessage()
+    assert msg.startswith("2 of 5 images have another aspect ratio than the first, ")
+    assert f"{paths[0]} (64x36)" in msg and f"the first of them being {paths[2]} (64x48)" in msg
+    assert "resized to 64x32" in msg
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="flyvpr"):
+        im.load_images([paths[0], paths[1], paths[3]], (32, 64), cache=False, progress=False)
+    assert not [r for r in caplog.records if "aspect ratio" in r.getMessage()]

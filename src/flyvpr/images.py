@@ -56,6 +56,8 @@ __all__ = [
     "FOLDER_RULES",
     "to_gray",
     "resize_area",
+    "same_aspect",
+    "upright_shape",
     "area_resize",
     "area_matrix",
     "demosaic_bilinear",
@@ -770,6 +772,32 @@ def _want_progress(progress) -> bool:
     return bool(progress)
 
 
+#: aspect ratios (width / height) closer than this, relatively, count as one
+ASPECT_TOLERANCE = 0.01
+
+
+def same_aspect(shape_a, shape_b) -> bool:
+    """Whether two image shapes ``(H, W)`` have the same aspect ratio, within
+    ``ASPECT_TOLERANCE`` (relative)."""
+    (ha, wa), (hb, wb) = shape_a[:2], shape_b[:2]
+    return abs((wa * hb) / (ha * wb) - 1.0) <= ASPECT_TOLERANCE
+
+
+def upright_shape(path) -> tuple[int, int] | None:
+    """``(H, W)`` of an image file as it is decoded (turned by its EXIF orientation), read
+    from its header only; None where the file cannot be opened (its decoding says why)."""
+    try:
+        with open(path, "rb") as fh, Image.open(fh) as img:
+            w, h = img.size
+            try:
+                orientation = img.getexif().get(ExifTags.Base.Orientation, 1)
+            except (SyntaxError, ValueError, TypeError, KeyError, IndexError, struct.error):
+                orientation = 1  # (read as stored; the decoding warns about it)
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
+        return None
+    return (w, h) if orientation in (5, 6, 7, 8) else (h, w)
+
+
 def load_images(
     paths,
     size=DEFAULT_SIZE,
@@ -838,14 +866,38 @@ def load_images(
                 logger.warning("image cache %s is unusable (%s); rebuilding it", cache_file, exc)
     out = np.empty(shape, dtype=np.float32)
     high_byte: list = []
+    first: tuple | None = None  # the first file and its upright (H, W)
+    other: list = []  # files of another aspect ratio than the first's, with theirs
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)
         for i, p in enumerate(
             tqdm(paths, desc=desc, unit="img", disable=not _want_progress(progress), leave=False)
         ):
-            out[i] = resize_area(_decode(p, bayer, high_byte), size)
+            img = _decode(p, bayer, high_byte)
+            if first is None:
+                first = (p, img.shape)
+            elif not same_aspect(img.shape, first[1]):
+                other.append((p, img.shape))
+            out[i] = resize_area(img, size)
     if high_byte:
         _warn_high_byte(high_byte, len(paths))
+    if other:
+        (path, (h, w)), (path0, (h0, w0)) = other[0], first  # type: ignore[misc]
+        logger.warning(
+            "%d of %d images have another aspect ratio than the first, %s (%dx%d), the first "
+            "of them being %s (%dx%d): each image is resized to %dx%d whatever its own shape, "
+            "so these are stretched unlike the others; crop or pad them to one aspect ratio",
+            len(other),
+            len(paths),
+            path0,
+            w0,
+            h0,
+            path,
+            w,
+            h,
+            size[1],
+            size[0],
+        )
     if cache_file is not None:
         try:
             _write_cache(cache_file, out, key)

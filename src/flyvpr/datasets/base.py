@@ -452,10 +452,34 @@ class Benchmark:
 
         See :meth:`Traverse.load_images`.
         """
+        self._check_aspects()
         return (
             self.reference.load_images(size, cache=cache, progress=progress),
             self.query.load_images(size, cache=cache, progress=progress),
         )
+
+    def _check_aspects(self) -> None:
+        """Warn where the traverses' first frames differ in aspect ratio: both are resized to
+        one size, so the same scene would be stretched differently in each."""
+        from ..images import same_aspect, upright_shape
+
+        if not (self.reference.paths and self.query.paths):
+            return
+        ref, qry = self.reference.paths[0], self.query.paths[0]
+        a, b = upright_shape(ref), upright_shape(qry)
+        if a is not None and b is not None and not same_aspect(a, b):
+            logger.warning(
+                "the reference's frames (%s: %dx%d) and the query's (%s: %dx%d) differ in "
+                "aspect ratio: both are resized to one size, so the same scene is stretched "
+                "differently in each and matches worse; crop or pad one of them to the other's "
+                "aspect ratio",
+                ref,
+                a[1],
+                a[0],
+                qry,
+                b[1],
+                b[0],
+            )
 
     def subset_queries(self, indices) -> Benchmark:
         """A benchmark that keeps the query frames at ``indices`` and their ground-truth rows.
