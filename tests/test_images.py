@@ -644,3 +644,37 @@ def test_load_images_warns_once_of_frames_of_another_aspect_ratio(tmp_path, capl
     with caplog.at_level("WARNING", logger="flyvpr"):
         im.load_images([paths[0], paths[1], paths[3]], (32, 64), cache=False, progress=False)
     assert not [r for r in caplog.records if "aspect ratio" in r.getMessage()]
+
+
+def _low_range_warnings(caplog):
+    return [r for r in caplog.records if "pixels whose values all lie in 1-255" in r.message]
+
+
+def test_8bit_values_saved_as_16_or_32_bit_are_named_in_one_warning(tmp_path, caplog):
+    # 8-bit data in a 16-bit PNG (Pillow's I;16) or a 32-bit TIFF (mode I) is read on the
+    # 16-bit scale: nearly black.  Read as it is (nothing is guessed), with one warning.
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    ramp = np.tile(np.arange(0, 256, dtype=np.uint16), (4, 1))
+    paths = [_png16(folder / f"{i}.png", ramp, 0) for i in range(2)]
+    Image.fromarray(ramp.astype(np.int32)).save(folder / "2.tif")  # mode I
+    paths.append(folder / "2.tif")
+    assert Image.open(paths[2]).mode == "I"
+    _png16(folder / "3.png", ramp * 200, 0)  # 16-bit data: no warning
+    Image.fromarray(np.zeros((4, 256), np.uint16)).save(folder / "4.png")  # blank: none
+    Image.fromarray(ramp.astype(np.uint8)).save(folder / "5.png")  # 8-bit: none
+    paths += [folder / "3.png", folder / "4.png", folder / "5.png"]
+    with caplog.at_level("WARNING", logger="flyvpr.images"):
+        out = im.load_images(paths, size=(4, 256), cache=False, progress=False)
+    assert out[0].max() == np.float32(255 / 65535) and out[5].max() == 1.0  # (as read)
+    (record,) = _low_range_warnings(caplog)
+    message = record.getMessage()
+    assert message.startswith(f"{paths[0]} (and 2 more of the 6 frames): 16-bit integer pixels")
+    assert "save the frames as 8-bit" in message
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="flyvpr.images"):  # frame by frame: per folder
+        for p in [paths[2], *paths]:
+            im.load_image(p, size=(4, 64))
+    (record,) = _low_range_warnings(caplog)
+    assert record.getMessage().startswith(f"{paths[2]}: 32-bit integer pixels")
+    assert not _high_byte_warnings(caplog)

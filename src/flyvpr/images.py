@@ -330,13 +330,15 @@ def demosaic_bilinear(raw: np.ndarray, pattern: str = "gbrg") -> np.ndarray:
     return np.clip(rgb, 0.0, 1.0)
 
 
-def _decode(path: Path, bayer: str | None, high_byte: list | None = None) -> np.ndarray:
+def _decode(path: Path, bayer: str | None, notes: dict | None = None) -> np.ndarray:
     """Decode one file to a float32 gray array in [0, 1] at its native size, upright (its
     EXIF orientation applied).
 
-    A 16-bit colour file, of which Pillow reads only the high byte of each sample, is appended
-    to ``high_byte`` with its raw mode (for the caller's one warning), or warned about here
-    (once per folder) when that is None.
+    A 16-bit colour file, of which Pillow reads only the high byte of each sample, and a file
+    of integers wider than a byte whose values all lie in 1-255 (8-bit data saved wide) are
+    appended to ``notes["high byte"]`` with the raw mode and ``notes["low range"]`` with the
+    pixel type (for the caller's one warning of each kind), or warned about here (once per
+    folder) when ``notes`` is None.
     """
     img: Image.Image  # the opened file, then maybe a converted copy
     try:
@@ -405,11 +407,18 @@ def _decode(path: Path, bayer: str | None, high_byte: list | None = None) -> np.
         raise
     except ValueError as exc:
         raise ImageReadError(f"{path}: {exc}") from None
+    found = []
     if rawmode is not None:
-        if high_byte is None:
-            _warn_high_byte([(path, rawmode)])
+        found.append(("high byte", rawmode))
+    if bayer is None and arr.dtype.kind in "iu" and arr.dtype.itemsize > 1 and arr.size:
+        lo, hi = int(arr.min()), int(arr.max())
+        if lo >= 0 and 0 < hi <= 255:
+            found.append(("low range", f"{8 * arr.dtype.itemsize}-bit"))
+    for kind, detail in found:
+        if notes is None:
+            _warn_frames(kind, [(path, detail)])
         else:
-            high_byte.append((path, rawmode))
+            notes[kind].append((path, detail))
     return gray
 
 
@@ -443,27 +452,37 @@ _HIGH_BYTE_ADVICE = (
     "Pillow reads only the high byte of each sample (8 bits; the rest is lost): save the frames "
     "as 16-bit gray, which keeps full precision, or as 8-bit colour"
 )
-#: Folders already warned about by :func:`load_image` (a folder source reads frame by frame).
-_high_byte_folders: set[str] = set()
+_LOW_RANGE_ADVICE = (
+    "{} integer pixels whose values all lie in 1-255: read on the 16-bit scale (divided by "
+    "65535) the frame is nearly black, at most 0.4% of white; if these are 8-bit values, save "
+    "the frames as 8-bit (a dark 16-bit frame is read right: nothing is changed)"
+)
+#: Folders already warned about by :func:`load_image` (a folder source reads frame by frame),
+#: per kind of warning.
+_warned_folders: dict[str, set[str]] = {"high byte": set(), "low range": set()}
 
 
-def _warn_high_byte(found: list, n_frames: int | None = None) -> None:
-    """One warning naming the first of ``found`` ((path, raw mode) pairs): per call of
-    :func:`load_images` (``n_frames`` loaded), or per folder for frames loaded one by one."""
-    path, rawmode = found[0]
+def _warn_frames(kind: str, found: list, n_frames: int | None = None) -> None:
+    """One warning of ``kind`` ("high byte" or "low range") naming the first of ``found``
+    ((path, detail) pairs): per call of :func:`load_images` (``n_frames`` loaded), or per
+    folder for frames loaded one by one."""
+    path, detail = found[0]
     if n_frames is None:
         folder = os.path.abspath(path.parent)
-        if folder in _high_byte_folders:
+        if folder in _warned_folders[kind]:
             return
-        _high_byte_folders.add(folder)
+        _warned_folders[kind].add(folder)
     more = f" (and {len(found) - 1} more of the {n_frames} frames)" if len(found) > 1 else ""
-    logger.warning(
-        "%s%s: colour of more than 8 bits per sample (raw mode %s); %s",
-        path,
-        more,
-        rawmode,
-        _HIGH_BYTE_ADVICE,
-    )
+    if kind == "high byte":
+        logger.warning(
+            "%s%s: colour of more than 8 bits per sample (raw mode %s); %s",
+            path,
+            more,
+            detail,
+            _HIGH_BYTE_ADVICE,
+        )
+    else:
+        logger.warning("%s%s: %s", path, more, _LOW_RANGE_ADVICE.format(detail))
 
 
 def _orientation(path: Path, img) -> int:
@@ -809,9 +828,12 @@ def load_images(
 ) -> np.ndarray:
     """Load many image files into a float32 stack (N, H, W) in [0, 1].
 
-    Each file is decoded as by :func:`load_image`; files of colour with more than 8 bits per
-    sample, read by their high byte only, are named in one warning per call (when the files
-    are decoded, not on a cache hit).
+    Each file is decoded as by :func:`load_image`.  Files of colour with more than 8 bits per
+    sample, read by their high byte only, are named in one warning per call; so are files of
+    16 or 32-bit integers whose values all lie in 1-255 (8-bit data saved wide: read on the
+    16-bit scale they come out nearly black) and files of another aspect ratio than the
+    first (each is squeezed to ``size``).  The warnings come when the files are decoded, not
+    on a cache hit.
 
     Parameters
     ----------
@@ -865,7 +887,7 @@ def load_images(
                 raise_interruption(exc)
                 logger.warning("image cache %s is unusable (%s); rebuilding it", cache_file, exc)
     out = np.empty(shape, dtype=np.float32)
-    high_byte: list = []
+    notes: dict = {"high byte": [], "low range": []}
     first: tuple | None = None  # the first file and its upright (H, W)
     other: list = []  # files of another aspect ratio than the first's, with theirs
     with warnings.catch_warnings():
@@ -873,14 +895,15 @@ def load_images(
         for i, p in enumerate(
             tqdm(paths, desc=desc, unit="img", disable=not _want_progress(progress), leave=False)
         ):
-            img = _decode(p, bayer, high_byte)
+            img = _decode(p, bayer, notes)
             if first is None:
                 first = (p, img.shape)
             elif not same_aspect(img.shape, first[1]):
                 other.append((p, img.shape))
             out[i] = resize_area(img, size)
-    if high_byte:
-        _warn_high_byte(high_byte, len(paths))
+    for kind, found in notes.items():
+        if found:
+            _warn_frames(kind, found, len(paths))
     if other:
         (path, (h, w)), (path0, (h0, w0)) = other[0], first  # type: ignore[misc]
         logger.warning(
