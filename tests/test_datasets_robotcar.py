@@ -340,3 +340,27 @@ def test_select_by_distance():
     np.testing.assert_array_equal(
         select_by_distance([[0, 0], [0, 0], [0, 0], [0, 3], [0, 3], [0, 6]], 3.0), [0, 3, 5]
     )
+
+
+# 320 images at 16 Hz over 20 s; poses from -margin to 20 + margin s at 50 Hz: with margin
+# -0.2 the images at 0-0.19 s and 19.8-19.94 s (4 + 3) lie outside, with -2.0 those at
+# 0-1.94 s and 18-19.94 s (32 + 32)
+@pytest.mark.parametrize(
+    "margin, dropped, first, level", [(-0.2, 7, 4, "INFO"), (-2.0, 64, 32, "WARNING")]
+)
+def test_images_outside_the_pose_log_are_dropped_and_said(
+    tmp_path, caplog, margin, dropped, first, level
+):
+    # those images cannot be placed (no extrapolation); a twentieth of the run or more is a
+    # warning, not an info line
+    make_run(tmp_path, "run", straight(), duration=20.0, pose_margin=margin)
+    with caplog.at_level("INFO", logger="flyvpr"):
+        b = load_robotcar(tmp_path, "run", "run")
+    # (reference and query are the same run here: read, and said, once each)
+    record, again = [r for r in caplog.records if "outside the time span" in r.getMessage()]
+    assert record.getMessage() == again.getMessage()
+    assert record.levelname == level
+    msg = record.getMessage()
+    assert msg.startswith(f"run: dropped {dropped} of 320 images ({100 * dropped / 320:.1f}%)")
+    assert ("(images " in msg) == (level == "WARNING")
+    assert b.reference.frame_ids.min() == first

@@ -75,6 +75,15 @@ GPS_COLUMNS = (
 _MAX_DIGITS = 18
 #: The columns this loader reads from either file.
 _NEEDED = ("timestamp", "northing", "easting")
+#: the share of a run's images outside its pose log's time span from which a warning says so
+#: (below it, an info line: a pose log that starts a little after the camera is usual)
+_DROPPED_WARNING = 0.05
+
+
+def _span(us: np.ndarray) -> str:
+    """A run of microsecond time stamps as ``first..last us (seconds s)``."""
+    return f"{us[0]}..{us[-1]} us ({(us[-1] - us[0]) / 1e6:.1f} s)"
+
 
 #: Folder layout shown in errors and by ``flyvpr datasets``.
 LAYOUT = (
@@ -277,12 +286,21 @@ def _load_run(root: Path, run, role: str, spacing: float):
             f"(images {image_us[0]}..{image_us[-1]} us, poses {pose_us[0]}..{pose_us[-1]} us)"
         )
     if not inside.all():
-        logger.info(
-            "%s: dropped %d of %d images outside the time span of %s",
+        # A pose log that starts a little after the camera is usual; one that leaves out a
+        # twentieth of the drive or more is said louder (a log cut short, or another run's).
+        dropped = int((~inside).sum())
+        share = dropped / inside.size
+        logger.log(
+            logging.WARNING if share >= _DROPPED_WARNING else logging.INFO,
+            "%s: dropped %d of %d images (%.1f%%) outside the time span of %s%s",
             run,
-            int((~inside).sum()),
+            dropped,
             inside.size,
+            100.0 * share,
             pose_file,
+            " (images " + _span(image_us) + ", poses " + _span(pose_us) + ")"
+            if share >= _DROPPED_WARNING
+            else "",
         )
     frame_ids = np.flatnonzero(inside)
     # Subtract the first pose time before converting, so float64 keeps microseconds.
@@ -308,7 +326,9 @@ def load_robotcar(
 
     Positions are linearly interpolated in time from the run's
     ``gps/ins.csv`` (preferred) or ``gps/gps.csv`` at each image time stamp;
-    images outside the pose log's time span are dropped.  Frames are then kept
+    images outside the pose log's time span are dropped (an info line says how many; a
+    warning, with both time spans, where that is a twentieth of the run or more).  Frames
+    are then kept
     every ``spacing`` metres of driven distance
     (:func:`select_by_distance`), and ``first``/``count`` select a window of
     those kept frames in each run separately.  A query matches every reference
