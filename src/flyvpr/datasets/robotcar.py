@@ -328,12 +328,10 @@ def load_robotcar(
     ``gps/ins.csv`` (preferred) or ``gps/gps.csv`` at each image time stamp;
     images outside the pose log's time span are dropped (an info line says how many; a
     warning, with both time spans, where that is a twentieth of the run or more).  Frames
-    are then kept
-    every ``spacing`` metres of driven distance
-    (:func:`select_by_distance`), and ``first``/``count`` select a window of
-    those kept frames in each run separately.  A query matches every reference
-    frame within ``tolerance_m`` metres (the paper: 50 m, about 10 frames at
-    the default 5 m spacing).
+    are then kept every ``spacing`` metres of driven distance (:func:`select_by_distance`),
+    and ``first``/``count`` select a window of those kept frames in each run separately.  A
+    query matches every reference frame within ``tolerance_m`` metres (the paper: 50 m, about
+    10 frames at the default 5 m spacing).
 
     Parameters
     ----------
