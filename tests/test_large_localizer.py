@@ -1176,3 +1176,81 @@ def test_a_refused_frame_leaves_nothing_behind():
     for place in 1500 + np.arange(12):
         loc.update_code(_query(codes, int(place), rng), None)
     assert None in loc._velocities and loc.n_frames_ == kept[2] + 12
+
+
+def test_distances_in_metres_are_places_over_the_spacing():
+    # odometry in metres with place_spacing 2.5 m steps the layer as the same odometry given
+    # in places, frame by frame, in a batch of images and on a code
+    from flyvpr.large import CompactEncoder
+
+    rng = np.random.default_rng(7)
+    images = rng.random((300, 32, 64)).astype(np.float32)
+    enc = CompactEncoder(n_bits=64, random_state=0).fit(images)
+    codes = enc.reference_codes_
+    index = ExhaustiveIndex().build(codes)
+    frames = np.clip(images[100:130] + rng.normal(0, 0.05, (30, 32, 64)), 0, 1).astype(np.float32)
+    moved = np.r_[np.nan, np.full(29, 1.0)]  # places; the first frame has none
+    moved[10] = np.nan  # an outage
+    in_places = LargeLocalizer(codes, index, encoder=enc, window=64)
+    in_metres = LargeLocalizer(codes, index, encoder=enc, window=64, place_spacing=2.5)
+    batch = LargeLocalizer(codes, index, encoder=enc, window=64, place_spacing=2.5)
+    fixes = batch.update_batch(frames, distances=2.5 * moved)
+    assert fixes.places.dtype == np.int64 and fixes.states.dtype.kind == "U"
+    for t in range(30):
+        v = None if np.isnan(moved[t]) else float(moved[t])
+        a = in_places.update(frames[t], v)
+        b = in_metres.update(frames[t], distance=None if v is None else 2.5 * v)
+        assert (a.place, a.state, a.confidence) == (b.place, b.state, b.confidence)
+        assert (fixes.places[t], fixes.states[t], fixes.confidences[t]) == (
+            a.place,
+            a.state,
+            a.confidence,
+        )
+    assert fixes.places[-1] == 129 and fixes.states[-1] == "localized"
+    assert fixes.relocated.sum() == in_places.n_reseeds_ == batch.n_reseeds_ >= 1
+    assert fixes.relocated[0]  # the first frame is searched for in the whole map
+    # velocities in a batch: the same again
+    again = LargeLocalizer(codes, index, encoder=enc, window=64).update_batch(
+        frames, velocities=[None if np.isnan(m) else m for m in moved]
+    )
+    np.testing.assert_array_equal(again.places, fixes.places)
+    np.testing.assert_array_equal(again.confidences, fixes.confidences)
+
+
+def test_odometry_errors_are_named_and_change_nothing():
+    codes = _map(n=1000)
+    index = ExhaustiveIndex().build(codes)
+    loc = LargeLocalizer(codes, index, window=128)
+    code = codes[500]
+    with pytest.raises(ValueError, match=r"needs place_spacing.*LargeLocalizer\(place_spacing="):
+        loc.update_code(code, distance=3.0)
+    spaced = LargeLocalizer(codes, index, window=128, place_spacing=2.0)
+    with pytest.raises(ValueError, match="velocity .places. or distance .metres., not both"):
+        spaced.update_code(code, 1.0, distance=2.0)
+    with pytest.raises(ValueError, match="distance must be >= 0"):
+        spaced.update_code(code, distance=-1.0)
+    with pytest.raises(ValueError, match="velocity must be finite"):
+        spaced.update_code(code, float("nan"))
+    with pytest.raises(TypeError, match="velocity must be a number"):
+        spaced.update_code(code, "1")
+    assert loc.n_frames_ == spaced.n_frames_ == 0  # refused frames leave nothing
+    with pytest.raises(ValueError, match="update_batch needs an encoder"):
+        loc.update_batch(np.zeros((2, 32, 64), np.float32))
+    with pytest.raises(ValueError, match="place_spacing must be > 0"):
+        LargeLocalizer(codes, index, place_spacing=0.0)
+
+
+def test_a_compact_localizer_takes_the_map_s_spacing(tmp_path):
+    from flyvpr.large.recording import CompactMap, compact_localizer
+
+    class _Map:  # what compact_localizer reads of a CompactMap
+        large_map = type("M", (), {"codes": _map(n=300)})()
+        encoder = None
+        path = tmp_path / "m.fvmap"
+        place_spacing = 4.0
+
+    assert compact_localizer(_Map()).place_spacing == 4.0
+    assert compact_localizer(_Map(), place_spacing=1.5).place_spacing == 1.5
+    _Map.place_spacing = None
+    assert compact_localizer(_Map()).place_spacing is None
+    assert CompactMap.place_spacing.__doc__.startswith("Metres between consecutive places")

@@ -30,7 +30,7 @@ from .index import (
     MultiIndexHash,
     pool_candidates,
 )
-from .localizer import LargeLocalizer
+from .localizer import LargeFixes, LargeLocalizer
 from .mapfile import (
     ForeignIndexError,
     LargeMap,
@@ -45,6 +45,7 @@ from .synthetic import tile_mask, tile_queries, write_tiled_map
 
 __all__ = [
     "LargeLocalizer",
+    "LargeFixes",
     "INDEXES",
     "PROJECTIONS",
     "CandidateIndex",

@@ -22,16 +22,18 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from typing import NamedTuple
 
 import numpy as np
 
-from .._validation import check_positive_int, check_real
+from .._validation import check_positive_int
 from ..localization import LOCALIZED, Fix
+from ..localization.localizer import _check_place_spacing, odometry_places, odometry_places_batch
 from ..temporal.cann import WindowedCANN
 from .codes import as_words, hamming_similarity, hamming_similarity_at
 from .index import CandidateIndex, ExhaustiveIndex, check_speed_range, pool_candidates
 
-__all__ = ["LargeLocalizer"]
+__all__ = ["LargeLocalizer", "LargeFixes"]
 
 #: pooled candidates whose tracks are compared with the layer's
 _COMPARED = 300
@@ -49,6 +51,27 @@ _LOST_Z = 3.5
 _CHECK_MARGIN = 0.06
 #: ends the search of every place's track adds to the candidates (at least _REFINE apart)
 _FULL_ENDS = 50
+
+
+class LargeFixes(NamedTuple):
+    """:meth:`LargeLocalizer.update_batch`'s answers for consecutive frames: as
+    :class:`~flyvpr.localization.Fixes` without the score rows (a row over every place of a
+    very large map per frame is what this localizer avoids).
+
+    Attributes
+    ----------
+    places : ndarray of int64, shape (n,)
+    confidences : ndarray, shape (n,)
+    relocated : ndarray of bool, shape (n,)
+        Whether the layer re-seeded at that frame.
+    states : ndarray of str, shape (n,)
+        ``"localized"`` or ``"lost"`` per frame.
+    """
+
+    places: np.ndarray
+    confidences: np.ndarray
+    relocated: np.ndarray
+    states: np.ndarray
 
 
 class LargeLocalizer:
@@ -89,6 +112,11 @@ class LargeLocalizer:
         ``benchmarks/large_accuracy.py``, seeds 0-2: at 10 a dip on the right stretch
         outlasted it and the right layer was let go, seed 2, frames 712-741; 30 was better
         than 20 with the exact scan, seed 1, frames 0-999: 0.955 against 0.946).
+    place_spacing : float, optional
+        Metres between consecutive places, to turn the ``distance`` given to :meth:`update`,
+        :meth:`update_code` or :meth:`update_batch` into places (as
+        :class:`~flyvpr.localization.Localizer` does);
+        :func:`~flyvpr.large.recording.compact_localizer` takes it from the map's positions.
     full_search_places : int, default 1048576
         On maps of at most this many places, a lost layer that has not been localized since
         its seed (a guess) also scores every place's track over the lost frames, as the
@@ -185,6 +213,7 @@ class LargeLocalizer:
         check_every: int = 1000,
         speed=(0.0, 2.0),
         hold: int = 30,
+        place_spacing=None,
         full_search_places: int = 1 << 20,
         **params,
     ):
@@ -214,6 +243,7 @@ class LargeLocalizer:
         self.check_every = check_positive_int(check_every, "check_every", minimum=0)
         self.speed = check_speed_range(speed)
         self.hold = check_positive_int(hold, "hold")
+        self.place_spacing = _check_place_spacing(place_spacing)
         self.full_search_places = check_positive_int(
             full_search_places, "full_search_places", minimum=0
         )
@@ -260,14 +290,63 @@ class LargeLocalizer:
         self.n_full_searches_ = 0
         self.search_s_ = 0.0
 
-    def update(self, image, velocity=None) -> Fix:
-        """Encode one frame (needs ``encoder``) and localize it; see :meth:`update_code`."""
+    def _encoder(self, what: str):
         if self.encoder is None:
-            raise ValueError("update needs an encoder (LargeLocalizer(..., encoder=...))")
-        code = self.encoder.encode(np.asarray(image)[None])
-        return self.update_code(code[0], velocity)
+            raise ValueError(f"{what} needs an encoder (LargeLocalizer(..., encoder=...))")
+        return self.encoder
 
-    def update_code(self, code, velocity=None) -> Fix:
+    def update(self, image, velocity=None, *, distance=None) -> Fix:
+        """Encode one frame (needs ``encoder``) and localize it; see :meth:`update_code`."""
+        code = self._encoder("update").encode(np.asarray(image)[None])
+        return self.update_code(code[0], velocity, distance=distance)
+
+    def update_batch(self, images, *, velocities=None, distances=None) -> LargeFixes:
+        """Consecutive frames: encoded in one vectorised call (needs ``encoder``), then
+        localized in order, as :meth:`update` frame by frame.
+
+        Parameters
+        ----------
+        images : array-like, shape (n, H, W)
+        velocities : array-like, shape (n,), optional
+            Places moved since the previous frame, per frame (NaN or None: no odometry for
+            that frame).
+        distances : array-like, shape (n,), optional
+            Metres moved since the previous frame, per frame (NaN or None: none), divided by
+            ``place_spacing``.  Not with ``velocities``.
+
+        Returns
+        -------
+        LargeFixes
+            ``places``, ``confidences``, ``relocated`` (re-seeded at that frame) and
+            ``states``.
+
+        Raises
+        ------
+        ValueError, TypeError
+            As :class:`~flyvpr.localization.Localizer.update_batch`'s, checked before any
+            frame is localized.
+        """
+        encoder = self._encoder("update_batch")
+        frames = np.asarray(images)
+        if frames.ndim != 3:
+            raise ValueError(f"images must be a stack (n, H, W); got shape {frames.shape}")
+        moves = odometry_places_batch(
+            velocities, distances, len(frames), self.place_spacing, "LargeLocalizer"
+        )
+        codes = encoder.encode(frames)
+        places = np.empty(len(frames), np.int64)
+        confidences = np.empty(len(frames))
+        relocated = np.zeros(len(frames), bool)
+        states = []
+        for i, code in enumerate(codes):
+            before = self.n_reseeds_
+            fix = self.update_code(code, moves[i])
+            places[i], confidences[i] = fix.place, fix.confidence
+            relocated[i] = self.n_reseeds_ != before
+            states.append(fix.state)
+        return LargeFixes(places, confidences, relocated, np.array(states, dtype=np.str_))
+
+    def update_code(self, code, velocity=None, *, distance=None) -> Fix:
         """Localize one frame from its compact code.
 
         Parameters
@@ -275,19 +354,30 @@ class LargeLocalizer:
         code : array-like of uint8, shape (n_bytes,)
         velocity : float, optional
             Places moved since the previous frame (odometry).
+        distance : float, optional
+            Metres moved since the previous frame, instead of ``velocity``: the layer gets
+            ``distance / place_spacing`` places (keyword-only).
 
         Returns
         -------
         Fix
             ``place`` indexes the whole map; ``confidence`` and ``state`` are the layer's.
+
+        Raises
+        ------
+        ValueError, TypeError
+            For a code of another length or type, or odometry as
+            :meth:`flyvpr.localization.Localizer.update` refuses it (both ``velocity`` and
+            ``distance``, a negative or non-finite one, ``distance`` without
+            ``place_spacing``); a refused frame changes nothing.
         """
         q = np.asarray(code)
         if q.shape != (self.codes.shape[1],) or q.dtype != np.uint8:
             raise ValueError(
                 f"code must be uint8 of shape ({self.codes.shape[1]},); got {q.dtype} {q.shape}"
             )
-        if velocity is not None:  # checked before anything is kept: a refused frame leaves none
-            velocity = check_real(velocity, "velocity", low=None)
+        # (checked before anything is kept: a refused frame leaves none)
+        velocity = odometry_places(velocity, distance, self.place_spacing, "LargeLocalizer")
         f = self.filter_
         self._recent.append(q)
         self._velocities.append(velocity)

@@ -466,12 +466,15 @@ def compact_localizer(cmap: CompactMap, index: str = "exhaustive", **params):
         1), whose tables are read from :func:`index_path` when that file exists (and belongs
         to this map) and built otherwise.
     **params
-        ``LargeLocalizer``'s (``window``, ``k``, ...) and the CANN's parameters.
+        ``LargeLocalizer``'s (``window``, ``k``, ...) and the CANN's parameters;
+        ``place_spacing`` defaults to the map's (:attr:`CompactMap.place_spacing`: None
+        without positions).
 
     Returns
     -------
     LargeLocalizer
-        Its ``update(image, velocity=None)`` takes a pre-processed frame of ``cmap.size``;
+        Its ``update(image, velocity=None, *, distance=None)`` takes a pre-processed frame
+        of ``cmap.size``;
         its ``index_source_`` says in words where its index came from (the exact scan, the
         tables of :func:`index_path`, or tables built in memory, where that file is missing
         or indexes another map: a warning says so).
@@ -515,6 +518,7 @@ def compact_localizer(cmap: CompactMap, index: str = "exhaustive", **params):
     else:
         raise ValueError(f"index must be 'exhaustive' or 'mih'; got {index!r}")
     assert found is not None
+    params.setdefault("place_spacing", cmap.place_spacing)
     loc = LargeLocalizer(codes, found, encoder=cmap.encoder, **params)
     loc.index_source_ = source
     return loc

@@ -116,6 +116,70 @@ def _check_place_spacing(value) -> float | None:
     return None if value is None else check_real(value, "place_spacing", unit="metres")
 
 
+def odometry_places(velocity, distance, place_spacing, owner: str) -> float | None:
+    """One frame's odometry in places (None: the filter estimates the movement itself):
+    ``velocity`` in places, or ``distance`` in metres over ``place_spacing``; a 0-d array (an
+    element a robot's code took from an array) is its number.  ``owner`` names the class
+    whose ``place_spacing`` a missing spacing asks for."""
+    velocity, distance = (
+        v.item() if isinstance(v, np.ndarray) and v.ndim == 0 else v for v in (velocity, distance)
+    )
+    if distance is None:
+        return None if velocity is None else check_real(velocity, "velocity", low=None)
+    if velocity is not None:
+        raise ValueError("give the movement as velocity (places) or distance (metres), not both")
+    distance = check_real(distance, "distance", low=0, inclusive=True)
+    if place_spacing is None:
+        raise ValueError(
+            f"distance (metres) needs place_spacing, the metres between places: give "
+            f"{owner}(place_spacing=...) or a map with positions, or pass velocity in places"
+        )
+    places = distance / place_spacing
+    if not math.isfinite(places):
+        raise ValueError(
+            f"distance {distance:g} m over place_spacing {place_spacing:g} m is not a "
+            "finite number of places"
+        )
+    return places
+
+
+def odometry_places_batch(velocities, distances, n: int, place_spacing, owner: str) -> list:
+    """Per-frame odometry in places for ``n`` frames (None where NaN or None): as
+    :func:`odometry_places`, for arrays of ``velocities`` or ``distances``."""
+    if velocities is not None and distances is not None:
+        raise ValueError("give the movement as velocities (places) or distances (metres), not both")
+    if velocities is None and distances is None:
+        return [None] * n
+    name = "velocities" if distances is None else "distances"
+    raw = np.asarray(velocities if distances is None else distances)
+    if raw.dtype == object:  # None marks a frame without odometry
+        raw = np.array([np.nan if v is None else v for v in raw.ravel()]).reshape(raw.shape)
+    if raw.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must be numbers (NaN or None for none); got dtype {raw.dtype}")
+    arr = raw.astype(np.float64)
+    if arr.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},), one entry per image; got {arr.shape}")
+    if np.isinf(arr).any():
+        raise ValueError(f"{name} must be finite (NaN or None: no odometry for that frame)")
+    if distances is not None:
+        if (arr < 0).any():
+            raise ValueError(f"distances must be >= 0; got {arr[arr < 0][0]:g}")
+        if place_spacing is None:
+            raise ValueError(
+                "distances (metres) need place_spacing, the metres between places: give "
+                f"{owner}(place_spacing=...) or a map with positions, or pass velocities "
+                "in places"
+            )
+        with np.errstate(over="ignore"):
+            arr = arr / place_spacing
+        if np.isinf(arr).any():
+            raise ValueError(
+                f"distances over place_spacing {place_spacing:g} m must be a finite "
+                f"number of places; got {raw.ravel()[np.isinf(arr)][0]:g} m"
+            )
+    return [None if math.isnan(v) else float(v) for v in arr]
+
+
 class Localizer:
     """Online place recognition over a reference map.
 
@@ -242,68 +306,10 @@ class Localizer:
         return step(row, velocity=velocity)
 
     def _velocity(self, velocity, distance) -> float | None:
-        """One frame's odometry in places (None: the filter estimates the movement itself); a
-        0-d array (an element a robot's code took from an array) is its number."""
-        velocity, distance = (
-            v.item() if isinstance(v, np.ndarray) and v.ndim == 0 else v
-            for v in (velocity, distance)
-        )
-        if distance is None:
-            return None if velocity is None else check_real(velocity, "velocity", low=None)
-        if velocity is not None:
-            raise ValueError(
-                "give the movement as velocity (places) or distance (metres), not both"
-            )
-        distance = check_real(distance, "distance", low=0, inclusive=True)
-        if self.place_spacing is None:
-            raise ValueError(
-                "distance (metres) needs place_spacing, the metres between places: give "
-                "Localizer(place_spacing=...) or a map with positions, or pass velocity in places"
-            )
-        places = distance / self.place_spacing
-        if not math.isfinite(places):
-            raise ValueError(
-                f"distance {distance:g} m over place_spacing {self.place_spacing:g} m is not a "
-                "finite number of places"
-            )
-        return places
+        return odometry_places(velocity, distance, self.place_spacing, "Localizer")
 
     def _velocities(self, velocities, distances, n: int) -> list:
-        """Per-frame odometry in places for :meth:`update_batch` (None where NaN or None)."""
-        if velocities is not None and distances is not None:
-            raise ValueError(
-                "give the movement as velocities (places) or distances (metres), not both"
-            )
-        if velocities is None and distances is None:
-            return [None] * n
-        name = "velocities" if distances is None else "distances"
-        raw = np.asarray(velocities if distances is None else distances)
-        if raw.dtype == object:  # None marks a frame without odometry
-            raw = np.array([np.nan if v is None else v for v in raw.ravel()]).reshape(raw.shape)
-        if raw.dtype.kind not in "iuf":
-            raise TypeError(f"{name} must be numbers (NaN or None for none); got dtype {raw.dtype}")
-        arr = raw.astype(np.float64)
-        if arr.shape != (n,):
-            raise ValueError(f"{name} must have shape ({n},), one entry per image; got {arr.shape}")
-        if np.isinf(arr).any():
-            raise ValueError(f"{name} must be finite (NaN or None: no odometry for that frame)")
-        if distances is not None:
-            if (arr < 0).any():
-                raise ValueError(f"distances must be >= 0; got {arr[arr < 0][0]:g}")
-            if self.place_spacing is None:
-                raise ValueError(
-                    "distances (metres) need place_spacing, the metres between places: give "
-                    "Localizer(place_spacing=...) or a map with positions, or pass velocities "
-                    "in places"
-                )
-            with np.errstate(over="ignore"):
-                arr = arr / self.place_spacing
-            if np.isinf(arr).any():
-                raise ValueError(
-                    f"distances over place_spacing {self.place_spacing:g} m must be a finite "
-                    f"number of places; got {raw.ravel()[np.isinf(arr)][0]:g} m"
-                )
-        return [None if math.isnan(v) else float(v) for v in arr]
+        return odometry_places_batch(velocities, distances, n, self.place_spacing, "Localizer")
 
     def scores(self, image, *, velocity=None, distance=None) -> np.ndarray:
         """Advance by one frame and return the filtered score row (n_reference,).
