@@ -664,3 +664,27 @@ def test_ground_truth_by_positions_at_the_radius_agrees_with_the_full_maps():
             )
             full = bool(ground_truth_positions(q, place, radius)[0, 0])
             assert known[0] and bool(can[0]) == bool(judge(np.array([0]))[0]) == full
+
+
+def test_a_glitch_of_the_positions_is_refused_and_said(built, route, tmp_path, capsys):
+    # 3 m per frame (1.5 places), one fix 600 m off: that frame's distance, and the next's
+    # back, are glitches to every layer (more than 8 times the recent distance), counted
+    # whether or not the layer re-seeds between them
+    xy = tmp_path / "glitch.csv"
+    xy.write_text("frame,x,y\n" + "".join(
+        f"{i},{600.0 if i == 30 else 3.0 * i},0\n" for i in range(N)
+    ))  # fmt: skip
+    code, out, err = _run(capsys, "localize", "--map", built, route["winter"], "--positions", xy)
+    assert code == 0, err
+    assert (
+        "\nodometry: 2 frames refused the distance moved as a glitch (more than 8 times the "
+        "recent distance per frame) and were localized without it\n" in out
+    )
+    clean = tmp_path / "clean.csv"
+    clean.write_text("frame,x,y\n" + "".join(f"{i},{3.0 * i},0\n" for i in range(N)))
+    code, out, err = _run(capsys, "localize", "--map", built, route["winter"], "--positions", clean)
+    assert code == 0 and "refused the distance" not in out
+    code, out, err = _run(
+        capsys, "localize", "--map", built, route["winter"], "--positions", xy, "--no-odometry"
+    )
+    assert code == 0 and "refused the distance" not in out

@@ -1254,3 +1254,25 @@ def test_a_compact_localizer_takes_the_map_s_spacing(tmp_path):
     _Map.place_spacing = None
     assert compact_localizer(_Map()).place_spacing is None
     assert CompactMap.place_spacing.__doc__.startswith("Metres between consecutive places")
+
+
+def test_refused_odometry_is_counted_across_re_seeds():
+    # a glitch of the odometry (a jump of 200 places in one frame) is refused by the layer
+    # and counted on the localizer, also after a re-seed has replaced the layer that refused
+    # an earlier one; reset() forgets the count
+    codes = _map(n=5000)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256)
+    rng = np.random.default_rng(4)
+    place = 1000
+    for t in range(80):
+        if t == 40:  # kidnapped: the layer re-seeds elsewhere
+            place = 3000
+        v = None if t in (0, 40) else (200.0 if t in (25, 70) else 1.0)
+        loc.update_code(_query(codes, place, rng), v)
+        place += 1
+        if t == 30:
+            assert loc.n_odometry_refused_ == 1
+    assert loc.n_reseeds_ >= 2 and loc.filter_.cann_.n_odometry_refused_ == 1
+    assert loc.n_odometry_refused_ == 2
+    loc.reset()
+    assert loc.n_odometry_refused_ == 0

@@ -18,7 +18,14 @@ import numpy as np
 
 from ._common import UsageError, check_outputs, counted, flag, positions_words
 from ._records import open_records
-from ._stream import coverage_note, left_out_words, odometry_note, placed_frames, run_metadata
+from ._stream import (
+    coverage_note,
+    left_out_words,
+    odometry_note,
+    placed_frames,
+    refused_note,
+    run_metadata,
+)
 from .map import recording_inputs
 
 #: ``flyvpr localize`` options a compact map does not take (what they need: score rows over
@@ -268,6 +275,8 @@ def cmd_localize_compact(args) -> int:
     if note is not None:
         print(coverage_note(note, positions, placed, n_frames, source.describe()) if odometry
               else note)  # fmt: skip
+    if odometry:
+        refused_note(loc.n_odometry_refused_)
     if args.ground_truth is not None:
         can = np.concatenate(matchable)
         if not can.any():

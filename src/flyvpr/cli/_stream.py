@@ -45,6 +45,18 @@ def placed_frames(positions, b) -> int:
     return int(np.isfinite(xy).all(axis=1).sum())
 
 
+def refused_note(refused: int) -> None:
+    """Print how many frames the filter localized without their odometry (a glitch), if any."""
+    if refused:
+        from ..temporal.cann import ODOMETRY_JUMP
+
+        print(
+            f"odometry: {counted(refused, 'frame')} refused the distance moved as a glitch "
+            f"(more than {ODOMETRY_JUMP:g} times the recent distance per frame) and were "
+            "localized without it"
+        )
+
+
 def coverage_note(note: str, positions, placed: int, n_frames: int, source: str) -> str:
     """The summary's odometry line once the run is over: how many frames had a position,
     and none at all said as such (positions of another recording, or on another clock)."""
@@ -242,15 +254,8 @@ def cmd_localize_recording(args) -> int:
     if note is not None:
         print(coverage_note(note, positions, placed, n_frames, source.describe()) if odometry
               else note)  # fmt: skip
-    refused = getattr(loc.method.filter, "n_odometry_refused_", 0) if odometry else 0
-    if refused:
-        from ..temporal.cann import ODOMETRY_JUMP
-
-        print(
-            f"odometry: {counted(refused, 'frame')} refused the distance moved as a glitch "
-            f"(more than {ODOMETRY_JUMP:g} times the recent distance per frame) and were "
-            "localized without it"
-        )
+    if odometry:
+        refused_note(getattr(loc.method.filter, "n_odometry_refused_", 0))
     if args.realtime and not timed:
         print(
             f"--realtime: {source.describe()} has no timestamps (an image folder has none; "

@@ -143,6 +143,10 @@ class LargeLocalizer:
     n_frames_, n_searches_, n_reseeds_, n_full_searches_ : int
         Frames, codes sent to the index, re-seeds and searches of every place's track since
         :meth:`reset`.
+    n_odometry_refused_ : int
+        Frames since :meth:`reset` whose odometry the answering layer refused as a glitch
+        (the CANN's ``n_odometry_refused_``, counted across re-seeds: each starts a new
+        layer).
     search_s_ : float
         Seconds spent relocating since :meth:`reset`: the index, the pooling, the tracks and
         the re-seeds' replays.
@@ -288,6 +292,7 @@ class LargeLocalizer:
         self.n_searches_ = 0
         self.n_reseeds_ = 0
         self.n_full_searches_ = 0
+        self.n_odometry_refused_ = 0
         self.search_s_ = 0.0
 
     def _encoder(self, what: str):
@@ -398,9 +403,11 @@ class LargeLocalizer:
             check = self.check_every and self.n_frames_ % self.check_every == self.check_every - 1
             if check:
                 self._check()
+        refused = {}  # each layer's count of refused odometry before this frame
         for layer in (self.filter_, self.held_):
             if layer is not None:
                 lo, hi = layer.window_
+                refused[id(layer)] = layer.cann_.n_odometry_refused_
                 layer.step(hamming_similarity(q[None], self.codes, lo, hi)[0], velocity)
         held = self.held_
         if held is not None:
@@ -415,6 +422,9 @@ class LargeLocalizer:
                 self.held_, self._held_proven = None, False
         f = self.filter_
         place, confidence, state = f.place_, f.confidence_, f.state_
+        # (the answering layer's refusal of this frame's odometry: a replay's own steps and a
+        # layer that does not answer count no frame)
+        self.n_odometry_refused_ += f.cann_.n_odometry_refused_ > refused[id(f)]
         self._proven |= state == LOCALIZED
         self.n_frames_ += 1
         for frame in [t for t in self._found if t <= self.n_frames_ - self.pool]:
