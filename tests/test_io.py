@@ -271,3 +271,49 @@ def test_read_only_folder(tmp_path):
             check_output_path(folder / "a.json")
     finally:
         folder.chmod(0o755)
+
+
+@pytest.mark.skipif(os.name != "posix", reason="a process is asked whether it exists on POSIX")
+def test_a_killed_writer_s_temporary_file_is_removed_by_the_next_write(tmp_path, caplog):
+    # A writer killed with SIGKILL (or by the out-of-memory killer) runs no cleanup: its
+    # temporary file stays.  The next write of the same target removes it, and only it.
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "map.fvmap"
+    code = (
+        "import sys, time; from flyvpr import _io\n"
+        "with _io.atomic_open(sys.argv[1], 'wb') as fh:\n"
+        "    fh.write(b'x' * 1000); fh.flush(); print('writing', flush=True); time.sleep(60)\n"
+    )
+    child = subprocess.Popen([sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE)
+    assert child.stdout.readline() == b"writing\n"
+    left = [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+    assert len(left) == 1 and f"-{child.pid}." in left[0].name
+    child.send_signal(signal.SIGKILL)
+    child.wait()
+    assert left[0].exists() and not out.exists()  # (killed: nothing ran to remove it)
+    # a live writer's file, another target's, another machine's and a file of this
+    # process's are not touched; nor is a name that only looks like one
+    alive = tmp_path / left[0].name.replace(f"-{child.pid}.", f"-{os.getppid()}.")
+    other = tmp_path / left[0].name.replace(".map.fvmap.", ".other.fvmap.")
+    host = _io._host_tag()
+    elsewhere = tmp_path / left[0].name.replace(
+        f".{host}-", f".{'0000' if host != '0000' else '1111'}-"
+    )
+    mine = tmp_path / left[0].name.replace(f"-{child.pid}.", f"-{os.getpid()}.")
+    odd = tmp_path / (left[0].name + "x")
+    for p in (alive, other, elsewhere, mine, odd):
+        p.write_bytes(b"keep")
+    dead_folder = tmp_path / left[0].name.replace(".tmp", ".tmp.d")  # a folder writer's
+    dead_folder.mkdir()
+    (dead_folder / "0.png").write_bytes(b"")
+    with caplog.at_level("INFO", logger="flyvpr"):
+        _io.write_bytes_atomic(out, b"new")
+    assert out.read_bytes() == b"new" and not left[0].exists() and not dead_folder.exists()
+    assert all(p.read_bytes() == b"keep" for p in (alive, other, elsewhere, mine, odd))
+    removed = [r.getMessage() for r in caplog.records if "left by a writer" in r.getMessage()]
+    assert sorted(removed) == sorted(
+        f"removed {p}, left by a writer of {out} that was killed" for p in (left[0], dead_folder)
+    )

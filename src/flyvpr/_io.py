@@ -23,9 +23,14 @@ Kept free of any other flyvpr import so every layer can use it.
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
+import logging
 import os
+import re
 import secrets
+import shutil
+import socket
 import stat
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
@@ -43,6 +48,8 @@ __all__ = [
     "write_text_atomic",
     "write_json_atomic",
 ]
+
+logger = logging.getLogger(__name__)
 
 #: characters of the target's name kept in its temporary file's name (to tell whose it is)
 _TMP_STEM = 32
@@ -271,14 +278,78 @@ def _check_name_length(path: Path, shown: str) -> None:
         )
 
 
+def _host_tag() -> str:
+    """Four hex digits of this machine's name: a temporary file's writer is looked for on the
+    machine that made it only (a folder shared over the network holds other machines')."""
+    global _HOST_TAG
+    if _HOST_TAG is None:
+        _HOST_TAG = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:4]
+    return _HOST_TAG
+
+
+_HOST_TAG: str | None = None
+
+
 def _temporary_name(name: str) -> str:
-    """A fresh name for the temporary file of the target ``name``, short whatever ``name``.
+    """A fresh name for the temporary file of the target ``name``, short whatever ``name``:
+    ``.<name>.<host>-<pid>.<random>.tmp``, with the writer's machine (:func:`_host_tag`) and
+    process, so that a file left by a writer that was killed can be told and removed
+    (:func:`_remove_stale`).
 
     The target's full name plus a suffix would exceed NAME_MAX (255 bytes) for a name near
     the limit; its first characters still tell whose a left-over file is.  At most
-    ``1 + 4 * 32 + 1 + 8 + 4`` bytes.
+    ``1 + 4 * 32 + 1 + 4 + 1 + 10 + 1 + 8 + 4`` bytes.
     """
-    return f".{name[:_TMP_STEM]}.{secrets.token_hex(4)}.tmp"
+    return f".{name[:_TMP_STEM]}.{_host_tag()}-{os.getpid()}.{secrets.token_hex(4)}.tmp"
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this machine (POSIX: signal 0 tests, sends nothing)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # (another user's process: it exists)
+        return True
+    return True
+
+
+def _remove_stale(folder: Path, name: str) -> list[Path]:
+    """Remove the temporary files of the target ``name`` in ``folder`` whose writer, a
+    process of this machine, is gone (killed: SIGKILL, the out-of-memory killer, a power cut;
+    no ``finally`` ran to remove them).  Returns the paths removed.  Best effort: a folder
+    that cannot be listed, or a file that cannot be removed, is left as it is.  POSIX only
+    (elsewhere a process cannot be asked whether it exists without touching it)."""
+    if os.name != "posix":
+        return []
+    prefix = f".{name[:_TMP_STEM]}.{_host_tag()}-"
+    removed = []
+    try:
+        entries = [e.name for e in os.scandir(folder) if e.name.startswith(prefix)]
+    except OSError:
+        return []
+    for entry in entries:
+        found = _STALE.fullmatch(entry[len(prefix) :])
+        if found is None:
+            continue
+        pid = int(found.group(1))
+        if pid == os.getpid() or _alive(pid):
+            continue
+        stale = folder / entry
+        try:
+            if stale.is_dir() and not stale.is_symlink():  # (a folder writer's)
+                shutil.rmtree(stale)
+            else:
+                os.unlink(stale)
+        except OSError:
+            continue
+        removed.append(stale)
+    return removed
+
+
+#: the rest of a temporary name after ``.<name>.<host>-``: the pid, the random part, ``.tmp``
+#: and, for the writers of :mod:`flyvpr.sources.writers`, the target's suffix
+_STALE = re.compile(r"(\d{1,10})\.[0-9a-f]{8}\.tmp(\.[^.]{1,16})?")
 
 
 @contextmanager
@@ -306,6 +377,8 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
         keep_mode = stat.S_IMODE(os.stat(target).st_mode)
     except FileNotFoundError:
         keep_mode = None  # a new file: os.open applies the umask to 0o666
+    for stale in _remove_stale(target.parent, target.name):
+        logger.info("removed %s, left by a writer of %s that was killed", stale, path)
     tmp = None
     created: list[Path] = []
     opened = False  # until then every OSError is ours: name the file being written
