@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -435,3 +437,43 @@ def test_an_interrupt_while_the_stream_opens_is_taken_at_once():
         finally:
             timer.cancel()
             signal.signal(signal.SIGUSR1, previous)
+
+
+def test_a_web_page_that_keeps_its_connection_open_is_named_as_one():
+    # A camera's HTML page instead of its stream: FFmpeg waits for a frame that never comes
+    # and times out; the message says what the address answers with and what to give.
+    import http.server
+
+    class Page(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html; charset=utf-8")
+            self.end_headers()
+            self.wfile.write(b"<html><body><img src='/video.mjpg'></body></html>")
+            self.wfile.flush()
+            time.sleep(4)  # (the connection stays open)
+
+        def log_message(self, *args):
+            pass
+
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Page)
+    httpd.daemon_threads = True
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    url = f"http://127.0.0.1:{httpd.server_address[1]}/"
+    try:
+        with pytest.raises(
+            RecordingError,
+            match=rf"^stream {re.escape(url)}: answers with a web page \(text/html\), not a "
+            r"video stream: give the address of the stream itself",
+        ):
+            LiveSource(url, open_timeout=1.0)
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+    # a stream that is slow to start is not a page: the usual message
+    from flyvpr.sources.live import _web_page_type
+
+    with MjpegServer([], garbage=True, duration=2) as srv:
+        assert _web_page_type(srv.url, 1.0) is None
+    assert _web_page_type("udp://127.0.0.1:9", 1.0) is None
+    assert _web_page_type("http://user:pw@127.0.0.1:9/", 1.0) is None  # (never asked)

@@ -72,6 +72,29 @@ def is_live(source) -> bool:
     return text.startswith("/dev/")
 
 
+#: content types of an HTTP answer that is a document, not a video stream
+_PAGE_TYPES = ("text/", "application/json", "application/xml", "application/xhtml")
+
+
+def _web_page_type(url: str, timeout: float) -> str | None:
+    """For an ``http(s)`` URL that FFmpeg got no frame from in time: the content type of the
+    server's answer when it is a document (an HTML page that keeps its connection open reads
+    to FFmpeg as a stream that never sends a frame), else None.  One request, its headers
+    only, within ``timeout`` seconds; any failure gives None."""
+    import urllib.parse
+    import urllib.request
+
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme not in ("http", "https") or parts.username or parts.password:
+        return None  # (credentials: urllib would send them differently from FFmpeg)
+    try:
+        with urllib.request.urlopen(url, timeout=max(timeout, 0.5)) as answer:
+            kind = answer.headers.get_content_type()
+    except Exception:  # (the open already failed: this only words its message)
+        return None
+    return kind if kind.startswith(_PAGE_TYPES) else None
+
+
 def _redacted(url: str) -> str:
     """``url`` without a password (``rtsp://user:secret@host`` -> ``rtsp://user:***@host``)."""
     return re.sub(r"^([a-zA-Z][a-zA-Z0-9+.-]*://[^/@:]*):[^/@]*@", r"\1:***@", url)
@@ -364,6 +387,13 @@ class LiveSource:
                 **kwargs,
             )
         except av.ExitError:
+            page = _web_page_type(self.url, self.open_timeout)
+            if page is not None:
+                raise _OpenFailed(
+                    f"answers with a web page ({page}), not a video stream: give the address "
+                    "of the stream itself (a camera's page shows it; it often ends in .mjpg, "
+                    "/video or /stream)"
+                ) from None
             raise _OpenFailed(
                 f"no answer within {self.open_timeout:g} s (no data, or no frame after the "
                 f"headers; expected a {self._expected()})"
