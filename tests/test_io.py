@@ -273,14 +273,19 @@ def test_read_only_folder(tmp_path):
         folder.chmod(0o755)
 
 
-@pytest.mark.skipif(os.name != "posix", reason="a process is asked whether it exists on POSIX")
-def test_a_killed_writer_s_temporary_file_is_removed_by_the_next_write(tmp_path, caplog):
+@pytest.mark.skipif(os.name != "posix", reason="flock: a writer's lock on POSIX")
+def test_a_killed_writer_s_temporary_file_is_removed_by_the_next_write(
+    tmp_path, caplog, monkeypatch
+):
     # A writer killed with SIGKILL (or by the out-of-memory killer) runs no cleanup: its
-    # temporary file stays.  The next write of the same target removes it, and only it.
+    # temporary file stays.  The next write of the same target removes it (its writer's lock
+    # is gone), and only it.
+    import fcntl
     import signal
     import subprocess
     import sys
 
+    monkeypatch.setattr(_io, "_SWEPT", set())
     out = tmp_path / "map.fvmap"
     code = (
         "import sys, time; from flyvpr import _io\n"
@@ -288,32 +293,73 @@ def test_a_killed_writer_s_temporary_file_is_removed_by_the_next_write(tmp_path,
         "    fh.write(b'x' * 1000); fh.flush(); print('writing', flush=True); time.sleep(60)\n"
     )
     child = subprocess.Popen([sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE)
-    assert child.stdout.readline() == b"writing\n"
-    left = [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
-    assert len(left) == 1 and f"-{child.pid}." in left[0].name
-    child.send_signal(signal.SIGKILL)
-    child.wait()
-    assert left[0].exists() and not out.exists()  # (killed: nothing ran to remove it)
-    # a live writer's file, another target's, another machine's and a file of this
-    # process's are not touched; nor is a name that only looks like one
-    alive = tmp_path / left[0].name.replace(f"-{child.pid}.", f"-{os.getppid()}.")
-    other = tmp_path / left[0].name.replace(".map.fvmap.", ".other.fvmap.")
-    host = _io._host_tag()
-    elsewhere = tmp_path / left[0].name.replace(
-        f".{host}-", f".{'0000' if host != '0000' else '1111'}-"
-    )
-    mine = tmp_path / left[0].name.replace(f"-{child.pid}.", f"-{os.getpid()}.")
-    odd = tmp_path / (left[0].name + "x")
-    for p in (alive, other, elsewhere, mine, odd):
+    try:
+        assert child.stdout.readline() == b"writing\n"
+        (left,) = [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+        assert f".{_io._host_tag()}-{child.pid}." in left.name
+        # alive, it holds the lock: a writer of the same target leaves its file alone
+        old = left.stat().st_mtime - 60
+        os.utime(left, (old, old))
+        _io.write_bytes_atomic(out, b"first")
+        assert left.exists() and out.read_bytes() == b"first"
+    finally:
+        child.send_signal(signal.SIGKILL)
+        child.wait()
+    assert left.exists()  # (killed: nothing ran to remove it)
+    # a locked file (a live writer, here this test), a file changed a moment ago, another
+    # target's, another machine's, a name that only looks like one and a folder are kept
+    name = left.name
+    locked = tmp_path / name.replace(f"-{child.pid}.", "-1.")
+    young = tmp_path / name.replace(f"-{child.pid}.", "-2.")
+    other = tmp_path / name.replace(".map.fvmap.", ".other.fvmap.")
+    elsewhere = tmp_path / name.replace(f".{_io._host_tag()}-", ".00000000-")
+    odd = tmp_path / (name + "x")
+    folder = tmp_path / name.replace(f"-{child.pid}.", "-3.")
+    for p in (locked, young, other, elsewhere, odd):
         p.write_bytes(b"keep")
-    dead_folder = tmp_path / left[0].name.replace(".tmp", ".tmp.d")  # a folder writer's
-    dead_folder.mkdir()
-    (dead_folder / "0.png").write_bytes(b"")
-    with caplog.at_level("INFO", logger="flyvpr"):
-        _io.write_bytes_atomic(out, b"new")
-    assert out.read_bytes() == b"new" and not left[0].exists() and not dead_folder.exists()
-    assert all(p.read_bytes() == b"keep" for p in (alive, other, elsewhere, mine, odd))
+    folder.mkdir()
+    for p in (left, locked, other, elsewhere, odd, folder):
+        os.utime(p, (old, old))
+    holder = os.open(locked, os.O_RDONLY)
+    fcntl.flock(holder, fcntl.LOCK_EX)
+    monkeypatch.setattr(_io, "_SWEPT", set())
+    try:
+        with caplog.at_level("INFO", logger="flyvpr"):
+            _io.write_bytes_atomic(out, b"new")
+    finally:
+        os.close(holder)
+    assert out.read_bytes() == b"new" and not left.exists() and folder.is_dir()
+    assert all(p.read_bytes() == b"keep" for p in (locked, young, other, elsewhere, odd))
     removed = [r.getMessage() for r in caplog.records if "left by a writer" in r.getMessage()]
-    assert sorted(removed) == sorted(
-        f"removed {p}, left by a writer of {out} that was killed" for p in (left[0], dead_folder)
-    )
+    assert removed == [f"removed {left}, left by a writer of {out} that was killed"]
+    # a folder and name are looked at once per process: a stale file made since stays
+    os.utime(locked, (old, old))
+    _io.write_bytes_atomic(out, b"again")
+    assert locked.exists()
+
+
+def test_an_archive_interrupted_while_it_is_built_is_dropped_quietly(monkeypatch):
+    # A Ctrl-C or SIGTERM inside ZipFile.__init__, between its taking the file and its
+    # setting up (here: reading the file's name interrupted), leaves a half-built archive;
+    # plain ZipFile's __del__ then fails over it (an error printed after the interruption's
+    # message), ZipWriter's does nothing.
+    import gc
+    import io
+    import sys
+    import zipfile
+
+    class Interrupted(io.BytesIO):
+        @property
+        def name(self):
+            raise KeyboardInterrupt
+
+    seen = []
+    monkeypatch.setattr(sys, "unraisablehook", lambda u: seen.append(u.exc_type))
+    for cls in (zipfile.ZipFile, _io.ZipWriter):
+        with pytest.raises(KeyboardInterrupt):
+            cls(Interrupted(), "w")
+        gc.collect()
+    assert seen == [AttributeError]  # (the plain one's only)
+    with _io.ZipWriter(io.BytesIO(), "w") as zf:  # a whole one closes as ZipFile does
+        zf.writestr("a.txt", "x")
+    assert zf.fp is None

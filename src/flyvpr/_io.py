@@ -29,9 +29,10 @@ import logging
 import os
 import re
 import secrets
-import shutil
 import socket
 import stat
+import time
+import zipfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -279,11 +280,11 @@ def _check_name_length(path: Path, shown: str) -> None:
 
 
 def _host_tag() -> str:
-    """Four hex digits of this machine's name: a temporary file's writer is looked for on the
-    machine that made it only (a folder shared over the network holds other machines')."""
+    """Eight hex digits of this machine's name: a folder shared over the network holds other
+    machines' temporary files, whose writers' locks need not reach this one."""
     global _HOST_TAG
     if _HOST_TAG is None:
-        _HOST_TAG = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:4]
+        _HOST_TAG = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
     return _HOST_TAG
 
 
@@ -293,63 +294,80 @@ _HOST_TAG: str | None = None
 def _temporary_name(name: str) -> str:
     """A fresh name for the temporary file of the target ``name``, short whatever ``name``:
     ``.<name>.<host>-<pid>.<random>.tmp``, with the writer's machine (:func:`_host_tag`) and
-    process, so that a file left by a writer that was killed can be told and removed
-    (:func:`_remove_stale`).
+    process, so that a file left by a writer that was killed can be told (by its lock, see
+    :func:`_remove_stale`; the process id is for a person reading the folder).
 
     The target's full name plus a suffix would exceed NAME_MAX (255 bytes) for a name near
     the limit; its first characters still tell whose a left-over file is.  At most
-    ``1 + 4 * 32 + 1 + 4 + 1 + 10 + 1 + 8 + 4`` bytes.
+    ``1 + 4 * 32 + 1 + 8 + 1 + 10 + 1 + 8 + 4`` bytes.
     """
     return f".{name[:_TMP_STEM]}.{_host_tag()}-{os.getpid()}.{secrets.token_hex(4)}.tmp"
 
 
-def _alive(pid: int) -> bool:
-    """Whether process ``pid`` exists on this machine (POSIX: signal 0 tests, sends nothing)."""
+def _lock(fd: int) -> bool:
+    """Take an exclusive lock on the open file ``fd`` without waiting (``flock``, which
+    processes of one machine see whatever their process-id namespace): whether it was got.
+    False where the platform or the file system has no such locks."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+        import fcntl
+    except ImportError:  # (not POSIX)
         return False
-    except OSError:  # (another user's process: it exists)
-        return True
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:  # held by another (BlockingIOError), or no locks here
+        return False
     return True
 
 
 def _remove_stale(folder: Path, name: str) -> list[Path]:
-    """Remove the temporary files of the target ``name`` in ``folder`` whose writer, a
-    process of this machine, is gone (killed: SIGKILL, the out-of-memory killer, a power cut;
-    no ``finally`` ran to remove them).  Returns the paths removed.  Best effort: a folder
-    that cannot be listed, or a file that cannot be removed, is left as it is.  POSIX only
-    (elsewhere a process cannot be asked whether it exists without touching it)."""
-    if os.name != "posix":
+    """Remove the temporary files of the target ``name`` (of any target whose name starts
+    with the same ``_TMP_STEM`` characters) in ``folder`` that this machine wrote and whose
+    writer is gone: killed (SIGKILL, the out-of-memory killer), no ``finally`` ran to remove
+    them.  A writer holds a lock on its temporary file until it is renamed
+    (:func:`atomic_open`): a file whose lock can be taken has no writer.  A file changed
+    less than ``_STALE_AGE`` seconds ago is left (a writer may be between creating it and
+    locking it).  Each folder and name is looked at once per process (stale files come from
+    processes before it).  Returns the paths removed.  Best effort: a folder that cannot be
+    listed, a file that cannot be opened, locked or removed is left as it is; where there
+    are no locks (not POSIX, some network file systems) nothing is removed."""
+    key = (os.path.abspath(folder), name[:_TMP_STEM])
+    if key in _SWEPT:
         return []
+    _SWEPT.add(key)
     prefix = f".{name[:_TMP_STEM]}.{_host_tag()}-"
     removed = []
     try:
         entries = [e.name for e in os.scandir(folder) if e.name.startswith(prefix)]
     except OSError:
         return []
+    now = time.time()
     for entry in entries:
-        found = _STALE.fullmatch(entry[len(prefix) :])
-        if found is None:
-            continue
-        pid = int(found.group(1))
-        if pid == os.getpid() or _alive(pid):
+        if _STALE.fullmatch(entry[len(prefix) :]) is None:
             continue
         stale = folder / entry
         try:
-            if stale.is_dir() and not stale.is_symlink():  # (a folder writer's)
-                shutil.rmtree(stale)
-            else:
-                os.unlink(stale)
+            fd = os.open(stale, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        except OSError:  # (gone meanwhile, a folder, a link, not readable)
+            continue
+        try:
+            if now - os.fstat(fd).st_mtime < _STALE_AGE or not _lock(fd):
+                continue
+            os.unlink(stale)
         except OSError:
             continue
+        finally:
+            os.close(fd)
         removed.append(stale)
     return removed
 
 
+#: folders and name stems :func:`_remove_stale` looked at in this process
+_SWEPT: set[tuple[str, str]] = set()
+#: seconds since its last change before a temporary file without a writer is removed
+_STALE_AGE = 10.0
 #: the rest of a temporary name after ``.<name>.<host>-``: the pid, the random part, ``.tmp``
 #: and, for the writers of :mod:`flyvpr.sources.writers`, the target's suffix
-_STALE = re.compile(r"(\d{1,10})\.[0-9a-f]{8}\.tmp(\.[^.]{1,16})?")
+_STALE = re.compile(r"\d{1,10}\.[0-9a-f]{8}\.tmp(\.[^.]{1,16})?")
 
 
 @contextmanager
@@ -380,6 +398,7 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
     for stale in _remove_stale(target.parent, target.name):
         logger.info("removed %s, left by a writer of %s that was killed", stale, path)
     tmp = None
+    lock_fd = -1
     created: list[Path] = []
     opened = False  # until then every OSError is ours: name the file being written
     try:
@@ -402,6 +421,11 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
                 created += made
         else:
             raise OSError(errno.EEXIST, "no free temporary name")
+        # A lock on the temporary file, held until it is renamed, tells a later writer that
+        # this one is alive (see _remove_stale); on a descriptor of its own, which closing
+        # the file object does not release.
+        lock_fd = os.dup(fd)
+        _lock(lock_fd)
         if keep_mode is not None:
             os.fchmod(fd, keep_mode)
         with os.fdopen(fd, mode, **kwargs) as fh:
@@ -424,6 +448,27 @@ def atomic_open(path, mode: str = "wb", **kwargs) -> Iterator:
         ):
             raise _named(exc, path) from None
         raise
+    finally:
+        if lock_fd >= 0:
+            os.close(lock_fd)  # (the rename is done, or the file removed: the lock goes)
+
+
+class ZipWriter(zipfile.ZipFile):
+    """A ``zipfile.ZipFile`` whose ``__del__`` does nothing unless ``__init__`` finished: a
+    Ctrl-C or SIGTERM inside ``__init__`` (an archive being written into
+    :func:`atomic_open`'s temporary file) leaves a half-built object whose close, run when
+    the traceback is freed, would print an error over the interruption (its temporary file
+    goes with :func:`atomic_open`)."""
+
+    _built = False
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._built = True
+
+    def __del__(self):
+        if self._built:
+            super().__del__()
 
 
 def _sync_folder(folder: Path) -> None:

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import atomic_open, raise_interruption
+from ._io import ZipWriter, atomic_open, raise_interruption
 from ._npy import ArrayFileError, npz_member_header, read_npz_member
 from ._validation import ArraySpec, PartSpec, check_memory
 from ._version import __version__
@@ -247,7 +247,7 @@ def _write_archive(path: Path, meta: dict, arrays: dict) -> Path:
     with atomic_open(path, "w+b") as fh:
         zf = None
         try:
-            with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+            with ZipWriter(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
                 for key, value in payload.items():
                     with zf.open(key + ".npy", "w", force_zip64=True) as member:
                         np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
