@@ -477,3 +477,14 @@ def test_a_web_page_that_keeps_its_connection_open_is_named_as_one():
         assert _web_page_type(srv.url, 1.0) is None
     assert _web_page_type("udp://127.0.0.1:9", 1.0) is None
     assert _web_page_type("http://user:pw@127.0.0.1:9/", 1.0) is None  # (never asked)
+    # a server that takes the connection and answers nothing: the question gives up within
+    # its own limit (2 s), whatever the open's timeout
+    import socket
+
+    silent = socket.create_server(("127.0.0.1", 0))
+    try:
+        t0 = time.monotonic()
+        assert _web_page_type(f"http://127.0.0.1:{silent.getsockname()[1]}/", 10.0) is None
+        assert time.monotonic() - t0 < 4.0
+    finally:
+        silent.close()

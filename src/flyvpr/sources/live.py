@@ -80,19 +80,32 @@ def _web_page_type(url: str, timeout: float) -> str | None:
     """For an ``http(s)`` URL that FFmpeg got no frame from in time: the content type of the
     server's answer when it is a document (an HTML page that keeps its connection open reads
     to FFmpeg as a stream that never sends a frame), else None.  One request, its headers
-    only, within ``timeout`` seconds; any failure gives None."""
+    only, within ``timeout`` seconds but at most ``_PAGE_PROBE_S`` (a server that answers
+    nothing adds no more than that to the wait); the certificate of an ``https`` URL is not
+    checked, as FFmpeg does not check it by default (only the answer's type is read); any
+    failure gives None."""
+    import ssl
     import urllib.parse
     import urllib.request
 
     parts = urllib.parse.urlsplit(url)
     if parts.scheme not in ("http", "https") or parts.username or parts.password:
         return None  # (credentials: urllib would send them differently from FFmpeg)
+    unchecked = ssl.create_default_context()
+    unchecked.check_hostname = False
+    unchecked.verify_mode = ssl.CERT_NONE
     try:
-        with urllib.request.urlopen(url, timeout=max(timeout, 0.5)) as answer:
+        with urllib.request.urlopen(
+            url, timeout=min(max(timeout, 0.5), _PAGE_PROBE_S), context=unchecked
+        ) as answer:
             kind = answer.headers.get_content_type()
     except Exception:  # (the open already failed: this only words its message)
         return None
     return kind if kind.startswith(_PAGE_TYPES) else None
+
+
+#: seconds the web-page question of :func:`_web_page_type` may take at most
+_PAGE_PROBE_S = 2.0
 
 
 def _redacted(url: str) -> str:
