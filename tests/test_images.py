@@ -647,7 +647,7 @@ def test_load_images_warns_once_of_frames_of_another_aspect_ratio(tmp_path, capl
 
 
 def _low_range_warnings(caplog):
-    return [r for r in caplog.records if "pixels whose values all lie in 1-255" in r.message]
+    return [r for r in caplog.records if "pixels whose values are all at most 255" in r.message]
 
 
 def test_8bit_values_saved_as_16_or_32_bit_are_named_in_one_warning(tmp_path, caplog):

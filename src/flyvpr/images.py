@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError
 
-from ._io import atomic_open, raise_interruption
+from ._io import ZipWriter, atomic_open, raise_interruption
 from ._npy import read_npz_member
 from ._validation import array_nbytes, check_memory
 
@@ -335,7 +335,7 @@ def _decode(path: Path, bayer: str | None, notes: dict | None = None) -> np.ndar
     EXIF orientation applied).
 
     A 16-bit colour file, of which Pillow reads only the high byte of each sample, and a file
-    of integers wider than a byte whose values all lie in 1-255 (8-bit data saved wide) are
+    of integers wider than a byte whose values are all at most 255 (8-bit data saved wide) are
     appended to ``notes["high byte"]`` with the raw mode and ``notes["low range"]`` with the
     pixel type (for the caller's one warning of each kind), or warned about here (once per
     folder) when ``notes`` is None.
@@ -453,7 +453,7 @@ _HIGH_BYTE_ADVICE = (
     "as 16-bit gray, which keeps full precision, or as 8-bit colour"
 )
 _LOW_RANGE_ADVICE = (
-    "{} integer pixels whose values all lie in 1-255: read on the 16-bit scale (divided by "
+    "{} integer pixels whose values are all at most 255: read on the 16-bit scale (divided by "
     "65535) the frame is nearly black, at most 0.4% of white; if these are 8-bit values, save "
     "the frames as 8-bit (a dark 16-bit frame is read right: nothing is changed)"
 )
@@ -485,19 +485,21 @@ def _warn_frames(kind: str, found: list, n_frames: int | None = None) -> None:
         logger.warning("%s%s: %s", path, more, _LOW_RANGE_ADVICE.format(detail))
 
 
-def _orientation(path: Path, img) -> int:
+def _orientation(path: Path, img, warn: bool = True) -> int:
     """The EXIF Orientation of an opened file (1, upright, when it has none, or when its EXIF
-    block cannot be read: a warning names the file, as Pillow reads such a JPEG as stored)."""
+    block cannot be read: a warning names the file, as Pillow reads such a JPEG as stored;
+    none with ``warn`` False)."""
     try:
         value = img.getexif().get(ExifTags.Base.Orientation, 1)
     except (SyntaxError, ValueError, TypeError, KeyError, IndexError, OSError, struct.error) as exc:
         # (the kinds Pillow's EXIF parser raises on a damaged block)
-        logger.warning(
-            "%s: its EXIF metadata cannot be read (%s): read as stored, not turned by an "
-            "orientation tag",
-            path,
-            exc,
-        )
+        if warn:
+            logger.warning(
+                "%s: its EXIF metadata cannot be read (%s): read as stored, not turned by an "
+                "orientation tag",
+                path,
+                exc,
+            )
         return 1
     return value if isinstance(value, int) else 1
 
@@ -744,7 +746,7 @@ def _write_cache(path: Path, array: np.ndarray, key: str) -> None:
         "shape": list(array.shape),
     }
     with atomic_open(path, "wb") as fh:
-        zf = zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED)
+        zf = ZipWriter(fh, "w", zipfile.ZIP_STORED)
         try:
             zf.writestr("meta.json", json.dumps(meta))
             with zf.open("images.npy", "w", force_zip64=True) as member:
@@ -808,10 +810,8 @@ def upright_shape(path) -> tuple[int, int] | None:
     try:
         with open(path, "rb") as fh, Image.open(fh) as img:
             w, h = img.size
-            try:
-                orientation = img.getexif().get(ExifTags.Base.Orientation, 1)
-            except (SyntaxError, ValueError, TypeError, KeyError, IndexError, struct.error):
-                orientation = 1  # (read as stored; the decoding warns about it)
+            # (as the decoding turns it; a damaged EXIF block: as stored, the decoding warns)
+            orientation = _orientation(Path(path), img, warn=False)
     except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
         return None
     return (w, h) if orientation in (5, 6, 7, 8) else (h, w)
@@ -830,7 +830,7 @@ def load_images(
 
     Each file is decoded as by :func:`load_image`.  Files of colour with more than 8 bits per
     sample, read by their high byte only, are named in one warning per call; so are files of
-    16 or 32-bit integers whose values all lie in 1-255 (8-bit data saved wide: read on the
+    16 or 32-bit integers whose values are all at most 255 (8-bit data saved wide: read on the
     16-bit scale they come out nearly black) and files of another aspect ratio than the
     first (each is squeezed to ``size``).  The warnings come when the files are decoded, not
     on a cache hit.

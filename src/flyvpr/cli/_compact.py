@@ -219,17 +219,9 @@ def cmd_localize_compact(args) -> int:
                 placed += placed_frames(positions, b)
                 moved, last_xy = distances_moved(positions, b, last_xy)
                 velocity = [float(d) if np.isfinite(d) else None for d in moved / spacing]
-            codes = cmap.encoder.encode(b.images)
-            places = np.empty(len(b), np.int64)
-            conf = np.empty(len(b))
-            states = []
-            relocated = []
-            for i in range(len(b)):
-                before = loc.n_reseeds_
-                fix = loc.update_code(codes[i], velocity[i])
-                places[i], conf[i] = fix.place, fix.confidence
-                states.append(fix.state)
-                relocated.append(int(loc.n_reseeds_ > before))
+            fixes = loc.update_batch(b.images, velocities=velocity)
+            places, conf, states = fixes.places, fixes.confidences, fixes.states.tolist()
+            relocated = fixes.relocated.astype(int).tolist()
             right = known = None
             if args.ground_truth is not None:
                 can, judge, known = _truth(args, cmap, b, gt_positions, lookup)

@@ -146,6 +146,7 @@ def read_poses(path) -> tuple[np.ndarray, np.ndarray]:
                 f"{','.join(header)}; expected the SDK's ins.csv columns {','.join(INS_COLUMNS)} "
                 f"or gps.csv columns {','.join(GPS_COLUMNS)}"
             )
+        _check_unique_columns(header, _NEEDED, str(path))
         rows, lines = [], []
         for row in reader:
             if not row:
@@ -161,7 +162,6 @@ def read_poses(path) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(
             f"{path}, line {lines[i]}: expected {width} fields as in the header; got {len(rows[i])}"
         )
-    _check_unique_columns(header, _NEEDED, str(path))
     where = {name: header.index(name) for name in _NEEDED}
     cols = {name: [row[i].strip() for row in rows] for name, i in where.items()}
 

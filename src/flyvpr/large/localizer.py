@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._validation import check_positive_int
+from .._validation import check_images, check_positive_int
 from ..localization import LOCALIZED, Fix
 from ..localization.localizer import _check_place_spacing, odometry_places, odometry_places_batch
 from ..temporal.cann import WindowedCANN
@@ -332,9 +332,7 @@ class LargeLocalizer:
             frame is localized.
         """
         encoder = self._encoder("update_batch")
-        frames = np.asarray(images)
-        if frames.ndim != 3:
-            raise ValueError(f"images must be a stack (n, H, W); got shape {frames.shape}")
+        frames = check_images(images, "images", getattr(encoder, "image_shape_", None))
         moves = odometry_places_batch(
             velocities, distances, len(frames), self.place_spacing, "LargeLocalizer"
         )
