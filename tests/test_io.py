@@ -281,10 +281,15 @@ def test_a_killed_writer_s_temporary_file_is_removed_by_the_next_write(
     # temporary file stays.  The next write of the same target removes it (its writer's lock
     # is gone), and only it.
     import fcntl
+    import hashlib
     import signal
+    import socket
     import subprocess
     import sys
+    import time
 
+    # (the machine's tag: 8 hex digits of its name's hash)
+    assert _io._host_tag() == hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
     monkeypatch.setattr(_io, "_SWEPT", set())
     out = tmp_path / "map.fvmap"
     code = (
@@ -298,7 +303,7 @@ def test_a_killed_writer_s_temporary_file_is_removed_by_the_next_write(
         (left,) = [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
         assert f".{_io._host_tag()}-{child.pid}." in left.name
         # alive, it holds the lock: a writer of the same target leaves its file alone
-        old = left.stat().st_mtime - 60
+        old = time.time() - 12  # (unchanged for 12 s: over the 10 s a fresh file is left)
         os.utime(left, (old, old))
         _io.write_bytes_atomic(out, b"first")
         assert left.exists() and out.read_bytes() == b"first"
@@ -363,3 +368,16 @@ def test_an_archive_interrupted_while_it_is_built_is_dropped_quietly(monkeypatch
     with _io.ZipWriter(io.BytesIO(), "w") as zf:  # a whole one closes as ZipFile does
         zf.writestr("a.txt", "x")
     assert zf.fp is None
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc to count descriptors")
+def test_a_write_that_fails_early_closes_no_descriptor_of_others(tmp_path, monkeypatch):
+    # a write that fails before its temporary file exists (here: no free temporary name)
+    # leaves every descriptor of the process open (the lock's is opened with the file only)
+    (tmp_path / ".taken.tmp").write_bytes(b"")
+    monkeypatch.setattr(_io, "_temporary_name", lambda name: ".taken.tmp")
+    before = sorted(os.listdir("/proc/self/fd"))
+    with pytest.raises(OSError, match="out.bin: .*no free temporary name"):
+        _io.write_bytes_atomic(tmp_path / "out.bin", b"x")
+    assert sorted(os.listdir("/proc/self/fd")) == before
+    os.fstat(2)  # (stderr among them)
