@@ -309,27 +309,16 @@ class LargeLocalizer:
         """Consecutive frames: encoded in one vectorised call (needs ``encoder``), then
         localized in order, as :meth:`update` frame by frame.
 
-        Parameters
-        ----------
-        images : array-like, shape (n, H, W)
-        velocities : array-like, shape (n,), optional
-            Places moved since the previous frame, per frame (NaN or None: no odometry for
-            that frame).
-        distances : array-like, shape (n,), optional
-            Metres moved since the previous frame, per frame (NaN or None: none), divided by
-            ``place_spacing``.  Not with ``velocities``.
+        ``images`` (n, H, W), ``velocities`` (places) or ``distances`` (metres, over
+        ``place_spacing``), one per frame (NaN or None: no odometry for that frame), and the
+        errors are those of :meth:`flyvpr.localization.Localizer.update_batch`, checked before
+        any frame is localized.
 
         Returns
         -------
         LargeFixes
             ``places``, ``confidences``, ``relocated`` (re-seeded at that frame) and
             ``states``.
-
-        Raises
-        ------
-        ValueError, TypeError
-            As :class:`~flyvpr.localization.Localizer.update_batch`'s, checked before any
-            frame is localized.
         """
         encoder = self._encoder("update_batch")
         frames = check_images(images, "images", getattr(encoder, "image_shape_", None))
