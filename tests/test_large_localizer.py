@@ -409,14 +409,20 @@ def test_reset_forgets_everything():
     assert loc.n_searches_ == fresh.n_searches_ and loc.n_frames_ == 30
 
 
-def test_update_encodes_the_image_and_passes_the_odometry_on():
+def _image_map(seed):
+    """300 random frames, a 64-bit compact encoder fitted on them, its codes and their exact
+    index (and the generator, for the queries)."""
     from flyvpr.large import CompactEncoder
 
-    rng = np.random.default_rng(6)
+    rng = np.random.default_rng(seed)
     images = rng.random((300, 32, 64)).astype(np.float32)
     enc = CompactEncoder(n_bits=64, random_state=0).fit(images)
     codes = enc.reference_codes_
-    index = ExhaustiveIndex().build(codes)
+    return rng, images, enc, codes, ExhaustiveIndex().build(codes)
+
+
+def test_update_encodes_the_image_and_passes_the_odometry_on():
+    _, images, enc, codes, index = _image_map(6)
     by_image = LargeLocalizer(codes, index, encoder=enc, window=64)
     by_code = LargeLocalizer(codes, index, window=64)
     for t in range(20):
@@ -1181,13 +1187,7 @@ def test_a_refused_frame_leaves_nothing_behind():
 def test_distances_in_metres_are_places_over_the_spacing():
     # odometry in metres with place_spacing 2.5 m steps the layer as the same odometry given
     # in places, frame by frame, in a batch of images and on a code
-    from flyvpr.large import CompactEncoder
-
-    rng = np.random.default_rng(7)
-    images = rng.random((300, 32, 64)).astype(np.float32)
-    enc = CompactEncoder(n_bits=64, random_state=0).fit(images)
-    codes = enc.reference_codes_
-    index = ExhaustiveIndex().build(codes)
+    rng, images, enc, codes, index = _image_map(7)
     frames = np.clip(images[100:130] + rng.normal(0, 0.05, (30, 32, 64)), 0, 1).astype(np.float32)
     moved = np.r_[np.nan, np.full(29, 1.0)]  # places; the first frame has none
     moved[10] = np.nan  # an outage
