@@ -381,3 +381,85 @@ def test_a_write_that_fails_early_closes_no_descriptor_of_others(tmp_path, monke
         _io.write_bytes_atomic(tmp_path / "out.bin", b"x")
     assert sorted(os.listdir("/proc/self/fd")) == before
     os.fstat(2)  # (stderr among them)
+
+
+def test_a_taken_temporary_name_is_drawn_again_a_hundred_times(tmp_path, monkeypatch):
+    # a name another writer holds is drawn afresh; after 100 draws the write gives up
+    (tmp_path / ".taken.tmp").write_bytes(b"")
+    drawn = []
+    monkeypatch.setattr(_io, "_temporary_name", lambda name: drawn.append(name) or ".taken.tmp")
+    with pytest.raises(OSError, match="no free temporary name"):
+        _io.write_bytes_atomic(tmp_path / "out.bin", b"x")
+    assert drawn == ["out.bin"] * 100 and not (tmp_path / "out.bin").exists()
+    names = iter([".taken.tmp"] * 99 + [".free.tmp"])
+    monkeypatch.setattr(_io, "_temporary_name", lambda name: next(names))
+    _io.write_bytes_atomic(tmp_path / "out.bin", b"x")  # (the 100th draw is free)
+    assert (tmp_path / "out.bin").read_bytes() == b"x"
+
+
+def test_a_failed_rename_names_the_output_not_the_temporary_file(tmp_path, monkeypatch):
+    # os.replace's error names the temporary file, which the user never named
+    def refuse(src, dst):
+        raise OSError(errno.EACCES, "Permission denied", str(src))
+
+    monkeypatch.setattr(_io.os, "replace", refuse)
+    out = tmp_path / "out.json"
+    with pytest.raises(OSError) as info:
+        write_json_atomic(out, {"a": 1})
+    assert info.value.strerror == f"cannot write {out}: Permission denied"
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_temporary_file_unchanged_for_exactly_the_age_is_stale(tmp_path, monkeypatch):
+    # a file without a writer is removed once it has not changed for 10 s, not before
+    name = f".out.bin.{_io._host_tag()}-7.0123abcd.tmp"
+    left = tmp_path / name
+    for age, kept in ((_io._STALE_AGE - 0.5, True), (_io._STALE_AGE, False)):
+        left.write_bytes(b"old")
+        os.utime(left, (1_000_000.0, 1_000_000.0))
+        monkeypatch.setattr(_io, "_SWEPT", set())
+        monkeypatch.setattr(_io.time, "time", lambda age=age: 1_000_000.0 + age)
+        _io.write_bytes_atomic(tmp_path / "out.bin", b"new")
+        assert left.exists() is kept
+
+
+def test_json_is_written_indented_by_two_and_ends_with_a_newline(tmp_path):
+    obj = {"b": [1, 2], "a": {"c": None}}
+    write_json_atomic(tmp_path / "a.json", obj)
+    assert (tmp_path / "a.json").read_text() == json.dumps(obj, indent=2) + "\n"
+
+
+def test_helpers_for_kinds_same_files_folders_and_interruptions(tmp_path):
+    # the kind of a character device, named in the refusal of such a target
+    assert _io._kind(os.stat("/dev/null").st_mode) == "a device"
+    # two names of a file that does not exist (yet) are compared as resolved paths
+    a, b = tmp_path / "no" / "x.json", tmp_path / "no" / "." / "x.json"
+    assert _io._same_file(a, b) and not _io._same_file(a, tmp_path / "no" / "y.json")
+    # a folder of images named twice is one folder; a file that is not an image, none
+    images = tmp_path / "frames"
+    images.mkdir()
+    (images / "0001.png").write_bytes(b"")
+    (tmp_path / "notes.txt").write_text("x")
+    exts = tuple(IMAGE_EXTENSIONS)
+    assert _io._image_folders([images, images, tmp_path / "notes.txt"], exts) == [images]
+    # an interruption anywhere in an error's context chain is raised again; none: nothing
+    try:
+        try:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as stop:
+                raise ValueError("closing the archive failed") from stop
+        except ValueError as closing:
+            raise OSError("the cache is optional") from closing
+    except OSError as exc:
+        with pytest.raises(KeyboardInterrupt):
+            _io.raise_interruption(exc)
+    try:
+        try:
+            raise ValueError("first")
+        except ValueError as first:
+            raise OSError("second") from first
+    except OSError as exc:
+        assert _io.raise_interruption(exc) is None
+        exc.__context__.__context__ = exc  # (a cycle ends the walk too)
+        assert _io.raise_interruption(exc) is None
