@@ -941,6 +941,60 @@ def test_a_display_matrix_is_applied_as_the_ffmpeg_command_does():
         np.testing.assert_array_equal(got, shown, err_msg=str((a, b, c, d)))
 
 
+def test_a_stream_s_display_matrix_is_read_once_per_angle(monkeypatch):
+    # frame.side_data (the matrix) makes PyAV hold each frame in a reference cycle: it is read
+    # on the first frame and again only when the angle changes, which frame.rotation tells
+    from flyvpr.sources import video
+    from flyvpr.sources.video import _DisplayOps
+
+    class Frame:
+        reads = 0
+
+        def __init__(self, matrix, rotation):
+            self.matrix, self.rotation = matrix, rotation
+
+        @property
+        def side_data(self):
+            Frame.reads += 1
+            m = [v << 16 for v in self.matrix]
+            m = np.array(m[:2] + [0] + m[2:] + [0, 0, 0, 1 << 30], np.int32)
+            return {"DISPLAYMATRIX": m.tobytes()}
+
+    vflip, turned, hflip = ((1, 0, 0, -1), 0.0), ((0, 1, -1, 0), -90.0), ((-1, 0, 0, 1), -180.0)
+    display = _DisplayOps()
+    seen = [display(Frame(*m)) for m in (vflip, vflip, vflip, turned, turned, hflip, vflip)]
+    assert seen == [("vflip",)] * 3 + [("clock",)] * 2 + [("hflip",), ("vflip",)]
+    assert Frame.reads == 4  # (the first frame, then each change of angle)
+    calls = []
+    real = video._display_ops
+    monkeypatch.setattr(video, "_display_ops", lambda f: calls.append(f.rotation) or real(f))
+    nan = _DisplayOps()  # a singular matrix's angle, NaN, is one angle too
+    assert [nan(Frame((0, 0, 0, 0), float("nan"))) for _ in range(3)] == [()] * 3
+    assert len(calls) == 1
+
+
+def test_decoded_video_frames_are_freed_at_once(route, tmp_path):
+    # each picture is freed when the batch that decoded it is done, not left to the cyclic
+    # garbage collector (reading every frame's side data kept them: 95 MB more at 640 x 480)
+    import gc
+
+    import av
+
+    path = write_video(tmp_path / "v.mp4", _rgb(route), fps=10)
+    src = open_source(path)
+    gc.collect()
+    gc.disable()
+    try:
+        n = 0
+        for batch in src.batches(SIZE):
+            n += len(batch.images)
+        # (type(), not isinstance: a dead weak proxy among the objects raises on __class__)
+        alive = sum(type(o) is av.VideoFrame for o in gc.get_objects())
+    finally:
+        gc.enable()
+    assert n == N and alive <= 1  # (the first frame, whose matrix was read)
+
+
 def test_several_video_streams_read_the_default_one(route, tmp_path, caplog):
     # stream 0: a small preview (5 frames); stream 1: the main track, flagged default
     small = np.stack([f[::2, ::2] for f in _rgb(route, "winter", 5)])

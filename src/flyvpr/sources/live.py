@@ -594,7 +594,7 @@ class LiveSource:
             source and the reason).
         """
         from ..images import area_resize
-        from .video import _decoder
+        from .video import _decoder, _DisplayOps
 
         h, w = _check_size(size)
         if self._thread is not None:
@@ -611,6 +611,7 @@ class LiveSource:
         # sends only damage for stall_timeout ends; one torn JPEG after a silence (a camera
         # that hung mid-picture, which the reader reconnects to) does not
         damaged_since: float | None = None
+        display = _DisplayOps()
         try:
             while True:
                 item = self._take()
@@ -629,7 +630,7 @@ class LiveSource:
                             )
                         continue
                 damaged_since = None
-                yield LiveFrame(index, t, arrival, _decoder(frame)((h, w)), frame)
+                yield LiveFrame(index, t, arrival, _decoder(frame, display)((h, w)), frame)
         finally:
             self.close()
 

@@ -97,6 +97,7 @@ class VideoSource(Source):
                 stream.thread_type = "AUTO"
             ends = _stream_end(container, stream)
             nominal = _nominal_interval(stream)
+            display = _DisplayOps()
             index = 0
             times = [math.nan, math.nan]  # the last two frames' presentation times
             last_duration = math.nan  # the last frame's own duration, where it has one
@@ -106,7 +107,7 @@ class VideoSource(Source):
                     t = float("nan") if t is None else float(t)
                     times = [times[1], t]
                     last_duration = _frame_duration(frame)
-                    yield index, t, _decoder(frame)
+                    yield index, t, _decoder(frame, display)
                     index += 1
             except av.FFmpegError as exc:
                 raise RecordingError(
@@ -341,11 +342,40 @@ def _display_matrix(frame) -> tuple[float, float, float, float] | None:
     return float(m[0]), float(m[1]), float(m[3]), float(m[4])
 
 
-def _decoder(frame):
+class _DisplayOps:
+    """:func:`_display_ops` for the frames of one stream, the display matrix read once per
+    angle: again only when ``frame.rotation`` changes (which reads no side data).
+
+    Reading a frame's side data (``frame.side_data``) makes PyAV keep a reference cycle
+    between the frame and its side data, so the frame's picture is freed by the cyclic
+    garbage collector instead of at once: read for every frame of a 640 x 480 video, it
+    raised the peak memory of ``flyvpr localize`` by about 95 MB.  A stream's display matrix
+    is the container's (MP4's track matrix), the same on every frame; one that changed its
+    mirroring but not its angle mid-stream would keep the first frame's."""
+
+    def __init__(self):
+        self._angle: object = ()  # (no frame seen: no angle equals it)
+        self._ops: tuple[str, ...] = ()
+
+    def __call__(self, frame) -> tuple[str, ...]:
+        angle = getattr(frame, "rotation", None)
+        if angle is not None and math.isnan(angle):
+            angle = "nan"  # (a singular matrix: equal to itself here)
+        if angle != self._angle:
+            self._angle = angle
+            self._ops = _display_ops(frame)
+        return self._ops
+
+
+def _decoder(frame, display=_display_ops):
+    """A function of the size (h, w) that decodes ``frame`` to gray at that size, upright
+    (``display``: the steps that show it, from the frame; a :class:`_DisplayOps` per stream
+    reads its display matrix once per angle)."""
+
     def decode(size):
         h, w = size
         y, full = _luma(frame)
-        ops = _display_ops(frame)
+        ops = display(frame)
         for op in ops:
             y = _OPS[op](y)
         if ops:
