@@ -297,8 +297,8 @@ def _display_ops(frame) -> tuple[str, ...]:
                 "rotated videos are read as stored: pip install 'av>=14.1'"
             )
         return ()
-    if not math.isfinite(rotation):  # a singular matrix
-        return ()
+    if not math.isfinite(rotation) or abs(rotation) > 360:
+        return ()  # a singular matrix (NaN in some PyAV versions, INT_MIN in PyAV 18)
     m = _display_matrix(frame)
     if m is None:  # the angle alone: the matrix of a pure turn by it
         r = math.radians(rotation)
@@ -344,14 +344,16 @@ def _display_matrix(frame) -> tuple[float, float, float, float] | None:
 
 class _DisplayOps:
     """:func:`_display_ops` for the frames of one stream, the display matrix read once per
-    angle: again only when ``frame.rotation`` changes (which reads no side data).
+    angle: again only when ``frame.rotation`` changes (computed in C, without building
+    ``frame.side_data``).
 
     Reading a frame's side data (``frame.side_data``) makes PyAV keep a reference cycle
     between the frame and its side data, so the frame's picture is freed by the cyclic
     garbage collector instead of at once: read for every frame of a 640 x 480 video, it
     raised the peak memory of ``flyvpr localize`` by about 95 MB.  A stream's display matrix
-    is the container's (MP4's track matrix), the same on every frame; one that changed its
-    mirroring but not its angle mid-stream would keep the first frame's."""
+    is usually the container's (MP4's track matrix), the same on every frame; a stream whose
+    mirroring changed mid-stream without its angle (H.264's display-orientation messages can
+    set one per frame) keeps the first frame's."""
 
     def __init__(self):
         self._angle: object = ()  # (no frame seen: no angle equals it)
@@ -360,14 +362,14 @@ class _DisplayOps:
     def __call__(self, frame) -> tuple[str, ...]:
         angle = getattr(frame, "rotation", None)
         if angle is not None and math.isnan(angle):
-            angle = "nan"  # (a singular matrix: equal to itself here)
+            angle = "nan"  # (a singular matrix in some PyAV versions: equal to itself here)
         if angle != self._angle:
             self._angle = angle
             self._ops = _display_ops(frame)
         return self._ops
 
 
-def _decoder(frame, display=_display_ops):
+def _decoder(frame, display):
     """A function of the size (h, w) that decodes ``frame`` to gray at that size, upright
     (``display``: the steps that show it, from the frame; a :class:`_DisplayOps` per stream
     reads its display matrix once per angle)."""
