@@ -66,6 +66,8 @@ def run(f, S, velocity=None):
                 "n_relocations_": f.n_relocations_,
                 "shape_": f.shape_,
                 "front_model": tuple(f._front_model),
+                "front_share_": f.front_share_,
+                "snapped_": f.snapped_,
             }
         )
     return np.array(rows), frames
@@ -120,6 +122,8 @@ def reference_filter(S, velocity=None, **params):
     # past frames' peak z-scores and best raw scores, with their weights
     a, b = math.log(front_prior(tol) / (1 - front_prior(tol))), 0.0
     strengths, raws, weights = [], [], []
+    # the front end's agreement with the confident sequence answers, and its last best place
+    agreed, checked, last_front = 0.0, 0.0, None
     stride = max(1, n // 4096)
     relocations = 0
     likeness, last = None, None  # the running mean correlation of consecutive rows; the last row
@@ -250,6 +254,14 @@ def reference_filter(S, velocity=None, **params):
         if confidence >= 0.5:  # a step of gradient ascent on the log-likelihood of agreeing
             error = float(abs(front - answer) <= tol) - front_confidence
             a, b = a + _FRONT_RATE * error, b + _FRONT_RATE * error * feature
+            agreed, checked = agreed + float(abs(front - answer) <= tol), checked + 1
+        front_share = (agreed + front_prior(tol)) / (checked + 1)  # a prior worth one answer
+        # the front end's best place moved with the layer's mean velocity of the last frame
+        last_velocity = frames[-1]["velocity_"] if frames else 0.0
+        step = 0 if last_front is None else (front - last_front) * np.sign(last_velocity)
+        with_layer = last_velocity != 0 and 1 <= step <= 2 * abs(last_velocity) + 1
+        last_front = front
+        snapped = False
         front_confidence = min(1.0, front_confidence * (1 + 1e-3 * math.tanh(raw_z)))
         if q["fallback"] and support_mean * probability < front_confidence * (1 - support_mean):
             # shrunk towards the base rate 0.5 ** (1 + tol) by the share of localized frames,
@@ -268,6 +280,10 @@ def reference_filter(S, velocity=None, **params):
             source, out = "sequence", box * support
             if predicted >= 0 and abs(answer - predicted) > 2 * tol + 1:
                 relocations += 1
+            near = 0 < abs(front - answer) <= 2 * (2 * tol + 1)
+            if q["snap"] and near and front_share > probability and with_layer:
+                snapped, answer, confidence = True, front, support * front_share
+                probability = front_share  # (the answer's probability of being right)
             if q["calibration"] is not None:
                 calibrated = float(np.interp(confidence**0.25, KNOTS, q["calibration"]))
                 out = out * calibrated / confidence if confidence > 0 else out
@@ -279,7 +295,7 @@ def reference_filter(S, velocity=None, **params):
         out = np.minimum(out, confidence)
         out[answer] = confidence
         rows.append(out)
-        localized = source == "sequence" and support * probability >= 0.5
+        localized = source == "sequence" and support * probability >= 0.5  # (as calibrated)
         localized_mean += rate * (float(localized) - localized_mean)
         frames.append(
             {
@@ -298,6 +314,8 @@ def reference_filter(S, velocity=None, **params):
                 "n_relocations_": relocations,
                 "shape_": min(1.0, max(0.05, 1 / log_rank[0])),
                 "front_model": (a, b),
+                "front_share_": front_share,
+                "snapped_": snapped,
             }
         )
     return np.array(rows), frames
@@ -549,6 +567,7 @@ DEFAULTS = {
     "outlier": 0.3,
     "support_memory": 100.0,
     "fallback": True,
+    "snap": True,
     "calibration": CALIBRATION,
     "recalibration": None,
     "odometry": "scaled",
@@ -677,6 +696,7 @@ BAD_PARAMS = [
     ({"support_memory": None}, TypeError, "support_memory must be a number; got NoneType"),
     ({"fallback": None}, TypeError, "fallback must be True or False; got NoneType"),
     ({"fallback": "yes"}, TypeError, "fallback must be True or False; got str"),
+    ({"snap": 1}, TypeError, "snap must be True or False; got int"),
     ({"hold_repeats": None}, TypeError, "hold_repeats must be True or False; got NoneType"),
     ({"hold_repeats": 1}, TypeError, "hold_repeats must be True or False; got int"),
     (
@@ -838,6 +858,10 @@ def test_reset_forgets_everything():
     assert f.n_frames_ == 0 and f.n_relocations_ == 0
     assert math.isnan(f.velocity_) and f.confidence_ == 0.0 and f.support_ == 0.5
     assert f.front_probability_ == 0.0 and f.probability_ == 0.0
+    assert f.front_share_ == 0.5**4 and f.snapped_ is False  # (the prior, at tolerance 2)
+    g = CANN(tolerance=1)
+    g.reset()
+    assert g.front_share_ == 0.5**3
     assert f.state_ == "lost" and f.source_ == "sequence" and f.compiled_ is False
     assert f.novelty_ == 1.0 and f.evidence_share_ == 1.0 and f.n_held_ == 0  # nothing seen
     f.step(np.zeros(11))  # a new route length after reset
@@ -1550,6 +1574,93 @@ def test_state_follows_source_support_and_probability():
     assert {fr["source_"] for fr in frames} == {"sequence", "front end"}
 
 
+def _dropping_route(n=80):
+    """A strong front end on a route at 1 place per frame that skips 4 places twice (frames
+    dropped): the packet falls behind the front end's peak for some frames after each."""
+    pos = np.r_[3 + np.arange(30), 37 + np.arange(12), 54 + np.arange(20)]
+    return bump_rows(pos, n, amp=2.0, seed=3), pos
+
+
+def test_the_answer_snaps_to_a_front_end_that_moves_with_the_layer_near_it():
+    S, pos = _dropping_route()
+    _, frames = run(CANN(), S)
+    _, plain = run(CANN(snap=False), S)
+    wrong = {t for t, fr in enumerate(frames) if abs(fr["answer"] - pos[t]) > 2}
+    wrong_plain = {t for t, fr in enumerate(plain) if abs(fr["answer"] - pos[t]) > 2}
+    # behind after each skip without the snap; with it, only on the frames of the skip
+    # itself (the front end jumped further than the layer moves) and the one after it
+    assert wrong < wrong_plain and len(wrong_plain) >= 3 * len(wrong) >= 9
+    snapped = [t for t, fr in enumerate(frames) if fr["snapped_"]]
+    assert {32, 33, 34, 43, 44} <= set(snapped)
+    assert not any(fr["snapped_"] for fr in plain)
+    for t in snapped:
+        fr = frames[t]
+        assert fr["answer"] == int(np.argmax(S[t])) and abs(fr["answer"] - pos[t]) <= 2
+        # (the layer does not see the snap: without it, the packet's window held less)
+        assert fr["source_"] == "sequence" and fr["front_share_"] > plain[t]["probability_"]
+        # its probability of being right is the share: the state follows from it
+        localized = fr["support_"] * fr["front_share_"] >= 0.5
+        assert fr["probability_"] == fr["front_share_"]
+        assert fr["state_"] == ("localized" if localized else "lost")
+    # the front end agreed with most of the confident answers (the snap does not count)
+    assert frames[-1]["front_share_"] == pytest.approx(plain[-1]["front_share_"])
+    assert 0.85 < frames[-1]["front_share_"] < 1.0
+    assert_matches_reference(S)
+    assert_matches_reference(S, recalibration=tuple(np.sqrt(KNOTS)))
+
+
+def test_the_snap_follows_the_last_frame_filtered_across_held_ones():
+    # every frame recorded twice (a camera faster than the robot): the repeats are held, and
+    # the layer's velocity of the last frame filtered decides, not the held frame's 0
+    S, pos = _dropping_route()
+    twice, at = np.repeat(S, 2, axis=0), np.repeat(pos, 2)
+    _, frames = run(CANN(), twice)
+    _, plain = run(CANN(snap=False), twice)
+    assert sum(fr["snapped_"] for fr in frames) >= 6
+    wrong = sum(abs(fr["answer"] - p) > 2 for fr, p in zip(frames, at, strict=True))
+    wrong_plain = sum(abs(fr["answer"] - p) > 2 for fr, p in zip(plain, at, strict=True))
+    assert 2 * wrong <= wrong_plain
+
+
+@pytest.mark.parametrize(
+    ("front", "last_front", "velocity", "probability", "snaps"),
+    [
+        (30, 29, 1.0, 0.5, True),
+        (20, 19, 1.0, 0.5, False),  # the packet's own place: nothing to move
+        (30, None, 1.0, 0.5, False),  # no front end's place before
+        (30, 29, 1.0, 0.9, False),  # the share must beat the window's probability
+        (30, 29, 1.0, 0.8999, True),
+        (30, 29, 0.0, 0.5, False),  # a layer that stood the last frame filtered
+        (30, 31, 0.0, 0.5, False),
+        (30, 29, float("nan"), 0.5, False),
+        (30, 30, 1.0, 0.5, False),  # the front end stood while the layer moved
+        (30, 27, 1.0, 0.5, True),  # at most 2 |v| + 1 places
+        (30, 26, 1.0, 0.5, False),
+        (30, 26, 1.5, 0.5, True),
+        (30, 25, 1.5, 0.5, False),
+        (30, 31, -1.0, 0.5, True),  # backwards along the map
+        (30, 29, -1.0, 0.5, False),
+        (10, 9, 1.0, 0.5, True),  # within twice the sequence test's window: 10 places
+        (9, 8, 1.0, 0.5, False),
+    ],
+)
+def test_when_the_answer_snaps(front, last_front, velocity, probability, snaps):
+    f = CANN(tolerance=2)
+    f.filter(bump_rows(np.arange(5.0), 40))
+    f.front_share_ = 0.9
+    f._layer_velocity = velocity
+    packet = 20 if front != 30 else 22
+    assert f._snaps(front, packet, last_front, probability, 2) is snaps
+
+
+def test_the_snap_distance_follows_the_tolerance():
+    f = CANN(tolerance=1)
+    f.filter(bump_rows(np.arange(5.0), 40))
+    f.front_share_, f._layer_velocity = 0.9, 1.0
+    assert f._snaps(26, 20, 25, 0.5, 1) and not f._snaps(27, 20, 26, 0.5, 1)
+    assert f._snaps(14, 20, 13, 0.5, 1) and not f._snaps(13, 20, 12, 0.5, 1)
+
+
 def test_sequence_confidence_is_calibrated_support_times_probability():
     _, calibrated = run(CANN(), _mixed_scenario())
     rows_raw, raw = run(CANN(calibration=None), _mixed_scenario())
@@ -1560,7 +1671,9 @@ def test_sequence_confidence_is_calibrated_support_times_probability():
         assert a["source_"] == b["source_"] == c["source_"] and a["answer"] == b["answer"]
         if b["source_"] == "sequence":
             n_sequence += 1
-            value = b["support_"] * b["probability_"]
+            # (a snapped answer's: the support times the front end's share of agreement)
+            share = b["front_share_"] if b["snapped_"] else b["probability_"]
+            value = b["support_"] * share
             assert b["confidence_"] == np.float32(value)
             # (the tables are given at the raw confidence's fourth root)
             assert a["confidence_"] == np.float32(np.interp(value**0.25, KNOTS, CALIBRATION))
@@ -2333,6 +2446,45 @@ def test_a_gap_in_scaled_odometry_keeps_the_speed_and_the_scale(odometry):
     assert odometry_scale(scale) == pytest.approx(2.0 / odometry, abs=0.1)
 
 
+def test_a_gap_after_fast_odometry_keeps_that_speed():
+    # 3 places per frame with right odometry, then none: the gap goes on at 3 (the
+    # odometry's running mean is bounded by twice the route's length, not by the bank)
+    T = 40
+    pos = 2 + 3.0 * np.arange(T)
+    S = bump_rows(pos, 130, seed=6)
+    given = np.full(T, 3.0)
+    given[20:] = np.nan
+    answers, speeds = _gappy_run(CANN(), S, given)
+    assert np.all(np.abs(speeds[20:] - 3.0) < 0.1)
+    assert np.array_equal(answers[10:], pos[10:])
+
+
+def test_odometry_from_the_second_frame_keeps_what_the_first_one_showed():
+    # The first frame's odometry moves nothing, so odometry that starts with the second frame
+    # filters as odometry from the first: the places the first frame weighed stay, the rows
+    # become the scales' prior (without adaptation the first frame has evidence of its own).
+    S = bump_rows(10.0 + np.arange(6), 40, amp=4.0, seed=2)
+    late, early = CANN(adaptation=None), CANN(adaptation=None)
+    late.step(S[0])
+    early.step(S[0], velocity=1.0)
+    for row in S[1:]:
+        np.testing.assert_allclose(
+            late.step(row, velocity=1.0), early.step(row, velocity=1.0), atol=1e-6
+        )
+
+
+def test_odometry_of_a_repeated_second_frame_counts_with_the_next_one():
+    # the camera repeated its first frame while the robot moved a place: that odometry goes
+    # with the next new frame's (2 places in one new frame), so a gap after it goes on at
+    # about 2 places per frame, not 1
+    S = bump_rows(np.array([5.0, 5.0, 7.0, 9.0]), 40, seed=2)
+    S[1] = S[0]
+    f = CANN()
+    for row, v in zip(S, [0.0, 1.0, 1.0, None], strict=True):
+        f.step(row, velocity=v)
+    assert 1.5 < f.velocity_ < 2.5
+
+
 def test_a_gap_after_repeated_frames_moves_a_place_per_new_frame():
     # Half a place per frame recorded as every image twice: odometry 1, 0, 1, 0 ...  In a gap
     # the repeats are held and the layer moves on the new frames only, so its speed is the
@@ -2586,6 +2738,7 @@ def test_a_glitch_in_the_odometry_is_refused_and_the_frame_filtered_without_it(o
     ("before", "step", "refused"),
     [
         ([1.0] * 10, 7.9, 0),  # 8 times the recent distance: a robot speeding up, taken
+        ([1.0] * 10, 8.0, 0),  # (exactly 8 times: taken)
         ([1.0] * 10, 8.1, 1),
         ([0.0] * 30, 7.9, 0),  # after a stand: 8 places at least
         ([0.0] * 30, 8.1, 1),

@@ -133,6 +133,13 @@ def test_moving_carries_the_state_and_fills_what_enters():
     assert c._tied.dtype == np.int32 and c._tied.tolist() == [1, 2, 3, 4, 5, 8, 20, 65]
     f._move(f.window_[0] + 60)
     assert c._tied.tolist() == [5, *range(40, 100)]
+    # the front end's last best place (for the snap) moves with the places; unknown stays so
+    c._last_front = 70
+    f._move(f.window_[0] + 8)
+    assert c._last_front == 62
+    c._last_front = None
+    f._move(f.window_[0] - 8)
+    assert c._last_front is None
 
 
 def test_a_repeated_frame_is_held_in_the_window_too():

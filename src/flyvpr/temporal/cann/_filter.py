@@ -239,6 +239,18 @@ class CANN(OdometryFilter):
         probability that the query follows the route): a filter lost for long, or whose
         frames no longer follow the route, may be off the map, where the model (learned on
         the route) does not hold.
+    snap : bool, default True
+        Answer with the front end's best place instead of the packet's when it lies near the
+        packet's answer but not on it (within ``2 * (2 * tolerance + 1)`` places), moved with
+        the layer since the last frame filtered (1 to ``2 |v| + 1`` places along the layer's
+        mean velocity ``v`` of that frame), and the front end has agreed (within
+        ``tolerance``) with a larger share of the sequence's confident answers than the
+        probability the packet's window holds (``front_share_``).  A packet that fell behind
+        a strong front end (a recording that drops frames) so answers where the front end
+        does.  The answer stays the sequence's (``source_``), its probability of being right
+        (``probability_``) is that share: the confidence is the support times it
+        (calibrated), and the state follows from it as from the window's.  See "Output" on
+        the guide page.
     calibration : sequence of 11 float or None, default CALIBRATION
         The sequence's confidence where the fourth root of its raw confidence (support times
         the window's probability) is 0, 0.1, ..., 1 (raw 0, 0.0001, 0.0016, ..., 1: finest
@@ -288,8 +300,8 @@ class CANN(OdometryFilter):
     confidence_ : float
         Probability, in [0, 1], that the last answer is right (within ``tolerance``).
     state_ : str
-        ``"localized"`` when the answer comes from the sequence and the support times the
-        window's probability (the raw confidence, before calibration) is at least 0.5,
+        ``"localized"`` when the answer comes from the sequence and the support times
+        ``probability_`` (the raw confidence, before calibration) is at least 0.5,
         ``"lost"`` otherwise (the place is then a hint).
     support_ : float
         Probability that the query is following the route.
@@ -306,6 +318,16 @@ class CANN(OdometryFilter):
     front_probability_ : float
         The front end's model's probability that its own best place is right, this frame
         (before the shrinking of a front-end answer's confidence).
+    front_share_ : float
+        The share of the sequence's confident answers (support times window probability at
+        least 0.5) whose place the front end's best place was within ``tolerance`` of, from
+        a prior of ``0.5 ** (2 + tolerance)`` worth one answer (see ``snap``); counted since
+        :meth:`reset`, not forgotten.
+    probability_ : float
+        The probability within ``tolerance`` places of the sequence's answer: its window's,
+        or ``front_share_`` where the answer snapped; 0 for a front end's answer.
+    snapped_ : bool
+        Whether the last answer is the front end's best place by ``snap``.
     velocity_ : float
         Mean velocity of the layer after the last step, places per frame: with odometry,
         the odometry times the layer's mean scale (``"scaled"``) or the odometry
@@ -316,11 +338,13 @@ class CANN(OdometryFilter):
     n_odometry_refused_ : int
         Frames since :meth:`reset` whose odometry was refused as a glitch (see ``odometry``).
     source_ : str
-        ``"sequence"`` or ``"front end"``: where the last answer came from.
+        ``"sequence"`` or ``"front end"``: where the last answer came from (a snapped
+        answer, the front end's place taken by the sequence, is the sequence's).
     n_frames_, n_relocations_ : int
         Frames filtered since :meth:`reset` (held ones aside); frames answered from the
-        sequence whose answer landed more than ``2 * tolerance + 1`` places from the
-        predicted place (a front-end answer is never counted).
+        sequence whose packet's answer (before any snap) landed more than
+        ``2 * tolerance + 1`` places from the predicted place (a front-end answer is never
+        counted).
     compiled_ : bool
         Whether the per-frame updates run compiled by numba.
 
@@ -338,9 +362,9 @@ class CANN(OdometryFilter):
 
     name = "cann"
 
-    #: maps and models saved before ``odometry``, ``hold_repeats`` or ``jitter`` existed load
-    #: with its default
-    _added_params = ("odometry", "hold_repeats", "jitter")
+    #: maps and models saved before ``odometry``, ``hold_repeats``, ``jitter`` or ``snap``
+    #: existed load with its default (``snap``: off, as they ran; see ``flyvpr.modelio``)
+    _added_params = ("odometry", "hold_repeats", "jitter", "snap")
 
     def __init__(
         self,
@@ -365,6 +389,7 @@ class CANN(OdometryFilter):
         outlier=0.3,
         support_memory=100.0,
         fallback=True,
+        snap=True,
         calibration=CALIBRATION,
         recalibration=None,
         odometry="scaled",
@@ -391,6 +416,7 @@ class CANN(OdometryFilter):
         self.outlier = outlier
         self.support_memory = support_memory
         self.fallback = fallback
+        self.snap = snap
         self.calibration = calibration
         self.recalibration = recalibration
         self.odometry = odometry
@@ -436,7 +462,7 @@ class CANN(OdometryFilter):
                 "sequence_break + sequence_start must be <= 1; got "
                 f"{p['sequence_break']} + {p['sequence_start']}"
             )
-        for flag in ("adapt_variance", "bidirectional", "fallback", "hold_repeats"):
+        for flag in ("adapt_variance", "bidirectional", "fallback", "snap", "hold_repeats"):
             value = getattr(self, flag)
             if not isinstance(value, (bool, np.bool_)):
                 raise TypeError(f"{flag} must be True or False; got {type(value).__name__}")
@@ -522,6 +548,8 @@ class CANN(OdometryFilter):
         self.novelty_ = 1.0
         self.evidence_share_ = 1.0
         self.front_probability_ = 0.0
+        self.front_share_ = 0.5 ** (2 + self._params["tolerance"])
+        self.snapped_ = False
         self.probability_ = 0.0
         self.state_ = "lost"
         self.source_ = "sequence"
@@ -581,6 +609,13 @@ class CANN(OdometryFilter):
         self._front_raw_z = 0.0
         prior = 0.5 ** (2 + p["tolerance"])
         self._front_model = [math.log(prior / (1.0 - prior)), 0.0]
+        # The front end's agreement with the sequence's confident answers: how many agreed
+        # and how many there were (see _snaps); the last frame's best place of the front end.
+        self._front_agreed = 0.0
+        self._front_checked = 0.0
+        self._last_front: int | None = None
+        self._layer_velocity = float("nan")  # velocity_ of the last frame filtered (not held)
+        self.front_share_ = prior
 
     @property
     def shape_(self) -> float:
@@ -607,6 +642,27 @@ class CANN(OdometryFilter):
             stats[k + 1] = (1.0 - rate) * (var + rate * delta * delta)
         self._front_raw_z = out[1]
         return out[0]
+
+    def _snaps(
+        self, front: int, packet: int, last_front: int | None, probability: float, radius: int
+    ) -> bool:
+        """Whether the front end's best place ``front`` answers instead of the packet's
+        ``packet`` (see "Output" on the guide page): it lies within twice the sequence test's
+        window of it (``2 * (2 * radius + 1)`` places) but not on it, the front end has agreed
+        with more of the sequence's confident answers (``front_share_``) than the packet's
+        window holds of its probability, and the front end's best place moved with the layer
+        since the last frame filtered: 1 to ``2 |v| + 1`` places along the layer's
+        mean velocity ``v`` of that frame (a front end that stands while the layer moves, or
+        jumps about, is not followed)."""
+        if front == packet or abs(front - packet) > 2 * (2 * radius + 1):
+            return False
+        if not self.front_share_ > probability or last_front is None:
+            return False
+        v = self._layer_velocity  # (of the last frame filtered: not a held one's 0)
+        if v == 0.0 or not math.isfinite(v):  # (NaN before the first frame)
+            return False
+        step = (front - last_front) * (1 if v > 0 else -1)
+        return 1 <= step <= 2.0 * abs(v) + 1.0
 
     def _shifts(self, velocity: float | None) -> np.ndarray:
         """Whole places each row moves this frame (fractions accumulate, halves round up).
@@ -920,12 +976,20 @@ class CANN(OdometryFilter):
             error = agree - front_confidence
             self._front_model[0] += _FRONT_RATE * error
             self._front_model[1] += _FRONT_RATE * error * feature
+            self._front_agreed += agree
+            self._front_checked += 1.0
+        # The share of them it agreed with, from a prior worth one answer.
+        prior = 0.5 ** (2 + p["tolerance"])
+        self.front_share_ = (self._front_agreed + prior) / (self._front_checked + 1.0)
+        last_front, self._last_front = self._last_front, front
         # A tie-break that keeps the front end's own order of answers (its raw best score)
         # where the model does not separate them (no confident answers to learn from yet).
         front_confidence *= 1.0 + 1e-3 * math.tanh(self._front_raw_z)
         front_confidence = min(1.0, front_confidence)
         self.front_probability_ = front_confidence
         out = np.empty(n, np.float32)
+        packet = answer  # the sequence's own answer
+        self.snapped_ = False
         if p["fallback"] and self._support_mean * probability < front_confidence * (
             1.0 - self._support_mean
         ):
@@ -950,9 +1014,19 @@ class CANN(OdometryFilter):
         else:
             self.source_ = "sequence"
             np.multiply(self._box, self.support_, out=out, casting="unsafe")
-            if predicted >= 0 and abs(answer - predicted) > 2 * radius + 1:
+            if predicted >= 0 and abs(packet - predicted) > 2 * radius + 1:
                 self.n_relocations_ += 1
-        self.probability_ = probability if self.source_ == "sequence" else 0.0
+            if p["snap"] and self._snaps(front, packet, last_front, probability, radius):
+                # The front end's best place, near the packet and moving with it, is more
+                # likely right than the packet's window: the answer moves there.
+                self.snapped_ = True
+                answer = front
+                confidence = self.support_ * self.front_share_
+        if self.source_ == "front end":
+            self.probability_ = 0.0
+        else:  # the probability that the sequence's answer is right: the window's, or
+            # where the answer snapped, the front end's share of agreement
+            self.probability_ = self.front_share_ if self.snapped_ else probability
         # The sequence's raw confidence mapped through the calibration table (strictly
         # increasing: the order of its answers stays); the front end's is its model's
         # probability already.
@@ -981,6 +1055,7 @@ class CANN(OdometryFilter):
             self.velocity_ = mean
         else:
             self.velocity_ = float(velocity) * (mean if p["odometry"] == "scaled" else 1.0)
+        self._layer_velocity = self.velocity_
         self.n_frames_ = t + 1
         self._last_out[:] = out
         return out

@@ -156,6 +156,8 @@ class WindowedCANN:
             _shift(c._last_out, d, np.float32(0.0))
             _shift(c._marginal, d, np.float32(0.0))  # (a held frame's packet, read by _follow)
             c._tied = _shift_tied(c._tied, d, self.width)
+            if c._last_front is not None:  # (the front end's last best place, for the snap)
+                c._last_front -= d
         self._lo = lo
         self.n_moves_ += 1
 
