@@ -58,7 +58,9 @@ class Fix(NamedTuple):
     state : str
         ``"localized"`` or ``"lost"``, as the filter decides (the CANN: ``"localized"`` when
         the answer comes from the image sequence and its raw confidence, the support times
-        the window's probability, is at least 0.5: with the default calibration, a
+        the probability that the place is right (the window's, or where the answer snapped
+        to the front end's place nearby, the front end's share of agreement), is at least
+        0.5: with the default calibration, a
         confidence of 0.9080 or more); always ``"localized"`` without a filter or with a
         filter that has no state.
     """

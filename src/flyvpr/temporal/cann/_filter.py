@@ -157,8 +157,8 @@ class CANN(OdometryFilter):
 
     A row of :meth:`step` or :meth:`filter`: entry ``i`` is the support times the probability
     of being within ``tolerance`` places of ``i`` (calibrated; the front end's scaled scores
-    when it answers), at most the answer's, which is its maximum (the confidence) and its
-    first argmax.  With odometry
+    when it answers; all scaled to the confidence where the answer snapped), at most the
+    answer's, which is its maximum (the confidence) and its first argmax.  With odometry
     (``velocity``) every row of the layer moves by it times the row's velocity read as a scale
     factor (``odometry="scaled"``), or by it alone (``"exact"``).
 
@@ -253,7 +253,7 @@ class CANN(OdometryFilter):
         the guide page.
     calibration : sequence of 11 float or None, default CALIBRATION
         The sequence's confidence where the fourth root of its raw confidence (support times
-        the window's probability) is 0, 0.1, ..., 1 (raw 0, 0.0001, 0.0016, ..., 1: finest
+        ``probability_``) is 0, 0.1, ..., 1 (raw 0, 0.0001, 0.0016, ..., 1: finest
         where the lost answers lie), linearly between (strictly increasing, in [0, 1]);
         fitted on kenyon+cann's answers on the dev robot conditions (Nordland 0-999, seeds
         0-2, tolerance 2).  ``None``: the raw confidence.
