@@ -242,14 +242,20 @@ def reference_filter(S, velocity=None, **params):
         rate = max(1 / (t + 1), 1 / memory)
         support_mean += rate * (support - support_mean)
         confidence = support * probability
+        # the front end reads its row through the input's adaptation, blended with the plain
+        # z-scored row, which weighs 5 frames against the t frames adapted (adapt_front)
+        given = row  # (its raw best score: the front end's own, at the answer)
+        if q["adapt_front"]:
+            plain = (row - row.mean()) / row.std() if row.std() > 0 else row - row.mean()
+            row = (t * z + 5.0 * plain) / (t + 5.0)
         front = int(np.argmax(row))
         strength = (row[front] - row.mean()) / row.std() if row.std() > 0 else 0.0
         # this frame's peak against the past frames' (weighted mean and spread), within +-4
         feature = ref_standardised(strength, strengths, weights)
-        raw_z = ref_standardised(row[front], raws, weights)
+        raw_z = ref_standardised(given[front], raws, weights)
         weights = [w * (1 - rate) for w in weights] + [rate]
         strengths.append(strength)
-        raws.append(row[front])
+        raws.append(given[front])
         front_confidence = 1 / (1 + math.exp(-(a + b * feature)))
         if confidence >= 0.5:  # a step of gradient ascent on the log-likelihood of agreeing
             error = float(abs(front - answer) <= tol) - front_confidence
@@ -418,6 +424,7 @@ REFERENCE_CASES = {
         **WIDE,
         "recalibration": (0.05, 0.07, 0.1, 0.2, 0.25, 0.3, 0.45, 0.5, 0.6, 0.8, 0.9),
     },
+    "front end as it is": {**WIDE, "adapt_front": False},
     "recalibrated raw": {
         **WIDE,
         "calibration": None,
@@ -437,8 +444,10 @@ def test_matches_reference_driving_backwards(params):
     assert frames[-1]["velocity_"] < -0.8 and frames[-1]["state_"] == "localized"
 
 
-def test_matches_reference_where_the_front_end_learned():
+@pytest.mark.parametrize("adapt_front", [True, False])
+def test_matches_reference_where_the_front_end_learned(adapt_front):
     params = {**WIDE, "support_memory": 5.0, "calibration": None, "sequence_break": 0.2}
+    params["adapt_front"] = adapt_front
     frames = assert_matches_reference(_front_scenario(), **params)
     # (the front end answers after its model learned a positive slope)
     assert [fr["source_"] for fr in frames[40:]].count("front end") >= 5
@@ -568,6 +577,7 @@ DEFAULTS = {
     "support_memory": 100.0,
     "fallback": True,
     "snap": True,
+    "adapt_front": True,
     "calibration": CALIBRATION,
     "recalibration": None,
     "odometry": "scaled",
@@ -697,6 +707,7 @@ BAD_PARAMS = [
     ({"fallback": None}, TypeError, "fallback must be True or False; got NoneType"),
     ({"fallback": "yes"}, TypeError, "fallback must be True or False; got str"),
     ({"snap": 1}, TypeError, "snap must be True or False; got int"),
+    ({"adapt_front": "yes"}, TypeError, "adapt_front must be True or False; got str"),
     ({"hold_repeats": None}, TypeError, "hold_repeats must be True or False; got NoneType"),
     ({"hold_repeats": 1}, TypeError, "hold_repeats must be True or False; got int"),
     (
@@ -826,7 +837,8 @@ def test_set_params_and_reset():
     assert f.get_params() == {**DEFAULTS, "evidence_gain": 1.5, "tolerance": 1}
     np.testing.assert_array_equal(f.filter(S), CANN(evidence_gain=1.5, tolerance=1).filter(S))
     with pytest.raises(
-        ValueError, match=r"^invalid parameter 'speed' for CANN; valid: \['adapt_variance'"
+        ValueError,
+        match=r"^invalid parameter 'speed' for CANN; valid: \['adapt_front', 'adapt_variance'",
     ):
         f.set_params(speed=1.0)
     # a running filter keeps its parameters until reset() ...
@@ -1512,7 +1524,10 @@ def test_a_bank_of_one_sign_cannot_follow_backwards():
     # a hint within 4 places.
     pos = 70 - np.arange(50.0)
     S = bump_rows(pos, 80)
-    rows, frames = run(CANN(velocities=FORWARD, reverse_weight=0.9), S)
+    # (the front end's row as it is: read through the adaptation, a moving bump's peak can
+    # lie a place ahead of it)
+    f = CANN(velocities=FORWARD, reverse_weight=0.9, adapt_front=False)
+    rows, frames = run(f, S)
     assert all(fr["state_"] == "lost" for fr in frames)
     assert all(fr["source_"] == "front end" for fr in frames[25:])
     assert all(fr["velocity_"] >= 0 for fr in frames)
@@ -1707,7 +1722,7 @@ def test_calibration_scales_the_whole_sequence_row():
 def test_shuffled_sequence_falls_back_to_the_front_end():
     pos = np.random.default_rng(3).permutation(100)[:60].astype(float)
     S = bump_rows(pos, 100)
-    f = CANN()
+    f = CANN(adapt_front=False)  # (the front end's row as it is; read: below)
     rows, frames = run(f, S)
     # (the first frames: the support's running mean still holds its start, 0.5; lost hints)
     assert all(fr["state_"] == "lost" for fr in frames)
@@ -1720,9 +1735,68 @@ def test_shuffled_sequence_falls_back_to_the_front_end():
         np.testing.assert_allclose(rows[t], z * c / z.max(), rtol=1e-5, atol=1e-7)
         assert frames[t]["support_"] < 0.5
     # without the fallback the sequence answers whatever it has
-    rows, frames = run(CANN(fallback=False), S)
+    rows, frames = run(CANN(fallback=False, adapt_front=False), S)
     assert {fr["source_"] for fr in frames} == {"sequence"}
     assert (rows.argmax(axis=1)[3:] != S.argmax(axis=1)[3:]).mean() > 0.5
+
+
+def _read_row(row, x, t):
+    """The front end's row as adapt_front reads it: the filter's input ``x`` of frame ``t``
+    and the plain z-scored row, weighing t and 5 frames."""
+    plain = (row - row.mean()) / row.std()
+    return (t * x.astype(np.float64) + 5.0 * plain) / (t + 5.0)
+
+
+def _hub_scenario(n_frames=60, n=100, hub=63, seed=5):
+    """Shuffled bumps (no sequence), and one place, ``hub``, that scores above every bump in
+    every frame: a map place that looks like everything."""
+    pos = np.random.default_rng(seed).permutation(n)[:n_frames].astype(float)
+    pos[pos == hub] = (hub + 30) % n
+    S = bump_rows(pos, n, seed=seed)
+    S[:, hub] += 4.0
+    return S, pos
+
+
+def test_the_front_end_reads_past_a_place_that_scores_high_in_every_frame():
+    S, pos = _hub_scenario()
+    rows, frames = run(CANN(adapt_front=False), S)
+    assert (rows.argmax(axis=1) == 63).all()  # the rows as they are: the hub, every frame
+    rows, frames = run(CANN(), S)
+    assert all(fr["source_"] == "front end" for fr in frames)
+    answers = rows.argmax(axis=1)
+    # read through the adaptation: the hub on the first frame only (the plain row), then
+    # the bumps (a place off where the noise tips a bump's flank)
+    assert answers[0] == 63 and (answers[1:] != 63).all()
+    assert (np.abs(answers[1:] - pos[1:]) <= 1).all() and (answers == pos).mean() > 0.9
+
+
+def test_the_front_ends_row_read_through_the_adaptation_by_hand():
+    # frame by frame: the answer is the best place of the read row (the adapted input and
+    # the plain row, weighing t and 5 frames), and a front-end answer's row is the read row
+    # above its mean, scaled to the confidence
+    S, _ = _hub_scenario(n_frames=30)
+    f = CANN()
+    f.reset()
+    for t, row in enumerate(S):
+        out = f.step(row)
+        assert f.source_ == "front end"
+        if t == 0:
+            assert not f._x.any()  # (the first frame's input is its own mean: 0)
+        read = _read_row(row, f._x, t)
+        assert out.argmax() == read.argmax()
+        top = read.max() - read.mean()
+        expected = np.maximum(read - read.mean(), 0.0) * f.confidence_ / top
+        np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-7)
+        if t == 3:  # other weights give other rows: t + 1 frames adapted, 4 or 6 plain
+            x, plain = f._x.astype(np.float64), (row - row.mean()) / row.std()
+            for other in (
+                (4 * x + 5 * plain) / 9,
+                (3 * x + 4 * plain) / 7,
+                (3 * x + 6 * plain) / 9,
+            ):
+                wrong = np.maximum(other - other.mean(), 0.0) * f.confidence_
+                wrong /= other.max() - other.mean()
+                assert not np.allclose(out, wrong, rtol=1e-5, atol=1e-7)
 
 
 # -- the front end's model ---------------------------------------------------------------------
@@ -1818,7 +1892,7 @@ def test_disagreement_with_confident_answers_lowers_a():
     # a spike elsewhere in every frame: the front end's best place is wrong, the sequence
     # follows the bump
     S, pos = _spiky_scenario(share=1.0)
-    f = CANN()
+    f = CANN(adapt_front=False)  # (S's own best places)
     log = _step_models(f, S)
     wrong = np.abs(S.argmax(axis=1) - pos) > 2
     confident = [raw >= 0.5 for _, _, raw, _ in log]
@@ -1884,7 +1958,7 @@ def test_front_end_raw_score_tie_break_by_hand():
     row = np.zeros(200)
     row[::2] = 1.0
     for calibration in (None, CALIBRATION):
-        f = CANN(evidence_gain=0.01, calibration=calibration)
+        f = CANN(evidence_gain=0.01, calibration=calibration, adapt_front=False)
         f.step(np.zeros(200))
         f.step(row)
         assert f.source_ == "front end" and f._front_raw_z == 0.0  # (no spread yet)
@@ -1938,7 +2012,7 @@ def test_with_b_zero_the_front_end_keeps_its_own_order():
 
 def test_front_end_confidence_is_capped_at_one():
     S = _shuffled()
-    f = CANN()
+    f = CANN(adapt_front=False)  # (the rows as they are)
     f.filter(S[:-1])
     f._front_model[:] = [30.0, 0.0]  # (sure of the front end: 1 - 1e-13)
     top = S[-1] + np.where(np.arange(100) == 7, 50.0, 0.0)  # a best raw score far up
@@ -1950,7 +2024,7 @@ def test_front_end_confidence_is_capped_at_one():
     z = np.maximum(top - top.mean(), 0.0)
     np.testing.assert_allclose(out, level * z / z.max(), rtol=1e-6, atol=1e-7)
     # a low best score: below 1 by its tie-break
-    g = CANN()
+    g = CANN(adapt_front=False)
     g.filter(S[:-1])
     g._front_model[:] = [30.0, 0.0]
     g.step(S[-1] * 0.01)
@@ -1966,7 +2040,7 @@ def test_front_end_confidence_is_the_models_probability(a, b):
     # set the model, then a frame the front end answers: the logistic of a + b * feature
     # (the peak's z-score standardised: 0 for a row like the ones before it), tie-broken
     S = _shuffled()
-    f = CANN()
+    f = CANN(adapt_front=False)  # (the rows as they are)
     f.filter(S[:-1])
     stats = list(f._front_stats)
     f._front_model[:] = [a, b]

@@ -220,17 +220,20 @@ def test_a_file_from_before_jitter_loads_with_the_default_and_a_saved_one_is_kep
     np.testing.assert_array_equal(again.score(data[1]), model.score(data[1]))
 
 
-def test_a_file_from_before_the_snap_runs_without_it(tmp_path, data, monkeypatch):
+@pytest.mark.parametrize("added", ["snap", "adapt_front"])
+def test_a_file_from_before_a_filter_flag_runs_without_it(tmp_path, data, monkeypatch, added):
     from flyvpr.temporal.cann import CANN
 
     model = make_method("kenyon+cann", 0).fit(data[0])
-    assert model.filter.snap is True
-    older = [n for n in CANN._param_names() if n != "snap"]
+    assert getattr(model.filter, added) is True
+    older = [n for n in CANN._param_names() if n != added]
     with monkeypatch.context() as m:
         m.setattr(CANN, "_param_names", classmethod(lambda cls: older))
         path = save_method(model, tmp_path / "old.npz")
-    assert load_method(path).filter.snap is False
-    assert load_method(save_method(model, tmp_path / "new.npz")).filter.snap is True
+    loaded = load_method(path).filter
+    assert getattr(loaded, added) is False
+    assert all(getattr(loaded, k) is True for k in ("snap", "adapt_front") if k != added)
+    assert getattr(load_method(save_method(model, tmp_path / "new.npz")).filter, added) is True
 
 
 @pytest.mark.parametrize("name, held", [("flyhash+cann", False), ("pixels+cann", True)])

@@ -635,6 +635,8 @@ def _load(path, size, readers: dict, what: str = "model file"):
                 hold_default(frontend, filt, fm["params"])
             if "snap" not in fm["params"] and "snap" in filt.get_params():
                 filt.set_params(snap=False)  # a file from before the snap: it runs as it ran
+            if "adapt_front" not in fm["params"] and "adapt_front" in filt.get_params():
+                filt.set_params(adapt_front=False)  # (the same)
             # Files from before the root was saved gave the table at the raw confidence
             # (before repeated frames held) or at its square root.
             root = fm.get("calibration_root", 2 if "hold_repeats" in fm["params"] else 1)

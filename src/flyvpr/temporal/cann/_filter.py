@@ -33,6 +33,9 @@ CALIBRATION = (0.0, 0.01, 0.011, 0.012, 0.217, 0.549, 0.629, 0.848, 0.859, 0.979
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
 _FRONT_RATE = 0.05
+#: the plain z-scored row's weight, in frames, in the front end's answer read through the
+#: input's adaptation (see _front_row)
+_FRONT_PLAIN = 5.0
 #: the least weight of the front end's model in a lost filter's answer (see _step)
 _MIN_TRUST = 0.05
 #: about this many places are sampled by the sequence test
@@ -251,6 +254,15 @@ class CANN(OdometryFilter):
         (``probability_``) is that share: the confidence is the support times it
         (calibrated), and the state follows from it as from the window's.  See "Output" on
         the guide page.
+    adapt_front : bool, default True
+        The front end's own answer (where the filter falls back to it, and for its model,
+        its agreement and the snap) reads the row through the input's per-place adaptation:
+        each place's score against its running mean and spread over the frames so far, so
+        that a place that scores high in every frame (a hub of the map) is no answer.  That
+        adapted row is blended with the plain z-scored row, which weighs 5 frames against
+        the frames adapted (the first frame's adapted input is 0 everywhere, and a mean of
+        a few frames is noisy).  ``False``: the front end's row as it is.  See "Output" on
+        the guide page.
     calibration : sequence of 11 float or None, default CALIBRATION
         The sequence's confidence where the fourth root of its raw confidence (support times
         ``probability_``) is 0, 0.1, ..., 1 (raw 0, 0.0001, 0.0016, ..., 1: finest
@@ -362,9 +374,10 @@ class CANN(OdometryFilter):
 
     name = "cann"
 
-    #: maps and models saved before ``odometry``, ``hold_repeats``, ``jitter`` or ``snap``
-    #: existed load with its default (``snap``: off, as they ran; see ``flyvpr.modelio``)
-    _added_params = ("odometry", "hold_repeats", "jitter", "snap")
+    #: maps and models saved before ``odometry``, ``hold_repeats``, ``jitter``, ``snap`` or
+    #: ``adapt_front`` existed load with its default (``snap`` and ``adapt_front``: off, as
+    #: they ran; see ``flyvpr.modelio``)
+    _added_params = ("odometry", "hold_repeats", "jitter", "snap", "adapt_front")
 
     def __init__(
         self,
@@ -390,6 +403,7 @@ class CANN(OdometryFilter):
         support_memory=100.0,
         fallback=True,
         snap=True,
+        adapt_front=True,
         calibration=CALIBRATION,
         recalibration=None,
         odometry="scaled",
@@ -417,6 +431,7 @@ class CANN(OdometryFilter):
         self.support_memory = support_memory
         self.fallback = fallback
         self.snap = snap
+        self.adapt_front = adapt_front
         self.calibration = calibration
         self.recalibration = recalibration
         self.odometry = odometry
@@ -462,7 +477,14 @@ class CANN(OdometryFilter):
                 "sequence_break + sequence_start must be <= 1; got "
                 f"{p['sequence_break']} + {p['sequence_start']}"
             )
-        for flag in ("adapt_variance", "bidirectional", "fallback", "snap", "hold_repeats"):
+        for flag in (
+            "adapt_variance",
+            "bidirectional",
+            "fallback",
+            "snap",
+            "adapt_front",
+            "hold_repeats",
+        ):
             value = getattr(self, flag)
             if not isinstance(value, (bool, np.bool_)):
                 raise TypeError(f"{flag} must be True or False; got {type(value).__name__}")
@@ -625,6 +647,23 @@ class CANN(OdometryFilter):
     def _input(self, row: np.ndarray) -> np.ndarray:
         """The row as z-scores, adapted per place and clipped (see "Input" on the guide)."""
         return normalised_input(self, row, 1.0, prior_var=True)
+
+    @staticmethod
+    def _front_row(row: np.ndarray, x: np.ndarray, t: int) -> np.ndarray:
+        """The front end's row as its own answer reads it (float64): frame ``t``'s input
+        ``x`` (each place's score against that place's running mean and spread, so that a
+        place that scores high in every frame is no answer) blended with the plain z-scored
+        ``row``, which weighs ``_FRONT_PLAIN`` frames against the ``t`` frames the adaptation
+        has seen: the first frame's input is 0 everywhere (its own mean), and a mean of a few
+        frames is noisy; the plain row also breaks the ties of clipped inputs."""
+        spread = float(row.std())
+        plain = row.astype(np.float64) - float(row.mean())
+        if spread > 0.0:
+            plain /= spread
+        adapted = t / (t + _FRONT_PLAIN)
+        plain *= 1.0 - adapted
+        plain += adapted * x
+        return plain
 
     def _front_feature(self, strength: float, raw: float, rate: float) -> float:
         """The front end's peak z-score, standardised by its running mean and spread (within
@@ -966,10 +1005,13 @@ class CANN(OdometryFilter):
         # The front end's own answer and the probability that it is right: a logistic model
         # of the strength of its peak (its z-score, standardised by its running mean and
         # spread), learned from whether it agrees with the sequence's confident answers.
+        given = row  # (its raw score at the answer breaks the model's ties, as given)
+        if p["adapt_front"]:
+            row = self._front_row(row, x, t)
         front = int(np.argmax(row))
         spread = float(row.std())
         strength = (float(row[front]) - float(row.mean())) / spread if spread > 0 else 0.0
-        feature = self._front_feature(strength, float(row[front]), rate)
+        feature = self._front_feature(strength, float(given[front]), rate)
         front_confidence = _sigmoid(self._front_model[0] + self._front_model[1] * feature)
         if confidence >= 0.5:
             agree = float(abs(front - answer) <= radius)
