@@ -116,6 +116,7 @@ def reference_filter(S, velocity=None, **params):
     tol, memory, outlier = q["tolerance"], q["support_memory"], q["outlier"]
     layer = np.tile(prior[:, None] / n, (1, n))
     mean, var = np.zeros(n), np.ones(n)
+    front_mean, front_var = np.zeros(n), np.ones(n)  # (the front end's own reading, adapt_front)
     log_rank = [1 / 0.3, 1 / 0.5]  # the rank model's prior: exponents 0.3 and 0.5
     support, support_mean, localized_mean = 0.5, 0.0, 0.0
     # the front end's logistic model (its prior: a = the prior's log-odds, b = 0) and the
@@ -131,7 +132,7 @@ def reference_filter(S, velocity=None, **params):
     rows, frames = [], []
     for t, row in enumerate(np.asarray(S, np.float64)):
         # how new the frame is: 1 - its correlation with the last row, over the usual
-        novelty = 1.0
+        novelty, r = 1.0, 0.0
         if last is not None:
             flat = row.std() == 0 or last.std() == 0
             r = 0.0 if flat else float(np.clip(np.corrcoef(row, last)[0, 1], 0.0, 1.0))
@@ -147,18 +148,26 @@ def reference_filter(S, velocity=None, **params):
         if transform == "log":
             x = np.log(np.maximum(x, TINY))
         z = (x - x.mean()) / x.std() if x.std() > 1e-6 else np.zeros(n)
-        if q["adaptation"] is not None:
-            rate = max(1 / (t + 1), 1 / q["adaptation"])
-            mean = (1 - rate) * mean + rate * z
-            z = z - mean
-            if q["adapt_variance"]:  # the spread of the frames before this one
-                # (none from the first frame, its own mean: the prior 1 meets the second's)
-                rate = 0.0 if t == 0 else max(1 / (t + 1), 1 / q["adaptation"])
-                before = var
-                var = (1 - rate) * var + rate * z * z
-                z = z / np.sqrt(before + 0.1)
-        if q["input_clip"] is not None:
-            z = np.clip(z, -q["input_clip"], q["input_clip"])
+        plain = z
+
+        def adapted(z, mean, var, weight, t):
+            # each place's running mean (and spread) of its z-scores, the frame counting
+            # ``weight`` of its usual share; the row against them, clipped
+            if q["adaptation"] is not None:
+                rate = max(1 / (t + 1), 1 / q["adaptation"]) * weight
+                mean = (1 - rate) * mean + rate * z
+                z = z - mean
+                if q["adapt_variance"]:  # the spread of the frames before this one
+                    # (none from the first frame, its own mean: the prior 1 meets the second's)
+                    rate = 0.0 if t == 0 else max(1 / (t + 1), 1 / q["adaptation"]) * weight
+                    before = var
+                    var = (1 - rate) * var + rate * z * z
+                    z = z / np.sqrt(before + 0.1)
+            if q["input_clip"] is not None:
+                z = np.clip(z, -q["input_clip"], q["input_clip"])
+            return z, mean, var
+
+        z, mean, var = adapted(z, mean, var, 1.0, t)
         predicted = -1
         if t > 0:
             if velocity is None:  # each row's position after t moves, rounded (halves up)
@@ -246,8 +255,12 @@ def reference_filter(S, velocity=None, **params):
         # z-scored row, which weighs 5 frames against the t frames adapted (adapt_front)
         given = row  # (its raw best score: the front end's own, at the answer)
         if q["adapt_front"]:
-            plain = (row - row.mean()) / row.std() if row.std() > 0 else row - row.mean()
-            row = (t * z + 5.0 * plain) / (t + 5.0)
+            # read as the input reads it (its log, if taken), adapted with statistics of its
+            # own to which the frame counts 1 - r, blended with the plain z-scored row, which
+            # weighs 5 frames against t; a constant row reads as zeros
+            read, front_mean, front_var = adapted(plain, front_mean, front_var, 1 - r, t)
+            mix = t / (t + 5.0)
+            row = mix * read + (1 - mix) * plain if x.std() > 1e-6 else np.zeros(n)
         front = int(np.argmax(row))
         strength = (row[front] - row.mean()) / row.std() if row.std() > 0 else 0.0
         # this frame's peak against the past frames' (weighted mean and spread), within +-4
@@ -1741,8 +1754,8 @@ def test_shuffled_sequence_falls_back_to_the_front_end():
 
 
 def _read_row(row, x, t):
-    """The front end's row as adapt_front reads it: the filter's input ``x`` of frame ``t``
-    and the plain z-scored row, weighing t and 5 frames."""
+    """The front end's row as adapt_front reads it: its own adapted input ``x`` of frame
+    ``t`` and the plain z-scored row, weighing t and 5 frames."""
     plain = (row - row.mean()) / row.std()
     return (t * x.astype(np.float64) + 5.0 * plain) / (t + 5.0)
 
@@ -1771,9 +1784,9 @@ def test_the_front_end_reads_past_a_place_that_scores_high_in_every_frame():
 
 
 def test_the_front_ends_row_read_through_the_adaptation_by_hand():
-    # frame by frame: the answer is the best place of the read row (the adapted input and
-    # the plain row, weighing t and 5 frames), and a front-end answer's row is the read row
-    # above its mean, scaled to the confidence
+    # frame by frame: the answer is the best place of the read row (the front end's own
+    # adapted input and the plain row, weighing t and 5 frames), and a front-end answer's
+    # row is the read row above its mean, scaled to the confidence
     S, _ = _hub_scenario(n_frames=30)
     f = CANN()
     f.reset()
@@ -1781,14 +1794,14 @@ def test_the_front_ends_row_read_through_the_adaptation_by_hand():
         out = f.step(row)
         assert f.source_ == "front end"
         if t == 0:
-            assert not f._x.any()  # (the first frame's input is its own mean: 0)
-        read = _read_row(row, f._x, t)
+            assert not f._front_x.any()  # (the first frame's input is its own mean: 0)
+        read = _read_row(row, f._front_x, t)
         assert out.argmax() == read.argmax()
         top = read.max() - read.mean()
         expected = np.maximum(read - read.mean(), 0.0) * f.confidence_ / top
         np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-7)
         if t == 3:  # other weights give other rows: t + 1 frames adapted, 4 or 6 plain
-            x, plain = f._x.astype(np.float64), (row - row.mean()) / row.std()
+            x, plain = f._front_x.astype(np.float64), (row - row.mean()) / row.std()
             for other in (
                 (4 * x + 5 * plain) / 9,
                 (3 * x + 4 * plain) / 7,
@@ -1797,6 +1810,86 @@ def test_the_front_ends_row_read_through_the_adaptation_by_hand():
                 wrong = np.maximum(other - other.mean(), 0.0) * f.confidence_
                 wrong /= other.max() - other.mean()
                 assert not np.allclose(out, wrong, rtol=1e-5, atol=1e-7)
+
+
+def test_the_front_ends_statistics_count_a_frame_by_how_much_it_differs():
+    # the front end's running mean of each place: the first frame whole, the second with
+    # half its usual share (1 / 2) times one minus its correlation with the first; the
+    # layer's own mean takes the usual share
+    S, _ = _hub_scenario(n_frames=3)
+    z = (S - S.mean(axis=1, keepdims=True)) / S.std(axis=1, keepdims=True)
+    f = CANN()
+    f.reset()
+    f.step(S[0])
+    np.testing.assert_allclose(f._front_mean, z[0], rtol=1e-5, atol=1e-6)
+    f.step(S[1])
+    r = float(np.corrcoef(S[0], S[1])[0, 1])
+    assert 0.05 < r < 0.95
+    np.testing.assert_allclose(
+        f._front_mean, z[0] + (z[1] - z[0]) * 0.5 * (1 - r), rtol=1e-4, atol=1e-5
+    )
+    np.testing.assert_allclose(f._mean, (z[0] + z[1]) / 2, rtol=1e-4, atol=1e-5)
+    # and its spread: the prior 1, then the second frame's deviation with that share
+    d = z[1] - (z[0] + (z[1] - z[0]) * 0.5 * (1 - r))
+    np.testing.assert_allclose(f._front_var, 1 + (d * d - 1) * 0.5 * (1 - r), rtol=1e-4, atol=1e-5)
+    # an exact repeat is held: nothing changes
+    before = f._front_mean.copy()
+    f.step(S[1])
+    np.testing.assert_array_equal(f._front_mean, before)
+
+
+def test_a_robot_standing_before_a_noisy_camera_is_not_read_away():
+    # 60 places driven, then 200 frames standing at place 60 whose rows differ by noise (a
+    # real camera: nothing is held), then on.  The stand's rows correlate almost wholly with
+    # the last, so the front end reads them as they are: its best place stays the stand's,
+    # though that place's running mean climbs as a hub's would.
+    rng = np.random.default_rng(7)
+    n = 150
+    scene = rng.normal(0.0, 1.0, n)  # (the map's places look alike or not: the same in every row)
+    pos = np.r_[np.arange(60.0), np.full(200, 60.0), 61 + np.arange(40.0)]
+    S = bump_rows(pos, n, amp=4.0, noise=0.02, seed=7) + 0.5 * scene
+    S[60:260] += rng.normal(0.0, 0.02, (200, n))
+    for adapt_front in (True, False):
+        f = CANN(adapt_front=adapt_front)
+        f.reset()
+        fronts = []
+        for row in S:
+            f.step(row)
+            fronts.append(f._last_front)
+        assert (np.array(fronts[60:260]) == 60).all()
+    assert f._mean[60] > 1.0  # (the stand's place does climb)
+    # every frame counted whole (the layer's own input), the stand's place is read away
+    g = CANN()
+    g.reset()
+    for row in S[:200]:
+        g.step(row)
+    assert np.argmax(g._x) != 60 and g._mean[60] > 2 * g._front_mean[60]
+    assert np.argmax(_read_row(S[199], g._front_x, 199)) == 60
+
+
+def test_a_constant_row_reads_as_ties():
+    # after frames that built each place's running mean, a constant row still ties every
+    # place at the confidence (its adapted input is minus those means: no information)
+    S, _ = _hub_scenario(n_frames=30)
+    f = CANN()
+    f.filter(S)
+    out = f.step(np.full(100, 0.7))
+    assert f.source_ == "front end" and np.ptp(f._x) > 0
+    np.testing.assert_array_equal(out, np.full(100, np.float32(f.confidence_)))
+
+
+def test_the_front_ends_own_score_at_the_answer_breaks_the_ties():
+    # read through the adaptation the answer is a bump, not the hub, the row's own best: the
+    # model's tie-break standardises the row's own score at the answer
+    S, pos = _hub_scenario(n_frames=30)
+    f = CANN()
+    f.filter(S[:-1])
+    stats = list(f._front_stats)
+    out = f.step(S[-1])
+    answer = int(out.argmax())
+    assert f.source_ == "front end" and abs(answer - pos[-1]) <= 1 and S[-1].argmax() == 63
+    raw_z = float(np.clip((S[-1][answer] - stats[2]) / math.sqrt(stats[3]), -4, 4))
+    assert f._front_raw_z == pytest.approx(raw_z, rel=1e-12) and raw_z != 0.0
 
 
 # -- the front end's model ---------------------------------------------------------------------
@@ -2163,6 +2256,8 @@ def test_state_arrays_and_the_memory_check(monkeypatch):
         assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (27, 1000)
     for name in ("_marginal", "_predicted", "_weight", "_mean", "_var", "_x"):
         assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (1000,)
+    for name in ("_front_mean", "_front_var", "_front_x"):
+        assert getattr(f, name).dtype == np.float32 and getattr(f, name).shape == (1000,)
     state = sum(v.nbytes for v in vars(f).values() if isinstance(v, np.ndarray) and v.size >= 1000)
     # float32 layer (twice), per-place buffers, the last frame's row (float64) and the last
     # answer (float32); the map's ties (int32) are all places but the first at the start
@@ -2172,7 +2267,7 @@ def test_state_arrays_and_the_memory_check(monkeypatch):
     assert f._tied.tolist() == list(range(1, 1000))
     budget = state + 4 * 1000  # the ties counted at one per place
     assert state + f._tied.nbytes == budget - 4
-    assert budget == 8 * 27 * 1000 + 48 * 1000
+    assert budget == 8 * 27 * 1000 + 60 * 1000
     # the memory check asks for the layer and its per-place buffers before allocating them
     monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(budget))
     CANN().step(np.zeros(1000))
@@ -2192,9 +2287,12 @@ def test_footprint_by_hand():
         "params": 30 + 40 + 30 + 30 + 60,
         "neurons": 31,
         "distinct_weights": 6,
-        # units; mean, variance, last row, last answer, ties per place; 7 running numbers
-        "state_variables": 30 + 50 + 7,
+        # units; mean, variance (twice: the front end's own), last row, last answer, ties per
+        # place; 7 running numbers
+        "state_variables": 30 + 70 + 7,
     }
+    plain = CANN(velocities=(0.0, 1.0, 2.0), adapt_front=False).footprint(10)
+    assert plain["state_variables"] == 30 + 50 + 7
     # jitter: the two moving rows' units receive from their neighbouring places (9 pairs of
     # neighbours on a route of 10 places, both ways); two more weights
     jittery = CANN(velocities=(0.0, 1.0, 2.0), jitter=0.03).footprint(10)
@@ -2214,7 +2312,7 @@ def test_footprint_by_hand():
         "params": 27000 * 5 + 2 * 26 * 1000,
         "neurons": 27001,
         "distinct_weights": 30,
-        "state_variables": 32007,
+        "state_variables": 34007,
     }
     assert CANN(velocities=(1.0,)).footprint(1)["params"] == 5  # no velocity, place neighbours
     with pytest.raises(ValueError, match="^n_reference must be >= 1; got 0"):

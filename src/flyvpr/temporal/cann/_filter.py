@@ -14,7 +14,7 @@ import numpy as np
 
 from ..._validation import check_memory, check_positive_int, check_real
 from . import _kernels
-from ._input import OdometryFilter, begin_frame, normalised_input
+from ._input import TINY, OdometryFilter, begin_frame, normalised_input
 from ._params import TRANSFORMS, _check_velocities
 
 #: candidate velocities, places per frame: standing still to 2 in steps of 1/8, then to 3.5 in
@@ -233,8 +233,9 @@ class CANN(OdometryFilter):
         end's peaks and the usual likeness of consecutive frames are averaged.
     fallback : bool, default True
         Answer with the front end's best place when the front end's estimated probability of
-        being right beats the sequence's (see "Output" on the guide page).  The front end's
-        probability is a logistic model of the strength of its peak (its z-score), learned
+        being right beats the sequence's (see "Output" on the guide page; with
+        ``adapt_front``, its best place in the row read through the adaptation).  The front
+        end's probability is a logistic model of the strength of its peak (its z-score), learned
         at run time from whether it agrees with the sequence's confident answers; before
         any, ``0.5 ** (2 + tolerance)``.  The confidence of a front-end answer is that
         probability shrunk towards ``0.5 ** (1 + tolerance)`` by the lesser of the share of
@@ -258,11 +259,14 @@ class CANN(OdometryFilter):
         The front end's own answer (where the filter falls back to it, and for its model,
         its agreement and the snap) reads the row through the input's per-place adaptation:
         each place's score against its running mean and spread over the frames so far, so
-        that a place that scores high in every frame (a hub of the map) is no answer.  That
-        adapted row is blended with the plain z-scored row, which weighs 5 frames against
-        the frames adapted (the first frame's adapted input is 0 everywhere, and a mean of
-        a few frames is noisy).  ``False``: the front end's row as it is.  See "Output" on
-        the guide page.
+        that a place that scores high in every frame (a hub of the map) is no answer.  The
+        front end keeps statistics of its own, to which each frame counts one minus its
+        correlation with the last row (a robot standing before a noisy camera gives rows
+        that correlate almost wholly: counted whole, its place would read as a hub's).  The
+        adapted row is blended with the plain z-scored row (its log where the input takes
+        it), which weighs 5 frames against the frames seen (the first frame's adapted input
+        is 0 everywhere, and a mean of a few frames is noisy).  A constant row reads as
+        ties.  ``False``: the front end's row as it is.  See "Output" on the guide page.
     calibration : sequence of 11 float or None, default CALIBRATION
         The sequence's confidence where the fourth root of its raw confidence (support times
         ``probability_``) is 0, 0.1, ..., 1 (raw 0, 0.0001, 0.0016, ..., 1: finest
@@ -535,8 +539,9 @@ class CANN(OdometryFilter):
         velocity) and the evidence gain, and the jitter's two (kept, passed on) for each
         share it takes (one per speed below a place per frame, one for the rest).
         ``state_variables``: the units, each place's running mean and variance of its
-        input, the last frame's row, the last answer's row and whether the place has tied with
-        the one before it in every frame (``hold_repeats``), and 7 running numbers.
+        input (twice with ``adapt_front``: the front end's own), the last frame's row, the
+        last answer's row and whether the place has tied with the one before it in every frame
+        (``hold_repeats``), and 7 running numbers.
         """
         n = check_positive_int(n_reference, "n_reference")
         p = self._check_params()
@@ -551,7 +556,7 @@ class CANN(OdometryFilter):
             "params": units + neighbours + units + units + 2 * units + 2 * jittered * (n - 1),
             "neurons": units + 1,
             "distinct_weights": 3 + n_v + 2 * shares,
-            "state_variables": units + 5 * n + 7,
+            "state_variables": units + (7 if p["adapt_front"] else 5) * n + 7,
         }
 
     # -- online -----------------------------------------------------------------
@@ -568,6 +573,8 @@ class CANN(OdometryFilter):
         self.confidence_ = 0.0
         self.support_ = 0.5
         self.novelty_ = 1.0
+        self._log_row = False  # (whether the last row's input was its log)
+        self._last_likeness = 0.0  # (the last frame's correlation with the one before)
         self.evidence_share_ = 1.0
         self.front_probability_ = 0.0
         self.front_share_ = 0.5 ** (2 + self._params["tolerance"])
@@ -580,7 +587,7 @@ class CANN(OdometryFilter):
         p = self._params
         n_v = p["velocities"].size
         check_memory(
-            8 * n_v * n + 48 * n,
+            8 * n_v * n + 60 * n,
             f"n_reference={n} places x {n_v} velocities (velocities, bidirectional)",
         )
         self._n = n
@@ -598,6 +605,11 @@ class CANN(OdometryFilter):
         self._mean = np.zeros(n, np.float32)
         self._var = np.ones(n, np.float32)
         self._x = np.empty(n, np.float32)
+        # The front end's own reading of its rows (see _front_row): its input, and each place's
+        # running mean and variance over the frames counted by how much they differ.
+        self._front_x = np.empty(n, np.float32)
+        self._front_mean = np.zeros(n, np.float32)
+        self._front_var = np.ones(n, np.float32)
         self._offsets = np.zeros(n_v)
         # The last frame's row and the running mean correlation of consecutive rows (see
         # _novelty).
@@ -648,18 +660,36 @@ class CANN(OdometryFilter):
         """The row as z-scores, adapted per place and clipped (see "Input" on the guide)."""
         return normalised_input(self, row, 1.0, prior_var=True)
 
-    @staticmethod
-    def _front_row(row: np.ndarray, x: np.ndarray, t: int) -> np.ndarray:
-        """The front end's row as its own answer reads it (float64): frame ``t``'s input
-        ``x`` (each place's score against that place's running mean and spread, so that a
-        place that scores high in every frame is no answer) blended with the plain z-scored
-        ``row``, which weighs ``_FRONT_PLAIN`` frames against the ``t`` frames the adaptation
-        has seen: the first frame's input is 0 everywhere (its own mean), and a mean of a few
-        frames is noisy; the plain row also breaks the ties of clipped inputs."""
-        spread = float(row.std())
-        plain = row.astype(np.float64) - float(row.mean())
-        if spread > 0.0:
-            plain /= spread
+    def _front_row(self, row: np.ndarray, t: int) -> np.ndarray:
+        """The front end's row as its own answer reads it (float64): the row through the
+        input's per-place adaptation (its log where the input takes it; each place's score
+        against that place's running mean and spread, so that a place that scores high in
+        every frame is no answer), with statistics of its own, to which each frame counts
+        one minus its correlation with the last row (a robot standing before a noisy camera
+        gives rows that correlate almost wholly, and counted whole, its place's mean would
+        climb frame after frame until the place read as a hub's).  Blended with the plain
+        z-scored row, which weighs ``_FRONT_PLAIN`` frames against the ``t`` frames the
+        adaptation has seen: the first frame's adapted input is 0 everywhere (its own mean),
+        a mean of a few frames is noisy, and the plain row breaks the ties of clipped inputs.
+        A constant row (a spread of at most 1e-6, as the input takes it) reads as zeros: it
+        says nothing."""
+        x = normalised_input(
+            self,
+            row,
+            1.0,
+            prior_var=True,
+            buffers=(self._front_x, self._front_mean, self._front_var),
+            weight=1.0 - self._last_likeness,
+        )
+        plain = row.astype(np.float64)
+        if self._log_row:
+            np.maximum(plain, TINY, out=plain)
+            np.log(plain, out=plain)
+        spread = float(plain.std())
+        if spread <= 1e-6:
+            return np.zeros(row.shape[0])
+        plain -= float(plain.mean())
+        plain /= spread
         adapted = t / (t + _FRONT_PLAIN)
         plain *= 1.0 - adapted
         plain += adapted * x
@@ -835,8 +865,9 @@ class CANN(OdometryFilter):
         """
         r = float(self._kernels["likeness"](row, self._last_row))
         if self.n_frames_ == 0:
+            self._last_likeness = 0.0
             return 1.0
-        r = min(max(r, 0.0), 1.0)
+        r = self._last_likeness = min(max(r, 0.0), 1.0)
         if self._likeness is None:
             self._likeness = r
         usual = self._likeness
@@ -1007,7 +1038,7 @@ class CANN(OdometryFilter):
         # spread), learned from whether it agrees with the sequence's confident answers.
         given = row  # (its raw score at the answer breaks the model's ties, as given)
         if p["adapt_front"]:
-            row = self._front_row(row, x, t)
+            row = self._front_row(row, t)
         front = int(np.argmax(row))
         spread = float(row.std())
         strength = (float(row[front]) - float(row.mean())) / spread if spread > 0 else 0.0

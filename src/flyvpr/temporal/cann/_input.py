@@ -31,15 +31,19 @@ def begin_frame(filt, row: np.ndarray) -> None:
         )
 
 
-def normalised_input(filt, row: np.ndarray, gain: float, *, prior_var: bool) -> np.ndarray:
+def normalised_input(
+    filt, row: np.ndarray, gain: float, *, prior_var: bool, buffers=None, weight: float = 1.0
+) -> np.ndarray:
     """Frame ``filt.n_frames_``'s input: ``row`` as z-scores, adapted per place, clipped, times
     ``gain`` (see "Input" on the user guide's CANN page).
 
     Uses ``filt``'s validated parameters (``input_transform``, ``adaptation``,
-    ``adapt_variance``, ``input_clip``), its buffers ``_x``, ``_mean`` and ``_var`` and its
-    ``normalise`` kernel; returns ``filt._x``.  ``prior_var``: each place's input is divided
-    by the spread of its frames before this one (the place-velocity CANN's), not with this
-    one's included (the paper's attractor, as it was calibrated).
+    ``adapt_variance``, ``input_clip``), its buffers ``_x``, ``_mean`` and ``_var`` (or the
+    three ``buffers`` given) and its ``normalise`` kernel; returns the first buffer.
+    ``prior_var``: each place's input is divided by the spread of its frames before this one
+    (the place-velocity CANN's), not with this one's included (the paper's attractor, as it
+    was calibrated).  ``weight`` (in [0, 1]) scales this frame's share in the running mean and
+    variance.  Sets ``filt._log_row``: whether the input took the row's log.
     """
     p = filt._params
     t = filt.n_frames_
@@ -50,6 +54,7 @@ def normalised_input(filt, row: np.ndarray, gain: float, *, prior_var: bool) -> 
         # the tolerance.)
         probability = lowest >= 0 and abs(float(row.sum()) - 1.0) <= PROBABILITY_ATOL
         transform = "log" if probability else "linear"
+    filt._log_row = transform == "log"  # (how this row was read: the front end reads it so)
     if transform == "log" and lowest < 0:
         raise ValueError(
             "scores_row must be non-negative for input_transform='log'; got minimum "
@@ -65,7 +70,9 @@ def normalised_input(filt, row: np.ndarray, gain: float, *, prior_var: bool) -> 
         # The first frame's adapted input is 0 everywhere (its own mean): no sample of the
         # spread.  The prior (1, worth one frame) then meets the second frame's.
         var_rate = 0.0 if t == 0 else max(1.0 / (t + 1), 1.0 / p["adaptation"])
-    x = filt._x
+    rate *= weight
+    var_rate *= weight
+    x, mean, var = (filt._x, filt._mean, filt._var) if buffers is None else buffers
     x[:] = row
     if transform == "log":
         # numpy's log, compiled or not: numba's rounds differently in the last bit, which the
@@ -74,8 +81,8 @@ def normalised_input(filt, row: np.ndarray, gain: float, *, prior_var: bool) -> 
         np.log(x, out=x)
     filt._kernels["normalise"](
         x,
-        filt._mean,
-        filt._var,
+        mean,
+        var,
         False,
         TINY,
         rate,

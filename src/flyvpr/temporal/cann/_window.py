@@ -150,6 +150,8 @@ class WindowedCANN:
             _shift(c._p, d, floor)
             _shift(c._mean, d, np.float32(0.0))
             _shift(c._var, d, np.float32(1.0))
+            _shift(c._front_mean, d, np.float32(0.0))  # (the front end's own, the same)
+            _shift(c._front_var, d, np.float32(1.0))
             # The last frame's row and answer move with the places (what enters is unknown: 0,
             # and tied until a frame says otherwise).
             _shift(c._last_row, d, 0.0)
