@@ -97,6 +97,8 @@ def _normalise(kernels, row, mean, var, **kw):
         0.1,
         args.get("clip", np.inf),
         args.get("gain", 1.0),
+        args.get("mix", 0.0),
+        args.get("read", np.empty(0)),
     )
     return x
 
@@ -144,6 +146,25 @@ def test_normalise_log_and_constant_rows(kernels):
         mean = np.zeros(6, np.float32)
         out = _normalise(kernels, row, mean, np.ones(6, np.float32))
         assert np.all(out == 0.0) and np.all(mean == 0.0)
+
+
+def test_normalise_blends_a_read_row(kernels):
+    # ``read``: mix times the adapted, clipped, gained input plus 1 - mix times the plain
+    # z-score; the adaptation and the input as without it; a constant row reads as zeros
+    row = np.array([1.0, 2.0, 4.0, 7.0, 1.0])
+    z = (row - row.mean()) / row.std()
+    mean, var = np.array([0.0, 0.5, -0.5, 1.0, 0.0], np.float32), np.ones(5, np.float32)
+    alone = _normalise(kernels, row, mean.copy(), var.copy(), clip=0.45, gain=3.0)
+    read = np.full(5, np.nan)
+    out = _normalise(kernels, row, mean, var, clip=0.45, gain=3.0, mix=0.25, read=read)
+    np.testing.assert_array_equal(out, alone)
+    np.testing.assert_allclose(read, 0.25 * out + 0.75 * z, rtol=1e-5, atol=1e-6)
+    read[:] = np.nan
+    _normalise(kernels, np.full(5, 2.0), mean, var, mix=0.25, read=read)
+    assert np.all(read == 0.0)
+    # an empty read leaves everything else as it was
+    again = _normalise(kernels, row, mean.copy(), var.copy(), mix=0.25, read=np.empty(0))
+    np.testing.assert_array_equal(again, _normalise(kernels, row, mean.copy(), var.copy()))
 
 
 # -- integration -----------------------------------------------------------------------------

@@ -116,11 +116,18 @@ def test_moving_carries_the_state_and_fills_what_enters():
     c = f.cann_
     c._mean[:] = np.arange(100, dtype=np.float32)
     c._var[:] = 2.0
+    c._front_mean[:] = -np.arange(100, dtype=np.float32)  # (the front end's own, adapt_front)
+    c._front_var[:] = 3.0
     before = c._p.copy()
     f._move(f.window_[0] + 10)
     np.testing.assert_array_equal(c._mean[:90], np.arange(10, 100, dtype=np.float32))
     np.testing.assert_array_equal(c._mean[90:], 0.0)
+    np.testing.assert_array_equal(c._var[:90], 2.0)
     np.testing.assert_array_equal(c._var[90:], 1.0)
+    np.testing.assert_array_equal(c._front_mean[:90], -np.arange(10, 100, dtype=np.float32))
+    np.testing.assert_array_equal(c._front_mean[90:], 0.0)
+    np.testing.assert_array_equal(c._front_var[:90], 3.0)
+    np.testing.assert_array_equal(c._front_var[90:], 1.0)
     np.testing.assert_array_equal(c._p[:, :90], before[:, 10:])
     np.testing.assert_array_equal(c._p[:, 90:], np.repeat(before.min(axis=1)[:, None], 10, 1))
     # the last frame's row and answer and the map's ties move with the places

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..._validation import check_memory, check_positive_int, check_real
 from . import _kernels
-from ._input import TINY, OdometryFilter, begin_frame, normalised_input
+from ._input import OdometryFilter, begin_frame, normalised_input
 from ._params import TRANSFORMS, _check_velocities
 
 #: candidate velocities, places per frame: standing still to 2 in steps of 1/8, then to 3.5 in
@@ -575,6 +575,7 @@ class CANN(OdometryFilter):
         self.novelty_ = 1.0
         self._log_row = False  # (whether the last row's input was its log)
         self._last_likeness = 0.0  # (the last frame's correlation with the one before)
+        self._front_seen = 0.0  # (frames the front end's statistics hold, see _front_row)
         self.evidence_share_ = 1.0
         self.front_probability_ = 0.0
         self.front_share_ = 0.5 ** (2 + self._params["tolerance"])
@@ -587,7 +588,7 @@ class CANN(OdometryFilter):
         p = self._params
         n_v = p["velocities"].size
         check_memory(
-            8 * n_v * n + 60 * n,
+            8 * n_v * n + 68 * n,
             f"n_reference={n} places x {n_v} velocities (velocities, bidirectional)",
         )
         self._n = n
@@ -610,6 +611,7 @@ class CANN(OdometryFilter):
         self._front_x = np.empty(n, np.float32)
         self._front_mean = np.zeros(n, np.float32)
         self._front_var = np.ones(n, np.float32)
+        self._front_read = np.empty(n, np.float64)  # (the row as its answer reads it)
         self._offsets = np.zeros(n_v)
         # The last frame's row and the running mean correlation of consecutive rows (see
         # _novelty).
@@ -660,7 +662,7 @@ class CANN(OdometryFilter):
         """The row as z-scores, adapted per place and clipped (see "Input" on the guide)."""
         return normalised_input(self, row, 1.0, prior_var=True)
 
-    def _front_row(self, row: np.ndarray, t: int) -> np.ndarray:
+    def _front_row(self, row: np.ndarray) -> np.ndarray:
         """The front end's row as its own answer reads it (float64): the row through the
         input's per-place adaptation (its log where the input takes it; each place's score
         against that place's running mean and spread, so that a place that scores high in
@@ -668,32 +670,26 @@ class CANN(OdometryFilter):
         one minus its correlation with the last row (a robot standing before a noisy camera
         gives rows that correlate almost wholly, and counted whole, its place's mean would
         climb frame after frame until the place read as a hub's).  Blended with the plain
-        z-scored row, which weighs ``_FRONT_PLAIN`` frames against the ``t`` frames the
-        adaptation has seen: the first frame's adapted input is 0 everywhere (its own mean),
-        a mean of a few frames is noisy, and the plain row breaks the ties of clipped inputs.
-        A constant row (a spread of at most 1e-6, as the input takes it) reads as zeros: it
-        says nothing."""
-        x = normalised_input(
+        z-scored row, which weighs ``_FRONT_PLAIN`` frames against the frames the statistics
+        hold before this one, each counted as it was (``_front_seen``): the first frame's
+        adapted input is 0 everywhere (its own mean), a mean of a few frames is noisy (a
+        robot standing from the start has shown one view however many frames it gave), and
+        the plain row breaks the ties of clipped inputs.  A constant row (a spread of at most
+        1e-6, as the input takes it) reads as zeros: it says nothing.  One compiled pass
+        with the adaptation's (``normalise``)."""
+        seen = self._front_seen
+        self._front_seen += 1.0 - self._last_likeness
+        normalised_input(
             self,
             row,
             1.0,
             prior_var=True,
             buffers=(self._front_x, self._front_mean, self._front_var),
             weight=1.0 - self._last_likeness,
+            mix=seen / (seen + _FRONT_PLAIN),
+            read=self._front_read,
         )
-        plain = row.astype(np.float64)
-        if self._log_row:
-            np.maximum(plain, TINY, out=plain)
-            np.log(plain, out=plain)
-        spread = float(plain.std())
-        if spread <= 1e-6:
-            return np.zeros(row.shape[0])
-        plain -= float(plain.mean())
-        plain /= spread
-        adapted = t / (t + _FRONT_PLAIN)
-        plain *= 1.0 - adapted
-        plain += adapted * x
-        return plain
+        return self._front_read
 
     def _front_feature(self, strength: float, raw: float, rate: float) -> float:
         """The front end's peak z-score, standardised by its running mean and spread (within
@@ -1038,7 +1034,7 @@ class CANN(OdometryFilter):
         # spread), learned from whether it agrees with the sequence's confident answers.
         given = row  # (its raw score at the answer breaks the model's ties, as given)
         if p["adapt_front"]:
-            row = self._front_row(row, t)
+            row = self._front_row(row)
         front = int(np.argmax(row))
         spread = float(row.std())
         strength = (float(row[front]) - float(row.mean())) / spread if spread > 0 else 0.0

@@ -31,8 +31,20 @@ def begin_frame(filt, row: np.ndarray) -> None:
         )
 
 
+#: what ``normalised_input`` passes the kernel for no blended read
+_NO_READ = np.empty(0)
+
+
 def normalised_input(
-    filt, row: np.ndarray, gain: float, *, prior_var: bool, buffers=None, weight: float = 1.0
+    filt,
+    row: np.ndarray,
+    gain: float,
+    *,
+    prior_var: bool,
+    buffers=None,
+    weight: float = 1.0,
+    mix: float = 0.0,
+    read=None,
 ) -> np.ndarray:
     """Frame ``filt.n_frames_``'s input: ``row`` as z-scores, adapted per place, clipped, times
     ``gain`` (see "Input" on the user guide's CANN page).
@@ -43,7 +55,9 @@ def normalised_input(
     ``prior_var``: each place's input is divided by the spread of its frames before this one
     (the place-velocity CANN's), not with this one's included (the paper's attractor, as it
     was calibrated).  ``weight`` (in [0, 1]) scales this frame's share in the running mean and
-    variance.  Sets ``filt._log_row``: whether the input took the row's log.
+    variance.  ``read`` (float64, as long as the row): filled with ``mix`` times the input plus
+    ``1 - mix`` times the row's plain z-score (zeros for a constant row).  Sets
+    ``filt._log_row``: whether the input took the row's log.
     """
     p = filt._params
     t = filt.n_frames_
@@ -93,6 +107,8 @@ def normalised_input(
         VAR_FLOOR,
         np.inf if p["input_clip"] is None else p["input_clip"],
         gain,
+        mix,
+        _NO_READ if read is None else read,
     )
     return x
 

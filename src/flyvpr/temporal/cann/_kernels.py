@@ -76,7 +76,21 @@ def shift(a, k, fill):
 
 
 def normalise(
-    x, mean, var, take_log, tiny, rate, var_rate, adapt, adapt_var, prior_var, floor, clip, gain
+    x,
+    mean,
+    var,
+    take_log,
+    tiny,
+    rate,
+    var_rate,
+    adapt,
+    adapt_var,
+    prior_var,
+    floor,
+    clip,
+    gain,
+    mix,
+    read,
 ):
     """The input row ``x`` (float32, in place) -> ``gain`` times its adapted, clipped z-scores.
 
@@ -85,7 +99,8 @@ def normalise(
     with weight ``rate``); ``adapt_var``: then divide by the square root of its running
     variance ``var`` (weight ``var_rate``) plus ``floor``: of the frames before this one when
     ``prior_var`` (a frame's own peak then does not damp itself), else this one's included.
-    Then clip to ``[-clip, clip]``.
+    Then clip to ``[-clip, clip]``.  ``read`` (float64, as long as the row, or empty for
+    none): ``mix`` times that plus ``1 - mix`` times the plain z-score (0 for a constant row).
     Three passes over the row: its mean, its spread, then the rest fused.
     """
     if take_log:
@@ -109,8 +124,10 @@ def normalise(
     var_keep, var_fresh = np.float32(1.0 - var_rate), np.float32(var_rate)
     low, high = np.float32(-clip), np.float32(clip)
     floor32, gain32 = np.float32(floor), np.float32(gain)
+    blend = read.shape[0] == n
     for i in range(n):
         v = (x[i] - centre) * scale
+        plain = v
         if adapt:
             m = mean[i] * keep + v * fresh
             mean[i] = m
@@ -121,6 +138,8 @@ def normalise(
                 var[i] = q
                 v = v / np.sqrt((before if prior_var else q) + floor32)
         x[i] = min(max(v, low), high) * gain32
+        if blend:
+            read[i] = mix * float(x[i]) + (1.0 - mix) * float(plain) if scale > 0 else 0.0
 
 
 def update_traces(old, new, shifts, keeps, coefs, x):
