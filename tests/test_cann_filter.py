@@ -287,8 +287,10 @@ def reference_filter(S, velocity=None, **params):
         front_confidence = min(1.0, front_confidence * (1 + 1e-3 * math.tanh(raw_z)))
         if q["fallback"] and support_mean * probability < front_confidence * (1 - support_mean):
             # shrunk towards the base rate 0.5 ** (1 + tol) by the share of localized frames,
-            # or by the support if that is less
-            trust = max(min(localized_mean, support), 0.05)
+            # or by the support if that is less; the greater where the front end's place is
+            # where the layer predicted the robot (within tol)
+            pick = max if predicted >= 0 and abs(front - predicted) <= tol else min
+            trust = max(pick(localized_mean, support), 0.05)
             base = 0.5 ** (1 + tol)
             confidence = base + trust * (front_confidence - base)
             source, answer = "front end", front
@@ -2431,16 +2433,30 @@ def test_a_lost_filter_shrinks_the_front_ends_confidence_towards_the_base_rate()
     # towards 0.5 ** 3 by the share of localized frames so far (a running mean over
     # support_memory frames), which falls as the filter stays lost, or by the support (the
     # probability that the query follows the route) where that is less.
+    # Where the front end's place is where the layer predicted the robot (within
+    # tolerance), the greater of the two shrinks it instead.
     rng = np.random.default_rng(5)
     pos = np.r_[10 + np.arange(80.0), rng.integers(0, 300, 300).astype(float)]
     S = bump_rows(pos, 300, seed=5)
     f = CANN()
     f.reset()
-    share, shares, answers = 0.0, [], []
+    predictions = []
+    real = f._support
+
+    def spy(x, predicted, novelty):
+        predictions.append(predicted)
+        return real(x, predicted, novelty)
+
+    f._support = spy
+    share, shares, answers, agreed = 0.0, [], [], 0
     for t, row in enumerate(S):
+        predictions.append(-1)  # (frame 0 predicts nothing; later frames' spy comes after)
         f.step(row)
+        predicted = predictions[-1]
         if f.source_ == "front end":
-            trust = max(min(share, f.support_), 0.05)
+            agree = predicted >= 0 and abs(f._last_front - predicted) <= 2
+            agreed += agree
+            trust = max((max if agree else min)(share, f.support_), 0.05)
             expected = lost_confidence(f.front_probability_, 2, trust)
             assert f.confidence_ == np.float32(expected), t
             answers.append((t, f.front_probability_, f.confidence_, trust, share))
@@ -2459,6 +2475,7 @@ def test_a_lost_filter_shrinks_the_front_ends_confidence_towards_the_base_rate()
     assert sum(a[3] < 0.5 * a[4] for a in early) >= len(early) // 2
     t, model, confidence, trust, _ = lost[-1]
     assert trust < 0.1 and abs(confidence - 0.125) < 0.1 * abs(model - 0.125)
+    assert 0 < agreed < len(answers) // 2
 
 
 def _predictions(f, S, velocity):

@@ -573,7 +573,6 @@ class CANN(OdometryFilter):
         self.confidence_ = 0.0
         self.support_ = 0.5
         self.novelty_ = 1.0
-        self._log_row = False  # (whether the last row's input was its log)
         self._last_likeness = 0.0  # (the last frame's correlation with the one before)
         self._front_seen = 0.0  # (frames the front end's statistics hold, see _front_row)
         self.evidence_share_ = 1.0
@@ -686,8 +685,7 @@ class CANN(OdometryFilter):
             prior_var=True,
             buffers=(self._front_x, self._front_mean, self._front_var),
             weight=1.0 - self._last_likeness,
-            mix=seen / (seen + _FRONT_PLAIN),
-            read=self._front_read,
+            read=(self._front_read, seen / (seen + _FRONT_PLAIN)),
         )
         return self._front_read
 
@@ -1069,7 +1067,12 @@ class CANN(OdometryFilter):
             # that the query follows the route if that is less (a twentieth of it kept, so
             # that the front end's own order of answers survives).
             base = 0.5 ** (1 + p["tolerance"])
-            trust = max(min(self._localized_mean, self.support_), _MIN_TRUST)
+            # Where the front end's place is where the layer predicted the robot before this
+            # frame (within tolerance), two views agree: the query is more likely on the
+            # route, and the greater of the two is kept.
+            share, support = self._localized_mean, self.support_
+            agree = predicted >= 0 and abs(front - predicted) <= radius
+            trust = max(max(share, support) if agree else min(share, support), _MIN_TRUST)
             confidence = base + trust * (front_confidence - base)
             z = row.astype(np.float64) - float(row.mean())
             top = float(z[front])

@@ -43,7 +43,6 @@ def normalised_input(
     prior_var: bool,
     buffers=None,
     weight: float = 1.0,
-    mix: float = 0.0,
     read=None,
 ) -> np.ndarray:
     """Frame ``filt.n_frames_``'s input: ``row`` as z-scores, adapted per place, clipped, times
@@ -55,9 +54,9 @@ def normalised_input(
     ``prior_var``: each place's input is divided by the spread of its frames before this one
     (the place-velocity CANN's), not with this one's included (the paper's attractor, as it
     was calibrated).  ``weight`` (in [0, 1]) scales this frame's share in the running mean and
-    variance.  ``read`` (float64, as long as the row): filled with ``mix`` times the input plus
-    ``1 - mix`` times the row's plain z-score (zeros for a constant row).  Sets
-    ``filt._log_row``: whether the input took the row's log.
+    variance.  ``read``: ``(out, mix)``, ``out`` (float64, as long as the row) filled with
+    ``mix`` times the input plus ``1 - mix`` times the row's plain z-score (zeros for a
+    constant row).
     """
     p = filt._params
     t = filt.n_frames_
@@ -68,7 +67,6 @@ def normalised_input(
         # the tolerance.)
         probability = lowest >= 0 and abs(float(row.sum()) - 1.0) <= PROBABILITY_ATOL
         transform = "log" if probability else "linear"
-    filt._log_row = transform == "log"  # (how this row was read: the front end reads it so)
     if transform == "log" and lowest < 0:
         raise ValueError(
             "scores_row must be non-negative for input_transform='log'; got minimum "
@@ -87,6 +85,7 @@ def normalised_input(
     rate *= weight
     var_rate *= weight
     x, mean, var = (filt._x, filt._mean, filt._var) if buffers is None else buffers
+    out, mix = (_NO_READ, 0.0) if read is None else read
     x[:] = row
     if transform == "log":
         # numpy's log, compiled or not: numba's rounds differently in the last bit, which the
@@ -108,7 +107,7 @@ def normalised_input(
         np.inf if p["input_clip"] is None else p["input_clip"],
         gain,
         mix,
-        _NO_READ if read is None else read,
+        out,
     )
     return x
 
