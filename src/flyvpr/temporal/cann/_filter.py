@@ -242,7 +242,8 @@ class CANN(OdometryFilter):
         localized frames over the last ``support_memory`` frames and ``support_`` (the
         probability that the query follows the route): a filter lost for long, or whose
         frames no longer follow the route, may be off the map, where the model (learned on
-        the route) does not hold.
+        the route) does not hold.  Where the front end's place lies within ``tolerance`` of
+        where the layer predicted the robot before the frame, the greater of the two is used.
     snap : bool, default True
         Answer with the front end's best place instead of the packet's when it lies near the
         packet's answer but not on it (within ``2 * (2 * tolerance + 1)`` places), moved with
@@ -260,13 +261,15 @@ class CANN(OdometryFilter):
         its agreement and the snap) reads the row through the input's per-place adaptation:
         each place's score against its running mean and spread over the frames so far, so
         that a place that scores high in every frame (a hub of the map) is no answer.  The
-        front end keeps statistics of its own, to which each frame counts one minus its
-        correlation with the last row (a robot standing before a noisy camera gives rows
-        that correlate almost wholly: counted whole, its place would read as a hub's).  The
-        adapted row is blended with the plain z-scored row (its log where the input takes
-        it), which weighs 5 frames against the frames seen (the first frame's adapted input
-        is 0 everywhere, and a mean of a few frames is noisy).  A constant row reads as
-        ties.  ``False``: the front end's row as it is.  See "Output" on the guide page.
+        front end keeps statistics of its own, where each frame's share (the adaptation's
+        rate) is scaled by one minus its correlation with the last row (a robot standing
+        before a noisy camera gives rows that correlate almost wholly: counted whole, its
+        place would read as a hub's).  The adapted row is blended with the plain z-scored
+        row (its log where the input takes it), which weighs 5 frames against the frames
+        those statistics hold, each counted by one minus its correlation (the first frame's
+        adapted input is 0 everywhere, and a mean of a few frames is noisy).  A constant
+        row reads as ties.  ``False``: the front end's row as it is.  See "Output" on the
+        guide page.
     calibration : sequence of 11 float or None, default CALIBRATION
         The sequence's confidence where the fourth root of its raw confidence (support times
         ``probability_``) is 0, 0.1, ..., 1 (raw 0, 0.0001, 0.0016, ..., 1: finest
