@@ -247,10 +247,11 @@ class CANN(OdometryFilter):
     snap : bool, default True
         Answer with the front end's best place instead of the packet's when it lies near the
         packet's answer but not on it (within ``2 * (2 * tolerance + 1)`` places), moved with
-        the layer since the last frame filtered (1 to ``2 |v| + 1`` places along the layer's
-        mean velocity ``v`` of that frame), and the front end has agreed (within
-        ``tolerance``) with a larger share of the sequence's confident answers than the
-        probability the packet's window holds (``front_share_``).  A packet that fell behind
+        the layer since the last frame filtered (1 to ``3 |v| + 1`` places along the layer's
+        mean velocity ``v`` of that frame: up to two frames dropped in a row), and the front
+        end had agreed (within ``tolerance``) with a larger share of the sequence's confident
+        answers before this frame than the probability the packet's window holds
+        (``front_share_`` as the last frame left it).  A packet that fell behind
         a strong front end (a recording that drops frames) so answers where the front end
         does.  The answer stays the sequence's (``source_``), its probability of being right
         (``probability_``) is that share: the confidence is the support times it
@@ -710,25 +711,32 @@ class CANN(OdometryFilter):
         return out[0]
 
     def _snaps(
-        self, front: int, packet: int, last_front: int | None, probability: float, radius: int
+        self,
+        front: int,
+        packet: int,
+        last_front: int | None,
+        probability: float,
+        radius: int,
+        share: float,
     ) -> bool:
         """Whether the front end's best place ``front`` answers instead of the packet's
         ``packet`` (see "Output" on the guide page): it lies within twice the sequence test's
-        window of it (``2 * (2 * radius + 1)`` places) but not on it, the front end has agreed
-        with more of the sequence's confident answers (``front_share_``) than the packet's
-        window holds of its probability, and the front end's best place moved with the layer
-        since the last frame filtered: 1 to ``2 |v| + 1`` places along the layer's
-        mean velocity ``v`` of that frame (a front end that stands while the layer moves, or
-        jumps about, is not followed)."""
+        window of it (``2 * (2 * radius + 1)`` places) but not on it, the front end had agreed
+        with more of the sequence's confident answers before this frame (``share``: this
+        frame's own disagreement is the one in question) than the packet's window holds of
+        its probability, and the front end's best place moved with the layer since the last
+        frame filtered: 1 to ``3 |v| + 1`` places along the layer's mean velocity ``v`` of
+        that frame (two frames dropped in a row, and a place for rounding; a front end that
+        stands while the layer moves, or jumps about, is not followed)."""
         if front == packet or abs(front - packet) > 2 * (2 * radius + 1):
             return False
-        if not self.front_share_ > probability or last_front is None:
+        if not share > probability or last_front is None:
             return False
         v = self._layer_velocity  # (of the last frame filtered: not a held one's 0)
         if v == 0.0 or not math.isfinite(v):  # (NaN before the first frame)
             return False
         step = (front - last_front) * (1 if v > 0 else -1)
-        return 1 <= step <= 2.0 * abs(v) + 1.0
+        return 1 <= step <= 3.0 * abs(v) + 1.0
 
     def _shifts(self, velocity: float | None) -> np.ndarray:
         """Whole places each row moves this frame (fractions accumulate, halves round up).
@@ -1041,6 +1049,7 @@ class CANN(OdometryFilter):
         strength = (float(row[front]) - float(row.mean())) / spread if spread > 0 else 0.0
         feature = self._front_feature(strength, float(given[front]), rate)
         front_confidence = _sigmoid(self._front_model[0] + self._front_model[1] * feature)
+        share_before = self.front_share_  # (the snap's: this frame's agreement is in question)
         if confidence >= 0.5:
             agree = float(abs(front - answer) <= radius)
             error = agree - front_confidence
@@ -1091,7 +1100,9 @@ class CANN(OdometryFilter):
             np.multiply(self._box, self.support_, out=out, casting="unsafe")
             if predicted >= 0 and abs(packet - predicted) > 2 * radius + 1:
                 self.n_relocations_ += 1
-            if p["snap"] and self._snaps(front, packet, last_front, probability, radius):
+            if p["snap"] and self._snaps(
+                front, packet, last_front, probability, radius, share_before
+            ):
                 # The front end's best place, near the packet and moving with it, is more
                 # likely right than the packet's window: the answer moves there.
                 self.snapped_ = True
