@@ -235,12 +235,13 @@ class CANN(OdometryFilter):
         Answer with the front end's best place when the front end's estimated probability of
         being right beats the sequence's (see "Output" on the guide page; with
         ``adapt_front``, its best place in the row read through the adaptation).  The front
-        end's probability is a logistic model of the strength of its peak (its z-score), learned
-        at run time from whether it agrees with the sequence's confident answers; before
-        any, ``0.5 ** (2 + tolerance)``.  The confidence of a front-end answer is that
-        probability shrunk towards ``0.5 ** (1 + tolerance)`` by the lesser of the share of
-        localized frames over the last ``support_memory`` frames and ``support_`` (the
-        probability that the query follows the route): a filter lost for long, or whose
+        end's probability is a logistic model of the strength of its peak (its z-score),
+        learned at run time from whether it agrees with the sequence's confident answers
+        (but those that snapped); before any, ``0.5 ** (2 + tolerance)``.  The confidence
+        of a front-end answer is that probability shrunk towards ``0.5 ** (1 + tolerance)``
+        by the lesser of the share of localized frames over the last ``support_memory``
+        frames and ``support_`` (the probability that the query follows the route): a
+        filter lost for long, or whose
         frames no longer follow the route, may be off the map, where the model (learned on
         the route) does not hold.  Where the front end's place lies within ``tolerance`` of
         where the layer predicted the robot before the frame, the greater of the two is used.
@@ -251,7 +252,9 @@ class CANN(OdometryFilter):
         mean velocity ``v`` of that frame: up to two frames dropped in a row), and the front
         end had agreed (within ``tolerance``) with a larger share of the sequence's confident
         answers before this frame than the probability the packet's window holds
-        (``front_share_`` as the last frame left it).  A packet that fell behind
+        (``front_share_`` as the last frame left it; a frame that snaps does not count in
+        it, the packet's answer that the front end would be judged by being the one
+        overruled).  A packet that fell behind
         a strong front end (a recording that drops frames) so answers where the front end
         does.  The answer stays the sequence's (``source_``), its probability of being right
         (``probability_``) is that share: the confidence is the support times it
@@ -342,7 +345,7 @@ class CANN(OdometryFilter):
         The share of the sequence's confident answers (support times window probability at
         least 0.5) whose place the front end's best place was within ``tolerance`` of, from
         a prior of ``0.5 ** (2 + tolerance)`` worth one answer (see ``snap``); counted since
-        :meth:`reset`, not forgotten.
+        :meth:`reset`, not forgotten, but for the frames whose answer snapped.
     probability_ : float
         The probability within ``tolerance`` places of the sequence's answer: its window's,
         or ``front_share_`` where the answer snapped; 0 for a front end's answer.
@@ -711,26 +714,20 @@ class CANN(OdometryFilter):
         return out[0]
 
     def _snaps(
-        self,
-        front: int,
-        packet: int,
-        last_front: int | None,
-        probability: float,
-        radius: int,
-        share: float,
+        self, front: int, packet: int, last_front: int | None, probability: float, radius: int
     ) -> bool:
         """Whether the front end's best place ``front`` answers instead of the packet's
         ``packet`` (see "Output" on the guide page): it lies within twice the sequence test's
-        window of it (``2 * (2 * radius + 1)`` places) but not on it, the front end had agreed
-        with more of the sequence's confident answers before this frame (``share``: this
-        frame's own disagreement is the one in question) than the packet's window holds of
+        window of it (``2 * (2 * radius + 1)`` places) but not on it, the front end has agreed
+        with more of the sequence's confident answers before this frame (``front_share_``:
+        this frame's own agreement is the one in question) than the packet's window holds of
         its probability, and the front end's best place moved with the layer since the last
         frame filtered: 1 to ``3 |v| + 1`` places along the layer's mean velocity ``v`` of
         that frame (two frames dropped in a row, and a place for rounding; a front end that
         stands while the layer moves, or jumps about, is not followed)."""
         if front == packet or abs(front - packet) > 2 * (2 * radius + 1):
             return False
-        if not share > probability or last_front is None:
+        if not self.front_share_ > probability or last_front is None:
             return False
         v = self._layer_velocity  # (of the last frame filtered: not a held one's 0)
         if v == 0.0 or not math.isfinite(v):  # (NaN before the first frame)
@@ -1049,17 +1046,9 @@ class CANN(OdometryFilter):
         strength = (float(row[front]) - float(row.mean())) / spread if spread > 0 else 0.0
         feature = self._front_feature(strength, float(given[front]), rate)
         front_confidence = _sigmoid(self._front_model[0] + self._front_model[1] * feature)
-        share_before = self.front_share_  # (the snap's: this frame's agreement is in question)
-        if confidence >= 0.5:
-            agree = float(abs(front - answer) <= radius)
-            error = agree - front_confidence
-            self._front_model[0] += _FRONT_RATE * error
-            self._front_model[1] += _FRONT_RATE * error * feature
-            self._front_agreed += agree
-            self._front_checked += 1.0
-        # The share of them it agreed with, from a prior worth one answer.
-        prior = 0.5 ** (2 + p["tolerance"])
-        self.front_share_ = (self._front_agreed + prior) / (self._front_checked + 1.0)
+        # (a confident answer judges the front end below, unless the answer snaps)
+        judged = confidence >= 0.5
+        model_probability = front_confidence
         last_front, self._last_front = self._last_front, front
         # A tie-break that keeps the front end's own order of answers (its raw best score)
         # where the model does not separate them (no confident answers to learn from yet).
@@ -1100,14 +1089,27 @@ class CANN(OdometryFilter):
             np.multiply(self._box, self.support_, out=out, casting="unsafe")
             if predicted >= 0 and abs(packet - predicted) > 2 * radius + 1:
                 self.n_relocations_ += 1
-            if p["snap"] and self._snaps(
-                front, packet, last_front, probability, radius, share_before
-            ):
+            if p["snap"] and self._snaps(front, packet, last_front, probability, radius):
                 # The front end's best place, near the packet and moving with it, is more
                 # likely right than the packet's window: the answer moves there.
                 self.snapped_ = True
                 answer = front
                 confidence = self.support_ * self.front_share_
+        if judged and not self.snapped_:
+            # Whether the front end agreed with the sequence's confident answer: a step of the
+            # model towards it, and the share of such answers it agreed with (from a prior
+            # worth one answer).  A frame that snapped is not counted either way: the filter
+            # itself overruled the packet's answer there, so it is no reference to judge the
+            # front end by (counted as a disagreement, a drop that the packet missed would
+            # lower the share the next frames' snaps weigh).
+            agree = float(abs(front - packet) <= radius)
+            error = agree - model_probability
+            self._front_model[0] += _FRONT_RATE * error
+            self._front_model[1] += _FRONT_RATE * error * feature
+            self._front_agreed += agree
+            self._front_checked += 1.0
+        prior = 0.5 ** (2 + p["tolerance"])
+        self.front_share_ = (self._front_agreed + prior) / (self._front_checked + 1.0)
         if self.source_ == "front end":
             self.probability_ = 0.0
         else:  # the probability that the sequence's answer is right: the window's, or
