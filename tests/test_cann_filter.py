@@ -475,6 +475,37 @@ def test_matches_reference_where_the_front_end_learned(adapt_front):
     assert frames[40]["front_model"][1] > 0.3
 
 
+def _refound_scenario(n=300):
+    """A route at 1 place per frame for 100 frames, 80 frames of noise (off the map), then the
+    route again from place 150 for 60 frames; from the fourth frame after the return, every
+    fourth frame also shows a stronger peak 60 places behind the truth: on the first of them
+    the filter falls back to the front end's place while the sequence's own answer is
+    confident, so the front end is judged against the packet's answer, not the answer given."""
+    rng = np.random.default_rng(0)
+    pos = np.r_[5 + np.arange(100), np.full(80, -1), 150 + np.arange(60)]
+    S = rng.normal(0.0, 0.3, (pos.size, n))
+    on = pos >= 0
+    places = np.arange(n)
+    S[on] += 1.5 * np.exp(-0.5 * (places - pos[on][:, None]) ** 2)
+    lure = np.arange(183, pos.size, 4)
+    S[lure] += 3.0 * np.exp(-0.5 * (places - (pos[lure] - 60)[:, None]) ** 2)
+    return S, lure
+
+
+@pytest.mark.parametrize("params", [WIDE, {}])
+def test_matches_reference_where_the_front_end_answers_a_confident_frame(params):
+    S, lure = _refound_scenario()
+    frames = assert_matches_reference(S, **params)
+    # (the front end's answers that were judged: its model moved on them; frame 183)
+    judged = [
+        t
+        for t in lure
+        if frames[t]["source_"] == "front end"
+        and frames[t]["front_model"] != frames[t - 1]["front_model"]
+    ]
+    assert judged
+
+
 @pytest.mark.parametrize("case", ["defaults", "raw input", "no fallback", "jittery"])
 def test_matches_reference_through_a_stand_of_the_map(cann_kernel_mode, case):
     frames = assert_matches_reference(_stand_scenario(), **REFERENCE_CASES[case])

@@ -237,29 +237,28 @@ class CANN(OdometryFilter):
         ``adapt_front``, its best place in the row read through the adaptation).  The front
         end's probability is a logistic model of the strength of its peak (its z-score),
         learned at run time from whether it agrees with the sequence's confident answers
-        (but those that snapped); before any, ``0.5 ** (2 + tolerance)``.  The confidence
-        of a front-end answer is that probability shrunk towards ``0.5 ** (1 + tolerance)``
-        by the lesser of the share of localized frames over the last ``support_memory``
-        frames and ``support_`` (the probability that the query follows the route): a
-        filter lost for long, or whose
-        frames no longer follow the route, may be off the map, where the model (learned on
-        the route) does not hold.  Where the front end's place lies within ``tolerance`` of
-        where the layer predicted the robot before the frame, the greater of the two is used.
+        (except those whose answer snapped); before any, ``0.5 ** (2 + tolerance)``.  The
+        confidence of a front-end answer is that probability shrunk towards
+        ``0.5 ** (1 + tolerance)`` by the lesser of the share of localized frames over the
+        last ``support_memory`` frames and ``support_`` (the probability that the query
+        follows the route): a filter lost for long, or whose frames no longer follow the
+        route, may be off the map, where the model (learned on the route) does not hold.
+        Where the front end's place lies within ``tolerance`` of where the layer predicted
+        the robot before the frame, the greater of the two is used.
     snap : bool, default True
         Answer with the front end's best place instead of the packet's when it lies near the
-        packet's answer but not on it (within ``2 * (2 * tolerance + 1)`` places), moved with
-        the layer since the last frame filtered (1 to ``3 |v| + 1`` places along the layer's
-        mean velocity ``v`` of that frame: up to two frames dropped in a row), and the front
-        end had agreed (within ``tolerance``) with a larger share of the sequence's confident
-        answers before this frame than the probability the packet's window holds
-        (``front_share_`` as the last frame left it; a frame that snaps does not count in
-        it, the packet's answer that the front end would be judged by being the one
-        overruled).  A packet that fell behind
-        a strong front end (a recording that drops frames) so answers where the front end
-        does.  The answer stays the sequence's (``source_``), its probability of being right
-        (``probability_``) is that share: the confidence is the support times it
-        (calibrated), and the state follows from it as from the window's.  See "Output" on
-        the guide page.
+        packet's answer but not on it (within ``2 * (2 * tolerance + 1)`` places), moved
+        with the layer since the last frame filtered (1 to ``3 |v| + 1`` places along the
+        layer's mean velocity ``v`` of that frame: up to two frames dropped in a row), and
+        the front end had agreed (within ``tolerance``) with a larger share of the
+        sequence's confident answers before this frame than the probability the packet's
+        window holds (``front_share_`` as the last frame left it; a frame whose answer snaps
+        does not count in it: the packet's answer, which would judge the front end, is the
+        one overruled).  A packet that fell behind a strong front end (a recording that drops
+        frames) so answers where the front end does.  The answer stays the sequence's
+        (``source_``), its probability of being right (``probability_``) is that share: the
+        confidence is the support times it (calibrated), and the state follows from it as
+        from the window's.  See "Output" on the guide page.
     adapt_front : bool, default True
         The front end's own answer (where the filter falls back to it, and for its model,
         its agreement and the snap) reads the row through the input's per-place adaptation:
