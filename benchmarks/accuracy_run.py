@@ -20,6 +20,7 @@ from benchmarks.accuracy_setup import Dataset, Entry, View, fisheye
 from flyvpr import metrics
 from flyvpr.datasets import ground_truth_from_frames, load_benchmark
 from flyvpr.methods import make_method
+from flyvpr.temporal.cann import route_breaks
 
 #: stream frames at which the kidnap test's query stream jumps KIDNAP_JUMP places ahead
 KIDNAP_AT = (100, 200, 300, 400, 500, 600, 700)
@@ -126,6 +127,11 @@ def run_task(task: Task) -> dict:
                     keep = gap_keep(len(ref), view.gap)
                     view_model, view_S, _ = _fit(entry, task.seed, ref[keep], qry, shared, view.gap)
                     view_ref_ids = ref_ids[keep]
+                    filt = view_model.filter
+                    if filt is not None and "breaks" in filt.get_params():
+                        # the map's places keep their frame numbers: where they jump, the
+                        # route is broken (the layer does not carry the robot across)
+                        filt.set_params(breaks=route_breaks(view_ref_ids))
                 frames = view_S[idx]
                 if view.camera_noise:  # the front end scores the view's own noisy frames
                     frames = view_model.frontend.score(view.frames(qry, idx))

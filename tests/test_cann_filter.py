@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from flyvpr._validation import InsufficientMemoryError
-from flyvpr.temporal.cann import CANN, LAYER_VELOCITIES, _kernels
+from flyvpr.temporal.cann import CANN, LAYER_VELOCITIES, _kernels, route_breaks
 from flyvpr.temporal.cann._filter import _FRONT_RATE, CALIBRATION, _shape
 from oracles import odometry_scale
 
@@ -113,6 +113,7 @@ def reference_filter(S, velocity=None, **params):
         # the rows are scales of the odometry: their prior is the speed prior's shape around 1
         prior = ref_velocity_weights(vel, q["reverse_weight"], 1.0, q["speed_prior_width"])
     n = S.shape[1]
+    breaks = [int(b) for b in q["breaks"]]
     tol, memory, outlier = q["tolerance"], q["support_memory"], q["outlier"]
     layer = np.tile(prior[:, None] / n, (1, n))
     mean, var = np.zeros(n), np.ones(n)
@@ -193,6 +194,15 @@ def reference_filter(S, velocity=None, **params):
                 share = q["jitter"] * np.minimum(speed, 1.0)[:, None]
                 padded = np.pad(layer, ((0, 0), (1, 1)))
                 layer = (1 - share) * layer + share / 2 * (padded[:, :-2] + padded[:, 2:])
+            for j, k in enumerate(shifts.astype(int)):
+                # a unit whose move crosses a break of the map (the boundary between places
+                # b - 1 and b) leaves the mapped stretch: its activity is spread over the row
+                crossing = [
+                    i for i in range(n) if any(i < b <= i + k or i + k < b <= i for b in breaks)
+                ]
+                gone = layer[j, crossing].sum()
+                layer[j, crossing] = 0.0
+                layer[j] += gone / n
             moved = np.zeros_like(layer)
             for j, k in enumerate(shifts.astype(int)):
                 for i in range(n):
@@ -506,6 +516,144 @@ def test_matches_reference_where_the_front_end_answers_a_confident_frame(params)
     assert judged
 
 
+def _break_scenario(n=120):
+    """A route at 1 place per frame from place 10 to 59, the last place before a break of
+    the map at 60 (places 60-119 are another stretch of the route), then 25 frames of noise
+    (the robot drove on, off the map), then places 90 on at 1 place per frame (back)."""
+    rng = np.random.default_rng(5)
+    pos = np.r_[10 + np.arange(50), np.full(25, -1), 90 + np.arange(25)]
+    S = rng.normal(0.0, 0.3, (pos.size, n))
+    on = pos >= 0
+    S[on] += 1.5 * np.exp(-0.5 * (np.arange(n) - pos[on][:, None]) ** 2)
+    return S, pos
+
+
+#: (a bank without rows of negligible prior: where the first frame leaves the layer flat,
+#: the prediction is the first of near-tied windows, which float32 and float64 may not share)
+_BREAK_BANK = {**WIDE, "velocities": (-1.0, 0.0, 0.5, 1.0, 1.5, 2.0)}
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        {**_BREAK_BANK, "breaks": (60,)},
+        {**_BREAK_BANK, "breaks": (1, 60, 119), "bidirectional": True, "speed_prior_width": 1.0},
+        {**_BREAK_BANK, "breaks": (60,), "jitter": 0.2, "calibration": None},
+    ],
+)
+def test_matches_reference_across_a_break_of_the_map(params):
+    S, pos = _break_scenario()
+    assert_matches_reference(S, **params)
+
+
+def test_a_break_keeps_the_packet_from_carrying_the_robot_across():
+    # Without the break the packet drives on into the next stretch of the map (places 60, 61,
+    # ... are its next places) and is localized there off the map; with it, the probability
+    # that moves past place 59 leaves the stretch, spread over the route, and the frames off
+    # the map are lost.  The answers before the break are the same.
+    S, pos = _break_scenario()
+    plain, broken = CANN(), CANN(breaks=[60])
+    a = [(int(plain.step(row).argmax()), plain.state_) for row in S]
+    b = [(int(broken.step(row).argmax()), broken.state_) for row in S]
+    assert a[:50] == b[:50] and a[49] == (59, "localized")
+    assert a[50] == (60, "localized")  # (drove on past the break)
+    assert all(state == "lost" for _, state in b[50:75])
+    assert b[-1] == (114, "localized")  # (back on the map)
+
+
+def test_a_break_spreads_what_crosses_it_over_its_own_row():
+    # Rows moving -1, 0 and 2 places; breaks before places 1, 5 and 10 of 12.  What each
+    # row's move carries across a break (forwards: the places short of it by less than the
+    # move; backwards: those at or after it, by less than the move) goes evenly to its row.
+    f = CANN(velocities=(-1.0, 0.0, 2.0), breaks=(1, 5, 10))
+    f.step(np.zeros(12))
+    layer = np.arange(36, dtype=np.float32).reshape(3, 12) / 100.0
+    f._p[:] = layer
+    f._leave_at_breaks(np.array([-1, 0, 2]))
+    expected = layer.astype(np.float64)
+    crossing = {0: [1, 5, 10], 2: [0, 3, 4, 8, 9]}  # row 0: from b to b - 1; row 2: b - 2, b - 1
+    for j, places in crossing.items():
+        gone = expected[j, places].sum()
+        expected[j, places] = 0.0
+        expected[j] += gone / 12
+    np.testing.assert_allclose(f._p, expected, rtol=1e-6, atol=1e-8)
+    assert np.isclose(f._p.sum(), layer.sum(), rtol=1e-6)  # (nothing lost)
+    before = f._p.astype(np.float64)
+    f._leave_at_breaks(np.array([-3, 0, 0]))  # (three back: b .. b + 2, within the route)
+    places = [1, 2, 3, 5, 6, 7, 10, 11]
+    expected = before.copy()
+    expected[0, places] = 0.0
+    expected[0] += before[0, places].sum() / 12
+    np.testing.assert_allclose(f._p, expected, rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize(
+    "breaks, error, message",
+    [
+        (
+            (0, 5),
+            ValueError,
+            r"breaks must be increasing place indices of at least 1.*\[0\.0, 5\.0\]",
+        ),
+        ((5, 5), ValueError, "breaks must be increasing"),
+        ((7, 3), ValueError, "breaks must be increasing"),
+        ((2.5,), ValueError, r"breaks must be whole place indices; got \[2\.5\]"),
+        ((float("nan"),), ValueError, "breaks must be whole place indices"),
+        ([[1, 2]], ValueError, r"breaks must be a 1-d sequence .* shape \(1, 2\)"),
+        (("a",), TypeError, "breaks must be a sequence of place indices"),
+    ],
+)
+def test_bad_breaks_are_refused(breaks, error, message):
+    with pytest.raises(error, match=message):
+        CANN(breaks=breaks).filter(np.zeros((3, 10)))
+
+
+def test_a_break_past_the_map_is_refused_on_its_first_frame():
+    f = CANN(breaks=(4, 10))
+    with pytest.raises(
+        ValueError, match=r"breaks must be places 1 \.\. 9 of this map of 10 places"
+    ):
+        f.step(np.zeros(10))
+    f = CANN(breaks=(4, 9))
+    f.step(np.zeros(10))  # (the last place may start a stretch)
+
+
+@pytest.mark.parametrize(
+    "coordinates, factor, expected",
+    [
+        ([10, 20, 30, 40, 3010, 3020, 3030], 5.0, (4,)),
+        ([0, 1, 2, 3, 4, 5], 5.0, ()),
+        ([0, 1, 2, 6, 7], 5.0, ()),  # (a step of 4: not more than 5 times the usual 1)
+        ([0, 1, 2, 6, 7], 3.0, (3,)),
+        ([0, 1, 2, 8, 9], 6.0, ()),  # (a step of 6 is not more than 6 times the usual 1)
+        ([0, 1, 2, 8, 9], 5.9, (3,)),
+        ([5.0, 5.5, 6.0, 0.0, 0.5, 1.0], 5.0, (3,)),  # (the next recording starts over)
+        ([3, 4, 4, 5], 5.0, (2,)),  # (a frame number that does not move on)
+        ([7], 5.0, ()),
+        ([], 5.0, ()),
+        ([[0, 0], [3, 4], [6, 8], [6, 100], [9, 104]], 5.0, (3,)),
+        ([[0, 0], [0, 0], [0, 0], [1, 0]], 5.0, ()),  # (a median step of 0: no jumps)
+        ([[0, 0, 0], [1, 0, 0], [2, 0, 0], [2, 9, 0]], 5.0, (3,)),
+    ],
+)
+def test_route_breaks_from_frame_numbers_and_positions(coordinates, factor, expected):
+    assert route_breaks(coordinates, factor) == expected
+
+
+@pytest.mark.parametrize(
+    "coordinates, factor, message",
+    [
+        ([0, 1, float("nan")], 5.0, "coordinates must be finite"),
+        (np.zeros((2, 2, 2)), 5.0, r"coordinates must be .* got shape \(2, 2, 2\)"),
+        (np.zeros((3, 0)), 5.0, "got shape"),
+        ([0, 1, 2], 1.0, "factor"),
+    ],
+)
+def test_route_breaks_refuses_bad_input(coordinates, factor, message):
+    with pytest.raises(ValueError, match=message):
+        route_breaks(coordinates, factor)
+
+
 @pytest.mark.parametrize("case", ["defaults", "raw input", "no fallback", "jittery"])
 def test_matches_reference_through_a_stand_of_the_map(cann_kernel_mode, case):
     frames = assert_matches_reference(_stand_scenario(), **REFERENCE_CASES[case])
@@ -634,6 +782,7 @@ DEFAULTS = {
     "recalibration": None,
     "odometry": "scaled",
     "hold_repeats": True,
+    "breaks": (),
 }
 
 

@@ -14,6 +14,7 @@ Modules: ``_filter`` (:class:`CANN`), ``_layer`` (its per-frame kernels), ``_win
 (:class:`WindowedCANN`: the layer on a window of a large map), ``_attractor``
 (:class:`AttractorCANN`) with ``_params``, ``_speed`` and ``_readout``; ``_calibration``
 (:func:`fit_calibration`: the confidence table fitted on a labelled route of one's own);
+``_route`` (:func:`route_breaks`: where a map's route is broken, the ``breaks`` parameter);
 ``_kernels`` holds the attractor's kernels, the input normalisation both use, and the numba
 compilation of both tables.
 """
@@ -23,15 +24,18 @@ from ._calibration import fit_calibration
 from ._filter import CANN, LAYER_VELOCITIES, ODOMETRY_JUMP
 from ._kernels import excitation_kernel
 from ._params import FAST_RECOVERY
+from ._route import BREAK_FACTOR, route_breaks
 from ._window import WindowedCANN
 
 __all__ = [
     "CANN",
     "AttractorCANN",
+    "BREAK_FACTOR",
     "FAST_RECOVERY",
     "LAYER_VELOCITIES",
     "ODOMETRY_JUMP",
     "WindowedCANN",
     "excitation_kernel",
     "fit_calibration",
+    "route_breaks",
 ]

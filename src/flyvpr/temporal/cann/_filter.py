@@ -15,7 +15,7 @@ import numpy as np
 from ..._validation import check_memory, check_positive_int, check_real
 from . import _kernels
 from ._input import OdometryFilter, begin_frame, normalised_input
-from ._params import TRANSFORMS, _check_velocities
+from ._params import TRANSFORMS, _check_breaks, _check_velocities
 
 #: candidate velocities, places per frame: standing still to 2 in steps of 1/8, then to 3.5 in
 #: steps of 1/4 (a speed is followed only within about half a step of a row: the bank reaches
@@ -316,6 +316,16 @@ class CANN(OdometryFilter):
         either mode a frame's odometry more than 8 times the recent distance per frame (its
         running mean over about 5 frames, taken as at least one place) is a glitch (a GPS jump):
         refused, the frame filtered as one without odometry (``n_odometry_refused_``).
+    breaks : sequence of int, default ()
+        Places where the map's route is broken: each is the first place of a stretch that
+        does not continue the place before it (the map leaves part of the route out, or joins
+        separate recordings).  Probability that a frame's move would carry across a break has
+        left the mapped stretch: it is spread evenly over the route, in its own velocity row,
+        as after a relocation, and not carried on to the far side (a robot that drives past
+        the end of a stretch is off the map, or anywhere).
+        :func:`flyvpr.temporal.cann.route_breaks` finds them from the places' frame numbers,
+        timestamps or positions.  The jitter's move of one place is not cut.  Empty: the
+        places are one route.
 
     Attributes
     ----------
@@ -384,10 +394,10 @@ class CANN(OdometryFilter):
 
     name = "cann"
 
-    #: maps and models saved before ``odometry``, ``hold_repeats``, ``jitter``, ``snap`` or
-    #: ``adapt_front`` existed load with its default (``snap`` and ``adapt_front``: off, as
-    #: they ran; see ``flyvpr.modelio``)
-    _added_params = ("odometry", "hold_repeats", "jitter", "snap", "adapt_front")
+    #: maps and models saved before ``odometry``, ``hold_repeats``, ``jitter``, ``snap``,
+    #: ``adapt_front`` or ``breaks`` existed load with its default (``snap`` and
+    #: ``adapt_front``: off, as they ran; see ``flyvpr.modelio``)
+    _added_params = ("odometry", "hold_repeats", "jitter", "snap", "adapt_front", "breaks")
 
     def __init__(
         self,
@@ -418,6 +428,7 @@ class CANN(OdometryFilter):
         recalibration=None,
         odometry="scaled",
         hold_repeats=True,
+        breaks=(),
     ):
         self.velocities = velocities
         self.bidirectional = bidirectional
@@ -446,6 +457,7 @@ class CANN(OdometryFilter):
         self.recalibration = recalibration
         self.odometry = odometry
         self.hold_repeats = hold_repeats
+        self.breaks = breaks
 
     # -- parameters -------------------------------------------------------------
     def _check_params(self) -> dict:
@@ -507,6 +519,7 @@ class CANN(OdometryFilter):
         if self.odometry not in ODOMETRY_MODES:
             raise ValueError(f"odometry must be one of {ODOMETRY_MODES}; got {self.odometry!r}")
         p["odometry"] = self.odometry
+        p["breaks"] = _check_breaks(self.breaks)
         p["calibration"] = _check_table(
             self.calibration, "calibration", "the fourth root of the raw confidence"
         )
@@ -596,6 +609,11 @@ class CANN(OdometryFilter):
             8 * n_v * n + 68 * n,
             f"n_reference={n} places x {n_v} velocities (velocities, bidirectional)",
         )
+        if p["breaks"].size and p["breaks"][-1] >= n:
+            raise ValueError(
+                f"breaks must be places 1 .. {n - 1} of this map of {n} places (the first "
+                f"place of each stretch after a break); got {p['breaks'].tolist()}"
+            )
         self._n = n
         self._kernels, self.compiled_ = _kernels.get_kernels(n, table="layer")
         prior = p["prior"].astype(np.float32)
@@ -733,6 +751,22 @@ class CANN(OdometryFilter):
             return False
         step = (front - last_front) * (1 if v > 0 else -1)
         return 1 <= step <= 3.0 * abs(v) + 1.0
+
+    def _leave_at_breaks(self, shifts: np.ndarray) -> None:
+        """Take the probability that this frame's move would carry across a break of the map
+        (``breaks``) off its place and spread it evenly over the route, in its own velocity
+        row: the robot has left the mapped stretch, and where it is now the layer does not
+        know (as after a relocation).  Row ``j`` moves ``shifts[j]`` places: forwards, its
+        last ``shifts[j]`` places before a break cross it; backwards, its first ones after."""
+        n = self._n or 0
+        for j in np.flatnonzero(shifts):
+            k, row, gone = int(shifts[j]), self._p[j], 0.0
+            for b in self._params["breaks"]:  # (all at once: what is spread does not cross)
+                crossing = row[max(b - k, 0) : b] if k > 0 else row[b : min(b - k, n)]
+                gone += float(crossing.sum(dtype=np.float64))
+                crossing[:] = 0.0
+            if gone > 0.0:
+                row += np.float32(gone / n)
 
     def _shifts(self, velocity: float | None) -> np.ndarray:
         """Whole places each row moves this frame (fractions accumulate, halves round up).
@@ -994,6 +1028,8 @@ class CANN(OdometryFilter):
         np.subtract(x, x.max(), out=weight)
         weight *= np.float32(p["evidence_gain"] * share)
         np.exp(weight, out=weight)
+        if t > 0 and p["breaks"].size:
+            self._leave_at_breaks(shifts)
         kernels["advance"](
             self._p,
             self._spare,

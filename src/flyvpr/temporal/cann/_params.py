@@ -49,6 +49,25 @@ def _check_velocities(velocities, bidirectional: bool) -> np.ndarray:
     return vel
 
 
+def _check_breaks(breaks) -> np.ndarray:
+    """``breaks`` as int64 places, each at least 1 and each after the one before (whether each
+    lies on the map is checked when the map's size is known)."""
+    try:
+        arr = np.asarray(breaks, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"breaks must be a sequence of place indices; {exc}") from exc
+    if arr.ndim != 1:
+        raise ValueError(f"breaks must be a 1-d sequence of place indices; got shape {arr.shape}")
+    if arr.size and not (np.isfinite(arr).all() and (arr == np.round(arr)).all()):
+        raise ValueError(f"breaks must be whole place indices; got {arr.tolist()}")
+    if arr.size and (arr[0] < 1 or (np.diff(arr) <= 0).any()):
+        raise ValueError(
+            "breaks must be increasing place indices of at least 1 (the first place of each "
+            f"stretch of the map after a break); got {arr.tolist()}"
+        )
+    return arr.astype(np.int64)
+
+
 def check_params(est) -> dict:
     """Validate a :class:`CANN`'s constructor parameters; return them as plain numbers.
 
