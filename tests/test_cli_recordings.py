@@ -644,6 +644,32 @@ def test_no_odometry_turns_it_off(recordings, maps, scripted, capsys):
     assert scripted[-1].velocities == [None] * N
 
 
+def test_the_cann_is_not_carried_across_a_jump_of_the_maps_positions(
+    recordings, maps, tmp_path, capsys
+):
+    from flyvpr.localization.maps import Map
+
+    m = Map.load(maps["xy"])
+    xy = m.positions + np.where(np.arange(m.n_places) >= 5, 1000.0, 0.0)[:, None]
+    jumped = Map(m.method, m.size, m.timestamps, m.source_index, xy, m.thumbnails, m.info)
+    jumped.save(tmp_path / "gap.map")
+    night = recordings["ros1"][QUERY]
+    code, out, err = _run(capsys, "localize", "--map", tmp_path / "gap.map", night)
+    assert code == 0, err
+    assert (
+        "\nbreaks: the map's positions jump before 1 place (5): the filter does not carry the "
+        "robot across them (--no-breaks: one route)\n" in out
+    )
+    code, out, err = _run(capsys, "localize", "--map", tmp_path / "gap.map", night, "--no-breaks")
+    assert code == 0, err
+    assert "\nbreaks: off (--no-breaks): 1 break of the map ignored\n" in out
+    code, out, err = _run(capsys, "localize", "--map", maps["xy"], night)
+    assert code == 0, err
+    assert "breaks" not in out  # (a map without a jump: nothing to say)
+    code, _, err = _run(capsys, "localize", "--dataset", "generic", "--no-breaks")
+    assert code == 2 and "--no-breaks needs --map MAP SOURCE" in err
+
+
 def test_odometry_off_when_the_map_has_no_positions(recordings, maps, scripted, capsys):
     code, out, err = _run(
         capsys, "localize", "--map", maps["bare"], recordings["ros1"][QUERY],

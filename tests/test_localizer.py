@@ -328,6 +328,25 @@ def test_from_map_takes_the_maps_spacing(ref):
     assert Localizer("pixels").place_spacing is None
 
 
+def test_from_map_gives_the_cann_the_maps_breaks(ref):
+    method = make_method("pixels+cann", 0).fit(ref)
+    n = len(ref)
+    xy = np.c_[np.arange(n) * 2.0, np.zeros(n)]
+    xy[n // 2 :, 0] += 500.0  # the map's second half lies 500 m further along the road
+    m = Map(method, (32, 64), np.zeros(n), np.arange(n), xy)
+    assert m.breaks == (n // 2,)
+    assert Localizer.from_map(m).method.filter.breaks == (n // 2,)
+    assert method.filter.breaks == ()  # (the map's own filter is left as it was)
+    assert Localizer.from_map(m, breaks=()).method.filter.breaks == ()
+    assert Localizer.from_map(m, breaks=np.array([2, 5])).method.filter.breaks == (2, 5)
+    with pytest.raises(ValueError, match=f"breaks must be places 1 .. {n - 1} of this map of"):
+        Localizer.from_map(m, breaks=[n])
+    with pytest.raises(ValueError, match="breaks must be increasing"):
+        Localizer.from_map(m, breaks=[5, 2])
+    alone = Map(make_method("pixels", 0).fit(ref), (32, 64), np.zeros(n), np.arange(n), xy)
+    assert Localizer.from_map(alone).method.filter is None  # (no filter to give them to)
+
+
 def test_a_ready_method_gives_a_localizer_its_own_fresh_filter(route):
     ref, qry = route
     method = make_method("flyhash+cann", 0).fit(ref)

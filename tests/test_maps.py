@@ -45,6 +45,25 @@ def test_place_spacing_is_the_median_step_between_neighbours(positions, spacing)
 
 
 @pytest.mark.parametrize(
+    "positions, breaks",
+    [
+        (None, ()),
+        ([[0, 0], [2, 0], [4, 0], [6, 0], [60, 0], [62, 0]], (4,)),  # a step of 54 over 2
+        ([[0, 0], [2, 0], [4, 0], [14, 0], [16, 0]], ()),  # 10: 5 times the spacing, no more
+        ([[0, 0], [2, 0], [4, 0], [14.1, 0], [16.1, 0]], (3,)),
+        ([[0, 0], [2, 0], [4, 0], [4, 30], [4, 32], [0, 0]], (3, 5)),  # (positions, not x)
+        # a step with an unknown end is not judged (the spacing: steps 2, 2 and 2)
+        ([[0, 0], [2, 0], [np.nan, np.nan], [50, 0], [52, 0], [54, 0]], ()),
+        ([[1, 1]] * 4, ()),  # (no spacing: nothing to judge a jump by)
+    ],
+)
+def test_breaks_are_where_the_positions_jump_more_than_five_spacings(positions, breaks):
+    m = _map(None if positions is None else np.array(positions, dtype=np.float64))
+    assert m.breaks == breaks
+    assert all(type(b) is int for b in m.breaks)
+
+
+@pytest.mark.parametrize(
     "field, value, match",
     [
         (

@@ -38,6 +38,7 @@ _NOT_COMPACT = (
     "calibration",
     "fit_calibration",
     "realtime",
+    "no_breaks",
 )
 
 

@@ -277,7 +277,9 @@ class _MapSteps:
     def __init__(self, args):
         from ..localization import Localizer
 
-        self.loc = Localizer.from_map(args.map, size=args.size)
+        self.loc = Localizer.from_map(
+            args.map, size=args.size, breaks=() if args.no_breaks else None
+        )
         if args.calibration is not None:
             apply_table(self.loc, args.calibration)
         self.map = self.loc.map_

@@ -107,6 +107,25 @@ def odometry_note(
     return True, f"odometry: path integration from {where} (map spacing {spacing:.3g} m per place)"
 
 
+def breaks_note(loc) -> str | None:
+    """The summary's line about the map's route breaks (None where it has none, or its filter
+    takes none)."""
+    filt = loc.method.filter
+    if filt is None or "breaks" not in filt.get_params():
+        return None
+    given = tuple(filt.get_params()["breaks"])
+    found = loc.map_.breaks
+    if not given:
+        if found:
+            return f"breaks: off (--no-breaks): {counted(len(found), 'break')} of the map ignored"
+        return None
+    shown = ", ".join(str(b) for b in given[:5]) + (", ..." if len(given) > 5 else "")
+    return (
+        f"breaks: the map's positions jump before {counted(len(given), 'place')} ({shown}): "
+        "the filter does not carry the robot across them (--no-breaks: one route)"
+    )
+
+
 def cmd_localize_recording(args) -> int:
     from tqdm.auto import tqdm
 
@@ -144,7 +163,7 @@ def cmd_localize_recording(args) -> int:
             raise UsageError(str(exc)) from None
         taken.append(path)
     check_view_args(args, inputs)
-    loc = Localizer.from_map(args.map, size=args.size)
+    loc = Localizer.from_map(args.map, size=args.size, breaks=() if args.no_breaks else None)
     if args.calibration is not None:
         apply_table(loc, args.calibration)
     m = loc.map_
@@ -256,6 +275,9 @@ def cmd_localize_recording(args) -> int:
               else note)  # fmt: skip
     if odometry:
         refused_note(getattr(loc.method.filter, "n_odometry_refused_", 0))
+    line = breaks_note(loc)
+    if line is not None:
+        print(line)
     if args.realtime and not timed:
         print(
             f"--realtime: {source.describe()} has no timestamps (an image folder has none; "

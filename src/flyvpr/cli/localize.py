@@ -42,7 +42,8 @@ def cmd_localize(args) -> int:
         raise UsageError("give --map MAP SOURCE (a recording) or --dataset (a benchmark layout)")
     for option in (
         "render", "ground_truth", "topic", "every", "positions", "position_topic", "no_odometry",
-        "mcap_thumbnails", "view", "view_save", "calibration", "fit_calibration", "index",
+        "no_breaks", "mcap_thumbnails", "view", "view_save", "calibration", "fit_calibration",
+        "index",
         *LIVE_OPTIONS,
     ):  # fmt: skip
         if getattr(args, option):
@@ -283,6 +284,13 @@ def register(sub) -> None:
         action="store_true",
         help="with --map: do not pass the distance moved between frames (from --positions or "
         "--position-topic) to the filter; it then estimates the movement from the images",
+    )
+    p.add_argument(
+        "--no-breaks",
+        action="store_true",
+        help="with --map: read the map's places as one route even where their positions jump "
+        "(by default the CANN does not carry the robot across a jump of more than 5 times the "
+        "map's spacing: a stretch of the route the map left out)",
     )
     p.add_argument(
         "--out",

@@ -239,7 +239,7 @@ class Localizer:
         self.n_frames_ = 0
 
     @classmethod
-    def from_map(cls, path, *, size=None, place_spacing=None) -> Localizer:
+    def from_map(cls, path, *, size=None, place_spacing=None, breaks=None) -> Localizer:
         """A localizer over the places of a map (see :class:`flyvpr.localization.maps.Map`).
 
         Parameters
@@ -251,6 +251,11 @@ class Localizer:
         place_spacing : float, optional
             Metres between consecutive places; default the map's
             :attr:`~flyvpr.localization.maps.Map.place_spacing` (None for a map without positions).
+        breaks : sequence of int, optional
+            Places where the map's route is broken, for a method whose filter takes them (the
+            CANN's ``breaks``: it does not carry the robot across them); default the map's
+            :attr:`~flyvpr.localization.maps.Map.breaks` (where its positions jump), ``()``
+            for none.  A filter without ``breaks`` ignores them.
 
         Notes
         -----
@@ -261,7 +266,17 @@ class Localizer:
         m = path if isinstance(path, Map) else Map.load(path, size=size)
         if place_spacing is None:
             place_spacing = m.place_spacing
-        loc = cls(m.method, place_spacing=place_spacing)
+        loc = cls(m.method, place_spacing=place_spacing)  # (a filter of its own)
+        filt = loc.method.filter
+        if filt is not None and "breaks" in filt.get_params():
+            chosen = m.breaks if breaks is None else tuple(np.asarray(breaks).tolist())
+            filt.set_params(breaks=chosen)
+            loc.reset()  # (which checks them)
+            if chosen and max(chosen) >= m.n_places:
+                raise ValueError(
+                    f"breaks must be places 1 .. {m.n_places - 1} of this map of "
+                    f"{m.n_places} places; got {list(chosen)}"
+                )
         loc.map_ = m
         return loc
 

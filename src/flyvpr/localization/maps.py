@@ -159,6 +159,26 @@ class Map:
         spacing = float(np.median(steps))
         return spacing if spacing > 0 else None
 
+    @property
+    def breaks(self) -> tuple[int, ...]:
+        """Places where the map's route is broken: each place whose position lies more than
+        :data:`flyvpr.temporal.cann.BREAK_FACTOR` times :attr:`place_spacing` from the place
+        before it (a stretch of the route left out, a jump of the position fix), as
+        :func:`flyvpr.temporal.cann.route_breaks` reads positions; a step with an unknown
+        position at either end is not judged.  Empty without positions.
+
+        :meth:`flyvpr.localization.Localizer.from_map` gives them to the CANN (its
+        ``breaks``), which does not carry the robot across them.
+        """
+        from ..temporal.cann import BREAK_FACTOR
+
+        spacing = self.place_spacing
+        if spacing is None or self.positions is None:
+            return ()
+        steps = np.hypot(*np.diff(self.positions, axis=0).T)
+        far = np.isfinite(steps) & (steps > BREAK_FACTOR * spacing)
+        return tuple(int(i) + 1 for i in np.flatnonzero(far))
+
     # -- building ---------------------------------------------------------------------------
     @classmethod
     def build(
