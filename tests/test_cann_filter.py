@@ -628,7 +628,17 @@ def test_a_break_past_the_map_is_refused_on_its_first_frame():
         ([0, 1, 2, 8, 9], 6.0, ()),  # (a step of 6 is not more than 6 times the usual 1)
         ([0, 1, 2, 8, 9], 5.9, (3,)),
         ([5.0, 5.5, 6.0, 0.0, 0.5, 1.0], 5.0, (3,)),  # (the next recording starts over)
-        ([3, 4, 4, 5], 5.0, (2,)),  # (a frame number that does not move on)
+        ([3, 4, 4, 5], 5.0, ()),  # (a frame repeated: no step, no break)
+        # the usual step is the median of up to 5 steps on either side, not the route's: a
+        # stretch driven 6 times faster (places kept by time) is no break, one jump is
+        (np.cumsum([0] + [1] * 8 + [6] * 8 + [1] * 8), 5.0, ()),
+        (np.cumsum([0] + [1] * 8 + [6] + [1] * 8), 5.0, (9,)),
+        (np.cumsum([0] + [6] * 8 + [31] + [6] * 8), 5.0, (9,)),
+        (np.cumsum([0] + [6] * 8 + [30] + [6] * 8), 5.0, ()),
+        # (two jumps: each is judged by the steps around it, the other among them)
+        (np.cumsum([0] + [1] * 6 + [50] + [1] * 2 + [50] + [1] * 6), 5.0, (7, 10)),
+        # (a change of pace is no break: around it half the steps are of each)
+        (np.cumsum([0] + [1] * 8 + [100] * 8), 5.0, ()),
         ([7], 5.0, ()),
         ([], 5.0, ()),
         ([[0, 0], [3, 4], [6, 8], [6, 100], [9, 104]], 5.0, (3,)),

@@ -55,9 +55,13 @@ def test_place_spacing_is_the_median_step_between_neighbours(positions, spacing)
         # a step with an unknown end is not judged (the spacing: steps 2, 2 and 2)
         ([[0, 0], [2, 0], [np.nan, np.nan], [50, 0], [52, 0], [54, 0]], ()),
         ([[1, 1]] * 4, ()),  # (no spacing: nothing to judge a jump by)
+        # a stretch driven six times faster (a map kept by time) is no break: the usual step
+        # is the median of the 5 steps on either side, not the map's spacing
+        (np.c_[np.cumsum([0] + [2] * 8 + [12] * 8), np.zeros(17)], ()),
+        (np.c_[np.cumsum([0] + [12] * 8 + [61] + [12] * 8), np.zeros(18)], (9,)),
     ],
 )
-def test_breaks_are_where_the_positions_jump_more_than_five_spacings(positions, breaks):
+def test_breaks_are_where_the_positions_jump_more_than_five_usual_steps(positions, breaks):
     m = _map(None if positions is None else np.array(positions, dtype=np.float64))
     assert m.breaks == breaks
     assert all(type(b) is int for b in m.breaks)

@@ -289,8 +289,8 @@ def register(sub) -> None:
         "--no-breaks",
         action="store_true",
         help="with --map: read the map's places as one route even where their positions jump "
-        "(by default the CANN does not carry the robot across a jump of more than 5 times the "
-        "map's spacing: a stretch of the route the map left out)",
+        "(by default the CANN does not carry the robot across a step between places more than "
+        "5 times the usual step around it: a stretch of the route the map left out)",
     )
     p.add_argument(
         "--out",

@@ -162,22 +162,21 @@ class Map:
     @property
     def breaks(self) -> tuple[int, ...]:
         """Places where the map's route is broken: each place whose position lies more than
-        :data:`flyvpr.temporal.cann.BREAK_FACTOR` times :attr:`place_spacing` from the place
-        before it (a stretch of the route left out, a jump of the position fix), as
+        :data:`flyvpr.temporal.cann.BREAK_FACTOR` (5) times the usual step around it from the
+        place before it (the median of the steps up to 5 places on either side: a stretch of
+        the route left out, a jump of the position fix; a stretch driven faster is none), as
         :func:`flyvpr.temporal.cann.route_breaks` reads positions; a step with an unknown
         position at either end is not judged.  Empty without positions.
 
         :meth:`flyvpr.localization.Localizer.from_map` gives them to the CANN (its
         ``breaks``), which does not carry the robot across them.
         """
-        from ..temporal.cann import BREAK_FACTOR
+        from ..temporal.cann._route import far_steps
 
-        spacing = self.place_spacing
-        if spacing is None or self.positions is None:
+        if self.positions is None or self.n_places < 2:
             return ()
         steps = np.hypot(*np.diff(self.positions, axis=0).T)
-        far = np.isfinite(steps) & (steps > BREAK_FACTOR * spacing)
-        return tuple(int(i) + 1 for i in np.flatnonzero(far))
+        return tuple(int(i) + 1 for i in np.flatnonzero(far_steps(steps)))
 
     # -- building ---------------------------------------------------------------------------
     @classmethod

@@ -6,8 +6,35 @@ import numpy as np
 
 from ..._validation import check_real
 
-#: a step between consecutive places this many times the median step is a break
+#: a step between consecutive places this many times the usual step around it is a break
 BREAK_FACTOR = 5.0
+
+#: the usual step around a step: the median of the steps up to this many places on each side
+BREAK_NEIGHBOURS = 5
+
+
+def far_steps(size: np.ndarray, factor: float = BREAK_FACTOR) -> np.ndarray:
+    """Whether each step (``size``, >= 0; NaN where unknown) is more than ``factor`` times the
+    median of the known steps up to :data:`BREAK_NEIGHBOURS` places on either side of it (not
+    itself).  Local, so that a stretch driven faster (a map kept by time) is no break, while
+    one step that leaves a stretch of the route out is.  An unknown step, or one whose
+    neighbours' median is 0 or unknown, is not far."""
+    n, w = size.shape[0], BREAK_NEIGHBOURS
+    if n == 0:
+        return np.zeros(0, bool)
+    padded = np.full(n + 2 * w, np.nan)
+    padded[w : w + n] = size
+    around = np.lib.stride_tricks.sliding_window_view(padded, 2 * w + 1).copy()
+    around[:, w] = np.nan  # (not the step itself)
+    known = np.isfinite(around)
+    counts = known.sum(axis=1)
+    ordered = np.sort(np.where(known, around, np.inf), axis=1)  # (the known ones first)
+    rows = np.arange(n)
+    lo = ordered[rows, np.maximum((counts - 1) // 2, 0)]
+    hi = ordered[rows, np.maximum(counts // 2, 0)]
+    usual = np.where(counts > 0, 0.5 * (lo + hi), np.nan)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(size) & (usual > 0) & (size > factor * usual)
 
 
 def route_breaks(coordinates, factor: float = BREAK_FACTOR) -> tuple[int, ...]:
@@ -19,16 +46,17 @@ def route_breaks(coordinates, factor: float = BREAK_FACTOR) -> tuple[int, ...]:
         Per place, in the map's order: a frame number or timestamp (1-d), or a position
         (2-d, e.g. metres east and north).
     factor : float, default 5.0
-        A step to the next place more than ``factor`` times the median step is a break (the
-        map leaves part of the route out: a gap in the frame numbers, a pause of the
-        recording, a jump of position).  For frame numbers and timestamps a step that does not
-        go forwards is one too (the next recording starts).
+        A step to the next place more than ``factor`` times the usual step around it (the
+        median of the steps up to 5 places on either side) is a break: the map leaves part of
+        the route out (a gap in the frame numbers, a pause of the recording, a jump of
+        position).  For frame numbers and timestamps a step back is one too (the next
+        recording starts over).  A stretch of larger steps (driven faster, where places were
+        kept by time) is not.
 
     Returns
     -------
     tuple of int
-        The first place of each stretch after a break, increasing; empty for one route.  With
-        a median step of 0 (places that mostly stand still) only the steps back are breaks.
+        The first place of each stretch after a break, increasing; empty for one route.
 
     Raises
     ------
@@ -59,11 +87,9 @@ def route_breaks(coordinates, factor: float = BREAK_FACTOR) -> tuple[int, ...]:
         return ()
     if xy.ndim == 1:
         step = np.diff(xy)
-        back = step <= 0.0
-        size = np.abs(step)
+        back = step < 0.0
+        size = np.where(back, np.nan, step)  # (a step back is no measure of the usual step)
     else:
         size = np.linalg.norm(np.diff(xy, axis=0), axis=1)
         back = np.zeros(size.shape, bool)
-    usual = float(np.median(size[~back])) if (~back).any() else 0.0
-    far = size > factor * usual if usual > 0.0 else np.zeros(size.shape, bool)
-    return tuple(int(i) + 1 for i in np.flatnonzero(back | far))
+    return tuple(int(i) + 1 for i in np.flatnonzero(back | far_steps(size, factor)))
