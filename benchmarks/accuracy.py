@@ -19,7 +19,8 @@ line in ``METHODS`` there):
   shuffled queries, a query that starts part-way along the reference: winter 300-999 against
   summer 0-999, and a short 300-frame window); and the robot group (``r-...``, at tolerance 2
   and 20): 0.6x to 3.25x, a random 0.4-1.6x walk, stop-and-go, a 100-frame stop, uneven and
-  dropped frames, camera noise, a detour off the map, a fisheye disc, shuffled and reversed,
+  dropped frames, camera noise, a detour off the map (its map's places keep their frame
+  numbers: the CANN is given the break they show), a fisheye disc, shuffled and reversed,
   with and without odometry, on the dev window and on the held-out one (``--list`` shows all);
 * methods: single frames (pixels, flyhash, flynet, kenyon), SeqSLAM at lengths 20/40/60 with
   OpenSeqSLAM's velocity grid (0.8-1.2) and, on the 1x windows and the speed rows, with the

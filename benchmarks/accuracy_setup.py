@@ -248,7 +248,8 @@ class View:
         if self.gap is not None:
             out["gap"] = (
                 f"reference places {self.gap[0]:g} n to {self.gap[1]:g} n left out of the map "
-                "(the query drives through them)"
+                "(the query drives through them); the CANN is given the map's breaks from its "
+                "places' frame numbers (flyvpr.temporal.cann.route_breaks)"
             )
         if self.note:
             out["note"] = self.note

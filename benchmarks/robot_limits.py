@@ -18,7 +18,8 @@ of the robot views of ``benchmarks/accuracy.py``; ``kenyon+cann`` with its defau
   the places of one same-image stretch of the map counted as one place (an answer is right
   when it lies within the tolerance of the true place, or in a map stretch holding a place
   within the tolerance).  Which stops fall in a map stretch.
-* **Detour** (``r-detour``: the map leaves out places 400-699, the query drives through them):
+* **Detour** (``r-detour``: the map leaves out places 400-699, the query drives through them;
+  the CANN is given the break its places' frame numbers show, as in the accuracy benchmark):
   frames after rejoining until the answer is ``localized`` and right (as the accuracy
   benchmark counts them), the map stretches in the 30 places after the rejoin, and the front
   end's rank of the true place (places scoring strictly higher) over the 30 frames after it.
@@ -87,6 +88,7 @@ from benchmarks.accuracy_setup import (  # noqa: E402
 from flyvpr import metrics  # noqa: E402
 from flyvpr.datasets import ground_truth_from_frames  # noqa: E402
 from flyvpr.methods import make_method  # noqa: E402
+from flyvpr.temporal.cann import route_breaks  # noqa: E402
 from flyvpr.temporal.seqslam import SeqSLAM  # noqa: E402
 
 DATASET = "n64-0"
@@ -228,7 +230,10 @@ def _run(seed: int, view, ref, qry, ref_ids, qry_ids, filter_params=None):
     """kenyon+cann (its filter with ``filter_params``) over the view: rows, localized flags,
     the front end's scores and ground truth, and the map's place ids."""
     keep = np.arange(len(ref)) if view.gap is None else gap_keep(len(ref), view.gap)
-    method = make_method("kenyon+cann", seed, {}, filter_params or {})
+    filter_params = dict(filter_params or {})
+    if view.gap is not None:  # (the map's places keep their frame numbers: its break)
+        filter_params["breaks"] = route_breaks(ref_ids[keep])
+    method = make_method("kenyon+cann", seed, {}, filter_params)
     method.frontend.fit(ref[keep])
     idx = view.indices(len(qry))
     S = method.frontend.score(view.frames(qry, idx))
@@ -365,16 +370,19 @@ def right_from(right: np.ndarray, start: int = 0, run: int = RUN) -> int | None:
     return int(hits[0]) if hits.size else None
 
 
-def _matchers(seed: int, key: str, start: int, S: np.ndarray, gt: np.ndarray, out) -> dict:
+def _matchers(
+    seed: int, key: str, start: int, S: np.ndarray, gt: np.ndarray, out, breaks=()
+) -> dict:
     """Frames until each matcher of the comparison is right (see ``right_from``), on the
-    front end's scores ``S`` of one view (``out``: kenyon+cann's rows on them)."""
+    front end's scores ``S`` of one view (``out``: kenyon+cann's rows on them; ``breaks``:
+    the map's, for the CANN)."""
     frames = np.arange(len(S))
 
     def from_rows(rows) -> int | None:
         return right_from(gt[frames, np.asarray(rows).argmax(axis=1)], start)
 
     row = {"seed": seed, "view": key, "start": start, "kenyon+cann": from_rows(out)}
-    odo = make_method("kenyon+cann", seed, {}, {"odometry": "exact"}).filter
+    odo = make_method("kenyon+cann", seed, {}, {"odometry": "exact", "breaks": breaks}).filter
     odo.reset()
     # (no odometry for the first frame, as the accuracy benchmark streams it)
     steps = [odo.step(s, velocity=None if t == 0 else 1.0) for t, s in enumerate(S)]
@@ -435,7 +443,7 @@ def run(data: Path, progress: bool = True) -> dict:
         right = gt[np.arange(len(out)), out.argmax(axis=1)]
         hit = np.flatnonzero(localized[back:] & right[back:])
         rank = _true_rank(S[back : back + AFTER], truth[back : back + AFTER], map_ids)
-        matchers.append(_matchers(seed, "r-detour", back, S, gt, out))
+        matchers.append(_matchers(seed, "r-detour", back, S, gt, out, route_breaks(map_ids)))
         detour.append(
             {
                 "seed": seed,

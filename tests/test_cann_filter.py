@@ -15,6 +15,7 @@ import pytest
 from flyvpr._validation import InsufficientMemoryError
 from flyvpr.temporal.cann import CANN, LAYER_VELOCITIES, _kernels, route_breaks
 from flyvpr.temporal.cann._filter import _FRONT_RATE, CALIBRATION, _shape
+from flyvpr.temporal.cann._route import BREAK_FACTOR, BREAK_NEIGHBOURS
 from oracles import odometry_scale
 
 KNOTS = np.linspace(0.0, 1.0, 11)
@@ -196,13 +197,16 @@ def reference_filter(S, velocity=None, **params):
                 layer = (1 - share) * layer + share / 2 * (padded[:, :-2] + padded[:, 2:])
             for j, k in enumerate(shifts.astype(int)):
                 # a unit whose move crosses a break of the map (the boundary between places
-                # b - 1 and b) leaves the mapped stretch: its activity is spread over the row
+                # b - 1 and b) leaves the mapped stretch: its activity is shared out over the
+                # row's units that land on the route without crossing one
                 crossing = [
                     i for i in range(n) if any(i < b <= i + k or i + k < b <= i for b in breaks)
                 ]
                 gone = layer[j, crossing].sum()
                 layer[j, crossing] = 0.0
-                layer[j] += gone / n
+                landing = [i for i in range(n) if 0 <= i + k < n and i not in crossing]
+                if landing:
+                    layer[j, landing] += gone / len(landing)
             moved = np.zeros_like(layer)
             for j, k in enumerate(shifts.astype(int)):
                 for i in range(n):
@@ -541,9 +545,20 @@ _BREAK_BANK = {**WIDE, "velocities": (-1.0, 0.0, 0.5, 1.0, 1.5, 2.0)}
         {**_BREAK_BANK, "breaks": (60,), "jitter": 0.2, "calibration": None},
     ],
 )
-def test_matches_reference_across_a_break_of_the_map(params):
+def test_matches_reference_across_a_break_of_the_map(cann_kernel_mode, params):
     S, pos = _break_scenario()
     assert_matches_reference(S, **params)
+
+
+@pytest.mark.parametrize("odometry", ["scaled", "exact"])
+def test_matches_reference_across_a_break_of_the_map_with_odometry(cann_kernel_mode, odometry):
+    # the odometry moves every row (exact: alike; scaled: its scale times it), and the rows
+    # that cross the break leave the stretch as without it (1.5 places a frame, then back at
+    # 0.5: both directions)
+    S, pos = _break_scenario()
+    velocity = np.r_[0.0, np.full(59, 1.5), np.full(40, -0.5)]
+    frames = assert_matches_reference(S, velocity, **_BREAK_BANK, breaks=(60,), odometry=odometry)
+    assert any(fr["velocity_"] < 0 for fr in frames)
 
 
 def test_a_break_keeps_the_packet_from_carrying_the_robot_across():
@@ -561,30 +576,50 @@ def test_a_break_keeps_the_packet_from_carrying_the_robot_across():
     assert b[-1] == (114, "localized")  # (back on the map)
 
 
-def test_a_break_spreads_what_crosses_it_over_its_own_row():
-    # Rows moving -1, 0 and 2 places; breaks before places 1, 5 and 10 of 12.  What each
-    # row's move carries across a break (forwards: the places short of it by less than the
-    # move; backwards: those at or after it, by less than the move) goes evenly to its row.
+def _shared_out(layer, shifts, breaks):
+    """What the cut leaves: per row, the units whose move crosses a break (listed one by one)
+    emptied, and what they held shared equally among the units that land on the route without
+    crossing one."""
+    out = layer.astype(np.float64)
+    n = out.shape[1]
+    for j, k in enumerate(shifts):
+        gone = 0.0
+        for i in range(n):
+            if any(i < b <= i + k or i + k < b <= i for b in breaks):
+                gone += out[j, i]
+                out[j, i] = -1.0  # (marked)
+        landing = [i for i in range(n) if 0 <= i + k < n and out[j, i] >= 0.0]
+        out[j][out[j] < 0.0] = 0.0
+        for i in landing:
+            out[j, i] += gone / len(landing)
+    return out
+
+
+def test_a_break_shares_what_crosses_it_out_over_its_own_row(cann_kernel_mode):
+    # Rows moving -1, 0 and 2 places; breaks before places 1, 5 and 10 of 12.  Row 0 (back 1)
+    # loses places 1, 5 and 10 and shares them among the 8 others that land (not place 0, which
+    # moves off the route); row 2 (ahead 2) loses 0, 3, 4, 8 and 9 and shares them among 1, 2,
+    # 5, 6 and 7 (10 and 11 move off the route).  The standing row keeps everything.
     f = CANN(velocities=(-1.0, 0.0, 2.0), breaks=(1, 5, 10))
     f.step(np.zeros(12))
-    layer = np.arange(36, dtype=np.float32).reshape(3, 12) / 100.0
+    layer = np.arange(1, 37, dtype=np.float32).reshape(3, 12) / 100.0
     f._p[:] = layer
     f._leave_at_breaks(np.array([-1, 0, 2]))
-    expected = layer.astype(np.float64)
-    crossing = {0: [1, 5, 10], 2: [0, 3, 4, 8, 9]}  # row 0: from b to b - 1; row 2: b - 2, b - 1
-    for j, places in crossing.items():
-        gone = expected[j, places].sum()
-        expected[j, places] = 0.0
-        expected[j] += gone / 12
+    expected = _shared_out(layer, [-1, 0, 2], (1, 5, 10))
     np.testing.assert_allclose(f._p, expected, rtol=1e-6, atol=1e-8)
-    assert np.isclose(f._p.sum(), layer.sum(), rtol=1e-6)  # (nothing lost)
-    before = f._p.astype(np.float64)
-    f._leave_at_breaks(np.array([-3, 0, 0]))  # (three back: b .. b + 2, within the route)
-    places = [1, 2, 3, 5, 6, 7, 10, 11]
-    expected = before.copy()
-    expected[0, places] = 0.0
-    expected[0] += before[0, places].sum() / 12
-    np.testing.assert_allclose(f._p, expected, rtol=1e-6, atol=1e-8)
+    assert expected[0, 2] == pytest.approx(0.03 + (0.02 + 0.06 + 0.11) / 8)
+    assert expected[2, 1] == pytest.approx(0.26 + (0.25 + 0.28 + 0.29 + 0.33 + 0.34) / 5)
+    # (a move of 3 back: 1-3, 5-7 and 10-11 cross; 0 moves off the route, 4, 8 and 9 land)
+    before = f._p.copy()
+    f._leave_at_breaks(np.array([-3, 0, 0]))
+    np.testing.assert_allclose(f._p, _shared_out(before, [-3, 0, 0], (1, 5, 10)), rtol=1e-6)
+    assert f._p[0, [4, 8, 9]].sum() == pytest.approx(before[0].sum() - before[0, 0])
+    # (a move longer than the route: units 0-9 cross the break at 10, 10 and 11 cross none,
+    # and none lands: what crossed is not shared, as the move would lose it anyway)
+    before = f._p.copy()
+    f._leave_at_breaks(np.array([0, 0, 13]))
+    np.testing.assert_array_equal(f._p[:2], before[:2])
+    np.testing.assert_array_equal(f._p[2], np.r_[np.zeros(10, np.float32), before[2, 10:]])
 
 
 @pytest.mark.parametrize(
@@ -599,6 +634,7 @@ def test_a_break_spreads_what_crosses_it_over_its_own_row():
         ((7, 3), ValueError, "breaks must be increasing"),
         ((2.5,), ValueError, r"breaks must be whole place indices; got \[2\.5\]"),
         ((float("nan"),), ValueError, "breaks must be whole place indices"),
+        ((float("inf"),), ValueError, "breaks must be whole place indices"),
         ([[1, 2]], ValueError, r"breaks must be a 1-d sequence .* shape \(1, 2\)"),
         (("a",), TypeError, "breaks must be a sequence of place indices"),
     ],
@@ -629,6 +665,7 @@ def test_a_break_past_the_map_is_refused_on_its_first_frame():
         ([0, 1, 2, 8, 9], 5.9, (3,)),
         ([5.0, 5.5, 6.0, 0.0, 0.5, 1.0], 5.0, (3,)),  # (the next recording starts over)
         ([3, 4, 4, 5], 5.0, ()),  # (a frame repeated: no step, no break)
+        ([0, 1, 100], 5.0, (2,)),  # (a step is judged by its neighbours, not by itself)
         # the usual step is the median of up to 5 steps on either side, not the route's: a
         # stretch driven 6 times faster (places kept by time) is no break, one jump is
         (np.cumsum([0] + [1] * 8 + [6] * 8 + [1] * 8), 5.0, ()),
@@ -648,6 +685,8 @@ def test_a_break_past_the_map_is_refused_on_its_first_frame():
 )
 def test_route_breaks_from_frame_numbers_and_positions(coordinates, factor, expected):
     assert route_breaks(coordinates, factor) == expected
+    # (the guides' figures: more than 5 times the median of up to 5 steps on either side)
+    assert (BREAK_FACTOR, BREAK_NEIGHBOURS) == (5.0, 5)
 
 
 @pytest.mark.parametrize(

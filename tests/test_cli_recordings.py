@@ -657,8 +657,9 @@ def test_the_cann_is_not_carried_across_a_jump_of_the_maps_positions(
     code, out, err = _run(capsys, "localize", "--map", tmp_path / "gap.map", night)
     assert code == 0, err
     assert (
-        "\nbreaks: the map's positions jump before 1 place (5): the filter does not carry the "
-        "robot across them (--no-breaks: one route)\n" in out
+        "\nbreaks: the map's route is broken at 1 place (between places 4-5), where its "
+        "positions jump: the filter does not carry the robot across (--no-breaks: one route)\n"
+        in out
     )
     code, out, err = _run(capsys, "localize", "--map", tmp_path / "gap.map", night, "--no-breaks")
     assert code == 0, err

@@ -397,6 +397,8 @@ def test_odometry_off_when_the_map_has_no_positions(route, tmp_path, capsys):
          "--size: a compact map fixes the image size"),
         (["localize", "--map", "{map}", "{winter}", "--calibration", "{tmp}/c.json"],
          "--calibration: not with a compact map"),
+        (["localize", "--map", "{map}", "{winter}", "--no-breaks"],
+         "--no-breaks: not with a compact map"),
         (["localize", "--map", "{map}", "rtsp://example.invalid/s", "--view-save", "{tmp}/v.rrd"],
          "--view-save: not with a compact map"),
         (["localize", "--map", "{map}", "rtsp://example.invalid/s", "--mcap-thumbnails"],

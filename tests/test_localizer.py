@@ -343,8 +343,18 @@ def test_from_map_gives_the_cann_the_maps_breaks(ref):
         Localizer.from_map(m, breaks=[n])
     with pytest.raises(ValueError, match="breaks must be increasing"):
         Localizer.from_map(m, breaks=[5, 2])
+    with pytest.raises(ValueError, match=r"breaks must be a 1-d sequence .* shape \(\)"):
+        Localizer.from_map(m, breaks=5)
     alone = Map(make_method("pixels", 0).fit(ref), (32, 64), np.zeros(n), np.arange(n), xy)
     assert Localizer.from_map(alone).method.filter is None  # (no filter to give them to)
+    assert Localizer.from_map(alone, breaks=()).method.filter is None
+    with pytest.raises(ValueError, match="breaks: the map's method pixels has no filter that"):
+        Localizer.from_map(alone, breaks=[3])
+    # breaks the map's filter was built with stay, over the map's own (none here)
+    built = make_method("pixels+cann", 0, filter_params={"breaks": (4,)}).fit(ref)
+    bare = Map(built, (32, 64), np.zeros(n), np.arange(n))
+    assert bare.breaks == () and Localizer.from_map(bare).method.filter.breaks == (4,)
+    assert Localizer.from_map(bare, breaks=()).method.filter.breaks == ()
 
 
 def test_a_ready_method_gives_a_localizer_its_own_fresh_filter(route):

@@ -470,6 +470,12 @@ def cmd_localize_live(args) -> int:
             f"{counted(n_reloc, 'relocation')}; "
             f"timestamps: {clock.get(source.clock, 'none')}"
         )
+    if not compact:
+        from ._stream import breaks_note
+
+        line = breaks_note(steps.loc)
+        if line is not None:
+            print(line)
     print_view_summary(view)
     if n_frames == 0:  # no frame localized: the records file, a header only, is gone
         args.out = None

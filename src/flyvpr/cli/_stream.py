@@ -119,10 +119,11 @@ def breaks_note(loc) -> str | None:
         if found:
             return f"breaks: off (--no-breaks): {counted(len(found), 'break')} of the map ignored"
         return None
-    shown = ", ".join(str(b) for b in given[:5]) + (", ..." if len(given) > 5 else "")
+    pairs = ", ".join(f"{b - 1}-{b}" for b in given[:5]) + (", ..." if len(given) > 5 else "")
     return (
-        f"breaks: the map's positions jump before {counted(len(given), 'place')} ({shown}): "
-        "the filter does not carry the robot across them (--no-breaks: one route)"
+        f"breaks: the map's route is broken at {counted(len(given), 'place')} (between places "
+        f"{pairs}), where its positions jump: the filter does not carry the robot across "
+        "(--no-breaks: one route)"
     )
 
 

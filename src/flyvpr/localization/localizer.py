@@ -253,9 +253,10 @@ class Localizer:
             :attr:`~flyvpr.localization.maps.Map.place_spacing` (None for a map without positions).
         breaks : sequence of int, optional
             Places where the map's route is broken, for a method whose filter takes them (the
-            CANN's ``breaks``: it does not carry the robot across them); default the map's
-            :attr:`~flyvpr.localization.maps.Map.breaks` (where its positions jump), ``()``
-            for none.  A filter without ``breaks`` ignores them.
+            CANN's ``breaks``: it does not carry the robot across them); ``()`` for none.
+            Default: the breaks the map's filter was built with, if any, else the map's
+            :attr:`~flyvpr.localization.maps.Map.breaks` (where its positions jump).  Breaks
+            given to a method whose filter takes none are refused (ValueError).
 
         Notes
         -----
@@ -268,15 +269,29 @@ class Localizer:
             place_spacing = m.place_spacing
         loc = cls(m.method, place_spacing=place_spacing)  # (a filter of its own)
         filt = loc.method.filter
-        if filt is not None and "breaks" in filt.get_params():
-            chosen = m.breaks if breaks is None else tuple(np.asarray(breaks).tolist())
-            filt.set_params(breaks=chosen)
-            loc.reset()  # (which checks them)
-            if chosen and max(chosen) >= m.n_places:
+        takes = filt is not None and "breaks" in filt.get_params()
+        if breaks is not None:
+            from ..temporal.cann._params import _check_breaks
+
+            chosen = tuple(int(b) for b in _check_breaks(breaks))
+            if chosen and chosen[-1] >= m.n_places:
                 raise ValueError(
                     f"breaks must be places 1 .. {m.n_places - 1} of this map of "
                     f"{m.n_places} places; got {list(chosen)}"
                 )
+            if chosen and not takes:
+                name = "none" if filt is None else type(filt).__name__
+                raise ValueError(
+                    f"breaks: the map's method {m.method.name} has no filter that takes them "
+                    f"(its filter: {name}); give breaks=None or ()"
+                )
+        elif filt is not None and takes and not filt.get_params()["breaks"]:
+            chosen = m.breaks  # (breaks the map's filter was built with stay as they are)
+        else:
+            chosen = None
+        if filt is not None and takes and chosen is not None:
+            filt.set_params(breaks=chosen)
+            loc.reset()
         loc.map_ = m
         return loc
 

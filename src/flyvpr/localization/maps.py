@@ -169,7 +169,10 @@ class Map:
         position at either end is not judged.  Empty without positions.
 
         :meth:`flyvpr.localization.Localizer.from_map` gives them to the CANN (its
-        ``breaks``), which does not carry the robot across them.
+        ``breaks``), which does not carry the robot across them.  A glitch of the positions
+        (a fix that jumps away and back) makes false ones: the filter then loses the robot for
+        a few frames each time it passes there (``flyvpr localize --no-breaks``, or
+        ``Localizer.from_map(path, breaks=())``, reads the map as one route).
         """
         from ..temporal.cann._route import far_steps
 

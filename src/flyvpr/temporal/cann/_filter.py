@@ -754,19 +754,14 @@ class CANN(OdometryFilter):
 
     def _leave_at_breaks(self, shifts: np.ndarray) -> None:
         """Take the probability that this frame's move would carry across a break of the map
-        (``breaks``) off its place and spread it evenly over the route, in its own velocity
-        row: the robot has left the mapped stretch, and where it is now the layer does not
-        know (as after a relocation).  Row ``j`` moves ``shifts[j]`` places: forwards, its
-        last ``shifts[j]`` places before a break cross it; backwards, its first ones after."""
-        n = self._n or 0
-        for j in np.flatnonzero(shifts):
-            k, row, gone = int(shifts[j]), self._p[j], 0.0
-            for b in self._params["breaks"]:  # (all at once: what is spread does not cross)
-                crossing = row[max(b - k, 0) : b] if k > 0 else row[b : min(b - k, n)]
-                gone += float(crossing.sum(dtype=np.float64))
-                crossing[:] = 0.0
-            if gone > 0.0:
-                row += np.float32(gone / n)
+        (``breaks``) off its units and share it out over the rest of its own velocity row: the
+        robot has left the mapped stretch, and where it is now the layer does not know (as
+        after a relocation).  Unit ``i`` of a row moving ``k = shifts[j]`` places crosses when a
+        break ``b`` lies in ``(i, i + k]`` (forwards) or ``(i + k, i]`` (backwards); what they
+        held goes in equal shares to the row's units whose move lands on the route without
+        crossing one, so that the move keeps all of it (the layer's kernel
+        ``leave_at_breaks``)."""
+        self._kernels["leave_at_breaks"](self._p, shifts, self._params["breaks"])
 
     def _shifts(self, velocity: float | None) -> np.ndarray:
         """Whole places each row moves this frame (fractions accumulate, halves round up).

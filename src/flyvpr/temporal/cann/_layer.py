@@ -7,7 +7,8 @@ by one frame and weighs it by the evidence, after :func:`jitter` has moved a sha
 row one place ahead or behind (uneven motion); :func:`window_sums` finds the window of places
 that holds the most probability, :func:`exceedance` ranks the evidence at one place
 among all, :func:`likeness` correlates a frame's scores with the last frame's (the
-sequence test's novelty) and :func:`repeats` tells a repeated frame.  Each function is
+sequence test's novelty), :func:`repeats` tells a repeated frame and :func:`leave_at_breaks`
+takes off what would cross a break of the map.  Each function is
 written once, as explicit loops over places, and runs compiled or as plain Python
 (``_kernels``).
 """
@@ -256,6 +257,58 @@ def variation(row, lo, hi):
     return whole, near
 
 
+def leave_at_breaks(p, shifts, breaks):
+    """Take off what each moving row of ``p`` (float32, changed in place) would carry across a
+    break of the map this frame, and share it out equally over the row's units that land on
+    the route without crossing one.
+
+    Row ``j`` moves ``shifts[j]`` whole places; ``breaks`` are the first places of the
+    stretches after the breaks, increasing.  Unit ``i`` crosses when a break ``b`` lies in
+    ``(i, i + k]`` (``k > 0``) or ``(i + k, i]`` (``k < 0``): forwards, the ``k`` units before
+    each break; backwards, the ``-k`` units from it (taken once where two breaks' units
+    overlap).  A row none of whose units lands (a move longer than the route) only loses what
+    crossed, as its move would.
+    """
+    n_v, n = p.shape
+    n_b = breaks.shape[0]
+    for j in range(n_v):
+        k = shifts[j]
+        if k == 0:
+            continue
+        lo = 0 if k > 0 else -k  # (the units whose move lands on the route: lo .. hi - 1)
+        hi = n - k if k > 0 else n
+        gone = 0.0
+        crossed = 0  # (crossing units among those that land)
+        for m in range(n_b):
+            b = breaks[m]
+            if k > 0:
+                first = max(b - k, 0)
+                if m > 0:
+                    first = max(first, breaks[m - 1])
+                stop = b
+            else:
+                first = b
+                stop = min(b - k, n)
+                if m + 1 < n_b:
+                    stop = min(stop, breaks[m + 1])
+            for i in range(first, stop):
+                gone += float(p[j, i])
+                p[j, i] = 0.0
+                if lo <= i < hi:
+                    crossed += 1
+        landing = hi - lo - crossed
+        if gone > 0.0 and landing > 0:
+            share = np.float32(gone / landing)
+            for i in range(lo, hi):
+                p[j, i] += share
+            for m in range(n_b):  # (and the crossing units stay empty)
+                b = breaks[m]
+                first = max(b - k, 0) if k > 0 else b
+                stop = b if k > 0 else min(b - k, n)
+                for i in range(first, stop):
+                    p[j, i] = 0.0
+
+
 def repeats(row, last):
     """Whether ``row`` equals ``last`` place for place (stops at the first difference)."""
     for i in range(row.shape[0]):
@@ -272,4 +325,5 @@ PLAIN = {
     "likeness": likeness,
     "repeats": repeats,
     "variation": variation,
+    "leave_at_breaks": leave_at_breaks,
 }
