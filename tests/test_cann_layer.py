@@ -665,3 +665,58 @@ def test_jitter_each_row_by_its_share(kernels):
     # inside the route the mass is kept; at the ends, half a share of the end places leaves
     lost = shares / 2 * (p[:, 0] + p[:, -1])
     np.testing.assert_allclose(out.sum(axis=1), p.sum(axis=1) - lost, rtol=1e-6)
+
+
+# -- leave_at_breaks -------------------------------------------------------------------------
+def ref_leave_at_breaks(p, shifts, breaks):
+    """float64 loops from the docstring: unit i of a row moving k crosses when a break lies in
+    (i, i + k] or (i + k, i]; what crossed goes equally to the row's units that land (0 <=
+    i + k < n) without crossing; the crossing units end empty."""
+    out = np.asarray(p, np.float64).copy()
+    n = out.shape[1]
+    for j, k in enumerate(shifts):
+        crosses = [any(i < b <= i + k or i + k < b <= i for b in breaks) for i in range(n)]
+        gone = sum(out[j, i] for i in range(n) if crosses[i])
+        land = [i for i in range(n) if 0 <= i + k < n and not crosses[i]]
+        for i in range(n):
+            if crosses[i]:
+                out[j, i] = 0.0
+        for i in land:
+            out[j, i] += gone / len(land)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_leave_at_breaks_against_reference(kernels, seed):
+    # random rows, moves of -4 .. 4 places (some longer than the route), breaks anywhere on
+    # it, close together or not
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(3, 16))
+    shifts = rng.integers(-4, 5, size=6).astype(np.int64)
+    if seed == 5:
+        shifts[0] = n + 2  # (every unit leaves: nothing lands)
+    breaks = np.unique(rng.integers(1, n, size=int(rng.integers(1, 4)))).astype(np.int64)
+    p = rng.uniform(0.1, 1.0, (6, n)).astype(np.float32)
+    expected = ref_leave_at_breaks(p, shifts, breaks)
+    got = p.copy()
+    kernels["leave_at_breaks"](got, shifts, breaks)
+    np.testing.assert_allclose(got, expected, rtol=2e-6, atol=1e-7)
+    # (a row keeps its whole mass, but where every unit crosses or leaves the route)
+    for j, k in enumerate(shifts):
+        crosses = [any(i < b <= i + k or i + k < b <= i for b in breaks) for i in range(n)]
+        if any(0 <= i + k < n and not crosses[i] for i in range(n)):
+            assert got[j].sum(dtype=np.float64) == pytest.approx(p[j].sum(dtype=np.float64))
+        else:
+            assert got[j][crosses].sum() == 0.0
+
+
+def test_leave_at_breaks_by_hand(kernels):
+    # 8 places, breaks before 3 and 4: a row 2 ahead loses 1, 2 and 3 (place 2 would cross
+    # both breaks: counted once); a row 1 back loses 3 and 4; the standing row keeps all.
+    p = np.array([[1, 2, 3, 4, 5, 6, 7, 8], [1] * 8, [1, 2, 3, 4, 5, 6, 7, 8]], np.float32)
+    kernels["leave_at_breaks"](p, np.array([2, 0, -1], np.int64), np.array([3, 4], np.int64))
+    # row 0: 2 + 3 + 4 = 9 over the units that land and stay, 0 and 4-5 (6, 7 leave the route)
+    np.testing.assert_allclose(p[0], [1 + 3, 0, 0, 0, 5 + 3, 6 + 3, 7, 8])
+    np.testing.assert_array_equal(p[1], np.ones(8, np.float32))
+    # row 2: 4 + 5 = 9 over 1, 2, 5, 6, 7 (0 leaves the route)
+    np.testing.assert_allclose(p[2], [1, 2 + 1.8, 3 + 1.8, 0, 0, 6 + 1.8, 7 + 1.8, 8 + 1.8])
