@@ -77,6 +77,38 @@ def test_packet_moves_by_the_shift_without_input(movement):
     assert np.count_nonzero(_rates(cann.potentials_)) <= 5
 
 
+@pytest.mark.parametrize(("time_constant", "n_steps"), [(1.0, 3), (2.0, 3), (0.5, 4), (1.0, 1)])
+def test_one_frame_is_n_steps_euler_steps_of_the_time_constant(time_constant, n_steps):
+    # tau du/dt = -u - inhibition * g: from rest (u = 0) with no input and nothing firing
+    # (g = the tonic rate, 1), n Euler steps of 1/n frame give -inhibition (1 - (1 - h)^n)
+    # with h = 1 / (n tau)
+    cann = CANN(movement=1.0, time_constant=time_constant, n_steps=n_steps)
+    cann.step(_silent())
+    h = 1.0 / (n_steps * time_constant)
+    expected = -3.2 * (1.0 - (1.0 - h) ** n_steps)
+    np.testing.assert_allclose(cann.potentials_, expected, rtol=1e-6)
+
+
+def _packet_at_51(cann, n=200, velocity=None):
+    """``cann`` after a first silent frame, with a packet of three units (50-52) by hand."""
+    cann.step(_silent(n), velocity=velocity)
+    cann._u[:] = np.float32(-3.2)
+    cann._u[50:53] = 2.0
+    return cann
+
+
+def test_the_first_move_carries_no_fraction():
+    # 0.5 places per frame: the first frame moves nothing (and carries nothing over), the
+    # next ones 1, 0, 1, 0 places (halves round up); then a quarter rounds down
+    cann = _packet_at_51(CANN(movement=1.0), velocity=0.5)
+    assert cann.velocity_ == 0.5
+    peaks = []
+    for v in [0.5, 0.5, 0.5, 0.5, 0.25]:
+        cann.step(_silent(200), velocity=v)
+        peaks.append(int(cann.potentials_.argmax()))
+    assert peaks == [52, 52, 53, 53, 53]
+
+
 def test_single_spurious_frame_does_not_move_the_packet():
     cann = CANN(movement=1.0)
     cann.reset()
@@ -180,6 +212,28 @@ def test_relocation_rule():
     assert moved and np.array_equal(u[198:], [1.5, 2.0])
 
 
+@pytest.mark.parametrize("own_at", [54, 55])
+def test_relocation_reads_the_packets_own_evidence_out_to_the_kernels_radius(own_at):
+    # The packet peaks at 51 (by hand); the evidence is set through the synaptic current
+    # (a constant row adds nothing): 6.0 at place 120 and 5.8 at own_at.  The kernel's radius
+    # is ceil(3 x excitation_width) = 3: at 54 the 5.8 is the packet's own evidence and 6.0
+    # leads it by less than the margin (0.5), at 55 it is not and the packet moves to 120.
+    cann = _packet_at_51(CANN(movement=1.0))
+    keep = cann._keeps[0]
+    cann._cur[:] = 0.0
+    cann._cur[0, 0, own_at] = 5.8 / keep
+    cann._cur[0, 0, 120] = 6.0 / keep
+    cann.step(_silent(200), velocity=0.0)
+    u = cann.potentials_
+    if own_at == 54:
+        assert cann.n_relocations_ == 0 and u.argmax() == 51
+        return
+    assert cann.n_relocations_ == 1 and u.argmax() == 120
+    # the units it left (51 +- 3) are at rest: the inhibition alone, g the inhibitor's rate
+    assert cann._g > 1.2  # (more than the tonic rate: the packet fired)
+    np.testing.assert_allclose(u[48:55], -3.2 * cann._g, rtol=1e-6)
+
+
 def test_weak_noisy_input_is_integrated_over_frames():
     # A true-place boost of one noise standard deviation is invisible frame by frame but
     # the packet finds and follows it.
@@ -229,6 +283,22 @@ def test_speed_estimate_converges(speed):
     estimates = np.array(estimates)
     assert np.all(estimates[-50:] == speed)
     assert abs(int(out.argmax()) - path[-1]) <= 1
+
+
+def test_the_bank_moves_its_rows_from_the_second_frame_on():
+    # a frame with a bump, then a constant one (no input): the first frame moves nothing
+    # (every row holds the same input), the second moves each row by its velocity rounded
+    # (halves up) and decays it (adaptation off: it would take all of the first frame away)
+    cann = CANN(adaptation=None)
+    cann.step(_scores([40], n=100)[0])
+    bank = cann._bank
+    first = bank.traces.copy()
+    assert (first == first[:, :1]).all() and first.any()
+    cann.step(_silent(100))
+    for j, v in enumerate(bank.velocities):
+        k = int(np.floor(v + 0.5))
+        moved = np.r_[np.zeros(k), first[0, j, :-k]] * bank.keeps[0]
+        np.testing.assert_allclose(bank.traces[0, j], moved, rtol=1e-6)
 
 
 def test_estimate_starts_at_the_candidate_nearest_one():
@@ -297,6 +367,29 @@ def test_no_state_grows_with_history():
         cann.step(rng.normal(size=200))
     assert state_size() == after_10
     assert cann.n_frames_ == 510
+
+
+def test_two_currents_share_the_input_by_slow_fraction():
+    # the first frame's evidence: the input times each current's share of a frame (alpha =
+    # 1 - exp(-1/tau)) and weight (1 - slow_fraction fast, slow_fraction slow); adaptation
+    # off, so both filters get the same input
+    row = _scores([40], n=100)[0]
+    one = CANN(movement=1.0, adaptation=None)
+    two = CANN(movement=1.0, adaptation=None, slow_time_constant=60.0, slow_fraction=0.25)
+    one.step(row)
+    two.step(row)
+    fast, slow = -np.expm1(-1.0 / 25.0), -np.expm1(-1.0 / 60.0)
+    np.testing.assert_allclose(two._s, one._s * (0.75 * fast + 0.25 * slow) / fast, rtol=1e-5)
+
+
+def test_reset_forgets_the_answer():
+    cann = CANN(movement=1.0)
+    _locked(cann)
+    assert cann.confidence_ > 2.0 and cann.support_ > 0.0
+    cann.reset()
+    # no packet: exactly 0 (and no support)
+    assert (cann.confidence_, cann.contrast_, cann.support_) == (0.0, 0.0, 0.0)
+    assert cann.n_frames_ == 0 and np.isnan(cann.velocity_)
 
 
 def test_row_length_must_stay_the_same():
@@ -419,6 +512,19 @@ def test_set_params_and_repr():
         cann.set_params(tau=3)
 
 
+def test_the_documented_defaults_are_the_defaults():
+    import ast
+    import re
+
+    documented = dict(re.findall(r"^    (\w+) : .*?, default (.+)$", CANN.__doc__, re.M))
+    params = CANN().get_params()
+    assert set(documented) == set(params)
+    assert documented.pop("velocities") == "0.75, 0.875, ..., 2.0 (steps of 1/8)"
+    np.testing.assert_array_equal(params.pop("velocities"), np.arange(6, 17) / 8)
+    for name, text in documented.items():
+        assert params[name] == ast.literal_eval(text), name
+
+
 def test_kernel_is_a_gaussian_of_the_distance():
     k = excitation_kernel(3.5, 1.0)
     assert k.shape == (7,) and k.dtype == np.float32
@@ -444,11 +550,65 @@ def test_footprint():
         CANN().footprint(0)
 
 
+@pytest.mark.parametrize(("n", "width"), [(1, 1.0), (2, 1.0), (5, 1.0), (40, 0.34), (40, 2.0)])
+def test_footprint_counts_the_synapses_of_a_loop(n, width):
+    # every ordered pair of places within the kernel's radius (itself included) is a synapse
+    k = excitation_kernel(15.0, width)
+    radius = (k.size - 1) // 2
+    pairs = sum(1 for i in range(n) for j in range(n) if abs(i - j) <= radius)
+    fp = CANN(movement=1.0, excitation_width=width).footprint(n)
+    assert fp["params"] == pairs + 2 * n and fp["neurons"] == n + 1
+
+
 def test_tiny_routes():
     # Packets wider than the route, routes of one place: nothing breaks.
     for n in (1, 2, 4):
         out = CANN().filter(np.random.default_rng(n).random((12, n)))
         assert out.shape == (12, n) and np.isfinite(out).all()
+
+
+def _owned_bytes(*objects, n):
+    """Bytes of the distinct per-place arrays held by ``objects`` (views not counted)."""
+    arrays = {id(v): v for o in objects for v in vars(o).values() if isinstance(v, np.ndarray)}
+    return sum(v.nbytes for v in arrays.values() if v.size >= n and v.base is None)
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        {"movement": 1.0},
+        {},  # the velocity bank: traces twice, its evidence a view of them
+        {"bidirectional": True},
+        {"slow_time_constant": 60.0, "movement": 1.0},
+        {"slow_time_constant": 60.0},  # two currents: the bank also sums them
+    ],
+)
+def test_the_memory_check_asks_for_the_state_it_allocates(params, monkeypatch):
+    from flyvpr._validation import InsufficientMemoryError
+
+    n = 1000
+    cann = CANN(**params)
+    cann.step(np.zeros(n))
+    state = _owned_bytes(cann, *([cann._bank] if cann._bank is not None else []), n=n)
+    # the state plus three float32 rows of scratch (of the eight rows of potentials,
+    # evidence, adaptation and scratch, five are arrays held)
+    budget = state + 3 * 4 * n
+    monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(budget))
+    CANN(**params).step(np.zeros(n))
+    monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(budget - 1))
+    with pytest.raises(InsufficientMemoryError, match=f"n_reference={n} places"):
+        CANN(**params).step(np.zeros(n))
+
+
+@pytest.mark.parametrize("width", [0.34, 1.0, 1.5])
+def test_the_kernels_memory_check_names_its_taps(width, monkeypatch):
+    from flyvpr._validation import InsufficientMemoryError
+
+    taps = excitation_kernel(15.0, width).size
+    # less than the kernel itself: refused, naming the kernel's length
+    monkeypatch.setenv("FLYVPR_MAX_MEMORY", str(4 * taps - 1))
+    with pytest.raises(InsufficientMemoryError, match=rf"a kernel of {taps} taps\)"):
+        CANN(excitation_width=width).reset()
 
 
 # -- real data -----------------------------------------------------------------
@@ -619,6 +779,23 @@ def test_rounding_residue_is_no_evidence():
     assert np.all(out == 0.0)
 
 
+@pytest.mark.parametrize(("gain", "ratio"), [(10.0, 0.8), (10.0, 1.25), (4.0, 0.8), (4.0, 1.25)])
+def test_a_spread_under_a_ten_thousandth_of_one_frames_input_is_no_evidence(gain, ratio):
+    # one frame of a one-standard-deviation input adds alpha * input_gain to the evidence
+    # (alpha = 1 - exp(-1/25), the synaptic current's share of a frame); a spread below 1e-4
+    # of that is rounding residue: no contrast for a packet (set by hand) over it
+    noise = 1e-4 * (1.0 - np.exp(-1.0 / 25.0)) * gain
+    cann = _packet_at_51(CANN(movement=1.0, input_gain=gain))
+    cann._cur[0, 0] = np.tile([1.0, -1.0], 100) * (ratio * noise / cann._keeps[0])
+    cann.step(_silent(200), velocity=0.0)
+    assert int(cann.potentials_.argmax()) == 51
+    assert cann._s.std(dtype=np.float64) == pytest.approx(ratio * noise, rel=1e-3)
+    if ratio < 1.0:
+        assert cann.contrast_ == 0.0 and cann.confidence_ == 0.0
+    else:
+        assert cann.contrast_ == pytest.approx(1.0, rel=1e-3)
+
+
 def test_confidence_is_the_packets_evidence_contrast():
     cann = CANN(movement=1.0)
     out = _locked(cann, start=20, frames=40)  # packet at 59
@@ -649,6 +826,36 @@ def test_a_packet_without_evidence_spread_has_no_confidence():
     # No evidence left: no answer, whatever the packet (every place ties at 0).
     assert cann.contrast_ == 0.0 and cann.confidence_ == 0.0
     assert np.all(out == 0.0)
+
+
+def test_support_is_the_running_mean_then_an_average_over_fallback_memory():
+    cann = CANN(movement=1.0, fallback_memory=10.0)
+    contrasts, support = [], []
+    for row in _scores([20 + t for t in range(30)], seed=7):
+        cann.step(row)
+        contrasts.append(cann.contrast_)
+        support.append(cann.support_)
+    assert np.ptp(contrasts[10:]) > 0.1  # (contrasts that vary: the averages differ)
+    for t in range(10):  # the first fallback_memory frames: their mean
+        assert support[t] == pytest.approx(np.mean(contrasts[: t + 1]), rel=1e-9)
+    for t in range(10, 30):  # then each frame moves it a tenth of the way
+        assert support[t] == pytest.approx(support[t - 1] + (contrasts[t] - support[t - 1]) / 10)
+
+
+def test_the_evidence_contrast_samples_every_n_over_4096th_place():
+    # 8192 places: the evidence's mean and spread come from every second place, here the
+    # even places, which hold less evidence than the odd ones
+    n = 8192
+    cann = _packet_at_51(CANN(movement=1.0), n=n)
+    evidence = np.random.default_rng(8).random(n)
+    evidence[1::2] += 0.5
+    cann._cur[0, 0] = evidence / cann._keeps[0]
+    cann.step(_silent(n), velocity=0.0)
+    s = cann._s.astype(np.float64)
+    peak = int(cann.potentials_.argmax())
+    assert peak == 51 and cann.n_relocations_ == 0
+    own = s[peak - 3 : peak + 4].max()
+    assert cann.contrast_ == pytest.approx((own - s[::2].mean()) / s[::2].std(), rel=1e-6)
 
 
 def test_lost_sequence_falls_back_to_the_front_end():

@@ -472,3 +472,51 @@ def test_two_current_bank_against_a_reference(kernels):
         np.testing.assert_allclose(bank.votes, votes, rtol=1e-6, atol=1e-12)
         assert bank.index == index
     assert bank.estimate == 1.5 and bank.votes[2] > 0.5
+
+
+@pytest.mark.parametrize(
+    ("noise", "min_contrast", "votes"),
+    [
+        (1.0, 1.0, False),  # spread exactly at the noise level: rounding residue, no vote
+        (0.5, 1.0, True),  # contrast exactly at velocity_contrast: a vote
+        (0.5, 1.5, False),  # a spread above the noise but too little contrast: no vote
+    ],
+)
+def test_bank_vote_thresholds(kernels, noise, min_contrast, votes):
+    # keeps 0, coefs 1: every row's evidence is the frame itself, +-1 alternating, whose
+    # mean is 0 and spread 1 exactly (float64 sums of small integers), so the contrast is 1
+    n = 8
+    bank = SpeedBank(
+        np.array([1.0, 2.0]),
+        1,
+        n,
+        np.array([0.0], np.float32),
+        np.array([1.0], np.float32),
+        10.0,
+        min_contrast,
+        1,
+        noise,
+    )
+    x = np.tile(np.float32([1.0, -1.0]), n // 2)
+    bank.update(x, True, kernels["update_traces"])
+    assert bank.contrast.tolist() == [1.0, 1.0]
+    keep = 1e-6 * np.exp(-0.1)  # the initial 1e-6 of the row nearest 1, decayed once
+    expected = keep + (bank.decay if votes else 0.0)
+    assert bank.votes.tolist() == pytest.approx([expected, 0.0], rel=1e-12, abs=0)
+
+
+def test_evidence_contrast_at_the_noise_level():
+    # +-1 alternating evidence: mean 0 and spread 1 exactly; the packet's window holds a 1
+    u = np.full(20, -3.0, np.float32)
+    u[9] = 2.0
+    s = np.tile(np.float32([1.0, -1.0]), 10)
+    assert _readout.evidence_contrast(u, s, 1.0, 2, 1, 1.0) == (9, 0.0)  # a spread of noise
+    assert _readout.evidence_contrast(u, s, 1.0, 2, 1, 0.5) == (9, 1.0)  # just above it
+
+
+def test_readout_without_an_answer_ties_only_within_the_noise():
+    # exactly the noise below the most evidence is not a tie (the ties are closer than it)
+    u = np.zeros(4, np.float32)
+    s = np.float32([0.0, 3.0, 2.5, 2.75])
+    out = _readout.readout(u, s, np.zeros(4), 0, 0.0, "none", 0.5)
+    np.testing.assert_array_equal(out, [-3.0, 0.0, -0.5, 0.0])

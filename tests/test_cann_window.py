@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from flyvpr.temporal.cann import CANN, WindowedCANN
-from flyvpr.temporal.cann._window import _shift
+from flyvpr.temporal.cann._window import _shift, _shift_tied
 from oracles import odometry_scale
 
 
@@ -224,3 +224,96 @@ def test_a_frame_held_just_after_the_window_moved_keeps_the_window():
     assert f.cann_.n_held_ == 5
     lo, hi = f.window_
     assert abs(f.step(S[t + 1, lo:hi])[0] - truth[t + 1]) <= 2
+
+
+@pytest.mark.parametrize("d", [1, -1, 2, -3, 30, -30, 38, -38, 39, -39, 40, -40, 45, -45])
+def test_shift_tied_against_a_loop(d):
+    # place i is tied with i - 1; after the move new place i is old place i + d: tied when
+    # either of the two entered the window (nothing known), else as the old pair was
+    n = 40
+    tied = np.array([1, 2, 5, 6, 17, 30, 38, 39], np.int32)
+
+    def entered(j):
+        return not 0 <= j < n
+
+    expected = [i for i in range(1, n) if entered(i + d) or entered(i - 1 + d) or i + d in tied]
+    out = _shift_tied(tied, d, n)
+    assert out.dtype == np.int32 and out.tolist() == expected
+
+
+def test_moving_by_one_place_and_by_none():
+    f = WindowedCANN(1000, window=100)
+    f.reseed([500])
+    lo, moves = f.window_[0], f.n_moves_
+    f._move(lo)  # no move: nothing counted
+    assert f.window_[0] == lo and f.n_moves_ == moves
+    f._move(lo + 1)
+    assert f.window_ == (lo + 1, lo + 101) and f.n_moves_ == moves + 1
+    assert f.cann_._tied[-1] == 99  # the place that entered is tied with its neighbour
+    f._move(-50)  # clipped to the start of the map
+    assert f.window_ == (0, 100) and f.n_moves_ == moves + 2
+
+
+@pytest.mark.parametrize(
+    ("window", "packet", "lo"),
+    [
+        # recentre * window = 12.625 places: 13 from the centre (50) moves, 12 does not
+        (101, 62, 450),
+        (101, 63, 463),
+        (101, 37, 437),
+        (101, 38, 450),
+        # 16 places exactly (centre 64): not more than recentre * window, no move
+        (128, 80, 436),
+        (128, 81, 453),
+        (128, 47, 419),
+        (128, 48, 436),
+    ],
+)
+def test_the_window_moves_when_the_packet_strays_more_than_recentre(window, packet, lo):
+    f = WindowedCANN(1000, window=window)
+    f.reseed([500])
+    start = f.window_[0]
+    c = f.cann_
+    c._marginal[:] = 0.0
+    c._marginal[packet] = 1.0
+    f.state_ = "localized"
+    f._follow()
+    assert f.window_ == (lo, lo + window)
+    assert f.n_moves_ == 1 + (lo != start)
+    if lo != start:  # the packet is now at the centre
+        assert int(np.argmax(c._marginal)) == window // 2
+
+
+def test_reseed_at_the_edges_of_its_input():
+    f = WindowedCANN(1000, window=100)
+    # 100 is the best: the window is 50..149; 50 (its first place) is inside, 150 (one past
+    # its last) and 0 are not; a weight may be 0 and the weights need not sum to 1
+    f.reseed([50, 100, 150, 0], weights=[0.125, 0.25, 0.1, 0.0])
+    assert f.window_ == (50, 150) and f.place_ == 100
+    assert f.confidence_ == 0.0 and f.state_ == "lost"
+    marginal = f.cann_._p.sum(axis=0)
+    assert marginal[0] == pytest.approx(0.9 / 3 + 0.001, rel=1e-5)
+    assert marginal[50] == pytest.approx(0.9 * 2 / 3 + 0.001, rel=1e-5)
+    assert marginal[99] == pytest.approx(0.001, rel=1e-5)
+    f.reseed([0])  # the map's first place is a place
+    assert f.window_ == (0, 100) and f.place_ == 0 and f.confidence_ == 0.0
+    with pytest.raises(ValueError, match="1-d"):
+        f.reseed(np.array([[1, 2]]))
+    with pytest.raises(ValueError, match="non-empty"):
+        f.reseed(np.array([], dtype=int))
+
+
+def test_defaults_and_reset():
+    assert WindowedCANN(5000).window_ == (0, 2048)  # the documented default window
+    assert WindowedCANN(100, window=16).width == 16  # the smallest window allowed
+    with pytest.raises(ValueError, match="window"):
+        WindowedCANN(100, window=15)
+    S, _ = _route(n_query=30, n_places=1000, start=400)
+    f = WindowedCANN(1000, window=100)
+    f.reseed([400])
+    _run(f, S)
+    assert f.confidence_ > 0.0 and f.n_moves_ > 0
+    f.reset()
+    # no answer: place -1 (no place of the map, as the index's -1), confidence 0
+    assert (f.place_, f.confidence_, f.state_) == (-1, 0.0, "lost")
+    assert f.window_ == (0, 100) and f.n_moves_ == 0
