@@ -545,6 +545,7 @@ def ref_variation(row, lo, hi):
         ([0, 1, 3, 6], 0, 1, (2.0, 1.0)),
         ([5, 1, 1, 4], 1, 2, (7 / 3, 0.0)),  # absolute differences; a flat pair
         ([2, 2], 0, 0, (0.0, 0.0)),  # no pair near
+        ([2, 5], 0, 1, (3.0, 3.0)),  # a route of two places has one pair
         ([7], 0, 0, (0.0, 0.0)),  # no pair at all
     ],
 )
