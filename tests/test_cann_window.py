@@ -317,3 +317,11 @@ def test_defaults_and_reset():
     # no answer: place -1 (no place of the map, as the index's -1), confidence 0
     assert (f.place_, f.confidence_, f.state_) == (-1, 0.0, "lost")
     assert f.window_ == (0, 100) and f.n_moves_ == 0
+
+
+def test_breaks_are_refused_on_a_window():
+    # a window's places are not the map's: a break given in the map's places would cut the
+    # window in the wrong place
+    with pytest.raises(ValueError, match=r"breaks: a windowed layer takes none .* got \[300\]"):
+        WindowedCANN(1000, window=100, breaks=(300,))
+    assert WindowedCANN(1000, window=100, breaks=()).cann_.breaks == ()

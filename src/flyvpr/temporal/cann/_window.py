@@ -68,6 +68,11 @@ class WindowedCANN:
         self.recentre = check_real(recentre, "recentre", low=0.0, inclusive=True)
         if self.recentre >= 0.5:
             raise ValueError(f"recentre must be < 0.5 (a share of the window); got {recentre}")
+        if np.size(params.get("breaks", ())) > 0:
+            raise ValueError(
+                "breaks: a windowed layer takes none (its places move with the window); got "
+                f"{list(params['breaks'])}"
+            )
         self.cann_ = CANN(**params)
         self.reset()
 
