@@ -35,7 +35,7 @@ from benchmarks.accuracy_setup import DATASETS, ROBOT_VIEWS  # noqa: E402
 from flyvpr import metrics  # noqa: E402
 from flyvpr.datasets import ground_truth_from_frames  # noqa: E402
 from flyvpr.methods import make_method  # noqa: E402
-from flyvpr.temporal.cann import CANN, fit_calibration  # noqa: E402
+from flyvpr.temporal.cann import CANN, fit_calibration, route_breaks  # noqa: E402
 
 DATASET = "n64-2000"
 TOLERANCE = 2
@@ -46,8 +46,9 @@ BINS = 10
 
 def _runs(data: Path, seeds, progress: bool, dataset_key: str = DATASET):
     """For each seed and robot view of the window ``dataset_key`` (default: the held-out one):
-    the front end's scores of the view's frames, its odometry (or None) and its ground truth
-    at ``TOLERANCE``."""
+    the front end's scores of the view's frames, its odometry (or None), its ground truth at
+    ``TOLERANCE`` and the map's breaks for the CANN (a detour's map keeps its places' frame
+    numbers, as in ``benchmarks/accuracy.py``; none otherwise)."""
     dataset = {d.key: d for d in DATASETS}[dataset_key]
     ref, qry, ref_ids, qry_ids, _ = load_dataset(dataset, data)
     views = [v for v in ROBOT_VIEWS if v.dataset == dataset_key]
@@ -61,7 +62,8 @@ def _runs(data: Path, seeds, progress: bool, dataset_key: str = DATASET):
             gt = ground_truth_from_frames(qry_ids[idx], ref_ids[keep], TOLERANCE)
             if progress:
                 print(f"  seed {seed} {view.key}", file=sys.stderr, flush=True)
-            yield view.key, seed, S, view.odometry_steps(qry_ids[idx]), gt
+            breaks = () if view.gap is None else route_breaks(ref_ids[keep])
+            yield view.key, seed, S, view.odometry_steps(qry_ids[idx]), gt, breaks
 
 
 def _stream(filt: CANN, S, moved, gt):
@@ -84,15 +86,15 @@ def reliability(answers) -> list[dict]:
 
 def run(data: Path, progress: bool = True) -> dict:
     confidence, right = [], []
-    for _key, _seed, S, moved, gt in _runs(data, FIT_SEEDS, progress):
-        for conf, ok, _seq in _stream(CANN(), S, moved, gt):
+    for _key, _seed, S, moved, gt, breaks in _runs(data, FIT_SEEDS, progress):
+        for conf, ok, _seq in _stream(CANN(breaks=breaks), S, moved, gt):
             confidence.append(conf)
             right.append(ok)
     table = fit_calibration(confidence, right)
     answers: dict[str, list] = {"default": [], "recalibrated": []}
-    for _key, _seed, S, moved, gt in _runs(data, TEST_SEEDS, progress):
+    for _key, _seed, S, moved, gt, breaks in _runs(data, TEST_SEEDS, progress):
         for name, t in (("default", None), ("recalibrated", table)):
-            answers[name] += _stream(CANN(recalibration=t), S, moved, gt)
+            answers[name] += _stream(CANN(recalibration=t, breaks=breaks), S, moved, gt)
     result = {
         "benchmark": "calibration",
         "protocol": {

@@ -7,7 +7,8 @@ Usage::
 Protocol: ``kenyon+cann`` with ``calibration=None`` (the raw confidence: the support times the
 window's probability) on the robot views of the dev window (Nordland 64x32 summer -> winter,
 frames 0-999: every view of ``benchmarks/accuracy.py`` on ``n64-0``, with and without
-odometry, with and without camera noise), seeds 0-2, tolerance 2.  Every frame whose answer
+odometry, with and without camera noise; the detour's map given its break), seeds 0-2,
+tolerance 2.  Every frame whose answer
 comes from the sequence gives the fourth root of its raw confidence (the table is given there:
 finest where the lost answers lie) and whether the answer was right;
 :func:`flyvpr.temporal.cann.fit_calibration` (prior weight 1) turns them into the 11 values of
@@ -38,8 +39,8 @@ SEEDS = (0, 1, 2)
 
 def run(data: Path, progress: bool = True) -> dict:
     raw, right = [], []
-    for _key, _seed, S, moved, gt in _runs(data, SEEDS, progress, DEV):
-        for conf, ok, from_sequence in _stream(CANN(calibration=None), S, moved, gt):
+    for _key, _seed, S, moved, gt, breaks in _runs(data, SEEDS, progress, DEV):
+        for conf, ok, from_sequence in _stream(CANN(calibration=None, breaks=breaks), S, moved, gt):
             if from_sequence:
                 raw.append(conf ** (1.0 / CALIBRATION_ROOT))  # (where the table is given)
                 right.append(ok)

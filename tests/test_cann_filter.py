@@ -841,7 +841,7 @@ def test_defaults():
     forward = tuple(i / 8 for i in range(16)) + (2.0, 2.25, 2.5, 2.75, 3.0, 3.25, 3.5)
     assert LAYER_VELOCITIES == (-2.0, -1.5, -1.0, -0.5) + forward
     assert all(type(v) is float for v in LAYER_VELOCITIES)
-    table = (0.0, 0.01, 0.011, 0.012, 0.217, 0.549, 0.629, 0.848, 0.859, 0.979, 1.0)
+    table = (0.0, 0.001, 0.002, 0.003, 0.187, 0.616, 0.666, 0.838, 0.863, 0.98, 1.0)
     assert CALIBRATION == table
     from flyvpr.temporal.cann._filter import CALIBRATION_ROOT
 

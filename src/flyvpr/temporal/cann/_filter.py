@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.0, 0.01, 0.011, 0.012, 0.217, 0.549, 0.629, 0.848, 0.859, 0.979, 1.0)
+CALIBRATION = (0.0, 0.001, 0.002, 0.003, 0.187, 0.616, 0.666, 0.838, 0.863, 0.98, 1.0)
 #: how odometry moves the layer (see the class's ``odometry`` parameter)
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
