@@ -696,6 +696,7 @@ def test_leave_at_breaks_against_reference(kernels, seed):
     shifts = rng.integers(-4, 5, size=6).astype(np.int64)
     if seed == 5:
         shifts[0] = n + 2  # (every unit leaves: nothing lands)
+        shifts[1] = -n - 3
     breaks = np.unique(rng.integers(1, n, size=int(rng.integers(1, 4)))).astype(np.int64)
     p = rng.uniform(0.1, 1.0, (6, n)).astype(np.float32)
     expected = ref_leave_at_breaks(p, shifts, breaks)
@@ -709,6 +710,14 @@ def test_leave_at_breaks_against_reference(kernels, seed):
             assert got[j].sum(dtype=np.float64) == pytest.approx(p[j].sum(dtype=np.float64))
         else:
             assert got[j][crosses].sum() == 0.0
+
+
+def test_leave_at_breaks_where_every_unit_that_lands_crosses(kernels):
+    # 3 places, breaks before 1 and 2, one ahead: 0 and 1 cross, 2 leaves the route; nothing
+    # lands, so what crossed is not shared (the move would lose it anyway)
+    p = np.array([[0.25, 0.5, 0.75]], np.float32)
+    kernels["leave_at_breaks"](p, np.array([1], np.int64), np.array([1, 2], np.int64))
+    np.testing.assert_array_equal(p, [[0.0, 0.0, 0.75]])
 
 
 def test_leave_at_breaks_by_hand(kernels):

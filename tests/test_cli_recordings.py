@@ -667,6 +667,17 @@ def test_the_cann_is_not_carried_across_a_jump_of_the_maps_positions(
     code, out, err = _run(capsys, "localize", "--map", maps["xy"], night)
     assert code == 0, err
     assert "breaks" not in out  # (a map without a jump: nothing to say)
+    # breaks the map's filter was built with are its own, said as such
+    built = Map(
+        jumped.method, m.size, m.timestamps, m.source_index, m.positions, m.thumbnails, m.info
+    )
+    built.method.filter.set_params(breaks=(3,))
+    built.save(tmp_path / "own.map")
+    code, out, err = _run(capsys, "localize", "--map", tmp_path / "own.map", night)
+    assert code == 0, err
+    assert "(between places 2-3), as the map's filter was built:" in out
+    code, out, err = _run(capsys, "localize", "--map", tmp_path / "own.map", night, "--no-breaks")
+    assert "\nbreaks: off (--no-breaks): 1 break of the map ignored\n" in out
     code, _, err = _run(capsys, "localize", "--dataset", "generic", "--no-breaks")
     assert code == 2 and "--no-breaks needs --map MAP SOURCE" in err
 

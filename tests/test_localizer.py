@@ -355,6 +355,14 @@ def test_from_map_gives_the_cann_the_maps_breaks(ref):
     bare = Map(built, (32, 64), np.zeros(n), np.arange(n))
     assert bare.breaks == () and Localizer.from_map(bare).method.filter.breaks == (4,)
     assert Localizer.from_map(bare, breaks=()).method.filter.breaks == ()
+    # (as an array, empty or not, and checked against the map's places at once)
+    for own, expected in ((np.array([3, 5]), [3, 5]), (np.array([], int), list(m.breaks))):
+        built = make_method("pixels+cann", 0, filter_params={"breaks": own}).fit(ref)
+        with_xy = Map(built, (32, 64), np.zeros(n), np.arange(n), xy)
+        assert list(Localizer.from_map(with_xy).method.filter.breaks) == expected
+    past = make_method("pixels+cann", 0, filter_params={"breaks": (n,)}).fit(ref)
+    with pytest.raises(ValueError, match=rf"the map's filter has \[{n}\]"):
+        Localizer.from_map(Map(past, (32, 64), np.zeros(n), np.arange(n)))
 
 
 def test_a_ready_method_gives_a_localizer_its_own_fresh_filter(route):

@@ -108,22 +108,25 @@ def odometry_note(
 
 
 def breaks_note(loc) -> str | None:
-    """The summary's line about the map's route breaks (None where it has none, or its filter
-    takes none)."""
+    """The summary's line about the breaks of the map's route the filter was given (None where
+    it has none to say: no breaks, or a filter that takes none)."""
     filt = loc.method.filter
     if filt is None or "breaks" not in filt.get_params():
         return None
-    given = tuple(filt.get_params()["breaks"])
+    given = tuple(int(b) for b in np.asarray(filt.get_params()["breaks"]).ravel())
     found = loc.map_.breaks
-    if not given:
-        if found:
-            return f"breaks: off (--no-breaks): {counted(len(found), 'break')} of the map ignored"
+    if not given:  # (--no-breaks: what the filter would have had otherwise)
+        built = loc.map_.method.filter.get_params().get("breaks", ())
+        dropped = np.size(built) or len(found)
+        if dropped:
+            return f"breaks: off (--no-breaks): {counted(dropped, 'break')} of the map ignored"
         return None
     pairs = ", ".join(f"{b - 1}-{b}" for b in given[:5]) + (", ..." if len(given) > 5 else "")
+    where = "where its positions jump" if given == found else "as the map's filter was built"
     return (
         f"breaks: the map's route is broken at {counted(len(given), 'place')} (between places "
-        f"{pairs}), where its positions jump: the filter does not carry the robot across "
-        "(--no-breaks: one route)"
+        f"{pairs}), {where}: the filter does not carry the robot across (--no-breaks: one "
+        "route)"
     )
 
 

@@ -285,13 +285,20 @@ class Localizer:
                     f"breaks: the map's method {m.method.name} has no filter that takes them "
                     f"(its filter: {name}); give breaks=None or ()"
                 )
-        elif filt is not None and takes and not filt.get_params()["breaks"]:
+        elif filt is not None and takes and np.size(filt.get_params()["breaks"]) == 0:
             chosen = m.breaks  # (breaks the map's filter was built with stay as they are)
         else:
             chosen = None
         if filt is not None and takes and chosen is not None:
             filt.set_params(breaks=chosen)
             loc.reset()
+        if filt is not None and takes:
+            own = np.asarray(filt.get_params()["breaks"]).ravel()
+            if own.size and own.max() >= m.n_places:
+                raise ValueError(
+                    f"breaks must be places 1 .. {m.n_places - 1} of this map of "
+                    f"{m.n_places} places; the map's filter has {own.tolist()}"
+                )
         loc.map_ = m
         return loc
 

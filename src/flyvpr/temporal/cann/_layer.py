@@ -267,7 +267,8 @@ def leave_at_breaks(p, shifts, breaks):
     ``(i, i + k]`` (``k > 0``) or ``(i + k, i]`` (``k < 0``): forwards, the ``k`` units before
     each break; backwards, the ``-k`` units from it (taken once where two breaks' units
     overlap).  A row none of whose units lands (a move longer than the route) only loses what
-    crossed, as its move would.
+    crossed, as its move would.  The breaks must lie in ``1 .. n - 1`` (the filter checks them
+    before the first frame): compiled, nothing checks the indices here.
     """
     n_v, n = p.shape
     n_b = breaks.shape[0]
