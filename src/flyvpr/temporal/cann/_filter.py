@@ -320,12 +320,14 @@ class CANN(OdometryFilter):
         Places where the map's route is broken: each is the first place of a stretch that
         does not continue the place before it (the map leaves part of the route out, or joins
         separate recordings).  Probability that a frame's move would carry across a break has
-        left the mapped stretch: it is spread evenly over the route, in its own velocity row,
-        as after a relocation, and not carried on to the far side (a robot that drives past
-        the end of a stretch is off the map, or anywhere).
+        left the mapped stretch: it is shared out equally over the rest of its own velocity
+        row (the places whose move lands on the route without crossing one), as after a
+        relocation, and not carried on to the far side (a robot that drives past the end of
+        a stretch is off the map, or anywhere).
         :func:`flyvpr.temporal.cann.route_breaks` finds them from the places' frame numbers,
-        timestamps or positions.  The jitter's move of one place is not cut.  Empty: the
-        places are one route.
+        timestamps or positions; :meth:`flyvpr.Localizer.from_map` gives a map's.  The
+        jitter's move of one place is not cut.  Empty: the places are one route.  (Each must
+        lie in ``1 .. n - 1`` for a route of ``n`` places: checked on the first frame.)
 
     Attributes
     ----------
