@@ -270,34 +270,29 @@ class Localizer:
         loc = cls(m.method, place_spacing=place_spacing)  # (a filter of its own)
         filt = loc.method.filter
         takes = filt is not None and "breaks" in filt.get_params()
+        chosen = None  # (None: the filter keeps what it was built with)
         if breaks is not None:
             from ..temporal.cann._params import _check_breaks
 
             chosen = tuple(int(b) for b in _check_breaks(breaks))
-            if chosen and chosen[-1] >= m.n_places:
-                raise ValueError(
-                    f"breaks must be places 1 .. {m.n_places - 1} of this map of "
-                    f"{m.n_places} places; got {list(chosen)}"
-                )
             if chosen and not takes:
                 name = "none" if filt is None else type(filt).__name__
                 raise ValueError(
                     f"breaks: the map's method {m.method.name} has no filter that takes them "
                     f"(its filter: {name}); give breaks=None or ()"
                 )
-        elif filt is not None and takes and np.size(filt.get_params()["breaks"]) == 0:
-            chosen = m.breaks  # (breaks the map's filter was built with stay as they are)
-        else:
-            chosen = None
-        if filt is not None and takes and chosen is not None:
-            filt.set_params(breaks=chosen)
-            loc.reset()
-        if filt is not None and takes:
-            own = np.asarray(filt.get_params()["breaks"]).ravel()
-            if own.size and own.max() >= m.n_places:
+        elif takes and filt is not None and np.size(filt.get_params()["breaks"]) == 0:
+            chosen = m.breaks
+        if takes and filt is not None:
+            if chosen is not None:
+                filt.set_params(breaks=chosen)
+                loc.reset()
+            final = np.asarray(filt.get_params()["breaks"]).ravel()
+            if final.size and final.max() >= m.n_places:
+                whose = "got" if breaks is not None else "the map's filter has"
                 raise ValueError(
                     f"breaks must be places 1 .. {m.n_places - 1} of this map of "
-                    f"{m.n_places} places; the map's filter has {own.tolist()}"
+                    f"{m.n_places} places; {whose} {final.tolist()}"
                 )
         loc.map_ = m
         return loc
