@@ -38,6 +38,16 @@ of the robot views of ``benchmarks/accuracy.py``; ``kenyon+cann`` with its defau
   exact odometry (1 place per frame), and causal SeqSLAM-60 (``SEQ_LENGTH``) told the speed
   exactly (1 place per frame: a matcher that knows what the CANN must find out), with
   OpenSeqSLAM's 0.8-1.2 and with the robot speeds 0.25-3 of the accuracy benchmark.
+* **The detour's rejoin moved** (not views of the accuracy benchmark): the map leaves out
+  places ``REJOIN_FIRST`` up to each end of ``REJOIN_ENDS`` (700 is ``r-detour``), the query
+  drives frames 0-999 in order, and the CANN is given the break.  Per end and seed: frames
+  after rejoining until the answer is ``localized`` and right, and the share of off-map
+  frames ``localized`` (both as the accuracy benchmark counts them), with the map's
+  same-image stretches in the ``AFTER`` places from the end.
+* **The fisheye start moved** (not views of the accuracy benchmark): the query at 1x from
+  each frame of ``START_FRAMES`` on (0 is ``r-fisheye``), on full frames and through the
+  fisheye disc, on the same front-end scores as the cold starts above: kenyon+cann's AUC at
+  tolerance 2 and 20, and the fisheye gap (full frames' AUC minus the disc's).
 * **Forwards and reversing** (``r-1x`` and ``r-reversed``, the dev window driven backwards):
   the share of answers right, of frames ``localized``, of the ``localized`` and of the
   ``lost`` answers right, and the mean confidence of a right answer, with the default bank and
@@ -76,7 +86,7 @@ if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``ben
     sys.path.insert(0, str(ROOT))
 
 from benchmarks._common import machine, machine_sentence, run_page_benchmark  # noqa: E402
-from benchmarks.accuracy_run import gap_keep, load_dataset  # noqa: E402
+from benchmarks.accuracy_run import _detour, _stream, gap_keep, load_dataset  # noqa: E402
 from benchmarks.accuracy_setup import (  # noqa: E402
     DATASETS,
     ROBOT_SPEEDS,
@@ -128,6 +138,14 @@ SLOW_NOISE_SEED = 0
 #: accuracy benchmark's own draw)
 PROFILE_KINDS = ("walk", "uneven", "drops")
 PROFILE_SEEDS = tuple(range(8))
+#: the detour's rejoin moved: the map leaves out places REJOIN_FIRST to end - 1 for each end
+#: (700: the accuracy benchmark's r-detour)
+REJOIN_FIRST = 400
+REJOIN_ENDS = (600, 650, 680, 690, 700, 710, 720, 730, 750, 800, 850)
+#: the fisheye cold start moved: the 1x query from each of these frames on (0: r-fisheye)
+START_FRAMES = (0, 25, 50, 100, 200, 300, 400)
+#: the tolerances of the fisheye start's figures (the must-show's two)
+START_TOLERANCES = (2, 20)
 #: parked robot: stand lengths (frames), stop places, the seed that draws them, frames after
 PARK_FRAMES = (30, 100, 300, 1000)
 PARK_PLACES = 12
@@ -355,6 +373,47 @@ def state_row(seed: int, view: str, bank: str, out, localized, gt) -> dict:
     }
 
 
+def stretches_from(stretches, first: int, count: int = AFTER) -> list[tuple[int, int]]:
+    """The stretches (first, last) that hold a place of ``first .. first + count - 1``."""
+    return [(a, b) for a, b in stretches if b >= first and a < first + count]
+
+
+def _rejoin_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
+    """kenyon+cann on the detour for each end of REJOIN_ENDS (see the module's text)."""
+    rows = []
+    for end in REJOIN_ENDS:
+        keep = np.r_[0:REJOIN_FIRST, end : len(ref)]
+        breaks = route_breaks(ref_ids[keep])
+        method = make_method("kenyon+cann", seed, {}, {"breaks": breaks})
+        method.frontend.fit(ref[keep])
+        out, localized = _stream(method.filter, method.frontend.score(qry), None)
+        detour = _detour(qry_ids, ref_ids[keep], out, localized, TOLERANCE)
+        rows.append(
+            {
+                "seed": seed,
+                "end": end,
+                "rejoin_frames": detour["rejoin_frames"],
+                "offmap_localized_share": detour["offmap_localized_share"],
+            }
+        )
+    return rows
+
+
+def _start_rows(seed: int, full: np.ndarray, disc: np.ndarray, qry_ids, ref_ids) -> list[dict]:
+    """kenyon+cann from each frame of START_FRAMES on, on the 1x view's scores of the full
+    frames (``full``) and through the fisheye disc (``disc``): AUC per tolerance."""
+    rows = []
+    for start in START_FRAMES:
+        row: dict = {"seed": seed, "start": start}
+        for name, S in (("full", full), ("fisheye", disc)):
+            out, _ = _stream(make_method("kenyon+cann", seed).filter, S[start:], None)
+            for tol in START_TOLERANCES:
+                gt = ground_truth_from_frames(qry_ids[start:], ref_ids, tol)
+                row[f"{name}_auc_{tol}"] = metrics.evaluate(out, gt, ks=(1,))["auc"]
+        rows.append(row)
+    return rows
+
+
 def right_from(right: np.ndarray, start: int = 0, run: int = RUN) -> int | None:
     """Frames from ``start`` to the first frame ``t >= start`` whose answer and the ``run - 1``
     answers after it are all right (``right``: bool per frame); None if there is none."""
@@ -418,6 +477,8 @@ def run(data: Path, progress: bool = True) -> dict:
     stopgo, detour, cold, parked, uneven, matchers, states = [], [], [], [], [], [], []
     slow: list[dict] = []
     profiles: list[dict] = []
+    rejoins: list[dict] = []
+    starts: list[dict] = []
     fish_ref, fish_qry = fisheye(ref), fisheye(qry)
     park_stops = stop_places(in_stretch, PARK_PLACES, PARK_SEED)
     for seed in SEEDS:
@@ -471,6 +532,8 @@ def run(data: Path, progress: bool = True) -> dict:
         # the same cold start through the fisheye disc
         fish_run = _run(seed, _view("r-fisheye"), fish_ref, fish_qry, ref_ids, qry_ids)
         matchers.append(_matchers(seed, "r-fisheye", 0, fish_run[2], fish_run[3], fish_run[0]))
+        starts += _start_rows(seed, S, fish_run[2], qry_ids, ref_ids)
+        rejoins += _rejoin_rows(seed, ref, qry, ref_ids, qry_ids)
         parked += _parked(seed, ref, qry, park_stops)
         # forwards and reversing, with the default bank and the mirrored one
         states.append(state_row(seed, "r-1x", "default", out, localized, gt))
@@ -500,6 +563,10 @@ def run(data: Path, progress: bool = True) -> dict:
             "places from a map stretch",
             "profiles": "draw d: the profile drawn with numpy.random.default_rng(d), "
             f"d in {list(PROFILE_SEEDS)}; draw 0 is the accuracy benchmark's own",
+            "rejoins": f"the map leaves out places {REJOIN_FIRST} to end - 1, end in "
+            f"{list(REJOIN_ENDS)} (700: r-detour); the query drives frames 0-999 at 1x",
+            "starts": f"the 1x query from frame s on, s in {list(START_FRAMES)} (0: r-fisheye); "
+            f"full frames and the fisheye disc; tolerances {list(START_TOLERANCES)}",
             "slow": f"query frame k shows place floor(v k), v in {list(SLOW_SPEEDS)}, camera "
             f"noise sd {SLOW_NOISE:g} gray levels (seed {SLOW_NOISE_SEED}); odometry: places "
             "moved since the last frame",
@@ -521,6 +588,11 @@ def run(data: Path, progress: bool = True) -> dict:
         "states": states,
         "slow": slow,
         "profiles": profiles,
+        "rejoins": rejoins,
+        "rejoin_stretches": {
+            str(end): [list(t) for t in stretches_from(map_stretches, end)] for end in REJOIN_ENDS
+        },
+        "starts": starts,
     }
 
 
@@ -721,6 +793,63 @@ def _matcher_table(data: dict) -> list[str]:
     return lines
 
 
+def _rejoin_table(data: dict) -> list[str]:
+    """Per end of the left-out stretch, the rejoin of each seed and the off-map share."""
+    rows = data["rejoins"]
+    seeds = sorted({r["seed"] for r in rows})
+    lines = [
+        "",
+        "## The detour's rejoin moved",
+        "",
+        f"{data['protocol']['rejoins']}; the CANN is given the map's break.  Frames from the "
+        "first frame on the map again until the answer is `localized` and right, per seed "
+        "(as the accuracy benchmark counts them), and the share of the off-map frames "
+        f"`localized` (mean over the seeds).  Map stretches: those within {AFTER} places of "
+        "the rejoin.",
+        "",
+        "| map leaves out | map stretches after the rejoin | frames until localized and right "
+        f"({' / '.join(f'seed {s}' for s in seeds)}) | off-map frames `localized` |",
+        "|---|---|---|---|",
+    ]
+    for end in sorted({r["end"] for r in rows}):
+        mine = {r["seed"]: r for r in rows if r["end"] == end}
+        back = " / ".join(
+            "never" if mine[s]["rejoin_frames"] is None else str(mine[s]["rejoin_frames"])
+            for s in seeds
+        )
+        share = float(np.mean([mine[s]["offmap_localized_share"] for s in seeds]))
+        stretches = _stretches(data["rejoin_stretches"][str(end)])
+        lines.append(f"| {REJOIN_FIRST}-{end - 1} | {stretches} | {back} | {100 * share:.1f}% |")
+    return lines
+
+
+def _start_table(data: dict) -> list[str]:
+    """Per start frame, the AUC of the full frames and of the disc, and the fisheye gap."""
+    rows = data["starts"]
+    tols = [int(k.rsplit("_", 1)[1]) for k in rows[0] if k.startswith("full_auc_")]
+    lines = [
+        "",
+        "## The fisheye start moved",
+        "",
+        f"{data['protocol']['starts']}: kenyon+cann's AUC, mean over the seeds; the fisheye "
+        "gap is the full frames' AUC minus the disc's.",
+        "",
+        "| query from frame | "
+        + " | ".join(f"full frames, tol {t} | disc, tol {t} | gap, tol {t}" for t in tols)
+        + " |",
+        "|---|" + "---|---|---|" * len(tols),
+    ]
+    for start in sorted({r["start"] for r in rows}):
+        mine = [r for r in rows if r["start"] == start]
+        cells = []
+        for t in tols:
+            full = float(np.mean([r[f"full_auc_{t}"] for r in mine]))
+            disc = float(np.mean([r[f"fisheye_auc_{t}"] for r in mine]))
+            cells += [f"{full:.4f}", f"{disc:.4f}", f"{full - disc:+.4f}"]
+        lines.append(f"| {start} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def render_markdown(data: dict) -> str:
     """The protocol, the stretches and the three tables (headings from level 2)."""
     p = data["protocol"]
@@ -782,6 +911,10 @@ def render_markdown(data: dict) -> str:
         )
     if data.get("matchers"):
         lines += _matcher_table(data)
+    if data.get("rejoins"):
+        lines += _rejoin_table(data)
+    if data.get("starts"):
+        lines += _start_table(data)
     if data.get("parked"):
         lines += _parked_table(data)
     if data.get("jitter"):

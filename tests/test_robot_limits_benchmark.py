@@ -366,3 +366,101 @@ def test_slow_rows_use_the_views_noise_and_no_odometry_on_the_first_frame(monkey
     assert velocities[:n] == [None] * n
     assert velocities[n] is None and velocities[n + 1 : n + 4] == [0.0, 1.0, 0.0]
     assert all(r["seed"] == 3 and r["localized"] == 1.0 for r in rows)
+
+
+def test_stretches_from_keeps_those_with_a_place_in_the_window():
+    stretches = [(3, 5), (10, 12), (20, 25)]
+    assert robot_limits.stretches_from(stretches, 6, 4) == []  # places 6-9
+    assert robot_limits.stretches_from(stretches, 5, 5) == [(3, 5)]  # its last place, 5
+    assert robot_limits.stretches_from(stretches, 0, 3) == []  # places 0-2 end before 3
+    assert robot_limits.stretches_from(stretches, 0, 4) == [(3, 5)]
+    assert robot_limits.stretches_from(stretches, 11, 10) == [(10, 12), (20, 25)]
+    assert robot_limits.stretches_from(stretches, 13, 7) == []  # 13-19
+    assert robot_limits.stretches_from(stretches, 13, 8) == [(20, 25)]
+
+
+def test_rejoin_rows_leave_out_each_stretch_and_give_the_break(monkeypatch):
+    # a route of 40 distinct places; the map leaves out 10 .. end - 1 for each end
+    made = []
+    real = robot_limits.make_method
+
+    def make(name, seed, fp, params):
+        made.append((name, seed, [int(b) for b in params["breaks"]]))
+        return real(name, seed, fp, params)
+
+    monkeypatch.setattr(robot_limits, "make_method", make)
+    monkeypatch.setattr(robot_limits, "REJOIN_FIRST", 10)
+    monkeypatch.setattr(robot_limits, "REJOIN_ENDS", (15, 20))
+    rng = np.random.default_rng(0)
+    ref = rng.random((40, 32, 64)).astype(np.float32)
+    ids = np.arange(40)
+    rows = robot_limits._rejoin_rows(1, ref, ref.copy(), ids, ids)
+    # the break is the first place kept after the stretch: index 10 of the map in both
+    assert made == [("kenyon+cann", 1, [10]), ("kenyon+cann", 1, [10])]
+    assert [(r["seed"], r["end"]) for r in rows] == [(1, 15), (1, 20)]
+    for r in rows:
+        # the query is the map's own frames: back on the map, right within a few frames
+        assert r["rejoin_frames"] is not None and 0 <= r["rejoin_frames"] <= 10
+        assert 0.0 <= r["offmap_localized_share"] <= 1.0
+
+
+def test_rejoin_table_lists_each_end_with_its_seeds_and_the_mean_share():
+    rows = [
+        {"seed": s, "end": e, "rejoin_frames": f, "offmap_localized_share": share}
+        for s, e, f, share in [
+            (0, 700, 42, 0.0),
+            (1, 700, None, 0.01),
+            (0, 650, 10, 0.02),
+            (1, 650, 9, 0.0),
+        ]
+    ]
+    data = {
+        "rejoins": rows,
+        "rejoin_stretches": {"650": [], "700": [[707, 725]]},
+        "protocol": {"rejoins": "r"},
+    }
+    lines = robot_limits._rejoin_table(data)
+    assert "| 400-649 | none | 10 / 9 | 1.0% |" in lines
+    assert "| 400-699 | 707-725 | 42 / never | 0.5% |" in lines
+    assert lines.index("| 400-649 | none | 10 / 9 | 1.0% |") < lines.index(
+        "| 400-699 | 707-725 | 42 / never | 0.5% |"
+    )  # in the order of the ends
+    assert any("(seed 0 / seed 1)" in line for line in lines)
+
+
+def test_start_rows_score_both_cameras_from_each_start(monkeypatch):
+    monkeypatch.setattr(robot_limits, "START_FRAMES", (0, 30))
+    n = 60
+    full = np.full((n, n), 0.1, np.float32)
+    full[np.arange(n), np.arange(n)] = 1.0  # a clean diagonal
+    disc = full.copy()
+    disc[:40] = np.roll(full[:40], 7, axis=1)  # through the disc: 7 places off on 0-39
+    ids = np.arange(n)
+    rows = robot_limits._start_rows(2, full, disc, ids, ids)
+    assert [(r["seed"], r["start"]) for r in rows] == [(2, 0), (2, 30)]
+    for r in rows:
+        assert r["full_auc_2"] > 0.9 and r["full_auc_20"] > 0.9
+        assert r["fisheye_auc_20"] >= r["fisheye_auc_2"]
+    # from frame 0 the disc's first 40 frames are wrong at tolerance 2: a large gap; from
+    # frame 30 only 10 of 30 frames are
+    first, later = rows
+    assert first["full_auc_2"] - first["fisheye_auc_2"] > 0.3
+    assert (
+        0.0
+        < later["full_auc_2"] - later["fisheye_auc_2"]
+        < first["full_auc_2"] - first["fisheye_auc_2"]
+    )
+
+
+def test_start_table_gives_the_mean_auc_and_the_gap_per_start():
+    rows = [
+        {"seed": s, "start": st, "full_auc_2": f, "fisheye_auc_2": d, "full_auc_20": f,
+         "fisheye_auc_20": d + 0.01}
+        for s, st, f, d in [(0, 0, 0.97, 0.96), (1, 0, 0.98, 0.96), (0, 50, 0.97, 0.97),
+                            (1, 50, 0.97, 0.965)]
+    ]  # fmt: skip
+    lines = robot_limits._start_table({"starts": rows, "protocol": {"starts": "s"}})
+    header = next(line for line in lines if line.startswith("| query from frame"))
+    assert header.count("gap, tol") == 2 and "tol 2 |" in header and "tol 20 |" in header
+    assert "| 0 | 0.9750 | 0.9600 | +0.0150 | 0.9750 | 0.9700 | +0.0050 |" in lines
+    assert "| 50 | 0.9700 | 0.9675 | +0.0025 | 0.9700 | 0.9775 | -0.0075 |" in lines
