@@ -391,6 +391,7 @@ def _rejoin_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
         rows.append(
             {
                 "seed": seed,
+                "first": REJOIN_FIRST,
                 "end": end,
                 "rejoin_frames": detour["rejoin_frames"],
                 "offmap_localized_share": detour["offmap_localized_share"],
@@ -563,9 +564,9 @@ def run(data: Path, progress: bool = True) -> dict:
             "places from a map stretch",
             "profiles": "draw d: the profile drawn with numpy.random.default_rng(d), "
             f"d in {list(PROFILE_SEEDS)}; draw 0 is the accuracy benchmark's own",
-            "rejoins": f"the map leaves out places {REJOIN_FIRST} to end - 1, end in "
+            "rejoins": f"The map leaves out places {REJOIN_FIRST} to end - 1, end in "
             f"{list(REJOIN_ENDS)} (700: r-detour); the query drives frames 0-999 at 1x",
-            "starts": f"the 1x query from frame s on, s in {list(START_FRAMES)} (0: r-fisheye); "
+            "starts": f"The 1x query from frame s on, s in {list(START_FRAMES)} (0: r-fisheye); "
             f"full frames and the fisheye disc; tolerances {list(START_TOLERANCES)}",
             "slow": f"query frame k shows place floor(v k), v in {list(SLOW_SPEEDS)}, camera "
             f"noise sd {SLOW_NOISE:g} gray levels (seed {SLOW_NOISE_SEED}); odometry: places "
@@ -804,22 +805,22 @@ def _rejoin_table(data: dict) -> list[str]:
         f"{data['protocol']['rejoins']}; the CANN is given the map's break.  Frames from the "
         "first frame on the map again until the answer is `localized` and right, per seed "
         "(as the accuracy benchmark counts them), and the share of the off-map frames "
-        f"`localized` (mean over the seeds).  Map stretches: those within {AFTER} places of "
-        "the rejoin.",
+        f"`localized` (mean over the seeds).  Map stretches: those holding a place of the "
+        f"{AFTER} from the rejoin on.",
         "",
-        "| map leaves out | map stretches after the rejoin | frames until localized and right "
+        "| map leaves out | map stretches from the rejoin on | frames until localized and right "
         f"({' / '.join(f'seed {s}' for s in seeds)}) | off-map frames `localized` |",
         "|---|---|---|---|",
     ]
-    for end in sorted({r["end"] for r in rows}):
-        mine = {r["seed"]: r for r in rows if r["end"] == end}
+    for first, end in sorted({(r["first"], r["end"]) for r in rows}):
+        mine = {r["seed"]: r for r in rows if (r["first"], r["end"]) == (first, end)}
         back = " / ".join(
             "never" if mine[s]["rejoin_frames"] is None else str(mine[s]["rejoin_frames"])
             for s in seeds
         )
         share = float(np.mean([mine[s]["offmap_localized_share"] for s in seeds]))
         stretches = _stretches(data["rejoin_stretches"][str(end)])
-        lines.append(f"| {REJOIN_FIRST}-{end - 1} | {stretches} | {back} | {100 * share:.1f}% |")
+        lines.append(f"| {first}-{end - 1} | {stretches} | {back} | {100 * share:.1f}% |")
     return lines
 
 
