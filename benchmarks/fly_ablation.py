@@ -12,7 +12,12 @@ Stages (each scored +cann with the CANN's defaults):
   without subtracting the reference traverse's mean features first;
 * ``kenyon``: the front end as shipped (centred features, one population of 4096 KCs);
 * ``kenyon-4proj``: the same 4096 KCs as 4 independent populations of 1024, each with its own
-  winner-take-all (5% of each).
+  winner-take-all (5% of each);
+* ``kenyon-pool2`` and ``kenyon-pool1``: ``kenyon`` with the lobe's max pooling over 2x2 cells
+  (2048 features) or none (8192 features) in place of 4x4 (512): how much place information
+  the pooling gives away.
+
+Every stage is also scored alone (its front-end scores, no filter): the second table.
 
 Data: ``nordland_64x32`` summer -> winter, frames 0-999 and 1000-1999, and
 ``nordland_64x32_viewpoint`` summer -> winter frames 0-999 (the tuning sets; tolerance 20
@@ -93,6 +98,8 @@ STAGES = {
     "kenyon-uncentred": (lambda seed: KenyonUncentred(random_state=seed), True),
     "kenyon": (lambda seed: KenyonEncoder(random_state=seed), True),
     "kenyon-4proj": (lambda seed: KenyonEncoder(n_projections=4, random_state=seed), True),
+    "kenyon-pool2": (lambda seed: KenyonEncoder(pool_size=2, random_state=seed), True),
+    "kenyon-pool1": (lambda seed: KenyonEncoder(pool_size=1, random_state=seed), True),
 }
 
 
@@ -103,6 +110,8 @@ LABELS = {
     "kenyon-uncentred": "+ Kenyon cells, not centred",
     "kenyon": "+ centring (`kenyon`, shipped)",
     "kenyon-4proj": "+ 4 projections (4 x 1024 cells)",
+    "kenyon-pool2": "`kenyon`, 2x2 pooling (2048 features)",
+    "kenyon-pool1": "`kenyon`, no pooling (8192 features)",
 }
 #: data set -> its column heading in the table
 COLUMNS = {
@@ -114,12 +123,22 @@ COLUMNS = {
 
 
 def render_table(data: dict) -> str:
-    """The Markdown table of a ``--json`` document: AUC per stage and data set (the random
-    stages as mean [min, max] over the seeds)."""
+    """The Markdown tables of a ``--json`` document: AUC per stage and data set +cann, then
+    (for a document that has them) alone; the random stages as mean [min, max] over the
+    seeds."""
     results = data["results"]
     keys = [k for k in COLUMNS if k in results]
+    lines = _auc_table(results, keys, "stage (+cann)", "")
+    alone = all("front_auc_mean" in row for k in keys for row in results[k]["stages"].values())
+    if alone:
+        lines += ["", *_auc_table(results, keys, "stage alone (no filter)", "front_")]
+    return "\n".join(lines)
+
+
+def _auc_table(results: dict, keys: list, heading: str, prefix: str) -> list[str]:
+    """Rows of ``LABELS`` by columns ``keys``: the AUC fields named ``{prefix}auc_*``."""
     lines = [
-        "| stage (+cann) | " + " | ".join(COLUMNS[k] for k in keys) + " |",
+        f"| {heading} | " + " | ".join(COLUMNS[k] for k in keys) + " |",
         "|---" * (len(keys) + 1) + "|",
     ]
     for stage, label in LABELS.items():
@@ -128,18 +147,24 @@ def render_table(data: dict) -> str:
             row = results[key]["stages"].get(stage)
             if row is None:
                 cells.append("-")
-            elif row["seeds"]:
-                cells.append(f"{row['auc_mean']:.3f} [{row['auc_min']:.3f}, {row['auc_max']:.3f}]")
-            else:
-                cells.append(f"{row['auc_mean']:.3f}")
+                continue
+            mean, low, high = (row[f"{prefix}auc_{x}"] for x in ("mean", "min", "max"))
+            cells.append(f"{mean:.3f} [{low:.3f}, {high:.3f}]" if row["seeds"] else f"{mean:.3f}")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    return lines
 
 
 def run_stage(front: Encoder, ref, qry, gt) -> dict:
+    """The stage +cann (its AUC and recall@1) and alone (``front_``: its own scores)."""
     method = Method("ablation+cann", front, FILTERS["cann"]()).fit(ref)
-    S = method.score(qry)
-    return {"auc": pr_auc(S, gt), "recall_at_1": recall_at_k(S, gt, 1)}
+    alone = method.frontend.score(qry)
+    S = method.filter.filter(alone)
+    return {
+        "auc": pr_auc(S, gt),
+        "recall_at_1": recall_at_k(S, gt, 1),
+        "front_auc": pr_auc(alone, gt),
+        "front_recall_at_1": recall_at_k(alone, gt, 1),
+    }
 
 
 def main(argv=None) -> int:
@@ -173,22 +198,25 @@ def main(argv=None) -> int:
                 seed: run_stage(factory(seed), ref, qry, bench.ground_truth)
                 for seed in (SEEDS if seeded else (None,))
             }
-            aucs = [r["auc"] for r in runs.values()]
-            results[key]["stages"][stage] = {
+            row = {
                 "seeds": list(SEEDS) if seeded else None,
                 "runs": {str(s): r for s, r in runs.items()},
-                "auc_mean": float(np.mean(aucs)),
-                "auc_min": float(np.min(aucs)),
-                "auc_max": float(np.max(aucs)),
             }
+            for prefix in ("", "front_"):
+                aucs = [r[f"{prefix}auc"] for r in runs.values()]
+                row[f"{prefix}auc_mean"] = float(np.mean(aucs))
+                row[f"{prefix}auc_min"] = float(np.min(aucs))
+                row[f"{prefix}auc_max"] = float(np.max(aucs))
+            results[key]["stages"][stage] = row
             print(
-                f"{key:20s} {stage:18s} AUC mean {np.mean(aucs):.3f} "
-                f"[{np.min(aucs):.3f}, {np.max(aucs):.3f}]  ({time.perf_counter() - t0:.1f} s)",
+                f"{key:20s} {stage:18s} AUC mean {row['auc_mean']:.3f} "
+                f"[{row['auc_min']:.3f}, {row['auc_max']:.3f}], alone {row['front_auc_mean']:.3f}"
+                f"  ({time.perf_counter() - t0:.1f} s)",
                 flush=True,
             )
     out = {
         "what": "kenyon front end ablation, every stage +cann (CANN defaults)",
-        "metric": "PR AUC (flyvpr.metrics.pr_auc); recall_at_1 per run",
+        "metric": "PR AUC (flyvpr.metrics.pr_auc) +cann and alone (front_); recall_at_1 per run",
         "seeds": list(SEEDS),
         "results": results,
     }

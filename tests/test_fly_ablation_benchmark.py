@@ -27,5 +27,55 @@ def test_every_stage_runs_on_a_route(stage, surround, sliding_world):
     factory, _seeded = fly_ablation.STAGES[stage]
     gt = np.abs(np.arange(40)[:, None] - np.arange(40)[None, :]) <= 1
     result = fly_ablation.run_stage(factory(0), ref, qry, gt)
-    assert set(result) == {"auc", "recall_at_1"}
+    assert set(result) == {"auc", "recall_at_1", "front_auc", "front_recall_at_1"}
     assert 0.5 < result["auc"] <= 1.0  # the route is easy: every stage finds most places
+    assert 0.0 < result["front_auc"] <= 1.0
+
+
+def test_a_stage_is_scored_with_the_filter_and_alone(sliding_world):
+    from flyvpr.metrics import pr_auc, recall_at_k
+    from flyvpr.temporal import FILTERS
+
+    ref, qry = sliding_world
+    # noise enough that the front end alone misses places the filter finds
+    noise = np.random.default_rng(1).normal(0, 0.3, qry.shape)
+    qry = np.clip(qry + noise, 0, 1).astype(np.float32)
+    gt = np.abs(np.arange(40)[:, None] - np.arange(40)[None, :]) <= 1
+    result = fly_ablation.run_stage(fly_ablation.STAGES["kenyon"][0](3), ref, qry, gt)
+    front = fly_ablation.STAGES["kenyon"][0](3).fit(ref)
+    alone = front.score(qry)
+    filtered = FILTERS["cann"]().filter(alone)
+    assert result["front_auc"] == pr_auc(alone, gt)
+    assert result["front_recall_at_1"] == recall_at_k(alone, gt, 1)
+    assert result["auc"] == pr_auc(filtered, gt)
+    assert result["recall_at_1"] == recall_at_k(filtered, gt, 1)
+    assert result["auc"] > result["front_auc"] + 0.3
+    assert result["recall_at_1"] > result["front_recall_at_1"]
+
+
+def _document(with_alone: bool) -> dict:
+    def row(mean, seeded):
+        out = {"seeds": [0, 1] if seeded else None, "auc_mean": mean, "auc_min": mean - 0.01,
+               "auc_max": mean + 0.01}  # fmt: skip
+        if with_alone:
+            out.update(front_auc_mean=mean / 4, front_auc_min=mean / 5, front_auc_max=mean / 3)
+        return out
+
+    stages = {"pixels": row(0.9, False), "kenyon": row(0.8, True), "kenyon-pool2": row(0.6, True)}
+    return {"results": {"nordland 0-999": {"stages": stages}}}
+
+
+def test_table_gives_the_stages_with_the_filter_then_alone():
+    table = fly_ablation.render_table(_document(True)).splitlines()
+    assert table[0] == "| stage (+cann) | Nordland 0-999 |"
+    assert "| `pixels` (bar) | 0.900 |" in table
+    assert "| + centring (`kenyon`, shipped) | 0.800 [0.790, 0.810] |" in table
+    assert "| `kenyon`, 2x2 pooling (2048 features) | 0.600 [0.590, 0.610] |" in table
+    assert "| optic lobe, cosine | - |" in table  # a stage the document lacks
+    alone = table.index("| stage alone (no filter) | Nordland 0-999 |")
+    assert table.index("| `pixels` (bar) | 0.900 |") < alone
+    assert table[alone + 2] == "| `pixels` (bar) | 0.225 |"
+    assert "| + centring (`kenyon`, shipped) | 0.200 [0.160, 0.267] |" in table[alone:]
+    # a document from before the stages were scored alone: the first table only
+    older = fly_ablation.render_table(_document(False))
+    assert "alone" not in older and "| `pixels` (bar) | 0.900 |" in older
