@@ -215,7 +215,7 @@ def main(argv=None) -> int:
                 flush=True,
             )
     out = {
-        "what": "kenyon front end ablation, every stage +cann (CANN defaults)",
+        "what": "kenyon front end ablation, every stage +cann (CANN defaults) and alone",
         "metric": "PR AUC (flyvpr.metrics.pr_auc) +cann and alone (front_); recall_at_1 per run",
         "seeds": list(SEEDS),
         "results": results,

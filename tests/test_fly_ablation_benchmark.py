@@ -79,3 +79,37 @@ def test_table_gives_the_stages_with_the_filter_then_alone():
     # a document from before the stages were scored alone: the first table only
     older = fly_ablation.render_table(_document(False))
     assert "alone" not in older and "| `pixels` (bar) | 0.900 |" in older
+
+
+def test_every_stage_has_a_row_in_both_tables():
+    assert set(fly_ablation.LABELS) == set(fly_ablation.STAGES)
+    table = fly_ablation.render_table(_document(True)).splitlines()
+    alone = table.index("| stage alone (no filter) | Nordland 0-999 |")
+    first, second = table[2 : alone - 1], table[alone + 2 :]
+    assert len(first) == len(second) == len(fly_ablation.LABELS)
+    assert "| `kenyon`, 2x2 pooling (2048 features) | 0.150 [0.120, 0.200] |" in second
+    assert "| optic lobe, cosine | - |" in second
+    # a document where one stage was not scored alone: the first table only
+    partial = _document(True)
+    stages = partial["results"]["nordland 0-999"]["stages"]
+    del stages["kenyon"]["front_auc_mean"]
+    assert "alone" not in fly_ablation.render_table(partial)
+
+
+def test_the_committed_document_summarises_its_own_runs():
+    import json
+
+    data = json.loads((ROOT / "benchmarks" / "fly-ablation.json").read_text())
+    assert data["seeds"] == list(fly_ablation.SEEDS)
+    assert set(data["results"]) == set(fly_ablation.DATASETS)
+    for key, result in data["results"].items():
+        assert set(result["stages"]) == set(fly_ablation.STAGES), key
+        for stage, row in result["stages"].items():
+            seeded = fly_ablation.STAGES[stage][1]
+            assert row["seeds"] == (list(fly_ablation.SEEDS) if seeded else None)
+            for prefix in ("", "front_"):
+                aucs = [r[f"{prefix}auc"] for r in row["runs"].values()]
+                assert len(aucs) == (len(fly_ablation.SEEDS) if seeded else 1)
+                assert row[f"{prefix}auc_mean"] == pytest.approx(np.mean(aucs))
+                assert row[f"{prefix}auc_min"] == min(aucs)
+                assert row[f"{prefix}auc_max"] == max(aucs)
