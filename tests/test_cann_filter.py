@@ -703,6 +703,27 @@ def test_route_breaks_refuses_bad_input(coordinates, factor, message):
         route_breaks(coordinates, factor)
 
 
+def test_position_breaks_read_a_maps_positions():
+    from flyvpr.temporal.cann._route import position_breaks
+
+    line = np.c_[2.0 * np.arange(20), np.zeros(20)]
+    assert position_breaks(line) == ()
+    jump = line.copy()
+    jump[12:, 0] += 300.0  # the step from place 11 to 12: 302 m among steps of 2
+    assert position_breaks(jump) == (12,)
+    # a step with an unknown position at either end is not judged; the rest still are
+    unknown = jump.copy()
+    unknown[12] = np.nan
+    assert position_breaks(unknown) == ()
+    unknown[5] = np.nan
+    unknown[12] = jump[12]
+    assert position_breaks(unknown) == (12,)
+    assert position_breaks(None) == () and position_breaks(line[:1]) == ()
+    assert position_breaks(jump.tolist()) == (12,)  # any array-like
+    # as route_breaks reads the same positions, where they are all known
+    assert position_breaks(jump) == route_breaks(jump)
+
+
 @pytest.mark.parametrize("case", ["defaults", "raw input", "no fallback", "jittery"])
 def test_matches_reference_through_a_stand_of_the_map(cann_kernel_mode, case):
     frames = assert_matches_reference(_stand_scenario(), **REFERENCE_CASES[case])

@@ -319,9 +319,72 @@ def test_defaults_and_reset():
     assert f.window_ == (0, 100) and f.n_moves_ == 0
 
 
-def test_breaks_are_refused_on_a_window():
-    # a window's places are not the map's: a break given in the map's places would cut the
-    # window in the wrong place
-    with pytest.raises(ValueError, match=r"breaks: a windowed layer takes none .* got \[300\]"):
-        WindowedCANN(1000, window=100, breaks=(300,))
-    assert WindowedCANN(1000, window=100, breaks=()).cann_.breaks == ()
+def test_a_map_within_the_window_with_breaks_is_the_cann_exactly():
+    # the robot drives places 20-99 and then off the map: the map's route is broken at 100
+    S, _ = _route(n_query=120, n_places=300, start=20)
+    S[80:] = np.random.default_rng(5).normal(size=(40, 300)).astype(np.float32)
+    full = CANN(tolerance=2, breaks=(100, 250)).filter(S)
+    f = WindowedCANN(300, window=512, tolerance=2, breaks=(100, 250))
+    assert f.cann_.breaks == (100, 250)
+    for t, row in enumerate(S):
+        place, confidence, state = f.step(row)
+        assert place == int(full[t].argmax())
+        assert confidence == pytest.approx(float(full[t].max()), rel=1e-6)
+    # (and the breaks change what it says: without them the packet runs on past 100)
+    plain = CANN(tolerance=2).filter(S)
+    assert not np.array_equal(plain.argmax(axis=1), full.argmax(axis=1))
+
+
+def test_the_layer_gets_the_breaks_inside_its_window_as_window_places():
+    f = WindowedCANN(1000, window=100, breaks=(50, 100, 130, 199, 200, 650))
+    np.testing.assert_array_equal(f.breaks_, [50, 100, 130, 199, 200, 650])
+    # the window 0-99: 50; 100 is the first place after it
+    assert f.cann_.breaks == (50,)
+    assert f._window_breaks(100).tolist() == [30, 99]  # 100 starts the window: nothing cut
+    assert f._window_breaks(101).tolist() == [29, 98, 99]
+    assert f._window_breaks(600).tolist() == [50]
+    assert f._window_breaks(900).tolist() == []
+    S, _ = _route(n_query=40, n_places=1000, start=620)
+    f.reseed([620])  # the window 570-669
+    assert f.window_ == (570, 670) and f.cann_.breaks == (80,)
+    f.step(S[0, 570:670])
+    np.testing.assert_array_equal(f.cann_._params["breaks"], [80])  # what the layer runs with
+    f._move(600)  # the window moves: the breaks move with it, in what the layer runs with
+    assert f.cann_.breaks == (50,)
+    np.testing.assert_array_equal(f.cann_._params["breaks"], [50])
+    f._move(660)
+    assert f.cann_.breaks == () and f.cann_._params["breaks"].size == 0
+    f.step(S[1, 660:760])  # (an empty set runs as none)
+    f.reset()
+    assert f.window_ == (0, 100) and f.cann_.breaks == (50,)
+    np.testing.assert_array_equal(f.cann_._params["breaks"], [50])
+
+
+def test_the_window_does_not_carry_the_robot_across_a_break():
+    # the map: two recordings joined at place 1500; the robot drives the first to its end
+    # (places 1300-1499) and on, off the map (noise rows); the window follows it there
+    S, truth = _route(n_query=260, n_places=3000, start=1300, strength=4.0)
+    S[200:] = np.random.default_rng(2).normal(size=(60, 3000)).astype(np.float32)
+    runs = {}
+    for breaks in ((), (1500,)):
+        f = WindowedCANN(3000, window=256, breaks=breaks)
+        f.reseed([1300])
+        places, states = _run(f, S)
+        assert (np.abs(places - truth) <= 2)[20:200].mean() > 0.95
+        runs[breaks] = places, states
+    places, states = runs[()]
+    # one route: carried on into the next recording, localized there for a few frames
+    assert (states[200:204] == "localized").all() and (places[200:204] >= 1500).all()
+    # broken: it left the map, lost from the first frame off it
+    assert (runs[(1500,)][1][200:] == "lost").all()
+
+
+def test_breaks_are_checked_against_the_whole_map():
+    with pytest.raises(ValueError, match=r"breaks must be places 1 \.\. 999 of this map of 1000"):
+        WindowedCANN(1000, window=100, breaks=(300, 1000))
+    with pytest.raises(ValueError, match="breaks"):
+        WindowedCANN(1000, window=100, breaks=(300, 200))
+    with pytest.raises(ValueError, match="breaks"):
+        WindowedCANN(1000, window=100, breaks=(0,))
+    assert WindowedCANN(1000, window=100, breaks=(999,)).breaks_.tolist() == [999]
+    assert WindowedCANN(1000, window=100).cann_.breaks == ()

@@ -397,8 +397,6 @@ def test_odometry_off_when_the_map_has_no_positions(route, tmp_path, capsys):
          "--size: a compact map fixes the image size"),
         (["localize", "--map", "{map}", "{winter}", "--calibration", "{tmp}/c.json"],
          "--calibration: not with a compact map"),
-        (["localize", "--map", "{map}", "{winter}", "--no-breaks"],
-         "--no-breaks: not with a compact map"),
         (["localize", "--map", "{map}", "rtsp://example.invalid/s", "--view-save", "{tmp}/v.rrd"],
          "--view-save: not with a compact map"),
         (["localize", "--map", "{map}", "rtsp://example.invalid/s", "--mcap-thumbnails"],
@@ -690,3 +688,71 @@ def test_a_glitch_of_the_positions_is_refused_and_said(built, route, tmp_path, c
         capsys, "localize", "--map", built, route["winter"], "--positions", xy, "--no-odometry"
     )
     assert code == 0 and "refused the distance" not in out
+
+
+@pytest.fixture(scope="module")
+def broken(route, tmp_path_factory):
+    """The summer map with positions that jump 500 m between places 59 and 60: the first
+    drive left a stretch of the road out."""
+    root = tmp_path_factory.mktemp("broken")
+    xy = root / "jump.csv"
+    xy.write_text(
+        "frame,x,y\n"
+        + "".join(f"{i},{2.0 * i + (500.0 if i >= 60 else 0.0)},5\n" for i in range(N))
+    )
+    path = root / "broken.fvmap"
+    build_compact_map(route["summer"], path, positions=xy)
+    return path
+
+
+def test_a_compact_map_reads_its_breaks_from_its_positions(built, broken, route, tmp_path):
+    assert open_compact_map(built).breaks == ()
+    cmap = open_compact_map(broken)
+    assert cmap.breaks == (60,)
+    assert compact_localizer(cmap).filter_.breaks_.tolist() == [60]
+    assert compact_localizer(cmap, breaks=()).filter_.breaks_.size == 0
+    # a map without positions has none
+    path = tmp_path / "bare.fvmap"
+    build_compact_map(route["summer"], path)
+    assert open_compact_map(path).breaks == ()
+
+
+def test_localize_gives_a_compact_map_its_breaks_and_says_so(broken, route, capsys, monkeypatch):
+    seen = []
+    real = LargeLocalizer.update_code
+
+    def spy(self, code, velocity=None):
+        seen.append(self.filter_.breaks_.tolist())
+        return real(self, code, velocity)
+
+    monkeypatch.setattr(LargeLocalizer, "update_code", spy)
+    code, out, err = _run(capsys, "localize", "--map", broken, route["winter"])
+    assert code == 0, err
+    assert (
+        "\nbreaks: the map's route is broken at 1 place (between places 59-60), where its "
+        "positions jump: the filter does not carry the robot across (--no-breaks: one route)\n"
+    ) in out
+    assert seen and all(b == [60] for b in seen)
+    seen.clear()
+    code, out, err = _run(capsys, "localize", "--map", broken, route["winter"], "--no-breaks")
+    assert code == 0, err
+    assert "\nbreaks: off (--no-breaks): 1 break of the map ignored\n" in out
+    assert seen and all(b == [] for b in seen)
+
+
+def test_a_compact_map_without_breaks_says_nothing_of_them(built, route, capsys):
+    for extra in ((), ("--no-breaks",)):
+        code, out, err = _run(capsys, "localize", "--map", built, route["winter"], *extra)
+        assert code == 0, err
+        assert "breaks:" not in out
+
+
+def test_a_live_run_on_a_compact_map_takes_no_breaks_too(broken):
+    import types
+
+    from flyvpr.cli._live import _CompactSteps
+
+    args = types.SimpleNamespace(map=broken, index=None, no_breaks=False)
+    assert _CompactSteps(args).loc.filter_.breaks_.tolist() == [60]
+    args.no_breaks = True
+    assert _CompactSteps(args).loc.filter_.breaks_.size == 0

@@ -1249,11 +1249,19 @@ def test_a_compact_localizer_takes_the_map_s_spacing(tmp_path):
         path = tmp_path / "m.fvmap"
         place_spacing = 4.0
 
+        breaks = (120,)
+
     assert compact_localizer(_Map()).place_spacing == 4.0
     assert compact_localizer(_Map(), place_spacing=1.5).place_spacing == 1.5
     _Map.place_spacing = None
     assert compact_localizer(_Map()).place_spacing is None
     assert CompactMap.place_spacing.__doc__.startswith("Metres between consecutive places")
+    # the map's breaks go to every layer, unless given: () reads the map as one route
+    loc = compact_localizer(_Map())
+    assert loc.filter_.breaks_.tolist() == [120] and loc._layer["breaks"] == (120,)
+    assert compact_localizer(_Map(), breaks=()).filter_.breaks_.size == 0
+    assert compact_localizer(_Map(), breaks=[7, 9]).filter_.breaks_.tolist() == [7, 9]
+    assert compact_localizer(_Map(), breaks=None).filter_.breaks_.tolist() == [120]
 
 
 def test_refused_odometry_is_counted_across_re_seeds():

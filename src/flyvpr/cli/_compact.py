@@ -19,6 +19,7 @@ import numpy as np
 from ._common import UsageError, check_outputs, counted, flag, positions_words
 from ._records import open_records
 from ._stream import (
+    compact_breaks_note,
     coverage_note,
     left_out_words,
     odometry_note,
@@ -38,7 +39,6 @@ _NOT_COMPACT = (
     "calibration",
     "fit_calibration",
     "realtime",
-    "no_breaks",
 )
 
 
@@ -177,7 +177,9 @@ def cmd_localize_compact(args) -> int:
     check_outputs(args, inputs, ("out",))
     t_open = time.perf_counter()
     cmap = open_compact_map(args.map)
-    loc = compact_localizer(cmap, index=args.index or "exhaustive")
+    loc = compact_localizer(
+        cmap, index=args.index or "exhaustive", breaks=() if args.no_breaks else None
+    )
     open_s = time.perf_counter() - t_open
     source = open_source(args.source, topic=args.topic)
     bag = source.path if source.kind == "bag" else None
@@ -270,6 +272,9 @@ def cmd_localize_compact(args) -> int:
               else note)  # fmt: skip
     if odometry:
         refused_note(loc.n_odometry_refused_)
+    line = compact_breaks_note(loc, cmap)
+    if line is not None:
+        print(line)
     if args.ground_truth is not None:
         can = np.concatenate(matchable)
         if not can.any():

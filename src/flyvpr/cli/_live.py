@@ -306,8 +306,10 @@ class _CompactSteps:
         from ..large.recording import compact_localizer, open_compact_map
         from ._compact import compact_method_name
 
-        cmap = open_compact_map(args.map)
-        self.loc = compact_localizer(cmap, index=args.index or "exhaustive")
+        cmap = self.cmap = open_compact_map(args.map)
+        self.loc = compact_localizer(
+            cmap, index=args.index or "exhaustive", breaks=() if args.no_breaks else None
+        )
         self.map = None
         self.size = cmap.size
         self.name, self.n_places = compact_method_name(cmap), cmap.n_places
@@ -470,12 +472,14 @@ def cmd_localize_live(args) -> int:
             f"{counted(n_reloc, 'relocation')}; "
             f"timestamps: {clock.get(source.clock, 'none')}"
         )
-    if not compact:
-        from ._stream import breaks_note
+    from ._stream import breaks_note, compact_breaks_note
 
+    if isinstance(steps, _CompactSteps):
+        line = compact_breaks_note(steps.loc, steps.cmap)
+    else:
         line = breaks_note(steps.loc)
-        if line is not None:
-            print(line)
+    if line is not None:
+        print(line)
     print_view_summary(view)
     if n_frames == 0:  # no frame localized: the records file, a header only, is gone
         args.out = None

@@ -113,16 +113,28 @@ def breaks_note(loc) -> str | None:
     filt = loc.method.filter
     if filt is None or "breaks" not in filt.get_params():
         return None
-    given = tuple(int(b) for b in np.asarray(filt.get_params()["breaks"]).ravel())
-    found = loc.map_.breaks
+    given = np.asarray(filt.get_params()["breaks"]).ravel()
+    built = loc.map_.method.filter.get_params().get("breaks", ())
+    return breaks_words(given, loc.map_.breaks, np.size(built))
+
+
+def compact_breaks_note(loc, cmap) -> str | None:
+    """:func:`breaks_note` for a compact map's localizer (``flyvpr.large.LargeLocalizer``)."""
+    return breaks_words(loc.filter_.breaks_, cmap.breaks)
+
+
+def breaks_words(given, found, built: int = 0) -> str | None:
+    """The line about the breaks the filter was ``given`` (places), against those the map's
+    positions give (``found``) and the number the map's filter was built with (``built``);
+    None where there is nothing to say."""
+    given = tuple(int(b) for b in given)
     if not given:  # (--no-breaks: what the filter would have had otherwise)
-        built = loc.map_.method.filter.get_params().get("breaks", ())
-        dropped = np.size(built) or len(found)
+        dropped = built or len(found)
         if dropped:
             return f"breaks: off (--no-breaks): {counted(dropped, 'break')} of the map ignored"
         return None
     pairs = ", ".join(f"{b - 1}-{b}" for b in given[:5]) + (", ..." if len(given) > 5 else "")
-    where = "where its positions jump" if given == found else "as the map's filter was built"
+    where = "where its positions jump" if given == tuple(found) else "as the map's filter was built"
     return (
         f"breaks: the map's route is broken at {counted(len(given), 'place')} (between places "
         f"{pairs}), {where}: the filter does not carry the robot across (--no-breaks: one "

@@ -129,7 +129,10 @@ class LargeLocalizer:
         given: a map's short binary codes (256 bits in a compact map) repeat over frames that
         differ by sensor noise only, so a repeated row is no sign of a repeated frame (held,
         they cost the compact map of the Nordland traverses 0.988 -> 0.970 AUC, tolerance 2,
-        measured 2026-11-26).
+        measured 2026-11-26).  ``breaks`` are places of the whole map (the layer is given
+        those inside its window, :class:`~flyvpr.temporal.cann.WindowedCANN`);
+        :func:`~flyvpr.large.recording.compact_localizer` takes them from the map's
+        positions.
 
     Attributes
     ----------

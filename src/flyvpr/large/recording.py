@@ -136,6 +136,17 @@ class CompactMap:
         return int(h), int(w)
 
     @property
+    def breaks(self) -> tuple[int, ...]:
+        """Places where the map's route is broken, read from its positions as
+        :attr:`flyvpr.localization.Map.breaks` reads a map's (each place more than 5 times the
+        usual step around it from the place before; empty without positions):
+        :func:`compact_localizer` gives them to the windowed CANN, which does not carry the
+        robot across them."""
+        from ..temporal.cann._route import position_breaks
+
+        return position_breaks(self.positions)
+
+    @property
     def place_spacing(self) -> float | None:
         """Metres between consecutive places: the median over neighbouring places that both
         have a position (None without positions, or when it is 0 or undefined); it turns
@@ -468,7 +479,8 @@ def compact_localizer(cmap: CompactMap, index: str = "exhaustive", **params):
     **params
         ``LargeLocalizer``'s (``window``, ``k``, ...) and the CANN's parameters;
         ``place_spacing`` defaults to the map's (:attr:`CompactMap.place_spacing`: None
-        without positions).
+        without positions), and ``breaks`` to the map's (:attr:`CompactMap.breaks`; ``()``
+        reads the map as one route).
 
     Returns
     -------
@@ -519,6 +531,8 @@ def compact_localizer(cmap: CompactMap, index: str = "exhaustive", **params):
         raise ValueError(f"index must be 'exhaustive' or 'mih'; got {index!r}")
     assert found is not None
     params.setdefault("place_spacing", cmap.place_spacing)
+    if params.get("breaks") is None:
+        params["breaks"] = cmap.breaks
     loc = LargeLocalizer(codes, found, encoder=cmap.encoder, **params)
     loc.index_source_ = source
     return loc

@@ -174,12 +174,9 @@ class Map:
         a few frames each time it passes there (``flyvpr localize --no-breaks``, or
         ``Localizer.from_map(path, breaks=())``, reads the map as one route).
         """
-        from ..temporal.cann._route import far_steps
+        from ..temporal.cann._route import position_breaks
 
-        if self.positions is None or self.n_places < 2:
-            return ()
-        steps = np.hypot(*np.diff(self.positions, axis=0).T)
-        return tuple(int(i) + 1 for i in np.flatnonzero(far_steps(steps)))
+        return position_breaks(self.positions)
 
     # -- building ---------------------------------------------------------------------------
     @classmethod

@@ -37,6 +37,17 @@ def far_steps(size: np.ndarray, factor: float = BREAK_FACTOR) -> np.ndarray:
         return np.isfinite(size) & (usual > 0) & (size > factor * usual)
 
 
+def position_breaks(positions) -> tuple[int, ...]:
+    """The breaks of a map's route from its places' positions (``(n_places, 2)``, NaN where a
+    place has none): each place more than :data:`BREAK_FACTOR` times the usual step around it
+    from the place before it (:func:`far_steps`); a step with an unknown position at either
+    end is not judged.  Empty without positions (None) or with fewer than two places."""
+    if positions is None or len(positions) < 2:
+        return ()
+    steps = np.hypot(*np.diff(np.asarray(positions, dtype=np.float64), axis=0).T)
+    return tuple(int(i) + 1 for i in np.flatnonzero(far_steps(steps)))
+
+
 def route_breaks(coordinates, factor: float = BREAK_FACTOR) -> tuple[int, ...]:
     """The breaks of a route (the :class:`CANN`'s ``breaks``) from where its places were taken.
 

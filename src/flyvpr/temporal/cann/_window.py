@@ -15,6 +15,7 @@ import numpy as np
 
 from ..._validation import check_positive_int, check_real, check_scores
 from ._filter import CANN
+from ._params import _check_breaks
 
 __all__ = ["WindowedCANN"]
 
@@ -33,7 +34,10 @@ class WindowedCANN:
         The window moves when the filter is ``localized`` and its packet more than
         ``recentre * window`` places from the centre (so it moves in steps, not every frame).
     **params
-        The :class:`CANN`'s parameters (``tolerance``, ``velocities``, ...).
+        The :class:`CANN`'s parameters (``tolerance``, ``velocities``, ...).  ``breaks`` are
+        places of the whole map (the first place of each stretch after a break, as
+        :func:`~flyvpr.temporal.cann.route_breaks` gives them); the layer is given those
+        inside its window, as places of the window, each time the window moves.
 
     Attributes
     ----------
@@ -42,7 +46,10 @@ class WindowedCANN:
     place_, confidence_, state_ : int, float, str
         The last answer (a place of the whole map), its confidence and the filter's state.
     cann_ : CANN
-        The layer over the window (its ``support_``, ``velocity_``, ``source_``).
+        The layer over the window (its ``support_``, ``velocity_``, ``source_``; its
+        ``breaks`` are the window's).
+    breaks_ : ndarray of int64
+        The breaks of the whole map.
     n_moves_ : int
         Times the window moved since :meth:`reset` (re-seeds included).
 
@@ -68,11 +75,13 @@ class WindowedCANN:
         self.recentre = check_real(recentre, "recentre", low=0.0, inclusive=True)
         if self.recentre >= 0.5:
             raise ValueError(f"recentre must be < 0.5 (a share of the window); got {recentre}")
-        if np.size(params.get("breaks", ())) > 0:
+        breaks = _check_breaks(params.pop("breaks", ()))
+        if breaks.size and breaks[-1] >= self.n_places:
             raise ValueError(
-                "breaks: a windowed layer takes none (its places move with the window); got "
-                f"{list(params['breaks'])}"
+                f"breaks must be places 1 .. {self.n_places - 1} of this map of {self.n_places} "
+                f"places (the first place of each stretch after a break); got {breaks.tolist()}"
             )
+        self.breaks_ = breaks
         self.cann_ = CANN(**params)
         self.reset()
 
@@ -81,8 +90,24 @@ class WindowedCANN:
         """Places the layer covers: ``min(window, n_places)``."""
         return min(self.window, self.n_places)
 
+    def _window_breaks(self, lo: int) -> np.ndarray:
+        """The map's breaks inside the window from ``lo``, as places of the window (a break at
+        the window's first place parts nothing the layer holds)."""
+        b = self.breaks_
+        return b[(b > lo) & (b < lo + self.width)] - lo
+
+    def _give_breaks(self, lo: int) -> None:
+        """The layer's breaks for the window from ``lo``: set as its parameter and, where it
+        has checked its parameters already, in the set it runs with."""
+        c = self.cann_
+        local = self._window_breaks(lo)
+        c.breaks = tuple(int(b) for b in local)
+        if getattr(c, "_params", None) is not None:
+            c._params["breaks"] = local
+
     def reset(self) -> None:
         """Forget all frames; the window starts at the beginning of the map."""
+        self._give_breaks(0)
         self.cann_.reset()
         self._lo = 0
         self.place_ = -1
@@ -165,6 +190,7 @@ class WindowedCANN:
             c._tied = _shift_tied(c._tied, d, self.width)
             if c._last_front is not None:  # (the front end's last best place, for the snap)
                 c._last_front -= d
+        self._give_breaks(lo)
         self._lo = lo
         self.n_moves_ += 1
 
@@ -201,8 +227,9 @@ class WindowedCANN:
                 )
             best = int(cand[np.argmax(w)])
         c = self.cann_
-        c.reset()
         self._lo = min(max(best - self.width // 2, 0), self.n_places - self.width)
+        self._give_breaks(self._lo)
+        c.reset()
         self.n_moves_ += 1
         c._allocate(self.width)
         inside = (cand >= self._lo) & (cand < self._lo + self.width)
