@@ -724,6 +724,25 @@ def test_position_breaks_read_a_maps_positions():
     assert position_breaks(jump) == route_breaks(jump)
 
 
+def test_far_steps_judges_a_long_route_in_chunks_with_the_same_answer():
+    from flyvpr.temporal.cann._route import far_steps
+
+    rng = np.random.default_rng(0)
+    steps = rng.uniform(0.5, 3.0, 3000)
+    steps[rng.random(3000) < 0.1] = np.nan
+    steps[rng.random(3000) < 0.02] *= 60.0
+    whole = far_steps(steps, chunk=10**6)
+    assert 20 < whole.sum() < 120
+    for chunk in (1, 2, 5, 6, 11, 997, 2999, 3000):
+        np.testing.assert_array_equal(far_steps(steps, chunk=chunk), whole, err_msg=str(chunk))
+    # a far step at a chunk's edge is judged with its neighbours in the next chunk
+    line = np.full(40, 2.0)
+    line[19] = 50.0
+    for chunk in (19, 20, 18):
+        assert far_steps(line, chunk=chunk).tolist() == [i == 19 for i in range(40)]
+    assert far_steps(np.zeros(0)).shape == (0,)
+
+
 @pytest.mark.parametrize("case", ["defaults", "raw input", "no fallback", "jittery"])
 def test_matches_reference_through_a_stand_of_the_map(cann_kernel_mode, case):
     frames = assert_matches_reference(_stand_scenario(), **REFERENCE_CASES[case])

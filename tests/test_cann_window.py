@@ -360,6 +360,21 @@ def test_the_layer_gets_the_breaks_inside_its_window_as_window_places():
     np.testing.assert_array_equal(f.cann_._params["breaks"], [50])
 
 
+def test_breaks_at_the_edges_of_the_window():
+    f = WindowedCANN(1000, window=100, breaks=(400, 499, 500))
+    S, _ = _route(n_query=3, n_places=1000, start=420)
+    f.reseed([450])  # the window 400-499: its first place is a break (nothing to cut there)
+    assert f.window_ == (400, 500) and f.cann_.breaks == (99,)
+    f.step(S[0, 400:500])
+    np.testing.assert_array_equal(f.cann_._params["breaks"], [99])
+    f._move(401)  # 499 and 500 are places 98 and 99 of the window
+    assert f.cann_.breaks == (98, 99)
+    f.step(S[1, 401:501])
+    f._move(300)  # the window 300-399 ends just before the break at 400
+    assert f.cann_.breaks == ()
+    f.step(S[2, 300:400])
+
+
 def test_the_window_does_not_carry_the_robot_across_a_break():
     # the map: two recordings joined at place 1500; the robot drives the first to its end
     # (places 1300-1499) and on, off the map (noise rows); the window follows it there

@@ -1284,3 +1284,27 @@ def test_refused_odometry_is_counted_across_re_seeds():
     assert loc.n_odometry_refused_ == 2
     loc.reset()
     assert loc.n_odometry_refused_ == 0
+
+
+def test_every_layer_runs_with_the_breaks_of_its_own_window():
+    # a map of two recordings joined at 3000 (and one more break at 7000); the robot drives
+    # up to the join, is kidnapped to 6800 (re-seeds, a held layer) and drives past 7000
+    codes = _map(n=10000)
+    breaks = (3000, 7000)
+    loc = LargeLocalizer(codes, ExhaustiveIndex().build(codes), window=256, breaks=breaks)
+    rng = np.random.default_rng(2)  # (a draw whose kidnap holds a displaced layer)
+    places = [*range(2850, 3000), *range(6800, 7100)]
+    checked = 0
+    for p in places:
+        loc.update_code(_query(codes, p, rng, flip=0.38))
+        for layer in (loc.filter_, loc.held_):
+            if layer is None:
+                continue
+            assert layer.breaks_.tolist() == list(breaks)
+            lo, hi = layer.window_
+            local = [b - lo for b in breaks if lo < b < hi]
+            assert list(layer.cann_.breaks) == local
+            assert layer.cann_._params["breaks"].tolist() == local
+            checked += 1
+    assert loc.n_reseeds_ >= 1 and checked > len(places)
+    assert abs(loc.filter_.place_ - 7099) <= 2 and loc.filter_.state_ == "localized"

@@ -12,18 +12,37 @@ BREAK_FACTOR = 5.0
 #: the usual step around a step: the median of the steps up to this many places on each side
 BREAK_NEIGHBOURS = 5
 
+#: steps judged at a time: the neighbourhoods of a chunk take 11 floats per step (and a sorted
+#: copy), about 180 MB for 2^20 steps, whatever the length of the map
+_FAR_CHUNK = 1 << 20
 
-def far_steps(size: np.ndarray, factor: float = BREAK_FACTOR) -> np.ndarray:
+
+def far_steps(
+    size: np.ndarray, factor: float = BREAK_FACTOR, chunk: int = _FAR_CHUNK
+) -> np.ndarray:
     """Whether each step (``size``, >= 0; NaN where unknown) is more than ``factor`` times the
     median of the known steps up to :data:`BREAK_NEIGHBOURS` places on either side of it (not
     itself).  Local, so that a stretch driven faster (a map kept by time) is no break, while
     one step that leaves a stretch of the route out is.  An unknown step, or one whose
-    neighbours' median is 0 or unknown, is not far."""
+    neighbours' median is 0 or unknown, is not far.  Judged ``chunk`` steps at a time (the
+    same answer for any ``chunk``; memory bounded on a map of millions of places)."""
+    size = np.asarray(size, dtype=np.float64)
     n, w = size.shape[0], BREAK_NEIGHBOURS
-    if n == 0:
-        return np.zeros(0, bool)
-    padded = np.full(n + 2 * w, np.nan)
-    padded[w : w + n] = size
+    out = np.zeros(n, bool)
+    for lo in range(0, n, chunk):
+        hi = min(lo + chunk, n)
+        # the chunk's steps with up to w neighbours on each side (NaN beyond the route's ends)
+        part = np.full(hi - lo + 2 * w, np.nan)
+        a, b = max(lo - w, 0), min(hi + w, n)
+        part[a - (lo - w) : b - (lo - w)] = size[a:b]
+        out[lo:hi] = _far_in(part, size[lo:hi], factor)
+    return out
+
+
+def _far_in(padded: np.ndarray, size: np.ndarray, factor: float) -> np.ndarray:
+    """:func:`far_steps` of ``size``, given ``padded``: the same steps with the
+    :data:`BREAK_NEIGHBOURS` steps before and after them (NaN where there are none)."""
+    n, w = size.shape[0], BREAK_NEIGHBOURS
     around = np.lib.stride_tricks.sliding_window_view(padded, 2 * w + 1).copy()
     around[:, w] = np.nan  # (not the step itself)
     known = np.isfinite(around)
