@@ -31,6 +31,19 @@ from flyvpr.temporal.cann._route import BREAK_FACTOR, BREAK_NEIGHBOURS, far_step
         (np.cumsum([0] + [1] * 8 + [100] * 8), 5.0, ()),
         ([7], 5.0, ()),
         ([], 5.0, ()),
+        ([0, 50, 51, 52, 53, 54], 5.0, (1,)),  # (the first step is judged too)
+        ([5.0, 0.0], 5.0, (1,)),  # (two places: a step back, the next recording)
+        # (any factor above 1: 1.15 is not more than 1.2 times the usual 1, 1.3 is)
+        ([0, 1, 2, 3, 4.15], 1.2, ()),
+        ([0, 1, 2, 3, 4.3], 1.2, (4,)),
+        # the median of an odd number of known neighbours is the middle one: the first step,
+        # 8, has neighbours 1, 1, 2, 2, 2 (median 2, not 1.5)
+        (np.cumsum([0, 8, 1, 1, 2, 2, 2]), 5.0, ()),
+        (np.cumsum([0, 11, 1, 1, 2, 2, 2]), 5.0, (1,)),
+        # of an even number, the mean of the middle two: neighbours 1, 1, 1, 1, 2 | 2, 2, 2, 2, 2
+        # (median 2, not 1.5)
+        (np.cumsum([0, 1, 1, 1, 1, 2, 8, 2, 2, 2, 2, 2]), 5.0, ()),
+        (np.cumsum([0, 1, 1, 1, 1, 2, 11, 2, 2, 2, 2, 2]), 5.0, (6,)),
         ([[0, 0], [3, 4], [6, 8], [6, 100], [9, 104]], 5.0, (3,)),
         ([[0, 0], [0, 0], [0, 0], [1, 0]], 5.0, ()),  # (a median step of 0: no jumps)
         ([[0, 0, 0], [1, 0, 0], [2, 0, 0], [2, 9, 0]], 5.0, (3,)),
