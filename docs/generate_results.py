@@ -447,6 +447,14 @@ def outputs() -> dict[Path, str]:
             ABLATION_FILE,
         )
     out.update(large_outputs())
+    detour = ROOT / COMPACT_DETOUR_JSON
+    if detour.is_file():
+        table = _benchmark_module("compact_detour").render_table(json.loads(detour.read_text()))
+        page = out.get(LARGE_FILE)
+        begin, end = _markers("compact-detour", COMPACT_DETOUR_JSON)
+        out[LARGE_FILE] = splice_text(
+            page if page is not None else LARGE_FILE.read_text(), begin, end, table, LARGE_FILE
+        )
     return out
 
 
@@ -458,6 +466,8 @@ LARGE_ACCURACY_JSONS = (
     "benchmarks/large-accuracy.json",
     "benchmarks/large-accuracy-exhaustive.json",
 )
+#: the compact map's detour table on the same page (benchmarks/compact_detour.py)
+COMPACT_DETOUR_JSON = "benchmarks/compact-detour.json"
 
 
 def _markers(name: str, source: str) -> tuple[str, str]:
