@@ -25,9 +25,13 @@ def test_the_map_keeps_all_but_the_stretch_and_its_positions_jump_there():
     assert rows[1:] == [f"{j},{10.0 * i},0" for j, i in enumerate(keep)]
     xy = np.array([[float(r.split(",")[1]), 0.0] for r in rows[1:]])
     assert position_breaks(xy) == (10,)  # the image after the stretch starts a new one
-    # the benchmark's own detours are the accuracy benchmark's (0.4-0.7 of each window)
+    # the benchmark's own detours are the accuracy benchmark's (its share of each window)
+    from benchmarks.accuracy_setup import VIEWS
+
+    gap = next(v for v in VIEWS if v.key == "r-detour").gap
+    assert gap == next(v for v in VIEWS if v.key == "r-detour-2000").gap
     for _first, n, lo, hi in compact_detour.DETOURS.values():
-        assert (lo, hi) == (int(0.4 * n), int(0.7 * n))
+        assert (lo, hi) == (int(gap[0] * n), int(gap[1] * n))
 
 
 def test_score_counts_off_map_answers_the_rejoin_and_the_auc():
@@ -42,6 +46,11 @@ def test_score_counts_off_map_answers_the_rejoin_and_the_auc():
     # frame 6 is localized but 6 places off (tolerance 2), 7 right but lost: 8 is the first
     assert row["rejoin_frames"] == 2
     assert 0.0 < row["auc"] < 1.0
+    # within the tolerance (2 frames) is right, beyond it is not
+    edge = compact_detour.score(places + np.r_[0, 0, 0, 0, 0, 0, 4, 2, 0, 0], states, conf,
+                                truth, on_map, 6)  # fmt: skip
+    assert edge["rejoin_frames"] == 0  # frame 6 answers 4: 2 off, localized
+    assert compact_detour.score(places + 3, states, conf, truth, on_map, 6)["rejoin_frames"] is None
     never = compact_detour.score(places, np.full(10, "lost"), conf, truth, on_map, 6)
     assert never["rejoin_frames"] is None and never["offmap_localized_share"] == 0.0
     # an off-map answer is never right, even where it names the true frame: confident, it
@@ -80,6 +89,11 @@ def test_table_gives_each_window_and_reading_per_seed():
         lines[3] == "| dev, without 400-699 | one route | 2.0% / 3.0% | 40 / 41 | 0.900 / 0.800 |"
     )
     assert len(lines) == 4  # the window without rows has none
+    # the stretch in frame numbers of the dataset: the window's first frame added
+    for r in rows:
+        r["window"] = "other"
+    lines = compact_detour.render_table(data).splitlines()
+    assert lines[2].startswith("| other, without 2160-2279 | breaks |")
 
 
 def test_the_committed_figures_cover_every_window_seed_and_reading():
@@ -96,3 +110,36 @@ def test_the_committed_figures_cover_every_window_seed_and_reading():
     for r in data["rows"]:  # the map's positions jump once, at the stretch
         _first, _n, lo, _hi = compact_detour.DETOURS[r["window"]]
         assert r["breaks"] == [lo]
+
+
+def test_run_maps_the_window_and_scores_both_readings(nordland_64x32, tmp_path, monkeypatch):
+    # a window of 60 summer frames without 20-34 (linked into a folder of their own), and the
+    # same summer frames as the query: every frame back on the map has one right answer
+    for season in ("summer", "winter"):
+        folder = tmp_path / "nordland_64x32" / season
+        folder.mkdir(parents=True)
+        for path in sorted((nordland_64x32 / "summer").glob("*.png"))[800:860]:
+            (folder / path.name).symlink_to(path)
+    monkeypatch.setattr(compact_detour, "DETOURS", {"w": (0, 60, 20, 35)})
+    monkeypatch.setattr(compact_detour, "SEEDS", (0,))
+    seen = []
+    real = compact_detour.score
+
+    def spy(places, states, confidences, truth, on_map, back):
+        seen.append((np.asarray(places), np.asarray(truth), np.asarray(on_map), back))
+        return real(places, states, confidences, truth, on_map, back)
+
+    monkeypatch.setattr(compact_detour, "score", spy)
+    data = compact_detour.run(tmp_path, progress=False)
+    assert [(r["window"], r["seed"], r["reading"]) for r in data["rows"]] == [
+        ("w", 0, "breaks"), ("w", 0, "one route")
+    ]  # fmt: skip
+    assert all(r["breaks"] == [20] for r in data["rows"])
+    keep = compact_detour.kept(60, 20, 35)
+    for places, truth, on_map, back in seen:
+        assert np.isin(places, keep).all()  # frame numbers of the window, the map's places
+        assert truth.tolist() == list(range(60)) and back == 35
+        np.testing.assert_array_equal(on_map, np.isin(truth, keep))
+        right = np.abs(places - truth) <= 2
+        assert right[on_map][-20:].mean() > 0.9  # its own frames, back on the map: found
+    assert not list(tmp_path.glob("**/*.fvmap"))  # the maps were built in a folder removed
