@@ -20,11 +20,10 @@ from ._common import UsageError, check_outputs, counted, flag, positions_words
 from ._records import open_records
 from ._stream import (
     compact_breaks_note,
-    coverage_note,
     left_out_words,
     odometry_note,
     placed_frames,
-    refused_note,
+    print_run_notes,
     run_metadata,
 )
 from .map import recording_inputs
@@ -267,14 +266,13 @@ def cmd_localize_compact(args) -> int:
         f"{100 * n_localized / n_frames:.1f}% of frames, {counted(loc.n_reseeds_, 're-seed')}, "
         f"{counted(loc.n_searches_, 'code')} searched"
     )
-    if note is not None:
-        print(coverage_note(note, positions, placed, n_frames, source.describe()) if odometry
-              else note)  # fmt: skip
-    if odometry:
-        refused_note(loc.n_odometry_refused_)
-    line = compact_breaks_note(loc, cmap)
-    if line is not None:
-        print(line)
+    print_run_notes(
+        note,
+        odometry,
+        (positions, placed, n_frames, source.describe()),
+        loc.n_odometry_refused_,
+        compact_breaks_note(loc, cmap),
+    )
     if args.ground_truth is not None:
         can = np.concatenate(matchable)
         if not can.any():

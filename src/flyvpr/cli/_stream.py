@@ -57,6 +57,19 @@ def refused_note(refused: int) -> None:
         )
 
 
+def print_run_notes(note, odometry: bool, coverage: tuple, refused: int, breaks) -> None:
+    """The lines of a recording's summary after its first: the odometry's (``note``, and with
+    path integration how many frames had a position: ``coverage``, the rest of
+    :func:`coverage_note`'s arguments), the frames whose odometry was refused, and the
+    ``breaks`` line (None: none)."""
+    if note is not None:
+        print(coverage_note(note, *coverage) if odometry else note)
+    if odometry:
+        refused_note(refused)
+    if breaks is not None:
+        print(breaks)
+
+
 def coverage_note(note: str, positions, placed: int, n_frames: int, source: str) -> str:
     """The summary's odometry line once the run is over: how many frames had a position,
     and none at all said as such (positions of another recording, or on another clock)."""
@@ -286,14 +299,13 @@ def cmd_localize_recording(args) -> int:
         f"median confidence {float(np.median(conf)):.4g}, localized "
         f"{100 * n_localized / n_frames:.1f}% of frames, {counted(n_reloc, 'relocation')}"
     )
-    if note is not None:
-        print(coverage_note(note, positions, placed, n_frames, source.describe()) if odometry
-              else note)  # fmt: skip
-    if odometry:
-        refused_note(getattr(loc.method.filter, "n_odometry_refused_", 0))
-    line = breaks_note(loc)
-    if line is not None:
-        print(line)
+    print_run_notes(
+        note,
+        odometry,
+        (positions, placed, n_frames, source.describe()),
+        getattr(loc.method.filter, "n_odometry_refused_", 0),
+        breaks_note(loc),
+    )
     if args.realtime and not timed:
         print(
             f"--realtime: {source.describe()} has no timestamps (an image folder has none; "

@@ -44,7 +44,7 @@ from .._chunks import ChunkRunner
 from .._validation import check_memory
 from .._version import __version__
 from ..images import DEFAULT_SIZE
-from ..localization.maps import _warn_unrotated
+from ..localization.maps import _warn_unrotated, spacing_of
 from ..sources import Positions, RecordingError, Source, open_source, parse_every, read_positions
 from ..sources.video import _DECODE_VERSION as _VIDEO_DECODE
 from .codes import CompactEncoder
@@ -152,12 +152,7 @@ class CompactMap:
         """Metres between consecutive places: the median over neighbouring places that both
         have a position (None without positions, or when it is 0 or undefined); it turns
         odometry in metres into places."""
-        if self.positions is None:
-            return None
-        steps = np.hypot(*np.diff(self.positions, axis=0).T)
-        steps = steps[np.isfinite(steps)]
-        spacing = float(np.median(steps)) if steps.size else 0.0
-        return spacing if spacing > 0 else None
+        return spacing_of(self.positions)
 
 
 def _batch() -> int:

@@ -65,6 +65,21 @@ _MAP_FIELDS: dict[str, type | tuple[type, ...]] = {
 _OPTIONAL_MAP_FIELDS = ("video_decode",)
 
 
+def spacing_of(positions) -> float | None:
+    """Metres between consecutive places of a map with ``positions`` (``(n_places, 2)``, NaN
+    where unknown, or None): the median step between neighbouring places that both have a
+    position; None without positions, or when that median is 0 or undefined.  (Maps of
+    :class:`Map` and compact maps alike.)"""
+    if positions is None:
+        return None
+    steps = np.hypot(*np.diff(np.asarray(positions, dtype=np.float64), axis=0).T)
+    steps = steps[np.isfinite(steps)]
+    if steps.size == 0:
+        return None
+    spacing = float(np.median(steps))
+    return spacing if spacing > 0 else None
+
+
 class MapFileError(ValueError):
     """A file that is not a valid flyvpr map (the message names the file and the field)."""
 
@@ -150,14 +165,7 @@ class Map:
         It turns odometry in metres into places for the localizer
         (:meth:`flyvpr.localization.Localizer.from_map`).
         """
-        if self.positions is None:
-            return None
-        steps = np.hypot(*np.diff(self.positions, axis=0).T)
-        steps = steps[np.isfinite(steps)]
-        if steps.size == 0:
-            return None
-        spacing = float(np.median(steps))
-        return spacing if spacing > 0 else None
+        return spacing_of(self.positions)
 
     @property
     def breaks(self) -> tuple[int, ...]:
