@@ -193,7 +193,11 @@ def reference_filter(S, velocity=None, **params):
                 speed = np.abs(vel) * (1.0 if velocity is None else abs(velocity[t]))
                 share = q["jitter"] * np.minimum(speed, 1.0)[:, None]
                 padded = np.pad(layer, ((0, 0), (1, 1)))
-                layer = (1 - share) * layer + share / 2 * (padded[:, :-2] + padded[:, 2:])
+                from_back, from_front = padded[:, :-2].copy(), padded[:, 2:].copy()
+                for cut in breaks:  # (a break is an end: nothing jitters across it)
+                    from_back[:, cut] = 0.0
+                    from_front[:, cut - 1] = 0.0
+                layer = (1 - share) * layer + share / 2 * (from_back + from_front)
             for j, k in enumerate(shifts.astype(int)):
                 # a unit whose move crosses a break of the map (the boundary between places
                 # b - 1 and b) leaves the mapped stretch: its activity is shared out over the

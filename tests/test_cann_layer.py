@@ -647,9 +647,32 @@ def test_shifts_by_hand(velocity, expected):
 def test_jitter_by_hand(kernels, row, share, expected):
     p = np.array([row], np.float32)
     out = np.full_like(p, np.nan)
-    kernels["jitter"](p, out, np.array([share]))
+    kernels["jitter"](p, out, np.array([share]), _NO_BREAKS)
     np.testing.assert_allclose(out[0], expected, rtol=1e-6)
     np.testing.assert_array_equal(p, [row])  # only read
+
+
+_NO_BREAKS = np.zeros(0, np.int64)
+
+
+@pytest.mark.parametrize(
+    ("row", "breaks", "expected"),
+    [
+        # a break before place 3: the halves that would cross it are lost, as at an end
+        ([0, 0, 4, 0, 0, 0], [3], [0, 1, 2, 0, 0, 0]),
+        ([0, 0, 0, 4, 0, 0], [3], [0, 0, 0, 2, 1, 0]),
+        ([0, 0, 4, 4, 0, 0], [3], [0, 1, 2, 2, 1, 0]),
+        # two breaks side by side: place 3 a stretch of its own, nothing comes in or out
+        ([0, 0, 4, 4, 4, 0], [3, 4], [0, 1, 2, 2, 2, 1]),
+        ([0, 4, 0, 0, 0, 4], [1, 5], [0, 2, 1, 0, 0, 2]),  # next to the ends
+        ([4, 4, 4, 4, 4, 4], [2], [3, 3, 3, 4, 4, 3]),
+    ],
+)
+def test_jitter_stops_at_a_break(kernels, row, breaks, expected):
+    p = np.array([row], np.float32)
+    out = np.full_like(p, np.nan)
+    kernels["jitter"](p, out, np.array([0.5]), np.array(breaks, np.int64))
+    np.testing.assert_allclose(out[0], expected, rtol=1e-6)
 
 
 def test_jitter_each_row_by_its_share(kernels):
@@ -657,7 +680,7 @@ def test_jitter_each_row_by_its_share(kernels):
     p = rng.random((3, 9)).astype(np.float32)
     shares = np.array([0.0, 0.1, 2.0 / 3.0])
     out = np.empty_like(p)
-    kernels["jitter"](p, out, shares)
+    kernels["jitter"](p, out, shares, _NO_BREAKS)
     padded = np.pad(p.astype(np.float64), ((0, 0), (1, 1)))
     s = shares[:, None]
     expected = (1 - s) * p + s / 2 * (padded[:, :-2] + padded[:, 2:])
@@ -666,6 +689,18 @@ def test_jitter_each_row_by_its_share(kernels):
     # inside the route the mass is kept; at the ends, half a share of the end places leaves
     lost = shares / 2 * (p[:, 0] + p[:, -1])
     np.testing.assert_allclose(out.sum(axis=1), p.sum(axis=1) - lost, rtol=1e-6)
+    # with breaks, each stretch as a route of its own: the same, stretch by stretch
+    breaks = np.array([3, 4, 8], np.int64)
+    kernels["jitter"](p, out, shares, breaks)
+    for lo, hi in ((0, 3), (3, 4), (4, 8), (8, 9)):
+        part = np.pad(p[:, lo:hi].astype(np.float64), ((0, 0), (1, 1)))
+        own = (1 - s) * p[:, lo:hi] + s / 2 * (part[:, :-2] + part[:, 2:])
+        np.testing.assert_allclose(out[:, lo:hi], own, rtol=1e-6)
+    # the same bits as without breaks away from them
+    plain = np.empty_like(p)
+    kernels["jitter"](p, plain, shares, _NO_BREAKS)
+    np.testing.assert_array_equal(out[:, :2], plain[:, :2])
+    np.testing.assert_array_equal(out[:, 5:7], plain[:, 5:7])
 
 
 # -- leave_at_breaks -------------------------------------------------------------------------

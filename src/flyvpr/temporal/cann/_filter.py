@@ -325,9 +325,11 @@ class CANN(OdometryFilter):
         relocation, and not carried on to the far side (a robot that drives past the end of
         a stretch is off the map, or anywhere).
         :func:`flyvpr.temporal.cann.route_breaks` finds them from the places' frame numbers,
-        timestamps or positions; :meth:`flyvpr.Localizer.from_map` gives a map's.  The
-        jitter's move of one place is not cut.  Empty: the places are one route.  (Each must
-        lie in ``1 .. n - 1`` for a route of ``n`` places: checked on the first frame.)
+        timestamps or positions; :meth:`flyvpr.Localizer.from_map` gives a map's.  A break
+        is an end of the route for the jitter's move of one place (nothing jitters across
+        it; what would is lost, as at the route's ends).  Empty: the places are one route.
+        (Each must lie in ``1 .. n - 1`` for a route of ``n`` places: checked on the first
+        frame.)
 
     Attributes
     ----------
@@ -1015,7 +1017,7 @@ class CANN(OdometryFilter):
                     shares = self._jitter
                 else:  # each row moves the odometry times its scale
                     shares = _jitter_shares(p["jitter"], velocity * p["velocities"])
-                kernels["jitter"](self._p, self._spare, shares)
+                kernels["jitter"](self._p, self._spare, shares, p["breaks"])
                 self._p, self._spare = self._spare, self._p
         else:  # the first frame: the prior as it is, weighed by the evidence
             floor_rate = change = jump = 0.0

@@ -186,14 +186,17 @@ def advance(p, out, shifts, stay, neighbour, jump, redraw, prior, floor_rate, we
     return z
 
 
-def jitter(p, out, shares):
+def jitter(p, out, shares, breaks):
     """Row by row, ``out[j, i] = (1 - s) p[j, i] + s / 2 (p[j, i - 1] + p[j, i + 1])`` with
     ``s = shares[j]`` (nothing beyond the route's ends: what would come from there is 0, and
     what leaves is lost, as in the move).  The layer before the move: a share ``s`` of row
     ``j`` ends the frame one place ahead of or behind where its velocity takes it, half each
-    way (moving then blurring is blurring then moving, away from the ends).  ``p`` is only
+    way (moving then blurring is blurring then moving, away from the ends).  A break of the
+    map (``breaks``: the first places of the stretches after one, increasing, in ``1 .. n -
+    1``) is an end too: nothing moves between places ``b - 1`` and ``b``.  ``p`` is only
     read."""
     n_v, n = p.shape
+    n_b = breaks.shape[0]
     for j in range(n_v):
         src = p[j]
         dst = out[j]
@@ -210,6 +213,19 @@ def jitter(p, out, shares):
         right = src[2:]
         for i in range(n - 2):
             mid[i] = keep * own[i] + side * (left[i] + right[i])
+        zero = np.float32(0.0)
+        for m in range(n_b):
+            # the two places beside the break, each without its neighbour across it (nor
+            # across a break next to it)
+            b = breaks[m]
+            ahead = zero
+            if b + 1 < n and not (m + 1 < n_b and breaks[m + 1] == b + 1):
+                ahead = src[b + 1]
+            dst[b] = keep * src[b] + side * (zero + ahead)
+            behind = zero
+            if b >= 2 and not (m > 0 and breaks[m - 1] == b - 1):
+                behind = src[b - 2]
+            dst[b - 1] = keep * src[b - 1] + side * (behind + zero)
 
 
 def likeness(row, last):
