@@ -9,6 +9,7 @@ floor: the prior is the activity as given) against ``ref_observe``.  Written to 
 would move.
 """
 
+import itertools
 import math
 
 import numpy as np
@@ -673,6 +674,29 @@ def test_jitter_stops_at_a_break(kernels, row, breaks, expected):
     out = np.full_like(p, np.nan)
     kernels["jitter"](p, out, np.array([0.5]), np.array(breaks, np.int64))
     np.testing.assert_allclose(out[0], expected, rtol=1e-6)
+
+
+def test_jitter_with_every_set_of_breaks_on_short_routes(kernels):
+    # every set of breaks on routes of 1-7 places (consecutive ones, at 1 and at n - 1): each
+    # stretch jitters as a route of its own; the places away from the breaks as without them
+    rng = np.random.default_rng(8)
+    shares = np.array([0.0, 0.3, 1.0])
+    for n in range(1, 8):
+        for k in range(n):
+            for cut in itertools.combinations(range(1, n), k):
+                p = rng.random((3, n)).astype(np.float32)
+                out = np.full_like(p, np.nan)
+                kernels["jitter"](p, out, shares, np.array(cut, np.int64))
+                edges = [0, *cut, n]
+                for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+                    part = np.pad(p[:, lo:hi].astype(np.float64), ((0, 0), (1, 1)))
+                    s = shares[:, None]
+                    own = (1 - s) * p[:, lo:hi] + s / 2 * (part[:, :-2] + part[:, 2:])
+                    np.testing.assert_allclose(out[:, lo:hi], own, rtol=1e-6, err_msg=str(cut))
+                plain = np.empty_like(p)
+                kernels["jitter"](p, plain, shares, _NO_BREAKS)
+                far = [i for i in range(n) if i not in {x for c in cut for x in (c - 1, c)}]
+                np.testing.assert_array_equal(out[:, far], plain[:, far])
 
 
 def test_jitter_each_row_by_its_share(kernels):

@@ -192,7 +192,8 @@ class CANN(OdometryFilter):
         slower row in proportion to its speed, so a standing robot does not jitter).  For
         recordings that drop frames.  With scaled odometry the distance the odometry reports
         sets the speed; exact odometry is the motion itself and turns it off.  What would go
-        past the route's ends is lost, as in the move.  0: every row moves exactly by its
+        past the route's ends, or across a break (``breaks``), is lost, as in the move.  0:
+        every row moves exactly by its
         velocity (the default: see "Uneven frames" on the CANN page for what 0.15 and 0.3
         gain on such recordings and cost on steady ones).
     evidence_gain : float, default 0.4
