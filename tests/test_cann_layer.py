@@ -11,6 +11,7 @@ would move.
 
 import itertools
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -517,6 +518,10 @@ def test_likeness_against_numpy(kernels):
     assert r == pytest.approx(np.corrcoef(row.astype(np.float64), keep)[0, 1], abs=1e-7)
     assert np.array_equal(last, row.astype(np.float64))  # the row is kept for the next frame
     assert kernels["likeness"](np.ones(50, np.float32), last) == 0.0  # a constant row
+    # a constant last row (and no division by its zero spread)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert kernels["likeness"](row, np.full(50, 2.0)) == 0.0
 
 
 @pytest.mark.parametrize("offset, scale", [(1e8, 1.0), (0.0, 1e-3), (-3.0, 10.0)])
@@ -775,7 +780,9 @@ def test_leave_at_breaks_where_every_unit_that_lands_crosses(kernels):
     # 3 places, breaks before 1 and 2, one ahead: 0 and 1 cross, 2 leaves the route; nothing
     # lands, so what crossed is not shared (the move would lose it anyway)
     p = np.array([[0.25, 0.5, 0.75]], np.float32)
-    kernels["leave_at_breaks"](p, np.array([1], np.int64), np.array([1, 2], np.int64))
+    with warnings.catch_warnings():  # (and nothing is divided by the none that land)
+        warnings.simplefilter("error")
+        kernels["leave_at_breaks"](p, np.array([1], np.int64), np.array([1, 2], np.int64))
     np.testing.assert_array_equal(p, [[0.0, 0.0, 0.75]])
 
 

@@ -215,17 +215,18 @@ def jitter(p, out, shares, breaks):
             mid[i] = keep * own[i] + side * (left[i] + right[i])
         zero = np.float32(0.0)
         for m in range(n_b):
-            # the two places beside the break, each without its neighbour across it (nor
-            # across a break next to it)
+            # The two places beside the break, each without its neighbour across it.  Place
+            # b keeps the one ahead (where b + 1 is a break too, the next pass writes place b
+            # again, without it); place b - 1 the one behind, unless b - 1 is a break too.
             b = breaks[m]
             ahead = zero
-            if b + 1 < n and not (m + 1 < n_b and breaks[m + 1] == b + 1):
+            if b + 1 < n:
                 ahead = src[b + 1]
-            dst[b] = keep * src[b] + side * (zero + ahead)
+            dst[b] = keep * src[b] + side * ahead
             behind = zero
             if b >= 2 and not (m > 0 and breaks[m - 1] == b - 1):
                 behind = src[b - 2]
-            dst[b - 1] = keep * src[b - 1] + side * (behind + zero)
+            dst[b - 1] = keep * src[b - 1] + side * behind
 
 
 def likeness(row, last):
