@@ -1864,6 +1864,8 @@ def test_the_snap_follows_the_last_frame_filtered_across_held_ones():
         (30, 24, 1.5, 0.5, False),
         (30, 31, -1.0, 0.5, True),  # backwards along the map
         (30, 29, -1.0, 0.5, False),
+        (30, 34, -1.0, 0.5, True),  # backwards too, at most 3 |v| + 1 places
+        (30, 35, -1.0, 0.5, False),
         (10, 9, 1.0, 0.5, True),  # within twice the sequence test's window: 10 places
         (9, 8, 1.0, 0.5, False),
     ],
