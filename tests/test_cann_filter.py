@@ -2671,6 +2671,32 @@ def test_a_lost_filter_shrinks_the_front_ends_confidence_towards_the_base_rate()
     assert 0 < agreed < len(answers) // 2
 
 
+def test_a_front_end_answer_at_place_0_agrees_with_a_prediction_there():
+    # A robot standing at the route's first place, with a bank of one velocity (0): on frame
+    # 1 the layer predicts place 0, and the front end, not yet trusted, answers place 0.  The
+    # two agree, so the greater of the localized share (0 after one lost frame) and the
+    # support shrinks the front end's probability, not the lesser.
+    S = bump_rows(np.zeros(2), 300, seed=0)
+    f = CANN(velocities=(0.0,))
+    predictions = []
+    real = f._support
+
+    def spy(x, predicted, novelty):
+        predictions.append(predicted)
+        return real(x, predicted, novelty)
+
+    f._support = spy
+    f.step(S[0])
+    assert f.state_ == "lost" and f._localized_mean == 0.0
+    f.step(S[1])
+    assert predictions == [0] and f.source_ == "front end" and f._last_front == 0
+    assert f.support_ > 0.1
+    trust = max(f.support_, 0.05)
+    assert f.confidence_ == np.float32(lost_confidence(f.front_probability_, 2, trust))
+    # (the lesser, 0, would leave the floor of 0.05: another confidence)
+    assert f.confidence_ != np.float32(lost_confidence(f.front_probability_, 2, 0.05))
+
+
 def _predictions(f, S, velocity):
     """The places the sequence test of ``f`` takes as predicted, frame by frame (from frame 1),
     and the filter's state per frame."""
