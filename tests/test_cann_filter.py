@@ -2671,6 +2671,20 @@ def test_a_lost_filter_shrinks_the_front_ends_confidence_towards_the_base_rate()
     assert 0 < agreed < len(answers) // 2
 
 
+def test_the_scale_prior_keeps_its_shape_on_a_bank_far_from_1():
+    # With scaled odometry each row is a scale of the odometry, its prior centred on 1.  A
+    # bank with no row near 1 gives every row a small weight (here summing to 0.19), not
+    # none: their shape stays (0.71 and 0.29), not the speed prior's (centred on 0: 1 and 0)
+    vel = np.array([0.5, 1.6])
+    f = CANN(velocities=tuple(vel), speed_prior=0.0, speed_prior_width=0.25)
+    p = f._check_params()
+    scale = np.exp(-0.5 * ((vel - 1.0) / 0.25) ** 2)
+    assert 0.0 < scale.sum() < 1.0
+    np.testing.assert_allclose(p["scale_prior"], scale / scale.sum())
+    assert p["scale_prior"][1] == pytest.approx(0.29, abs=0.01)
+    assert p["prior"][1] < 1e-6
+
+
 def test_a_front_end_answer_at_place_0_agrees_with_a_prediction_there():
     # A robot standing at the route's first place, with a bank of one velocity (0): on frame
     # 1 the layer predicts place 0, and the front end, not yet trusted, answers place 0.  The
