@@ -2633,14 +2633,7 @@ def test_a_lost_filter_shrinks_the_front_ends_confidence_towards_the_base_rate()
     S = bump_rows(pos, 300, seed=5)
     f = CANN()
     f.reset()
-    predictions = []
-    real = f._support
-
-    def spy(x, predicted, novelty):
-        predictions.append(predicted)
-        return real(x, predicted, novelty)
-
-    f._support = spy
+    predictions = record_predictions(f)
     share, shares, answers, agreed = 0.0, [], [], 0
     for t, row in enumerate(S):
         predictions.append(-1)  # (frame 0 predicts nothing; later frames' spy comes after)
@@ -2692,14 +2685,7 @@ def test_a_front_end_answer_at_place_0_agrees_with_a_prediction_there():
     # support shrinks the front end's probability, not the lesser.
     S = bump_rows(np.zeros(2), 300, seed=0)
     f = CANN(velocities=(0.0,))
-    predictions = []
-    real = f._support
-
-    def spy(x, predicted, novelty):
-        predictions.append(predicted)
-        return real(x, predicted, novelty)
-
-    f._support = spy
+    predictions = record_predictions(f)
     f.step(S[0])
     assert f.state_ == "lost" and f._localized_mean == 0.0
     f.step(S[1])
@@ -2711,10 +2697,10 @@ def test_a_front_end_answer_at_place_0_agrees_with_a_prediction_there():
     assert f.confidence_ != np.float32(lost_confidence(f.front_probability_, 2, 0.05))
 
 
-def _predictions(f, S, velocity):
-    """The places the sequence test of ``f`` takes as predicted, frame by frame (from frame 1),
-    and the filter's state per frame."""
-    seen, states = [], []
+def record_predictions(f) -> list:
+    """A list that the place the sequence test of ``f`` takes as predicted is appended to,
+    each frame it tests (from frame 1)."""
+    seen = []
     real = f._support
 
     def spy(x, predicted, novelty):
@@ -2722,6 +2708,13 @@ def _predictions(f, S, velocity):
         return real(x, predicted, novelty)
 
     f._support = spy
+    return seen
+
+
+def _predictions(f, S, velocity):
+    """The places the sequence test of ``f`` takes as predicted, frame by frame (from frame 1),
+    and the filter's state per frame."""
+    seen, states = record_predictions(f), []
     f.reset()
     for t in range(len(S)):
         f.step(S[t], velocity=None if velocity is None or t == 0 else float(velocity[t]))
