@@ -74,13 +74,22 @@ def test_channel_under_a_mask_sees_the_valid_pixels_only(route):
     ref, qry = route
     disc = _disc()
     enc = KenyonEncoder(random_state=0, intensity=True).fit(_with_border(ref, disc, 0.05))
-    cells = disc.reshape(8, 4, 16, 4).any(axis=(1, 3))
-    assert cells.sum() == 64
-    assert enc.n_features_ == 368 + 64
+    # 41% of the pixels vary: the cells are 2x2 (the pooling under a mask), for both channels
+    assert enc.pool_ == 2
+    cells = disc.reshape(16, 2, 32, 2).any(axis=(1, 3))
+    assert cells.sum() == 228
+    assert enc.n_features_ == 1376 + 228
     frames = _with_border(qry, disc, 0.3)
     features = enc._lobe(frames)
     np.testing.assert_allclose(
-        features[:, 368:], _channel(frames, 4.0, 0.05, 4, valid=disc), atol=2e-6
+        features[:, 1376:], _channel(frames, 4.0, 0.05, 2, valid=disc), atol=2e-6
+    )
+    at4 = KenyonEncoder(random_state=0, intensity=True, mask_pooling=False)
+    at4.fit(_with_border(ref, disc, 0.05))
+    assert at4.pool_ == 4 and disc.reshape(8, 4, 16, 4).any(axis=(1, 3)).sum() == 64
+    assert at4.n_features_ == 368 + 64
+    np.testing.assert_allclose(
+        at4._lobe(frames)[:, 368:], _channel(frames, 4.0, 0.05, 4, valid=disc), atol=2e-6
     )
     # a cell at the disc's edge weighs by the share of it that the disc covers: its sum, not
     # its mean, is z-scored (the mean over its valid pixels would differ)
@@ -101,8 +110,8 @@ def test_blank_image_gives_a_zero_channel(route):
     masked = KenyonEncoder(random_state=0, intensity=True).fit(_with_border(ref, _disc(), 0.05))
     # under a mask the normalised convolution leaves float32 rounding (below 1e-6), which the
     # z-score scales up, as it does the Gabor energies': finite, and the same for both frames
-    channel = masked._lobe(blank)[:, 368:]
-    assert channel.shape == (2, 64) and np.isfinite(channel).all()
+    channel = masked._lobe(blank)[:, 1376:]
+    assert channel.shape == (2, 228) and np.isfinite(channel).all()
     np.testing.assert_array_equal(channel[0], channel[1])
 
 

@@ -13,6 +13,7 @@ from flyvpr.frontends.optic_lobe import (
     _pixel_std,
     local_contrast_normalize,
     optic_lobe,
+    pool_for_mask,
     varying_pixels,
 )
 from flyvpr.methods import make_method
@@ -246,6 +247,44 @@ def test_masked_optic_lobe():
     np.testing.assert_array_equal(lobe(x, disc), f)
 
 
+# -- the pooling under a mask ----------------------------------------------------------
+def _columns(n):
+    """A 32x64 mask with its first ``n`` columns valid (a share of n / 64)."""
+    valid = np.zeros((32, 64), bool)
+    valid[:, :n] = True
+    return valid
+
+
+@pytest.mark.parametrize(
+    ("valid", "pool", "expected"),
+    [
+        (np.ones((32, 64), bool), 4, 4),  # every pixel valid: the setting itself
+        (_disc(), 4, 2),  # 41%: 4 * sqrt(0.41) = 2.6, nearer 2 than 4 in ratio
+        (_columns(40), 4, 4),  # 62.5%: 3.2, nearer 4
+        (_columns(32), 4, 4),  # exactly half: 2 * sqrt(2), as far from 2 as from 4: the larger
+        (_columns(31), 4, 2),  # just under half
+        (_columns(9), 4, 2),  # 14%: 1.5, nearer 2 than 1 in ratio (2 / 1.5 < 1.5 / 1)
+        (_columns(7), 4, 1),  # 11%: 1.32, nearer 1
+        (_columns(16), 6, 3),  # 25%: exactly 3, a divisor of 6 that is not a power of two
+        (_columns(8), 6, 2),  # 12.5%: 2.12, nearer 2 than 3
+        (_columns(1), 1, 1),
+        (_columns(64), 8, 8),
+    ],
+)
+def test_pool_for_mask_keeps_about_a_whole_frames_cells(valid, pool, expected):
+    got = pool_for_mask(valid, pool)
+    assert type(got) is int and got == expected and pool % got == 0
+
+
+def test_pool_for_mask_bad_input():
+    with pytest.raises(ValueError, match="at least one valid pixel"):
+        pool_for_mask(np.zeros((4, 8), bool), 4)
+    with pytest.raises(ValueError, match="pool_size must be >= 1; got 0"):
+        pool_for_mask(_disc(), 0)
+    with pytest.raises(TypeError, match="pool_size"):
+        pool_for_mask(_disc(), 2.0)
+
+
 # -- the encoder -------------------------------------------------------------------
 def test_ordinary_frames_give_the_unmasked_codes_bit_for_bit(route):
     ref, qry = route
@@ -273,10 +312,13 @@ def test_fisheye_border_is_learned_and_its_value_does_not_matter(route):
     disc = _disc()
     enc = KenyonEncoder(random_state=0).fit(_with_border(ref, disc, 0.05))
     np.testing.assert_array_equal(enc.valid_pixels_, disc)
-    assert enc.n_features_ == 368 and enc.feature_mean_.shape == (368,)
-    assert enc.connections_.max() == 367
-    assert enc.footprint()["neurons"] == 368 + 4096
+    # 41% of the pixels vary: 2x2 cells, 1376 of the 2048 features see one
+    assert enc.pool_ == 2 and enc._optic_lobe.pool == 2
+    assert enc.n_features_ == 1376 and enc.feature_mean_.shape == (1376,)
+    assert enc.connections_.max() == 1375
+    assert enc.footprint()["neurons"] == 1376 + 4096
     other = KenyonEncoder(random_state=0).fit(_with_border(ref, disc, 0.8))
+    assert other.pool_ == 2
     for name in ("valid_pixels_", "connections_", "feature_mean_", "reference_codes_"):
         np.testing.assert_array_equal(getattr(other, name), getattr(enc, name))
     codes = enc.encode(_with_border(qry, disc, 0.05))
@@ -320,10 +362,14 @@ def test_too_few_varying_features(route):
     window = np.zeros((32, 64), bool)
     window[13:15, 29:31] = True  # 2 x 2 pixels, in reach of 3 x 3 cells: 36 features
     frames = _with_border(ref, window, 0.5)
-    assert KenyonEncoder(random_state=0).fit(frames).n_features_ == 36
-    KenyonEncoder(n_inputs=36, random_state=0).fit(frames)
+    at4 = {"random_state": 0, "mask_pooling": False}
+    assert KenyonEncoder(**at4).fit(frames).n_features_ == 36
+    KenyonEncoder(n_inputs=36, **at4).fit(frames)
     with pytest.raises(ValueError, match=r"features \(36 of 512 see pixels that vary.*got 37"):
-        KenyonEncoder(n_inputs=37, random_state=0).fit(frames)
+        KenyonEncoder(n_inputs=37, **at4).fit(frames)
+    # with the pooling under a mask, 4 of 2048 pixels vary: 1x1 cells, 9 x 9 x 4 features
+    enc = KenyonEncoder(random_state=0).fit(frames)
+    assert enc.pool_ == 1 and enc.n_features_ == 576
 
 
 def test_memory_checks_ask_for_what_fit_and_the_lobe_need(route, monkeypatch):
@@ -336,29 +382,47 @@ def test_memory_checks_ask_for_what_fit_and_the_lobe_need(route, monkeypatch):
     disc = _disc()
     ref = _with_border(np.concatenate([route[0], route[1]])[:65], disc, 0.05)
     enc = KenyonEncoder(n_kenyon=1024, n_inputs=6, random_state=0).fit(ref)
-    lobe = [
-        # the Gabor kernels (complex128) and two temporaries of their size
-        (48 * 4 * 11 * 11, "n_orientations=4 with kernel_size=11"),
-        # once per image size: the compiled filter's float32 buffers (2 per orientation and 5
-        # more, of the frame widened by the kernels' radius, 5) and one frame's features twice
-        (
-            4 * (2 * 4 + 5) * (32 + 10) * (64 + 10) + 8 * 4 * 8 * 16,
-            "n_orientations=4 with kernel_size=11 on images of 32x64",
-        ),
-        # the LCN's taps and border indices (radius 16), padded lines (float64) and images
-        (64 * (32 + 32 + 64) + 8 * (32 + 32) * 64 + 20 * 32 * 64, "lcn_sigma=4 on images of 32x64"),
-    ]
-    assert calls == [
+    # the Gabor kernels (complex128) and two temporaries of their size
+    kernels = (48 * 4 * 11 * 11, "n_orientations=4 with kernel_size=11")
+
+    def lobe(pool):
+        return [
+            kernels,
+            # once per image size: the compiled filter's float32 buffers (2 per orientation
+            # and 5 more, of the frame widened by the kernels' radius, 5) and one frame's
+            # features twice
+            (
+                4 * (2 * 4 + 5) * (32 + 10) * (64 + 10) + 8 * 4 * (32 // pool) * (64 // pool),
+                "n_orientations=4 with kernel_size=11 on images of 32x64",
+            ),
+            # the LCN's taps and border indices (radius 16), padded lines (float64) and images
+            (
+                64 * (32 + 32 + 64) + 8 * (32 + 32) * 64 + 20 * 32 * 64,
+                "lcn_sigma=4 on images of 32x64",
+            ),
+        ]
+
+    fit = [
         (1024 * 6 * 16 + 65 * 1024 * 9, "n_kenyon=1024 with n_inputs=6"),
-        *lobe,
-        (65 * 368 * 4, "optic_lobe on 65 images of 32x64"),  # the features kept
-        (32 * 1024 * 6 + 16 * 368, "n_kenyon=1024 with n_inputs=6"),  # drawing the connections
+        kernels,  # the lobe of the settings (4x4 cells), then the one of the mask (2x2)
+        *lobe(2),
+        (65 * 1376 * 4, "optic_lobe on 65 images of 32x64"),  # the features kept
+        (32 * 1024 * 6 + 16 * 1376, "n_kenyon=1024 with n_inputs=6"),  # drawing the connections
+    ]
+    assert calls == fit
+    calls.clear()
+    KenyonEncoder(n_kenyon=1024, n_inputs=6, random_state=0, mask_pooling=False).fit(ref)
+    assert calls == [
+        fit[0],
+        *lobe(4),
+        (65 * 368 * 4, "optic_lobe on 65 images of 32x64"),
+        (32 * 1024 * 6 + 16 * 368, "n_kenyon=1024 with n_inputs=6"),
     ]
     calls.clear()
     enc.encode(ref[:64])  # up to 64 images, a lobe set up for the size: no check
     assert calls == []
     optic_lobe(ref)
-    assert calls == [*lobe, (65 * 512 * 4, "optic_lobe on 65 images of 32x64")]
+    assert calls == [*lobe(4), (65 * 512 * 4, "optic_lobe on 65 images of 32x64")]
 
 
 # -- model files -----------------------------------------------------------------
@@ -382,7 +446,7 @@ def test_model_file_keeps_the_mask(route, tmp_path):
     front = again.frontend
     assert front.valid_pixels_.dtype == np.bool_
     np.testing.assert_array_equal(front.valid_pixels_, disc)
-    assert front.n_features_ == 368
+    assert front.n_features_ == 1376 and front.pool_ == 2 and front._optic_lobe.pool == 2
     frames = _with_border(qry, disc, 0.3)
     np.testing.assert_array_equal(again.score(frames), model.score(frames))
 
@@ -397,18 +461,77 @@ def test_model_file_from_before_the_mask_loads_with_every_pixel_valid(route, tmp
     np.testing.assert_array_equal(again.score(qry), model.score(qry))
 
 
+def test_mask_pooling_off_pools_at_pool_size(route):
+    ref, qry = route
+    disc = _disc()
+    frames = _with_border(ref, disc, 0.05)
+    at4 = KenyonEncoder(random_state=0, mask_pooling=False).fit(frames)
+    assert at4.pool_ == 4 and at4.n_features_ == 368
+    # the same lobe as an encoder whose pooling is 2 by its setting: the same codes
+    at2 = KenyonEncoder(random_state=0, pool_size=2, mask_pooling=False).fit(frames)
+    auto = KenyonEncoder(random_state=0).fit(frames)
+    assert at2.pool_ == auto.pool_ == 2
+    np.testing.assert_array_equal(auto.reference_codes_, at2.reference_codes_)
+    q = _with_border(qry, disc, 0.05)
+    np.testing.assert_array_equal(auto.encode(q), at2.encode(q))
+    assert (auto.encode(q) != at4.encode(q)).any()
+    with pytest.raises(TypeError, match="mask_pooling must be True or False; got int"):
+        KenyonEncoder(mask_pooling=1).fit(frames)
+
+
+def test_model_file_from_before_the_mask_pooling_loads_at_pool_size(route, tmp_path):
+    ref, qry = route
+    disc = _disc()
+    model = make_method("kenyon", 0, {"mask_pooling": False}).fit(_with_border(ref, disc, 0.05))
+    path = save_method(model, tmp_path / "k.npz")
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays.pop("__meta__").tobytes())
+    del meta["frontend"]["params"]["mask_pooling"], meta["frontend"]["state"]["pool_"]
+    again = load_method(_write_archive(tmp_path / "old.npz", meta, arrays))
+    front = again.frontend
+    assert front.pool_ == 4 and front.mask_pooling is False and front.n_features_ == 368
+    frames = _with_border(qry, disc, 0.3)
+    np.testing.assert_array_equal(again.score(frames), model.score(frames))
+    # and a file of today keeps its pooling
+    auto = load_method(save_method(make_method("kenyon", 0).fit(_with_border(ref, disc, 0.05)),
+                                   tmp_path / "new.npz"))  # fmt: skip
+    assert auto.frontend.pool_ == 2 and auto.frontend.mask_pooling is True
+
+
+def test_model_file_with_a_pooling_that_does_not_fit_is_refused(route, tmp_path):
+    ref, _ = route
+    path = save_method(
+        make_method("kenyon", 0).fit(_with_border(ref, _disc(), 0.05)), tmp_path / "k.npz"
+    )
+
+    def pool(value):
+        def edit(state, arrays):
+            state["pool_"] = {"value": value}
+
+        return edit
+
+    with pytest.raises(ModelFileError, match="pool_ must divide pool_size = 4; got 3"):
+        load_method(_rewrite(path, tmp_path / "a.npz", pool(3)))
+    with pytest.raises(ModelFileError, match="n_features_ must be 368 .* 848 valid pixels"):
+        load_method(_rewrite(path, tmp_path / "b.npz", pool(4)))
+    with pytest.raises(ModelFileError, match="pool_"):
+        load_method(_rewrite(path, tmp_path / "c.npz", pool(0)))
+
+
 def test_model_file_with_a_mask_that_does_not_fit_is_refused(route, tmp_path):
     ref, _ = route
     model = make_method("kenyon", 0).fit(_with_border(ref, _disc(), 0.05))
     path = save_method(model, tmp_path / "k.npz")
     out = _rewrite(path, tmp_path / "a.npz", _drop_mask)
-    with pytest.raises(ModelFileError, match="n_features_ must be 512 .* 2048 valid pixels"):
+    # (the file's 2x2 cells: 2048 features of a whole frame)
+    with pytest.raises(ModelFileError, match="n_features_ must be 2048 .* 2048 valid pixels"):
         load_method(out)
 
     def widen(state, arrays):  # 256 more valid pixels, every cell in reach
         arrays["frontend/valid_pixels_"][:, :8] = arrays["frontend/valid_pixels_"][:, -8:] = True
 
-    with pytest.raises(ModelFileError, match="n_features_ must be 512 .* 1360 valid pixels"):
+    with pytest.raises(ModelFileError, match="n_features_ must be 2048 .* 1360 valid pixels"):
         load_method(_rewrite(path, tmp_path / "b.npz", widen))
 
     def crop(state, arrays):

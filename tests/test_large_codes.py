@@ -126,6 +126,19 @@ def test_from_kenyon_shares_the_optic_lobe(images):
         CompactEncoder.from_kenyon(ken, images, lcn_sigma=2.0)
 
 
+def test_from_kenyon_takes_the_pooling_it_used_under_a_mask(images):
+    y, x = np.mgrid[0:32, 0:64]
+    disc = ((y - 15.5) / 16) ** 2 + ((x - 31.5) / 16.8) ** 2 <= 1  # a fisheye's, 41%
+    masked = np.where(disc, images, np.float32(0.05)).astype(np.float32)
+    ken = KenyonEncoder(random_state=0).fit(masked)
+    assert ken.pool_size == 4 and ken.pool_ == 2  # (fewer than half of the pixels vary)
+    enc = CompactEncoder.from_kenyon(ken, masked, n_bits=256, random_state=0)
+    assert enc.pool_size == 2
+    np.testing.assert_array_equal(enc.feature_mean_, ken.feature_mean_)
+    own = CompactEncoder(pool_size=2, random_state=0).fit(masked)
+    np.testing.assert_array_equal(enc.reference_codes_, own.reference_codes_)
+
+
 @pytest.mark.parametrize(
     ("params", "match"),
     [

@@ -620,6 +620,8 @@ def _load(path, size, readers: dict, what: str = "model file"):
             front["name"], front["params"], front["state"], "frontend", FRONTENDS, "front end",
             "frontend/",
         )  # fmt: skip
+        if "mask_pooling" not in front["params"] and "mask_pooling" in frontend.get_params():
+            frontend.set_params(mask_pooling=False)  # a file from before: fitted without it
         if tuple(frontend.image_shape_) != image_shape:
             raise r.error(
                 "frontend.state.image_shape_",

@@ -9,7 +9,10 @@ from fixed parts only (nothing is trained):
    their edges with the scene would weigh in every code.  The optic lobe then normalises over
    the varying pixels only (the static ones' values never enter) and drops the features that
    are 0 in every image under the mask.  On frames without static pixels (every pixel varies)
-   nothing changes: the codes are bit-identical to those without the mask.
+   nothing changes: the codes are bit-identical to those without the mask.  Where fewer than
+   half of the pixels vary, the pooling cells shrink so that the varying part of the frame
+   gives about as many cells as a whole frame (``mask_pooling``,
+   :func:`~flyvpr.frontends.optic_lobe.pool_for_mask`: 2x2 behind a fisheye's disc).
 1. **Optic lobe** (``flyvpr.frontends.optic_lobe.optic_lobe``): local contrast
    normalisation, Gabor energy at 4 orientations, 4x4 max pooling, per-image z-score: 512
    features at 32x64 (fewer under a mask of static pixels).
@@ -61,7 +64,7 @@ from .._validation import (
     check_random_state,
 )
 from .base import Encoder
-from .optic_lobe import OpticLobe, _kernels, varying_pixels
+from .optic_lobe import OpticLobe, _kernels, pool_for_mask, varying_pixels
 
 __all__ = ["KenyonEncoder", "balanced_connections", "code_overlap"]
 
@@ -209,6 +212,13 @@ class KenyonEncoder(Encoder):
         The optic lobe's settings, see ``flyvpr.frontends.optic_lobe.optic_lobe``: ``lcn_sigma``
         in [0.25, 1e6] pixels, ``lcn_eps`` in [1e-8, 1], ``wavelength`` in [2, 1e6] pixels,
         ``kernel_size`` odd and at least 3.
+    mask_pooling : bool, default True
+        Where fewer than half of the pixels vary along the reference traverse, pool over
+        smaller cells, so that the varying pixels give about as many cells as a whole frame
+        (:func:`~flyvpr.frontends.optic_lobe.pool_for_mask`; ``pool_`` is the side used).
+        Behind a fisheye's disc (41% of a 32x64 frame) the cells are 2x2: 1376 features
+        instead of 368.  A frame whose pixels all vary pools over ``pool_size`` either way.
+        Model files saved before it load without it.
     intensity : bool, default False
         Also feed the Kenyon cells the intensity channel: the contrast-normalised image summed
         over each pooling cell (static pixels count 0, so a cell at the mask's edge weighs by
@@ -225,6 +235,9 @@ class KenyonEncoder(Encoder):
     valid_pixels_ : ndarray of bool, shape image_shape_
         Pixels that vary along the reference traverse (all True for ordinary frames); the
         optic lobe looks at these only.
+    pool_ : int
+        Side of the pooling cells used: ``pool_size``, or with ``mask_pooling`` a divisor of
+        it chosen from ``valid_pixels_``.
     connections_ : ndarray of int32, shape (n_kenyon, n_inputs)
         Features summed by each Kenyon cell.
     feature_mean_ : ndarray of float32, shape (n_features_,)
@@ -269,8 +282,10 @@ class KenyonEncoder(Encoder):
     """
 
     name = "kenyon"
-    #: model files written before the intensity channel load without it
-    _added_params = ("intensity",)
+    #: model files written before the intensity channel or the mask's pooling load without it
+    _added_params = ("intensity", "mask_pooling")
+    #: (and with ``pool_`` = ``pool_size``)
+    _added_state = ("pool_",)
 
     def __init__(
         self,
@@ -286,6 +301,7 @@ class KenyonEncoder(Encoder):
         pool_size=4,
         intensity=False,
         random_state=None,
+        mask_pooling=True,
     ):
         self.n_kenyon = n_kenyon
         self.n_inputs = n_inputs
@@ -299,6 +315,7 @@ class KenyonEncoder(Encoder):
         self.pool_size = pool_size
         self.intensity = intensity
         self.random_state = random_state
+        self.mask_pooling = mask_pooling
 
     # -- set-up ---------------------------------------------------------------
     def _check_layout(self) -> tuple[int, int]:
@@ -311,15 +328,26 @@ class KenyonEncoder(Encoder):
             )
         return n_kenyon, n_proj
 
-    def _make_lobe(self) -> OpticLobe:
+    def _make_lobe(self, pool=None) -> OpticLobe:
+        """The optic lobe with the fitted pooling ``pool_`` (``pool``, or ``pool_size``,
+        before it is known)."""
+        if pool is None:
+            pool = getattr(self, "pool_", self.pool_size)
         return OpticLobe(
             self.lcn_sigma,
             self.lcn_eps,
             self.n_orientations,
             self.wavelength,
             self.kernel_size,
-            self.pool_size,
+            pool,
         )
+
+    def _check_mask_pooling(self) -> bool:
+        if not isinstance(self.mask_pooling, (bool, np.bool_)):
+            raise TypeError(
+                f"mask_pooling must be True or False; got {type(self.mask_pooling).__name__}"
+            )
+        return bool(self.mask_pooling)
 
     def _check_intensity(self) -> bool:
         if not isinstance(self.intensity, (bool, np.bool_)):
@@ -377,8 +405,13 @@ class KenyonEncoder(Encoder):
             n_kenyon * n_in * 16 + min(len(images), _BLOCK) * n_kenyon * 9,
             f"n_kenyon={n_kenyon} with n_inputs={n_in}",
         )
-        self._optic_lobe = self._make_lobe()
+        self._optic_lobe = self._make_lobe(self.pool_size)  # (checks the settings)
         self.valid_pixels_ = varying_pixels(images)
+        self.pool_ = self._optic_lobe.pool
+        if self._check_mask_pooling():
+            self.pool_ = pool_for_mask(self.valid_pixels_, self.pool_)
+            if self.pool_ != self._optic_lobe.pool:
+                self._optic_lobe = self._make_lobe(self.pool_)
         self._set_valid()
         n_kept = self._n_kept()
         if n_in > n_kept:
@@ -482,6 +515,7 @@ class KenyonEncoder(Encoder):
 
     # -- saved state -------------------------------------------------------------
     _state_names = (
+        "pool_",
         "n_features_",
         "n_active_",
         "valid_pixels_",
@@ -491,6 +525,7 @@ class KenyonEncoder(Encoder):
     )
     _state_scalars = {
         **Encoder._state_scalars,
+        "pool_": ScalarSpec("int", low=1),
         "n_features_": ScalarSpec("int", low=1),
         "n_active_": ScalarSpec("int", low=1),
     }
@@ -513,6 +548,10 @@ class KenyonEncoder(Encoder):
         state = dict(state)
         shape = tuple(state["image_shape_"])
         state.setdefault("valid_pixels_", np.ones(shape, dtype=bool))
+        pool = check_positive_int(self.pool_size, "pool_size")
+        state.setdefault("pool_", pool)
+        if pool % state["pool_"]:
+            raise ValueError(f"pool_ must divide pool_size = {pool}; got {state['pool_']}")
         super()._set_state(state)
         c = self.connections_
         if c.min() < 0 or c.max() >= self.n_features_:

@@ -38,6 +38,7 @@ from .._validation import check_images, check_memory, check_positive_int, check_
 
 __all__ = [
     "varying_pixels",
+    "pool_for_mask",
     "local_contrast_normalize",
     "gabor_bank",
     "optic_lobe",
@@ -93,6 +94,46 @@ def varying_pixels(images) -> np.ndarray:
     spread = _pixel_std(x)
     varying = spread > _MIN_RELATIVE_SPREAD * np.percentile(spread, _SPREAD_PERCENTILE)
     return varying if varying.any() else np.ones_like(varying)
+
+
+def pool_for_mask(valid_pixels, pool_size: int) -> int:
+    """The side of the pooling cells that gives the varying pixels about a whole frame's cells.
+
+    A mask that hides much of the frame (a fisheye's surround hides 59% of a 32x64 frame)
+    leaves fewer cells, and so fewer features, for the same place.  The cells then shrink:
+    their area goes with the share ``s`` of valid pixels, and the side is the divisor of
+    ``pool_size`` nearest to ``pool_size * sqrt(s)`` in ratio (the larger one on a tie).  With
+    the powers of two that means: halved while fewer than half of the pixels are valid, and
+    ``pool_size`` itself wherever at least half are (every pixel valid included).  No
+    constant of its own.
+
+    Parameters
+    ----------
+    valid_pixels : ndarray of bool, shape (H, W)
+        As :func:`varying_pixels` returns (at least one True).
+    pool_size : int
+        The side on a whole frame; a positive int.
+
+    Returns
+    -------
+    int
+        A divisor of ``pool_size``.
+
+    Examples
+    --------
+    >>> y, x = np.mgrid[0:32, 0:64]
+    >>> disc = ((y - 15.5) / 16) ** 2 + ((x - 31.5) / 16.8) ** 2 <= 1  # 41% of the pixels
+    >>> pool_for_mask(disc, 4), pool_for_mask(np.ones((32, 64), bool), 4)
+    (2, 4)
+    """
+    pool = check_positive_int(pool_size, "pool_size")
+    valid = np.asarray(valid_pixels, dtype=bool)
+    share = float(valid.mean()) if valid.size else 1.0
+    if share <= 0.0:
+        raise ValueError("valid_pixels must mark at least one valid pixel; got none")
+    target = pool * np.sqrt(share)
+    divisors = [d for d in range(pool, 0, -1) if pool % d == 0]  # largest first: ties keep it
+    return min(divisors, key=lambda d: abs(np.log(d / target)))
 
 
 def _pixel_std(x: np.ndarray) -> np.ndarray:

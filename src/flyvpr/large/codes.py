@@ -287,9 +287,10 @@ class CompactEncoder(Encoder):
     def from_kenyon(cls, kenyon, reference_images, **params) -> CompactEncoder:
         """A compact encoder that shares a fitted ``kenyon`` encoder's optic lobe.
 
-        The optic-lobe settings, the mask of varying pixels and the mean features are the
-        Kenyon encoder's; the projection is learnt from ``reference_images`` (the Kenyon
-        encoder's reference traverse, or a sample of it for a long map).
+        The optic-lobe settings (with the pooling it used, ``pool_``, as ``pool_size``), the
+        mask of varying pixels and the mean features are the Kenyon encoder's; the projection
+        is learnt from ``reference_images`` (the Kenyon encoder's reference traverse, or a
+        sample of it for a long map).
 
         Parameters
         ----------
@@ -324,7 +325,9 @@ class CompactEncoder(Encoder):
         fixed = sorted(set(params) & set(cls._LOBE))
         if fixed:
             raise TypeError(f"from_kenyon takes the optic lobe from kenyon; got {fixed}")
-        enc = cls(**params, **{name: getattr(kenyon, name) for name in cls._LOBE})
+        lobe = {name: getattr(kenyon, name) for name in cls._LOBE}
+        lobe["pool_size"] = kenyon.pool_  # (smaller than its pool_size under a large mask)
+        enc = cls(**params, **lobe)
         images = check_images(reference_images, "reference_images", kenyon.image_shape_)
         enc._check_params()
         enc.image_shape_ = tuple(images.shape[1:])
