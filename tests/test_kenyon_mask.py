@@ -269,6 +269,11 @@ def _columns(n):
         (_columns(8), 6, 2),  # 12.5%: 2.12, nearer 2 than 3
         (_columns(1), 1, 1),
         (_columns(64), 8, 8),
+        # exact ties, decided in integers: the larger side (in floating point these three
+        # fell either way)
+        (_columns(32), 14, 14),  # 14 / sqrt(2): 7 * sqrt(2), as far from 7 as from 14
+        (_columns(8), 28, 14),  # 28 / sqrt(8) = 7 * sqrt(2), between 7 and 14
+        (_columns(8), 4, 2),  # an eighth: sqrt(2), between 1 and 2
     ],
 )
 def test_pool_for_mask_keeps_about_a_whole_frames_cells(valid, pool, expected):
@@ -276,9 +281,32 @@ def test_pool_for_mask_keeps_about_a_whole_frames_cells(valid, pool, expected):
     assert type(got) is int and got == expected and pool % got == 0
 
 
+def test_pool_for_mask_against_exact_fractions():
+    # every share k / 256 and side 1-32: the divisor nearest in ratio, ties to the larger
+    from fractions import Fraction
+
+    mask = np.zeros((16, 16), bool)
+    for k in range(1, 257):
+        mask.flat[k - 1] = True
+        for pool in range(1, 33):
+            sides = [d for d in range(pool, 0, -1) if pool % d == 0]
+
+            def far(d, k=k, pool=pool):
+                a, b = d * d * 256, pool * pool * k
+                return Fraction(max(a, b), min(a, b))
+
+            assert pool_for_mask(mask, pool) == min(sides, key=lambda d: (far(d), -d))
+
+
 def test_pool_for_mask_bad_input():
     with pytest.raises(ValueError, match="at least one valid pixel"):
         pool_for_mask(np.zeros((4, 8), bool), 4)
+    with pytest.raises(ValueError, match="at least one valid pixel"):
+        pool_for_mask(np.zeros((0, 8), bool), 4)
+    with pytest.raises(ValueError, match=r"2-d \(H, W\); got shape \(8,\)"):
+        pool_for_mask(np.ones(8, bool), 4)
+    with pytest.raises(TypeError, match="bool array; got dtype float64"):
+        pool_for_mask(np.full((4, 8), 0.5), 4)
     with pytest.raises(ValueError, match="pool_size must be >= 1; got 0"):
         pool_for_mask(_disc(), 0)
     with pytest.raises(TypeError, match="pool_size"):
@@ -370,6 +398,17 @@ def test_too_few_varying_features(route):
     # with the pooling under a mask, 4 of 2048 pixels vary: 1x1 cells, 9 x 9 x 4 features
     enc = KenyonEncoder(random_state=0).fit(frames)
     assert enc.pool_ == 1 and enc.n_features_ == 576
+
+
+def test_model_file_keeps_cells_of_one_pixel(route, tmp_path):
+    ref, qry = route
+    window = np.zeros((32, 64), bool)
+    window[13:15, 29:31] = True  # 4 of 2048 pixels vary: 1x1 cells
+    model = make_method("kenyon", 0).fit(_with_border(ref, window, 0.5))
+    again = load_method(save_method(model, tmp_path / "k.npz"))
+    assert again.frontend.pool_ == 1 and again.frontend.n_features_ == 576
+    frames = _with_border(qry, window, 0.5)
+    np.testing.assert_array_equal(again.score(frames), model.score(frames))
 
 
 def test_memory_checks_ask_for_what_fit_and_the_lobe_need(route, monkeypatch):

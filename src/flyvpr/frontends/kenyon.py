@@ -15,7 +15,8 @@ from fixed parts only (nothing is trained):
    :func:`~flyvpr.frontends.optic_lobe.pool_for_mask`: 2x2 behind a fisheye's disc).
 1. **Optic lobe** (``flyvpr.frontends.optic_lobe.optic_lobe``): local contrast
    normalisation, Gabor energy at 4 orientations, 4x4 max pooling, per-image z-score: 512
-   features at 32x64 (fewer under a mask of static pixels).
+   features at 32x64 (under a mask of static pixels, those that can vary: fewer, or more where
+   the cells shrink, 1376 behind a fisheye's disc).
 2. **Centring**: the mean feature vector of the reference traverse is subtracted (``fit``
    takes that and, for the mask of static pixels, each pixel's standard deviation).  Features
    that are high in every frame (a logo burnt into the video, the horizon) would otherwise win

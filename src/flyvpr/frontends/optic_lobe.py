@@ -102,10 +102,10 @@ def pool_for_mask(valid_pixels, pool_size: int) -> int:
     A mask that hides much of the frame (a fisheye's surround hides 59% of a 32x64 frame)
     leaves fewer cells, and so fewer features, for the same place.  The cells then shrink:
     their area goes with the share ``s`` of valid pixels, and the side is the divisor of
-    ``pool_size`` nearest to ``pool_size * sqrt(s)`` in ratio (the larger one on a tie).  With
-    the powers of two that means: halved while fewer than half of the pixels are valid, and
-    ``pool_size`` itself wherever at least half are (every pixel valid included).  No
-    constant of its own.
+    ``pool_size`` nearest to ``pool_size * sqrt(s)`` in ratio, the larger one on a tie
+    (compared in exact integer arithmetic).  With a ``pool_size`` of 4: 4 wherever at least
+    half of the pixels are valid (every pixel valid included), 2 from an eighth up to half,
+    1 below an eighth.  No constant of its own.
 
     Parameters
     ----------
@@ -119,6 +119,13 @@ def pool_for_mask(valid_pixels, pool_size: int) -> int:
     int
         A divisor of ``pool_size``.
 
+    Raises
+    ------
+    TypeError
+        If ``valid_pixels`` is not a bool array or ``pool_size`` not an int.
+    ValueError
+        If ``valid_pixels`` is not 2-d or marks no valid pixel, or ``pool_size`` < 1.
+
     Examples
     --------
     >>> y, x = np.mgrid[0:32, 0:64]
@@ -127,13 +134,26 @@ def pool_for_mask(valid_pixels, pool_size: int) -> int:
     (2, 4)
     """
     pool = check_positive_int(pool_size, "pool_size")
-    valid = np.asarray(valid_pixels, dtype=bool)
-    share = float(valid.mean()) if valid.size else 1.0
-    if share <= 0.0:
+    shape = np.shape(valid_pixels)
+    if len(shape) != 2:
+        raise ValueError(f"valid_pixels must be 2-d (H, W); got shape {shape}")
+    valid = _check_valid_pixels(valid_pixels, *shape)  # (None: every pixel valid)
+    n = shape[0] * shape[1]
+    k = n if valid is None else int(np.count_nonzero(valid))
+    if k == 0:
         raise ValueError("valid_pixels must mark at least one valid pixel; got none")
-    target = pool * np.sqrt(share)
-    divisors = [d for d in range(pool, 0, -1) if pool % d == 0]  # largest first: ties keep it
-    return min(divisors, key=lambda d: abs(np.log(d / target)))
+    # the side d against the target t = pool * sqrt(k / n): (d / t)^2 = d^2 n / (pool^2 k); a
+    # side's distance in ratio is max(a, b) / min(a, b) of those two integers
+    b = pool * pool * k
+    best, far = pool, (max(pool * pool * n, b), min(pool * pool * n, b))
+    for d in range(pool - 1, 0, -1):
+        if pool % d:
+            continue
+        a = d * d * n
+        this = (max(a, b), min(a, b))
+        if this[0] * far[1] < far[0] * this[1]:  # strictly nearer: a tie keeps the larger
+            best, far = d, this
+    return best
 
 
 def _pixel_std(x: np.ndarray) -> np.ndarray:
