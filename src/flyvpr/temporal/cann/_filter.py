@@ -28,7 +28,7 @@ LAYER_VELOCITIES = tuple(
     ]
 )
 #: the calibration table (see the class's docstring: fitted on Nordland 0-999, the dev window)
-CALIBRATION = (0.0, 0.001, 0.002, 0.003, 0.187, 0.616, 0.666, 0.838, 0.863, 0.98, 1.0)
+CALIBRATION = (0.0, 0.003, 0.004, 0.005, 0.183, 0.351, 0.536, 0.801, 0.853, 0.979, 1.0)
 #: how odometry moves the layer (see the class's ``odometry`` parameter)
 ODOMETRY_MODES = ("scaled", "exact")
 #: learning rate of the front end's logistic model (per confident sequence answer)
@@ -1049,14 +1049,20 @@ class CANN(OdometryFilter):
         predicted = -1
         if t > 0:
             predicted = int(kernels["window_sums"](self._predicted, radius, self._box))
-            if (shifts == shifts[0]).all():
+            if (shifts == shifts[0]).all() or self.velocity_ < 0:
                 # Every velocity row moved alike (exact odometry, odometry 0, or a bank of one
                 # velocity), so the prediction is the posterior moved whole: a confident packet
                 # on one place fills 2 * radius + 1 windows almost equally, and the first of
                 # them lies radius places short of it.  The prediction is then the packet's
-                # most probable place in that window.  (Rows moved by different velocities
-                # spread the prediction over several places, and the window's centre is the
-                # packet's; that case is left as it was calibrated.)
+                # most probable place in that window.  So it is for a packet that moved towards
+                # lower place numbers on the frame before (a robot reversing along its map):
+                # the bank's four backward rows lie far apart and the many forward and standing
+                # rows pull the window towards higher numbers, so its centre sat a place behind
+                # the packet, the evidence was tested there, and the robot read `lost` while
+                # right.  (Rows moved forwards by different velocities spread the prediction
+                # over several places, and the window's centre is the packet's; that case is
+                # left as it was calibrated: the packet's most probable place there finds
+                # chance sequences in shuffled frames.)
                 lo = max(predicted - radius, 0)
                 predicted = lo + int(np.argmax(self._predicted[lo : predicted + radius + 1]))
             self._support(x, predicted, novelty)
