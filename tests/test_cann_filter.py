@@ -2802,6 +2802,29 @@ def test_a_robot_reversing_along_its_map_is_tested_at_its_place_and_localized():
     assert any(c != p for c, p in zip(centres[40:], places[41:], strict=True))
 
 
+def test_a_reversing_robot_is_tested_at_its_place_after_a_held_repeat():
+    # Every 4th frame repeats the one before (held: velocity_ reads 0 there); the first frame
+    # after a repeat must still be tested at the packet's place, from the velocity of the
+    # last frame filtered, not the held frame's 0.
+    rng = np.random.default_rng(4)
+    n, T = 300, 160
+    t = np.arange(T)
+    places = 250 - (t - t // 4)  # one place back per frame, but for the repeats
+    S = rng.normal(size=(T, n))
+    S[t, places] += 3.0
+    repeat = t % 4 == 3
+    S[repeat] = S[np.flatnonzero(repeat) - 1]
+    f = CANN()
+    seen, states = _predictions(f, S, None)
+    tested = np.flatnonzero(~repeat[1:]) + 1  # the frames the test saw (held ones are not)
+    assert len(seen) == len(tested) and f.n_held_ == repeat.sum()
+    after = tested[(tested > 40) & repeat[tested - 1]]  # just after a repeat
+    assert len(after) > 20
+    got = np.array(seen)[np.isin(tested, after)]
+    np.testing.assert_array_equal(got, places[after])
+    assert states[-1] == "localized"
+
+
 def test_the_rank_models_exponent_is_the_inverse_mean_within_its_range():
     # one over the mean of -log(rank), within [0.05, 1]: every rank 1 (a mean of 0) or ranks
     # no better than uniform (a mean up to 1) give the flat model, 1

@@ -54,13 +54,19 @@ def test_the_window_follows_a_localized_packet_along_the_map():
     assert f.n_moves_ >= 400 // (256 // 8) - 2  # moved in steps of about recentre * window
 
 
-def test_on_the_places_it_covers_the_window_agrees_with_the_whole_map_filter():
-    S, truth = _route(n_query=300, n_places=2000, start=300, seed=3)
+@pytest.mark.parametrize(("start", "speed"), [(300, 1.0), (1700, -1.0)])
+def test_on_the_places_it_covers_the_window_agrees_with_the_whole_map_filter(start, speed):
+    # forwards, and reversing along the map (the sequence test then takes the packet's own
+    # place, from the layer's velocity, which the window carries across its moves)
+    S, truth = _route(n_query=300, n_places=2000, start=start, speed=speed, seed=3)
     full = CANN().filter(S).argmax(axis=1)
     f = WindowedCANN(2000, window=512)
-    f.reseed([300])
+    f.reseed([start])
     places, _ = _run(f, S)
     assert (places[10:] == full[10:]).mean() > 0.98
+    assert f.n_moves_ >= 3
+    if speed < 0:
+        assert f.cann_.velocity_ < 0 and (np.abs(places - truth) <= 2)[20:].mean() > 0.97
 
 
 def test_odometry_moves_the_window_too():

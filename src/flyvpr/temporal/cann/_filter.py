@@ -1049,13 +1049,14 @@ class CANN(OdometryFilter):
         predicted = -1
         if t > 0:
             predicted = int(kernels["window_sums"](self._predicted, radius, self._box))
-            if (shifts == shifts[0]).all() or self.velocity_ < 0:
+            if (shifts == shifts[0]).all() or self._layer_velocity < 0:
                 # Every velocity row moved alike (exact odometry, odometry 0, or a bank of one
                 # velocity), so the prediction is the posterior moved whole: a confident packet
                 # on one place fills 2 * radius + 1 windows almost equally, and the first of
                 # them lies radius places short of it.  The prediction is then the packet's
                 # most probable place in that window.  So it is for a packet that moved towards
-                # lower place numbers on the frame before (a robot reversing along its map):
+                # lower place numbers on the last frame filtered (a held repeat's velocity_ of
+                # 0 aside: a robot reversing along its map):
                 # the bank's four backward rows lie far apart and the many forward and standing
                 # rows pull the window towards higher numbers, so its centre sat a place behind
                 # the packet, the evidence was tested there, and the robot read `lost` while
