@@ -61,7 +61,7 @@ class Fix(NamedTuple):
         the probability that the place is right (the window's, or where the answer snapped
         to the front end's place nearby, the front end's share of agreement), is at least
         0.5: with the default calibration, a
-        confidence of 0.9108 or more); always ``"localized"`` without a filter or with a
+        confidence of 0.9045 or more); always ``"localized"`` without a filter or with a
         filter that has no state.
     """
 
