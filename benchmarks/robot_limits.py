@@ -22,7 +22,8 @@ of the robot views of ``benchmarks/accuracy.py``; ``kenyon+cann`` with its defau
   the CANN is given the break its places' frame numbers show, as in the accuracy benchmark):
   frames after rejoining until the answer is ``localized`` and right (as the accuracy
   benchmark counts them), the map stretches in the 30 places after the rejoin, and the front
-  end's rank of the true place (places scoring strictly higher) over the 30 frames after it.
+  end's rank of the true place (places scoring strictly higher) over the 30 frames after it;
+  the same ranks from each front end of ``REJOIN_FRONT_ENDS`` fitted on the same map.
 * **Cold start at 1x** (``r-1x``): the first frame ``localized`` and right, the query's first
   same-image stretch, and the first frame whose true place the front end ranks first.
 * **Uneven frames** (``r-uneven``: a speed drawn afresh every frame, uniform in 0-2 places;
@@ -138,6 +139,14 @@ SLOW_NOISE_SEED = 0
 #: accuracy benchmark's own draw)
 PROFILE_KINDS = ("walk", "uneven", "drops")
 PROFILE_SEEDS = tuple(range(8))
+#: the front ends compared after the detour's rejoin: (label, method, front-end parameters)
+REJOIN_FRONT_ENDS = (
+    ("kenyon", "kenyon", {}),
+    ("kenyon, intensity channel", "kenyon", {"intensity": True}),
+    ("pixels", "pixels", {}),
+    ("flyhash", "flyhash", {}),
+    ("flynet", "flynet", {}),
+)
 #: the detour's rejoin moved: the map leaves out places REJOIN_FIRST to end - 1 for each end
 #: (700: the accuracy benchmark's r-detour)
 REJOIN_FIRST = 400
@@ -378,6 +387,31 @@ def stretches_from(stretches, first: int, count: int = AFTER) -> list[tuple[int,
     return [(a, b) for a, b in stretches if b >= first and a < first + count]
 
 
+def _front_end_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
+    """Each of REJOIN_FRONT_ENDS on the detour's map: its rank of the true place (places
+    scoring strictly higher) over the AFTER frames from the rejoin on."""
+    view = _view("r-detour")
+    keep = gap_keep(len(ref), view.gap)
+    back = int(view.gap[1] * len(ref))
+    frames = view.indices(len(qry))[back : back + AFTER]
+    rows = []
+    for label, name, params in REJOIN_FRONT_ENDS:
+        frontend = make_method(name, seed, params).frontend
+        frontend.fit(ref[keep])
+        rank = _true_rank(frontend.score(view.frames(qry, frames)), qry_ids[frames], ref_ids[keep])
+        rows.append(
+            {
+                "seed": seed,
+                "front_end": label,
+                "rank_median": float(np.median(rank)),
+                "rank_best": int(rank.min()),
+                "top10_frames": int((rank < 10).sum()),
+                "top1_frames": int((rank == 0).sum()),
+            }
+        )
+    return rows
+
+
 def _rejoin_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
     """kenyon+cann on the detour for each end of REJOIN_ENDS (see the module's text)."""
     rows = []
@@ -479,6 +513,7 @@ def run(data: Path, progress: bool = True) -> dict:
     slow: list[dict] = []
     profiles: list[dict] = []
     rejoins: list[dict] = []
+    front_ends: list[dict] = []
     starts: list[dict] = []
     fish_ref, fish_qry = fisheye(ref), fisheye(qry)
     park_stops = stop_places(in_stretch, PARK_PLACES, PARK_SEED)
@@ -506,6 +541,7 @@ def run(data: Path, progress: bool = True) -> dict:
         hit = np.flatnonzero(localized[back:] & right[back:])
         rank = _true_rank(S[back : back + AFTER], truth[back : back + AFTER], map_ids)
         matchers.append(_matchers(seed, "r-detour", back, S, gt, out, route_breaks(map_ids)))
+        front_ends += _front_end_rows(seed, ref, qry, ref_ids, qry_ids)
         detour.append(
             {
                 "seed": seed,
@@ -586,6 +622,7 @@ def run(data: Path, progress: bool = True) -> dict:
         "parked": parked,
         "jitter": uneven,
         "matchers": matchers,
+        "rejoin_front_ends": front_ends,
         "states": states,
         "slow": slow,
         "profiles": profiles,
@@ -794,6 +831,32 @@ def _matcher_table(data: dict) -> list[str]:
     return lines
 
 
+def _front_end_table(data: dict) -> list[str]:
+    """Per front end, its rank of the true place after the rejoin, pooled over the seeds."""
+    rows = data["rejoin_front_ends"]
+    seeds = sorted({r["seed"] for r in rows})
+    lines = [
+        "",
+        f"Every front end on the same frames (the {AFTER} from the rejoin on; the map without "
+        "400-699; seeds " + ", ".join(map(str, seeds)) + "): the median of the per-seed "
+        "medians of its rank of the true place, its best rank, and the frames with the true "
+        "place in its top 10 and first, summed over the seeds: the evidence a filter has to "
+        "go on there.",
+        "",
+        "| front end | rank of the true place (median) | best rank | frames in the top 10 "
+        "| frames first |",
+        "|---|---|---|---|---|",
+    ]
+    for label in dict.fromkeys(r["front_end"] for r in rows):
+        mine = [r for r in rows if r["front_end"] == label]
+        lines.append(
+            f"| {label} | {np.median([r['rank_median'] for r in mine]):.0f} | "
+            f"{min(r['rank_best'] for r in mine)} | {sum(r['top10_frames'] for r in mine)} "
+            f"of {AFTER * len(mine)} | {sum(r['top1_frames'] for r in mine)} |"
+        )
+    return lines
+
+
 def _rejoin_table(data: dict) -> list[str]:
     """Per end of the left-out stretch, the rejoin of each seed and the off-map share."""
     rows = data["rejoins"]
@@ -897,6 +960,8 @@ def render_markdown(data: dict) -> str:
             f"| {r['seed']} | {r['rejoin_frames']} | {r['front_rank_median']:.0f} | "
             f"{r['front_rank_top10_frames']} | {first} |"
         )
+    if data.get("rejoin_front_ends"):
+        lines += _front_end_table(data)
     lines += [
         "",
         "## Cold start at 1x",

@@ -420,6 +420,61 @@ def test_rejoin_rows_leave_out_each_stretch_and_give_the_break(monkeypatch):
         assert 0.0 <= r["offmap_localized_share"] <= 1.0
 
 
+def test_front_end_rows_rank_the_true_place_from_the_rejoin_on(monkeypatch):
+    # 40 distinct places; r-detour's map leaves out 16-27, so the rejoin is frame 28
+    fitted = []
+    real = robot_limits.make_method
+
+    def make(name, seed, fp=None, params=None):
+        method = real(name, seed, fp, params)
+        fit = method.frontend.fit
+        method.frontend.fit = lambda images: fitted.append((name, len(images))) or fit(images)
+        return method
+
+    monkeypatch.setattr(robot_limits, "make_method", make)
+    monkeypatch.setattr(robot_limits, "REJOIN_FRONT_ENDS", (("raw", "pixels", {}),))
+    monkeypatch.setattr(robot_limits, "AFTER", 5)
+    rng = np.random.default_rng(0)
+    ref = rng.random((40, 32, 64)).astype(np.float32)
+    ids = np.arange(40)
+    qry = ref.copy()
+    qry[30] = ref[5]  # frame 30 shows a left-out place's twin: 5 scores it highest
+    (row,) = robot_limits._front_end_rows(2, ref, qry, ids, ids)
+    assert fitted == [("pixels", 28)]
+    assert row["seed"] == 2 and row["front_end"] == "raw"
+    assert row["top1_frames"] == 4 and row["top10_frames"] >= 4  # frames 28, 29, 31, 32
+    assert row["rank_best"] == 0 and row["rank_median"] == 0.0
+    qry[28:33] = ref[rng.permutation(np.arange(5))]  # frames 28-32 show places 0-4
+    (row,) = robot_limits._front_end_rows(2, ref, qry, ids, ids)
+    assert row["top1_frames"] == 0 and row["rank_best"] > 0
+
+
+def test_front_end_table_pools_the_seeds_per_front_end():
+    rows = [
+        {
+            "seed": s,
+            "front_end": f,
+            "rank_median": m,
+            "rank_best": b,
+            "top10_frames": t,
+            "top1_frames": o,
+        }
+        for s, f, m, b, t, o in [
+            (0, "kenyon", 376.0, 19, 0, 0),
+            (1, "kenyon", 318.0, 5, 1, 0),
+            (2, "kenyon", 286.0, 8, 1, 1),
+            (0, "pixels", 250.0, 22, 0, 0),
+        ]
+    ]
+    lines = robot_limits._front_end_table({"rejoin_front_ends": rows})
+    assert "| kenyon | 318 | 5 | 2 of 90 | 1 |" in lines
+    assert "| pixels | 250 | 22 | 0 of 30 | 0 |" in lines
+    assert lines.index("| kenyon | 318 | 5 | 2 of 90 | 1 |") < lines.index(
+        "| pixels | 250 | 22 | 0 of 30 | 0 |"
+    )
+    assert any("seeds 0, 1, 2" in line for line in lines)
+
+
 def test_rejoin_table_lists_each_end_with_its_seeds_and_the_mean_share():
     rows = [
         {"seed": s, "first": 400, "end": e, "rejoin_frames": f, "offmap_localized_share": share}
