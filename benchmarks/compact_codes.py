@@ -18,6 +18,16 @@ Codes compared (all from the same fitted KenyonEncoder's optic lobe and mean fea
   image (dense bits from the sparse projection);
 * ``kc-subset``: 256 / 512 bits of the Kenyon code, every 16th / 8th (sparse: about 5% set);
 * ``kc-xor``: the 4096-bit code folded by XOR to 256 / 512 bits.
+
+**Pooling through a fisheye disc.**  ``CompactEncoder.fit`` (what ``flyvpr map --compact``
+runs) pools the optic lobe over ``pool_size`` cells whatever its mask of static pixels, where
+``kenyon`` takes smaller cells when most of the frame is static
+(:func:`flyvpr.frontends.optic_lobe.pool_for_mask`).  On the same windows and seeds, both
+traverses through the accuracy benchmark's fisheye disc (``benchmarks/accuracy_setup.py``
+``FISHEYE_DISC``): ``CompactEncoder(n_bits=256, random_state=seed).fit`` with 4x4 cells (its
+own) and with the 2x2 cells ``kenyon`` takes there, and on whole frames for the cost of the
+disc; AUC after the CANN with its defaults and with repeated rows not held (the layer of the
+compact localizer, ``LargeLocalizer``).
 """
 
 from __future__ import annotations
@@ -39,6 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
     sys.path.insert(0, str(ROOT))
 from benchmarks._common import DEFAULT_DATA  # noqa: E402
+from benchmarks.accuracy_setup import fisheye  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 WINDOWS = (0, 1000)
@@ -76,6 +87,89 @@ def codes_of(ken: KenyonEncoder, ref, qry, seed) -> dict:
     return out
 
 
+#: the fisheye comparison: (label, frames through the disc, pooling cell side)
+FISHEYE_ROWS = (
+    ("whole frames, 4x4 cells", False, 4),
+    ("fisheye disc, 4x4 cells (fit's own)", True, 4),
+    ("fisheye disc, 2x2 cells (kenyon's there)", True, 2),
+)
+#: the CANN settings the fisheye comparison filters with: the defaults, and the compact
+#: localizer's layer (repeated rows not held)
+FISHEYE_FILTERS = {"cann_auc": {}, "cann_auc_no_hold": {"hold_repeats": False}}
+
+
+def fisheye_runs(ref, qry, gts: dict, window: str, seed: int) -> list[dict]:
+    """FISHEYE_ROWS on one window and seed: per row and tolerance, the AUC of the 256-bit
+    code alone and after each of FISHEYE_FILTERS."""
+    disc_ref, disc_qry = fisheye(ref), fisheye(qry)
+    rows = []
+    for label, disc, pool in FISHEYE_ROWS:
+        r, q = (disc_ref, disc_qry) if disc else (ref, qry)
+        enc = CompactEncoder(n_bits=256, pool_size=pool, random_state=seed).fit(r)
+        S = hamming_similarity(enc.encode(q), enc.reference_codes_)
+        filtered = {k: FILTERS["cann"](**v).filter(S) for k, v in FISHEYE_FILTERS.items()}
+        for t, gt in gts.items():
+            row = {"row": label, "window": window, "seed": seed, "tolerance": t}
+            row["features"] = int(enc.n_features_)
+            row["auc"] = pr_auc(S, gt)
+            row.update({k: pr_auc(C, gt) for k, C in filtered.items()})
+            rows.append(row)
+    return rows
+
+
+def _mean(rows: list[dict], key: str) -> float:
+    return float(np.mean([r[key] for r in rows]))
+
+
+def render_table(data: dict) -> str:
+    """The codes' table: per code, its bytes and the mean figures (min and max after the
+    CANN)."""
+    tols = [str(t) for t in TOLERANCES]
+    lines = [
+        "| code | bytes | R@1 tol 2 | R@1 tol 20 | AUC tol 20 | +cann AUC tol 2 | "
+        "+cann AUC tol 20 |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, by_tol in data["summary"].items():
+        label = name.split(" ")[0]
+        nbytes = int(label.rsplit("-", 1)[1]) // 8
+        a, b = (by_tol[t] for t in tols)
+        cann = [
+            f"{s['cann_auc']:.3f} [{s['cann_auc_min']:.3f}, {s['cann_auc_max']:.3f}]"
+            for s in (a, b)
+        ]
+        lines.append(
+            f"| {label} | {nbytes} | {a['recall_at_1']:.3f} | {b['recall_at_1']:.3f} | "
+            f"{b['auc']:.3f} | {cann[0]} | {cann[1]} |"
+        )
+    return "\n".join(lines)
+
+
+def render_fisheye_table(data: dict) -> str:
+    """The fisheye comparison: per row, its features and the mean AUCs over the windows and
+    seeds, at each tolerance."""
+    rows = data["fisheye"]
+    lines = [
+        "| code (256 bits, `fit`) | features | "
+        + " | ".join(
+            f"{what}, tol {t}"
+            for t in TOLERANCES
+            for what in ("AUC", "+cann AUC", "+cann AUC, repeats not held")
+        )
+        + " |",
+        "|---|---|" + "---|" * (3 * len(TOLERANCES)),
+    ]
+    for label in dict.fromkeys(r["row"] for r in rows):
+        mine = [r for r in rows if r["row"] == label]
+        features = sorted({r["features"] for r in mine})
+        cells = []
+        for t in TOLERANCES:
+            at = [r for r in mine if str(r["tolerance"]) == str(t)]
+            cells += [f"{_mean(at, k):.3f}" for k in ("auc", "cann_auc", "cann_auc_no_hold")]
+        lines.append(f"| {label} | {', '.join(map(str, features))} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
@@ -86,6 +180,7 @@ def main(argv=None) -> int:
         print(f"data folder not found: {root}", file=sys.stderr)
         return 1
     runs: dict = {}
+    fish: list[dict] = []
     for first in WINDOWS:
         bench = load_nordland(root, "summer", "winter", first=first, count=1000, tolerance=20)
         ref = bench.reference.load_images(progress=False)
@@ -109,6 +204,7 @@ def main(argv=None) -> int:
                             "cann_auc": pr_auc(C, gt),
                         }
                     )
+            fish += fisheye_runs(ref, qry, gts, f"{first}-{first + 999}", seed)
             print(f"window {first} seed {seed} done", flush=True)
     summary = {}
     for name, by_tol in runs.items():
@@ -127,6 +223,7 @@ def main(argv=None) -> int:
                 f"{name:30s} tol {t:>2s}  R@1 {s['recall_at_1']:.3f}  AUC {s['auc']:.3f}  "
                 f"+cann AUC {s['cann_auc']:.3f} [{s['cann_auc_min']:.3f}, {s['cann_auc_max']:.3f}]"
             )
+    print(render_fisheye_table({"fisheye": fish}))
     if args.json:
         write_json_atomic(
             args.json,
@@ -136,6 +233,7 @@ def main(argv=None) -> int:
                 "seeds": list(SEEDS),
                 "summary": summary,
                 "runs": runs,
+                "fisheye": fish,
             },
         )
     return 0

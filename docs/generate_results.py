@@ -447,6 +447,19 @@ def outputs() -> dict[Path, str]:
             ABLATION_FILE,
         )
     out.update(large_outputs())
+    codes = ROOT / COMPACT_CODES_JSON
+    if codes.is_file():
+        module = _benchmark_module("compact_codes")
+        data = json.loads(codes.read_text())
+        tables = [("compact-codes", module.render_table(data))]
+        if data.get("fisheye"):
+            tables.append(("compact-fisheye", module.render_fisheye_table(data)))
+        for name, table in tables:
+            page = out.get(LARGE_FILE)
+            begin, end = _markers(name, COMPACT_CODES_JSON)
+            out[LARGE_FILE] = splice_text(
+                page if page is not None else LARGE_FILE.read_text(), begin, end, table, LARGE_FILE
+            )
     detour = ROOT / COMPACT_DETOUR_JSON
     if detour.is_file():
         table = _benchmark_module("compact_detour").render_table(json.loads(detour.read_text()))
@@ -466,6 +479,8 @@ LARGE_ACCURACY_JSONS = (
     "benchmarks/large-accuracy.json",
     "benchmarks/large-accuracy-exhaustive.json",
 )
+#: the compact codes' tables on the same page (benchmarks/compact_codes.py)
+COMPACT_CODES_JSON = "benchmarks/compact-codes.json"
 #: the compact map's detour table on the same page (benchmarks/compact_detour.py)
 COMPACT_DETOUR_JSON = "benchmarks/compact-detour.json"
 
