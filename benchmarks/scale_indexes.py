@@ -60,6 +60,34 @@ def measure(name, factory, codes, queries, truth, exact, k) -> dict:
     }
 
 
+def render_table(data: dict) -> str:
+    """The rows side by side, in the order run, then each line of ``runs`` (how they were
+    made: which indexes were stopped or left out, and why)."""
+    lines = [
+        "| places | index | build s | ms per query, single | ms per query, batched | "
+        "recall@k | true in top k | index MB |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    notes: list[str] = []
+    for r in data["rows"]:
+        mark = ""
+        if r.get("note"):
+            if r["note"] not in notes:
+                notes.append(r["note"])
+            mark = f" ({notes.index(r['note']) + 1})"
+        lines.append(
+            f"| {r['places']:,} | {r['index']}{mark} | {r['build_s']:.2f} | "
+            f"{r['query_ms_single']:.3f} | {r['query_ms_batched']:.3f} | "
+            f"{r['recall_top_k']:.3f} | {r['true_place_in_top_k']:.3f} | {r['index_mb']:.0f} |"
+        )
+    ks = sorted({r["k"] for r in data["rows"]})
+    runs = "; ".join(data.get("runs", []))
+    lines += ["", f"k = {', '.join(map(str, ks))}." + (f"  Runs: {runs}." if runs else "")]
+    for i, note in enumerate(notes):
+        lines += ["", f"({i + 1}) {note}."]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     from flyvpr._io import write_json_atomic
     from flyvpr.large import (
@@ -129,7 +157,14 @@ def main(argv=None) -> int:
                     flush=True,
                 )
             del codes
-    write_json_atomic(args.json, rows)
+    write_json_atomic(
+        args.json,
+        {
+            "what": "benchmarks/scale_indexes.py, this 2-core machine",
+            "runs": [" ".join(sys.argv[1:] if argv is None else argv)],
+            "rows": rows,
+        },
+    )
     return 0
 
 

@@ -322,6 +322,32 @@ def odometry_table(data: dict) -> str:
     return "\n".join(lines)
 
 
+#: the SeqSLAM guide's sequence-length table: (row label, condition key) and the lengths
+SEQSLAM_FILE = ROOT / "docs" / "guide" / "seqslam.md"
+SEQSLAM_WINDOWS = [
+    ("frames 0-999", "n64-0@20"),
+    ("frames 1000-1999", "n64-1000@20"),
+    ("frames 1400-2399", "n64-1400@20"),
+]
+SEQSLAM_LENGTHS = (20, 40, 60)
+
+
+def seqslam_length_table(data: dict) -> str:
+    """SeqSLAM's AUC per window (rows) and sequence length (columns), from the JSON (``-``
+    where it was not run)."""
+    cells = accuracy_cells(data)
+    lines = [
+        "| window | " + " | ".join(f"length {n}" for n in SEQSLAM_LENGTHS) + " |",
+        "|---|" + "---|" * len(SEQSLAM_LENGTHS),
+    ]
+    for label, key in SEQSLAM_WINDOWS:
+        row = [cells.get((key, f"seqslam-{n}")) for n in SEQSLAM_LENGTHS]
+        lines.append(
+            f"| {label} | " + " | ".join("-" if v is None else f"{v[0]:.3f}" for v in row) + " |"
+        )
+    return "\n".join(lines)
+
+
 def accuracy_cells(data: dict) -> dict[tuple[str, str], tuple[float, float, int]]:
     """(condition key, method label) -> (mean AUC, worst seed's AUC, number of seeds)."""
     return {
@@ -424,6 +450,8 @@ def outputs() -> dict[Path, str]:
         out[ODOMETRY_FILE] = splice(
             ODOMETRY_FILE, ODOMETRY_BEGIN, ODOMETRY_END, odometry_table(accuracy)
         )
+        begin, end = _markers("seqslam-length", PAGES[0].json)
+        out[SEQSLAM_FILE] = splice(SEQSLAM_FILE, begin, end, seqslam_length_table(accuracy))
     faults = load_json(PAGES[3])
     if faults is not None:  # the battery's table on the reliability guide page, too
         module = _benchmark_module("faults")
@@ -447,6 +475,14 @@ def outputs() -> dict[Path, str]:
             ABLATION_FILE,
         )
     out.update(large_outputs())
+    indexes = ROOT / SCALE_INDEXES_JSON
+    if indexes.is_file():
+        table = _benchmark_module("scale_indexes").render_table(json.loads(indexes.read_text()))
+        page = out.get(LARGE_FILE)
+        begin, end = _markers("scale-indexes", SCALE_INDEXES_JSON)
+        out[LARGE_FILE] = splice_text(
+            page if page is not None else LARGE_FILE.read_text(), begin, end, table, LARGE_FILE
+        )
     codes = ROOT / COMPACT_CODES_JSON
     if codes.is_file():
         module = _benchmark_module("compact_codes")
@@ -479,6 +515,8 @@ LARGE_ACCURACY_JSONS = (
     "benchmarks/large-accuracy.json",
     "benchmarks/large-accuracy-exhaustive.json",
 )
+#: the indexes side by side on the same page (benchmarks/scale_indexes.py)
+SCALE_INDEXES_JSON = "benchmarks/scale-indexes.json"
 #: the compact codes' tables on the same page (benchmarks/compact_codes.py)
 COMPACT_CODES_JSON = "benchmarks/compact-codes.json"
 #: the compact map's detour table on the same page (benchmarks/compact_detour.py)

@@ -144,6 +144,50 @@ def test_odometry_table_pairs_each_view_with_its_odometry_twin(gen):
     assert "AUC at tolerance 2, mean over the seeds (2 for the methods with a seed)" in table
 
 
+def test_seqslam_length_table_reads_each_window_and_length(gen):
+    def row(condition, method, mean):
+        return {"condition": condition, "method": method, "seeds": [0], "auc_mean": mean}
+
+    summary = [
+        row("n64-0@20", "seqslam-20", 0.8781),
+        row("n64-0@20", "seqslam-60", 0.9755),
+        row("n64-0@2", "seqslam-40", 0.5),  # another tolerance: not shown
+        row("n64-1400@20", "seqslam-40", 0.9864),
+        row("n64-1400@20", "seqslam-60 v0.25-3", 0.1),  # another speed range: not shown
+    ]
+    lines = gen.seqslam_length_table({"summary": summary}).splitlines()
+    assert lines == [
+        "| window | length 20 | length 40 | length 60 |",
+        "|---|---|---|---|",
+        "| frames 0-999 | 0.878 | - | 0.976 |",
+        "| frames 1000-1999 | - | - | - |",
+        "| frames 1400-2399 | - | 0.986 | - |",
+    ]
+
+
+def test_indexes_table_marks_the_rows_with_a_note_and_gives_the_runs():
+    from benchmarks import scale_indexes
+
+    def row(places, index, **extra):
+        base = {"places": places, "k": 100, "index": index, "build_s": 0.3134}
+        base.update(query_ms_single=2.5163, query_ms_batched=1.9, recall_top_k=0.11285)
+        base.update(true_place_in_top_k=0.285, index_mb=69.04, **extra)
+        return base
+
+    rows = [row(10**6, "mih r1"), row(10**7, "mih r2", note="from a printed line")]
+    rows.append(row(10**7, "exhaustive", note="from a printed line"))
+    table = scale_indexes.render_table({"rows": rows, "runs": ["--places 1000000", "x: y"]})
+    lines = table.splitlines()
+    assert lines[2] == "| 1,000,000 | mih r1 | 0.31 | 2.516 | 1.900 | 0.113 | 0.285 | 69 |"
+    assert lines[3].startswith("| 10,000,000 | mih r2 (1) | 0.31 |")
+    assert lines[4].startswith("| 10,000,000 | exhaustive (1) |")
+    assert "k = 100.  Runs: --places 1000000; x: y." in lines
+    assert lines[-1] == "(1) from a printed line."
+    assert lines.count("(1) from a printed line.") == 1
+    bare = scale_indexes.render_table({"rows": rows[:1]})
+    assert bare.splitlines()[-1] == "k = 100."
+
+
 def test_which_method_table_links_relative_to_its_file(gen):
     data = json.loads((ROOT / "benchmarks" / "accuracy.json").read_text())
     assert "(docs/results/accuracy.md)" in gen.which_method_table(data, ROOT / "README.md")
