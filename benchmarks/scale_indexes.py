@@ -60,13 +60,34 @@ def measure(name, factory, codes, queries, truth, exact, k) -> dict:
     }
 
 
+WHAT = "benchmarks/scale_indexes.py, this 2-core machine"
+
+
+def run_line(places, queries: int, k: int, skip=()) -> str:
+    """How a run was made, as its options (the output and data folders left out)."""
+    parts = [f"--places {n}" for n in places] + [f"--queries {queries}", f"--k {k}"]
+    return " ".join(parts + [f"--skip {name}" for name in skip])
+
+
+def document(rows: list[dict], run: str, earlier: dict | None = None) -> dict:
+    """The JSON of a run's ``rows`` so far: with ``earlier`` (a document of this benchmark),
+    its rows and runs first, less the rows this run measured again (same places, index and
+    k)."""
+    runs, kept = [], []
+    if earlier is not None:
+        mine = {(r["places"], r["index"], r["k"]) for r in rows}
+        runs = list(earlier.get("runs", []))
+        kept = [r for r in earlier["rows"] if (r["places"], r["index"], r["k"]) not in mine]
+    return {"what": WHAT, "runs": runs + [run], "rows": kept + rows}
+
+
 def render_table(data: dict) -> str:
     """The rows side by side, in the order run, then each line of ``runs`` (how they were
     made: which indexes were stopped or left out, and why)."""
     lines = [
-        "| places | index | build s | ms per query, single | ms per query, batched | "
+        "| places | index | queries | build s | ms per query, single | ms per query, batched | "
         "recall@k | true in top k | index MB |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     notes: list[str] = []
     for r in data["rows"]:
@@ -76,13 +97,14 @@ def render_table(data: dict) -> str:
                 notes.append(r["note"])
             mark = f" ({notes.index(r['note']) + 1})"
         lines.append(
-            f"| {r['places']:,} | {r['index']}{mark} | {r['build_s']:.2f} | "
+            f"| {r['places']:,} | {r['index']}{mark} | {r['queries']} | {r['build_s']:.2f} | "
             f"{r['query_ms_single']:.3f} | {r['query_ms_batched']:.3f} | "
             f"{r['recall_top_k']:.3f} | {r['true_place_in_top_k']:.3f} | {r['index_mb']:.0f} |"
         )
     ks = sorted({r["k"] for r in data["rows"]})
-    runs = "; ".join(data.get("runs", []))
-    lines += ["", f"k = {', '.join(map(str, ks))}." + (f"  Runs: {runs}." if runs else "")]
+    lines += ["", f"k = {', '.join(map(str, ks))}."]
+    if data.get("runs"):
+        lines += ["", "Runs:", ""] + [f"- {run}" for run in data["runs"]]
     for i, note in enumerate(notes):
         lines += ["", f"({i + 1}) {note}."]
     return "\n".join(lines)
@@ -105,8 +127,19 @@ def main(argv=None) -> int:
     p.add_argument("--k", type=int, default=100)
     p.add_argument("--skip", action="append", default=[], help="index names to leave out")
     p.add_argument("--json", type=Path, required=True)
+    p.add_argument(
+        "--append",
+        action="store_true",
+        help="keep the rows and runs already in --json (rows measured again are replaced)",
+    )
     p.add_argument("--data", type=Path, default=scale.DEFAULT_DATA)
     args = p.parse_args(argv)
+    earlier = None
+    if args.append and args.json.is_file():
+        import json
+
+        earlier = json.loads(args.json.read_text())
+    run = run_line(args.places, args.queries, args.k, args.skip)
     summer, winter = scale.load_frames(args.data)
     enc = scale.fit_encoder(summer)
     winter_codes = enc.encode(winter)
@@ -149,6 +182,8 @@ def main(argv=None) -> int:
                 row = {"places": n, "k": args.k, "queries": args.queries}
                 row.update(measure(name, factory, codes, queries, truth, exact, args.k))
                 rows.append(row)
+                # (written after every row: a run stopped later keeps what it measured)
+                write_json_atomic(args.json, document(rows, run, earlier))
                 print(
                     f"{n:>10,} {name:11s} build {row['build_s']:7.2f} s  single "
                     f"{row['query_ms_single']:8.3f} ms  batched {row['query_ms_batched']:8.3f} ms"
@@ -157,14 +192,7 @@ def main(argv=None) -> int:
                     flush=True,
                 )
             del codes
-    write_json_atomic(
-        args.json,
-        {
-            "what": "benchmarks/scale_indexes.py, this 2-core machine",
-            "runs": [" ".join(sys.argv[1:] if argv is None else argv)],
-            "rows": rows,
-        },
-    )
+    write_json_atomic(args.json, document(rows, run, earlier))
     return 0
 
 

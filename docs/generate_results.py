@@ -487,9 +487,15 @@ def outputs() -> dict[Path, str]:
     if codes.is_file():
         module = _benchmark_module("compact_codes")
         data = json.loads(codes.read_text())
-        tables = [("compact-codes", module.render_table(data))]
-        if data.get("fisheye"):
-            tables.append(("compact-fisheye", module.render_fisheye_table(data)))
+        if not data.get("fisheye"):
+            raise ValueError(
+                f"{COMPACT_CODES_JSON} has no fisheye runs for the guide's table: rerun "
+                "python benchmarks/compact_codes.py --json benchmarks/compact-codes.json"
+            )
+        tables = [
+            ("compact-codes", module.render_table(data)),
+            ("compact-fisheye", module.render_fisheye_table(data)),
+        ]
         for name, table in tables:
             page = out.get(LARGE_FILE)
             begin, end = _markers(name, COMPACT_CODES_JSON)

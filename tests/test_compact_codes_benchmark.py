@@ -45,8 +45,9 @@ def test_codes_table_gives_bytes_from_the_name_and_both_tolerances():
 
 def test_fisheye_table_is_the_mean_over_windows_and_seeds_per_row_and_tolerance():
     rows = []
-    for label, features in (("whole", 512), ("disc 4", 368)):
+    for label, features, shift in (("whole", 512, 0.0), ("disc 4", 368, -0.1)):
         for window, seed, value in (("0-999", 0, 0.9), ("0-999", 1, 0.8), ("1000-1999", 0, 0.7)):
+            value += shift
             for t in (2, 20):
                 bump = 0.05 if t == 20 else 0.0
                 rows.append(
@@ -69,8 +70,27 @@ def test_fisheye_table_is_the_mean_over_windows_and_seeds_per_row_and_tolerance(
     )
     assert lines[1] == "|---|---|---|---|---|---|---|---|"
     assert lines[2] == "| whole | 512 | 0.080 | 0.800 | 0.810 | 0.130 | 0.850 | 0.860 |"
-    assert lines[3] == "| disc 4 | 368 | 0.080 | 0.800 | 0.810 | 0.130 | 0.850 | 0.860 |"
+    assert lines[3] == "| disc 4 | 368 | 0.070 | 0.700 | 0.710 | 0.120 | 0.750 | 0.760 |"
     assert len(lines) == 4
+
+
+def test_fisheye_runs_filter_with_the_defaults_and_without_holding_repeats(monkeypatch):
+    made = []
+    real = compact_codes.FILTERS["cann"]
+
+    def cann(**params):
+        made.append(params)
+        return real(**params)
+
+    monkeypatch.setitem(compact_codes.FILTERS, "cann", cann)
+    rng = np.random.default_rng(1)
+    ref = rng.random((12, 32, 64), dtype=np.float32)
+    # every query frame the same: held as repeats by the default, not without it
+    qry = np.repeat(ref[:1], 12, axis=0)
+    i = np.arange(12)
+    rows = compact_codes.fisheye_runs(ref, qry, {2: np.abs(i[:, None] - i) <= 2}, "w", 0)
+    assert made == [{}, {"hold_repeats": False}] * len(compact_codes.FISHEYE_ROWS)
+    assert any(r["cann_auc"] != r["cann_auc_no_hold"] for r in rows)
 
 
 def test_fisheye_runs_pool_each_row_as_it_says_through_the_disc():

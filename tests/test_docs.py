@@ -165,27 +165,70 @@ def test_seqslam_length_table_reads_each_window_and_length(gen):
     ]
 
 
+_INDEX_ROW = {
+    "queries": 200,
+    "build_s": 0.3134,
+    "query_ms_single": 2.5163,
+    "query_ms_batched": 1.9,
+    "recall_top_k": 0.11285,
+    "true_place_in_top_k": 0.285,
+    "index_mb": 69.04,
+}
+
+
 def test_indexes_table_marks_the_rows_with_a_note_and_gives_the_runs():
     from benchmarks import scale_indexes
 
-    def row(places, index, **extra):
-        base = {"places": places, "k": 100, "index": index, "build_s": 0.3134}
-        base.update(query_ms_single=2.5163, query_ms_batched=1.9, recall_top_k=0.11285)
-        base.update(true_place_in_top_k=0.285, index_mb=69.04, **extra)
-        return base
+    def row(places, index, queries=200, **extra):
+        return dict(_INDEX_ROW, places=places, k=100, index=index, queries=queries, **extra)
 
-    rows = [row(10**6, "mih r1"), row(10**7, "mih r2", note="from a printed line")]
-    rows.append(row(10**7, "exhaustive", note="from a printed line"))
+    rows = [row(10**6, "mih r1"), row(10**7, "mih r2", 100, note="from a printed line")]
+    rows.append(row(10**7, "exhaustive", 100, note="from a printed line"))
     table = scale_indexes.render_table({"rows": rows, "runs": ["--places 1000000", "x: y"]})
     lines = table.splitlines()
-    assert lines[2] == "| 1,000,000 | mih r1 | 0.31 | 2.516 | 1.900 | 0.113 | 0.285 | 69 |"
-    assert lines[3].startswith("| 10,000,000 | mih r2 (1) | 0.31 |")
+    assert lines[2] == "| 1,000,000 | mih r1 | 200 | 0.31 | 2.516 | 1.900 | 0.113 | 0.285 | 69 |"
+    assert lines[3].startswith("| 10,000,000 | mih r2 (1) | 100 | 0.31 |")
     assert lines[4].startswith("| 10,000,000 | exhaustive (1) |")
-    assert "k = 100.  Runs: --places 1000000; x: y." in lines
-    assert lines[-1] == "(1) from a printed line."
-    assert lines.count("(1) from a printed line.") == 1
+    assert lines[5:] == [
+        "",
+        "k = 100.",
+        "",
+        "Runs:",
+        "",
+        "- --places 1000000",
+        "- x: y",
+        "",
+        "(1) from a printed line.",
+    ]
     bare = scale_indexes.render_table({"rows": rows[:1]})
     assert bare.splitlines()[-1] == "k = 100."
+
+
+def test_indexes_document_keeps_the_earlier_runs_and_replaces_rows_measured_again():
+    from benchmarks import scale_indexes
+
+    line = scale_indexes.run_line([100000, 10**6], 200, 100, ["faiss-hnsw"])
+    assert line == "--places 100000 --places 1000000 --queries 200 --k 100 --skip faiss-hnsw"
+    first = scale_indexes.document([{"places": 10, "index": "a", "k": 5}], "one")
+    assert first == {
+        "what": scale_indexes.WHAT,
+        "runs": ["one"],
+        "rows": [{"places": 10, "index": "a", "k": 5}],
+    }
+    first["rows"].append({"places": 10, "index": "b", "k": 5})
+    again = [
+        {"places": 10, "index": "a", "k": 5, "new": True},
+        {"places": 20, "index": "a", "k": 5},
+    ]
+    doc = scale_indexes.document(again, "two", first)
+    assert doc["runs"] == ["one", "two"]
+    assert doc["rows"] == [{"places": 10, "index": "b", "k": 5}, *again]
+    assert (
+        scale_indexes.render_table(
+            {"rows": [dict(r, **_INDEX_ROW) for r in doc["rows"]], "runs": doc["runs"]}
+        ).count("| 10 |")
+        == 2
+    )
 
 
 def test_which_method_table_links_relative_to_its_file(gen):

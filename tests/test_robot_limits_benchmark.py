@@ -421,32 +421,54 @@ def test_rejoin_rows_leave_out_each_stretch_and_give_the_break(monkeypatch):
 
 
 def test_front_end_rows_rank_the_true_place_from_the_rejoin_on(monkeypatch):
-    # 40 distinct places; r-detour's map leaves out 16-27, so the rejoin is frame 28
-    fitted = []
-    real = robot_limits.make_method
+    # 40 places; r-detour's map leaves out 16-27, so the rejoin is frame 28.  A front end whose
+    # scores put the true place at a chosen rank on each frame from the rejoin on
+    ranks = [0, 3, 12, 0, 9]
+    made, fitted = [], []
+
+    class Front:
+        def fit(self, images):
+            fitted.append(len(images))
+
+        def score(self, images):
+            S = np.tile(np.linspace(1.0, 0.0, 28), (len(images), 1))  # place j: j-th best
+            for t, r in enumerate(ranks):
+                true = 28 - 12 + t  # frame 28 + t is place 28 + t: map column 16 + t
+                S[t, [true, r]] = S[t, [r, true]]
+            return S
+
+    class Method:
+        frontend = Front()
 
     def make(name, seed, fp=None, params=None):
-        method = real(name, seed, fp, params)
-        fit = method.frontend.fit
-        method.frontend.fit = lambda images: fitted.append((name, len(images))) or fit(images)
-        return method
+        made.append((name, seed, fp))
+        return Method()
 
     monkeypatch.setattr(robot_limits, "make_method", make)
-    monkeypatch.setattr(robot_limits, "REJOIN_FRONT_ENDS", (("raw", "pixels", {}),))
+    monkeypatch.setattr(
+        robot_limits,
+        "REJOIN_FRONT_ENDS",
+        (("a", "kenyon", {"intensity": True}, True), ("b", "pixels", {}, False)),
+    )
     monkeypatch.setattr(robot_limits, "AFTER", 5)
-    rng = np.random.default_rng(0)
-    ref = rng.random((40, 32, 64)).astype(np.float32)
+    ref = np.zeros((40, 32, 64), np.float32)
     ids = np.arange(40)
-    qry = ref.copy()
-    qry[30] = ref[5]  # frame 30 shows a left-out place's twin: 5 scores it highest
-    (row,) = robot_limits._front_end_rows(2, ref, qry, ids, ids)
-    assert fitted == [("pixels", 28)]
-    assert row["seed"] == 2 and row["front_end"] == "raw"
-    assert row["top1_frames"] == 4 and row["top10_frames"] >= 4  # frames 28, 29, 31, 32
-    assert row["rank_best"] == 0 and row["rank_median"] == 0.0
-    qry[28:33] = ref[rng.permutation(np.arange(5))]  # frames 28-32 show places 0-4
-    (row,) = robot_limits._front_end_rows(2, ref, qry, ids, ids)
-    assert row["top1_frames"] == 0 and row["rank_best"] > 0
+    rows = robot_limits._front_end_rows(robot_limits.SEEDS[0], ref, ref, ids, ids)
+    assert made == [("kenyon", 0, {"intensity": True}), ("pixels", 0, {})]
+    assert fitted == [28, 28]
+    a, b = rows
+    assert a == b | {"front_end": "a", "seeded": True}
+    assert (a["seed"], a["front_end"], a["map_leaves_out"]) == (0, "a", [16, 27])
+    assert (a["top10_frames"], a["top1_frames"], a["rank_best"], a["rank_median"]) == (
+        4,
+        2,
+        0,
+        3.0,
+    )
+    # a front end without a seed runs for the first seed only
+    made.clear()
+    later = robot_limits._front_end_rows(robot_limits.SEEDS[1], ref, ref, ids, ids)
+    assert [m[0] for m in made] == ["kenyon"] and [r["front_end"] for r in later] == ["a"]
 
 
 def test_front_end_table_pools_the_seeds_per_front_end():
@@ -454,25 +476,27 @@ def test_front_end_table_pools_the_seeds_per_front_end():
         {
             "seed": s,
             "front_end": f,
+            "map_leaves_out": [400, 699],
+            "seeded": f != "pixels",
             "rank_median": m,
             "rank_best": b,
             "top10_frames": t,
             "top1_frames": o,
         }
         for s, f, m, b, t, o in [
-            (0, "kenyon", 376.0, 19, 0, 0),
-            (1, "kenyon", 318.0, 5, 1, 0),
+            (0, "kenyon", 375.5, 19, 0, 0),
+            (1, "kenyon", 318.5, 5, 1, 0),
             (2, "kenyon", 286.0, 8, 1, 1),
             (0, "pixels", 250.0, 22, 0, 0),
         ]
     ]
     lines = robot_limits._front_end_table({"rejoin_front_ends": rows})
-    assert "| kenyon | 318 | 5 | 2 of 90 | 1 |" in lines
-    assert "| pixels | 250 | 22 | 0 of 30 | 0 |" in lines
-    assert lines.index("| kenyon | 318 | 5 | 2 of 90 | 1 |") < lines.index(
-        "| pixels | 250 | 22 | 0 of 30 | 0 |"
+    assert "| kenyon | 0, 1, 2 | 318.5 | 5 | 2 of 90 | 1 |" in lines
+    assert "| pixels | none | 250.0 | 22 | 0 of 30 | 0 |" in lines
+    assert lines.index("| kenyon | 0, 1, 2 | 318.5 | 5 | 2 of 90 | 1 |") < lines.index(
+        "| pixels | none | 250.0 | 22 | 0 of 30 | 0 |"
     )
-    assert any("seeds 0, 1, 2" in line for line in lines)
+    assert any("the map without 400-699" in line for line in lines)
 
 
 def test_rejoin_table_lists_each_end_with_its_seeds_and_the_mean_share():
