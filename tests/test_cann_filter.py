@@ -2527,6 +2527,18 @@ def test_footprint_by_hand():
     assert jittery["params"] == 30 + 40 + 30 + 30 + 60 + 2 * 2 * 9
     assert jittery["distinct_weights"] == 8
     assert CANN(velocities=(0.0,), jitter=0.03).footprint(10)["distinct_weights"] == 4  # none moves
+    # nothing jitters across a break: one pair of neighbours fewer per break
+    broken = CANN(velocities=(0.0, 1.0, 2.0), jitter=0.03, breaks=(4,)).footprint(10)
+    assert broken["params"] == 30 + 40 + 30 + 30 + 60 + 2 * 2 * 8
+    twice = CANN(velocities=(0.0, 1.0, 2.0), jitter=0.03, breaks=(1, 9)).footprint(10)
+    assert twice["params"] == 30 + 40 + 30 + 30 + 60 + 2 * 2 * 7
+    assert {k: v for k, v in broken.items() if k != "params"} == {
+        k: v for k, v in jittery.items() if k != "params"
+    }
+    # without the jitter a break links nothing less
+    assert CANN(velocities=(0.0, 1.0, 2.0), breaks=(4,)).footprint(10)["params"] == 190
+    with pytest.raises(ValueError, match=r"^breaks must be places 1 \.\. 9 of this map of 10 "):
+        CANN(breaks=(4, 10)).footprint(10)
     # the default bank: shares for 1/8, ..., 7/8 (the backward 0.5 shares 0.5's) and for the
     # rows of a place or more per frame
     assert CANN(jitter=0.1).footprint(10)["distinct_weights"] == 30 + 2 * 8

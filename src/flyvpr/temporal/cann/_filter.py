@@ -78,6 +78,16 @@ def _split(weights: np.ndarray, backward: np.ndarray, share: float) -> np.ndarra
     return out / out.sum()
 
 
+def _check_breaks_fit(breaks: np.ndarray, n: int) -> None:
+    """Refuse ``breaks`` (checked, increasing) that are not places ``1 .. n - 1`` of a route of
+    ``n`` places."""
+    if breaks.size and breaks[-1] >= n:
+        raise ValueError(
+            f"breaks must be places 1 .. {n - 1} of this map of {n} places (the first "
+            f"place of each stretch after a break); got {breaks.tolist()}"
+        )
+
+
 def _jitter_shares(jitter: float, speeds: np.ndarray) -> np.ndarray:
     """Each row's share that ends a frame a place off (see ``jitter``), for rows moving
     ``speeds`` places per frame: in proportion to the speed up to a place per frame, the whole
@@ -559,9 +569,10 @@ class CANN(OdometryFilter):
         neighbours (one at the bank's ends), the redrawn-velocity input from its place and
         the evidence input; every unit also feeds the normaliser and receives from it.  With
         ``jitter``, each unit of a moving row also receives from its two neighbouring places
-        (one at the route's ends).  ``distinct_weights``: stay, neighbour, redraw (one per
-        velocity) and the evidence gain, and the jitter's two (kept, passed on) for each
-        share it takes (one per speed below a place per frame, one for the rest).
+        (one at the route's ends and on either side of a break).  ``distinct_weights``: stay,
+        neighbour, redraw (one per velocity) and the evidence gain, and the jitter's two (kept,
+        passed on) for each share it takes (one per speed below a place per frame, one for the
+        rest).
         ``state_variables``: the units, each place's running mean and variance of its
         input (twice with ``adapt_front``: the front end's own), the last frame's row, the
         last answer's row and whether the place has tied with the one before it in every frame
@@ -569,15 +580,18 @@ class CANN(OdometryFilter):
         """
         n = check_positive_int(n_reference, "n_reference")
         p = self._check_params()
+        _check_breaks_fit(p["breaks"], n)
         n_v = p["velocities"].size
         units = n_v * n
         neighbours = 2 * (n_v - 1) * n
         share = _jitter_shares(p["jitter"], p["velocities"])
         jittered = int(np.count_nonzero(share))
         shares = np.unique(share[share > 0]).size
+        # (pairs of neighbouring places the jitter links: none across a break)
+        pairs = n - 1 - p["breaks"].size
         return {
             "layers": 1,
-            "params": units + neighbours + units + units + 2 * units + 2 * jittered * (n - 1),
+            "params": units + neighbours + units + units + 2 * units + 2 * jittered * pairs,
             "neurons": units + 1,
             "distinct_weights": 3 + n_v + 2 * shares,
             "state_variables": units + (7 if p["adapt_front"] else 5) * n + 7,
@@ -614,11 +628,7 @@ class CANN(OdometryFilter):
             8 * n_v * n + 68 * n,
             f"n_reference={n} places x {n_v} velocities (velocities, bidirectional)",
         )
-        if p["breaks"].size and p["breaks"][-1] >= n:
-            raise ValueError(
-                f"breaks must be places 1 .. {n - 1} of this map of {n} places (the first "
-                f"place of each stretch after a break); got {p['breaks'].tolist()}"
-            )
+        _check_breaks_fit(p["breaks"], n)
         self._n = n
         self._kernels, self.compiled_ = _kernels.get_kernels(n, table="layer")
         prior = p["prior"].astype(np.float32)
