@@ -441,6 +441,13 @@ def render_block(path: Path, data: dict) -> str:
 # -- the whole set ------------------------------------------------------------------------------
 
 
+def _splice_into(out: dict[Path, str], path: Path, begin: str, end: str, table: str) -> None:
+    """``out[path]``: its text so far (``path``'s own if none yet) with ``table`` between the
+    marker lines ``begin`` and ``end``."""
+    text = out.get(path)
+    out[path] = splice_text(path.read_text() if text is None else text, begin, end, table, path)
+
+
 def outputs() -> dict[Path, str]:
     """Every file this script writes, with the content it should have now."""
     out = {RESULTS / f"{page.name}.md": render_page(page) for page in PAGES}
@@ -466,23 +473,12 @@ def outputs() -> dict[Path, str]:
         table = _benchmark_module("kenyon_intensity").render_table(
             json.loads(intensity.read_text())
         )
-        page = out.get(ABLATION_FILE)
-        out[ABLATION_FILE] = splice_text(
-            page if page is not None else ABLATION_FILE.read_text(),
-            INTENSITY_BEGIN,
-            INTENSITY_END,
-            table,
-            ABLATION_FILE,
-        )
+        _splice_into(out, ABLATION_FILE, INTENSITY_BEGIN, INTENSITY_END, table)
     out.update(large_outputs())
     indexes = ROOT / SCALE_INDEXES_JSON
     if indexes.is_file():
         table = _benchmark_module("scale_indexes").render_table(json.loads(indexes.read_text()))
-        page = out.get(LARGE_FILE)
-        begin, end = _markers("scale-indexes", SCALE_INDEXES_JSON)
-        out[LARGE_FILE] = splice_text(
-            page if page is not None else LARGE_FILE.read_text(), begin, end, table, LARGE_FILE
-        )
+        _splice_into(out, LARGE_FILE, *_markers("scale-indexes", SCALE_INDEXES_JSON), table)
     codes = ROOT / COMPACT_CODES_JSON
     if codes.is_file():
         module = _benchmark_module("compact_codes")
@@ -492,24 +488,15 @@ def outputs() -> dict[Path, str]:
                 f"{COMPACT_CODES_JSON} has no fisheye runs for the guide's table: rerun "
                 "python benchmarks/compact_codes.py --json benchmarks/compact-codes.json"
             )
-        tables = [
+        for name, table in (
             ("compact-codes", module.render_table(data)),
             ("compact-fisheye", module.render_fisheye_table(data)),
-        ]
-        for name, table in tables:
-            page = out.get(LARGE_FILE)
-            begin, end = _markers(name, COMPACT_CODES_JSON)
-            out[LARGE_FILE] = splice_text(
-                page if page is not None else LARGE_FILE.read_text(), begin, end, table, LARGE_FILE
-            )
+        ):
+            _splice_into(out, LARGE_FILE, *_markers(name, COMPACT_CODES_JSON), table)
     detour = ROOT / COMPACT_DETOUR_JSON
     if detour.is_file():
         table = _benchmark_module("compact_detour").render_table(json.loads(detour.read_text()))
-        page = out.get(LARGE_FILE)
-        begin, end = _markers("compact-detour", COMPACT_DETOUR_JSON)
-        out[LARGE_FILE] = splice_text(
-            page if page is not None else LARGE_FILE.read_text(), begin, end, table, LARGE_FILE
-        )
+        _splice_into(out, LARGE_FILE, *_markers("compact-detour", COMPACT_DETOUR_JSON), table)
     return out
 
 
