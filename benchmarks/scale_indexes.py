@@ -69,6 +69,26 @@ def run_line(places, queries: int, k: int, skip=()) -> str:
     return " ".join(parts + [f"--skip {name}" for name in skip])
 
 
+def read_document(path: Path) -> dict:
+    """An earlier run's JSON for ``--append``; ValueError naming ``path`` if it is not one."""
+    import json
+
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"--append: cannot read {path} as JSON ({exc})") from None
+    rows = data.get("rows") if isinstance(data, dict) else None
+    keys = ("places", "index", "k")
+    if not isinstance(rows, list) or not all(
+        isinstance(r, dict) and all(k in r for k in keys) for r in rows
+    ):
+        raise ValueError(
+            f"--append: {path} is not a document of this benchmark (an object whose 'rows' "
+            "each give places, index and k)"
+        )
+    return data
+
+
 def document(rows: list[dict], run: str, earlier: dict | None = None) -> dict:
     """The JSON of a run's ``rows`` so far: with ``earlier`` (a document of this benchmark),
     its rows and runs first, less the rows this run measured again (same places, index and
@@ -135,10 +155,11 @@ def main(argv=None) -> int:
     p.add_argument("--data", type=Path, default=scale.DEFAULT_DATA)
     args = p.parse_args(argv)
     earlier = None
-    if args.append and args.json.is_file():
-        import json
-
-        earlier = json.loads(args.json.read_text())
+    if args.append and args.json.exists():
+        try:
+            earlier = read_document(args.json)
+        except ValueError as exc:
+            p.error(str(exc))
     run = run_line(args.places, args.queries, args.k, args.skip)
     summer, winter = scale.load_frames(args.data)
     enc = scale.fit_encoder(summer)

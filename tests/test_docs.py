@@ -204,6 +204,33 @@ def test_indexes_table_marks_the_rows_with_a_note_and_gives_the_runs():
     assert bare.splitlines()[-1] == "k = 100."
 
 
+def test_indexes_append_refuses_a_file_that_is_not_its_document(tmp_path):
+    from benchmarks import scale_indexes
+
+    cases = {
+        "broken.json": "{not json",
+        "list.json": "[]",  # (the format before runs were kept)
+        "rowless.json": '{"rows": [{"places": 1}]}',
+        "binary.json": b"\xff\xfe\x00",
+    }
+    for name, text in cases.items():
+        path = tmp_path / name
+        path.write_bytes(text if isinstance(text, bytes) else text.encode())
+        with pytest.raises(ValueError, match=f"^--append: .*{name}"):
+            scale_indexes.read_document(path)
+    with pytest.raises(ValueError, match="cannot read"):
+        scale_indexes.read_document(tmp_path)  # a folder
+    good = tmp_path / "good.json"
+    good.write_text('{"runs": ["a"], "rows": [{"places": 1, "index": "x", "k": 5}]}')
+    assert scale_indexes.read_document(good)["runs"] == ["a"]
+    # the command line: a clear error and exit 2 before any data is read
+    bad = tmp_path / "broken.json"
+    before = bad.read_bytes()
+    with pytest.raises(SystemExit) as exit_:
+        scale_indexes.main(["--places", "10", "--json", str(bad), "--append"])
+    assert exit_.value.code == 2 and bad.read_bytes() == before
+
+
 def test_indexes_document_keeps_the_earlier_runs_and_replaces_rows_measured_again():
     from benchmarks import scale_indexes
 
