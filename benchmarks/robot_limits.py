@@ -24,6 +24,13 @@ of the robot views of ``benchmarks/accuracy.py``; ``kenyon+cann`` with its defau
   benchmark counts them), the map stretches in the 30 places after the rejoin, and the front
   end's rank of the true place (places scoring strictly higher) over the 30 frames after it;
   the same ranks from each front end of ``REJOIN_FRONT_ENDS`` fitted on the same map.
+* **The rejoin with more to go on**: the same detour, kenyon+cann's filter fed by ``kenyon``
+  and by :class:`PixelEdges` (the benchmark's own front end: Sobel edges compared pixel for
+  pixel, which Nordland's frame-aligned traverses reward), each without and with exact
+  odometry (``EVIDENCE_RUNS``): frames until the answers are right, until ``localized`` and
+  right, and the off-map share ``localized``; and both front ends alone on the dev window
+  and on the viewpoint set's same frames (``EDGES_VIEWPOINT``), where the edges' pixel
+  alignment is gone.
 * **Cold start at 1x** (``r-1x``): the first frame ``localized`` and right, the query's first
   same-image stretch, and the first frame whose true place the front end ranks first.
 * **Uneven frames** (``r-uneven``: a speed drawn afresh every frame, uniform in 0-2 places;
@@ -81,6 +88,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: the repository root, for ``benchmarks.``
@@ -139,6 +147,10 @@ SLOW_NOISE_SEED = 0
 #: accuracy benchmark's own draw)
 PROFILE_KINDS = ("walk", "uneven", "drops")
 PROFILE_SEEDS = tuple(range(8))
+#: the benchmark's own pixel-aligned front end (:class:`PixelEdges`), not one of the library
+EDGES = "Sobel edges, pixel for pixel (this benchmark only)"
+#: the window where the pixel-aligned front end meets a camera that moved (the viewpoint set)
+EDGES_VIEWPOINT = "vp-0"
 #: the front ends compared after the detour's rejoin: (label, method, front-end parameters,
 #: whether it takes a seed: one without is run for the first seed only)
 REJOIN_FRONT_ENDS = (
@@ -147,7 +159,10 @@ REJOIN_FRONT_ENDS = (
     ("pixels", "pixels", {}, False),
     ("flyhash", "flyhash", {}, True),
     ("flynet", "flynet", {}, True),
+    (EDGES, "edges", {}, False),
 )
+#: the detour again with more to go on: (front end of REJOIN_FRONT_ENDS, exact odometry)
+EVIDENCE_RUNS = (("kenyon", False), ("kenyon", True), ("edges", False), ("edges", True))
 #: the detour's rejoin moved: the map leaves out places REJOIN_FIRST to end - 1 for each end
 #: (700: the accuracy benchmark's r-detour)
 REJOIN_FIRST = 400
@@ -248,6 +263,46 @@ def _parked(seed: int, ref, qry, stops) -> list[dict]:
             row[f"localized_{key}"] = float(np.mean(localized[flag])) if during[flag] else None
         rows.append(row)
     return rows
+
+
+class PixelEdges:
+    """A front end of this benchmark only: every pixel's Sobel gradient magnitude (the frame's
+    own, 3x3), the vector centred and scaled to unit length per frame, scored by cosine.
+
+    Nothing is pooled, so a query frame scores high only against a map frame whose edges lie
+    on the same pixels: it uses that Nordland's two traverses were filmed from one mount,
+    frame-aligned.  It is here to ask what a filter does with evidence that kenyon's pooled,
+    shift-tolerant codes do not give on the detour's rejoin, not as a front end for cameras
+    that move (its figures on the viewpoint set say why).
+    """
+
+    def fit(self, images) -> PixelEdges:
+        self.reference_ = self._encode(images)
+        return self
+
+    def score(self, images) -> np.ndarray:
+        return (self._encode(images) @ self.reference_.T).astype(np.float32)
+
+    @staticmethod
+    def _encode(images) -> np.ndarray:
+        x = np.asarray(images, np.float32)
+        # derivative along one image axis, smoothing along the other: never across frames
+        gx = ndimage.correlate1d(ndimage.correlate1d(x, [-1, 0, 1], axis=2), [1, 2, 1], axis=1)
+        gy = ndimage.correlate1d(ndimage.correlate1d(x, [-1, 0, 1], axis=1), [1, 2, 1], axis=2)
+        g = np.hypot(gx, gy).reshape(len(x), -1)
+        g -= g.mean(axis=1, keepdims=True)
+        norm = np.linalg.norm(g, axis=1, keepdims=True)
+        return g / np.where(norm > 0, norm, 1)
+
+
+def _plain_labels() -> dict[str, str]:
+    """Each front end's label in REJOIN_FRONT_ENDS with its default parameters."""
+    return {name: label for label, name, params, _ in REJOIN_FRONT_ENDS if not params}
+
+
+def _front_end(name: str, seed: int, params: dict):
+    """An unfitted front end of REJOIN_FRONT_ENDS."""
+    return PixelEdges() if name == "edges" else make_method(name, seed, params).frontend
 
 
 def _view(key: str):
@@ -401,7 +456,7 @@ def _front_end_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
     for label, name, params, seeded in REJOIN_FRONT_ENDS:
         if not seeded and seed != SEEDS[0]:
             continue
-        frontend = make_method(name, seed, params).frontend
+        frontend = _front_end(name, seed, params)
         frontend.fit(ref[keep])
         rank = _true_rank(frontend.score(view.frames(qry, frames)), qry_ids[frames], ref_ids[keep])
         rows.append(
@@ -416,6 +471,73 @@ def _front_end_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
                 "top1_frames": int((rank == 0).sum()),
             }
         )
+    return rows
+
+
+def _evidence_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
+    """The detour of kenyon+cann's filter (given the map's break) fed by each front end of
+    EVIDENCE_RUNS, without and with exact odometry (1 place per frame, none on the first
+    frame): frames from the rejoin until the answers are right (``right_from``) and until
+    the answer is ``localized`` and right, and the off-map share ``localized``.  The
+    benchmark's PixelEdges has no seed: on the first of SEEDS only."""
+    view = _view("r-detour")
+    keep = gap_keep(len(ref), view.gap)
+    back = int(view.gap[1] * len(ref))
+    idx = view.indices(len(qry))
+    gt = ground_truth_from_frames(qry_ids[idx], ref_ids[keep], TOLERANCE)
+    params = {"breaks": route_breaks(ref_ids[keep])}
+    labels = _plain_labels()
+    scores: dict[str, np.ndarray] = {}
+    rows = []
+    for name, exact in EVIDENCE_RUNS:
+        if name == "edges" and seed != SEEDS[0]:
+            continue
+        if name not in scores:
+            frontend = _front_end(name, seed, {})
+            frontend.fit(ref[keep])
+            scores[name] = frontend.score(view.frames(qry, idx))
+        filt = make_method(
+            "kenyon+cann", seed, {}, {**params, "odometry": "exact"} if exact else params
+        ).filter
+        S = scores[name]
+        out, localized = _stream(filt, S, np.ones(len(S)) if exact else None)
+        detour = _detour(qry_ids[idx], ref_ids[keep], out, localized, TOLERANCE)
+        rows.append(
+            {
+                "seed": seed,
+                "front_end": labels[name],
+                "exact_odometry": exact,
+                "right_from": right_from(gt[np.arange(len(out)), out.argmax(axis=1)], back),
+                "rejoin_frames": detour["rejoin_frames"],
+                "offmap_localized_share": detour["offmap_localized_share"],
+            }
+        )
+    return rows
+
+
+def _alone_rows(seed: int, views: dict) -> list[dict]:
+    """kenyon and PixelEdges alone (no filter) on each window of ``views`` (key: reference,
+    query, their ids): AUC and R@1 at the tolerance, the whole query against the whole map.
+    PixelEdges on the first of SEEDS only."""
+    rows = []
+    for key, (ref, qry, ref_ids, qry_ids) in views.items():
+        gt = ground_truth_from_frames(qry_ids, ref_ids, TOLERANCE)
+        for name in ("kenyon", "edges"):
+            if name == "edges" and seed != SEEDS[0]:
+                continue
+            frontend = _front_end(name, seed, {})
+            frontend.fit(ref)
+            S = frontend.score(qry)
+            result = metrics.evaluate(S, gt, ks=(1,))
+            rows.append(
+                {
+                    "seed": seed,
+                    "window": key,
+                    "front_end": name,
+                    "auc": result["auc"],
+                    "recall_at_1": result["recall_at_1"],
+                }
+            )
     return rows
 
 
@@ -522,6 +644,10 @@ def run(data: Path, progress: bool = True) -> dict:
     rejoins: list[dict] = []
     front_ends: list[dict] = []
     starts: list[dict] = []
+    vp = load_dataset({d.key: d for d in DATASETS}[EDGES_VIEWPOINT], data)
+    windows = {DATASET: (ref, qry, ref_ids, qry_ids), EDGES_VIEWPOINT: vp[:4]}
+    evidence: list[dict] = []
+    alone: list[dict] = []
     fish_ref, fish_qry = fisheye(ref), fisheye(qry)
     park_stops = stop_places(in_stretch, PARK_PLACES, PARK_SEED)
     for seed in SEEDS:
@@ -549,6 +675,8 @@ def run(data: Path, progress: bool = True) -> dict:
         rank = _true_rank(S[back : back + AFTER], truth[back : back + AFTER], map_ids)
         matchers.append(_matchers(seed, "r-detour", back, S, gt, out, route_breaks(map_ids)))
         front_ends += _front_end_rows(seed, ref, qry, ref_ids, qry_ids)
+        evidence += _evidence_rows(seed, ref, qry, ref_ids, qry_ids)
+        alone += _alone_rows(seed, windows)
         detour.append(
             {
                 "seed": seed,
@@ -607,6 +735,13 @@ def run(data: Path, progress: bool = True) -> dict:
             "places from a map stretch",
             "profiles": "draw d: the profile drawn with numpy.random.default_rng(d), "
             f"d in {list(PROFILE_SEEDS)}; draw 0 is the accuracy benchmark's own",
+            "rejoin_evidence": "the detour (map without 400-699, the CANN given its break) "
+            "with kenyon+cann's filter fed by kenyon and by the benchmark's pixel-aligned Sobel "
+            "edges (no seed: seed 0's run only), without and with exact odometry (1 place per "
+            "frame)",
+            "front_ends_alone": f"kenyon (seeds {', '.join(map(str, SEEDS))}) and the Sobel "
+            f"edges alone on {DATASET} (the dev window) and {EDGES_VIEWPOINT} (the same frames, "
+            "winter seen from a drifting viewpoint): the whole query against the whole map",
             "rejoins": f"The map leaves out places {REJOIN_FIRST} to end - 1, end in "
             f"{list(REJOIN_ENDS)} (700: r-detour); the query drives frames 0-999 at 1x",
             "starts": f"The 1x query from frame s on, s in {list(START_FRAMES)} (0: r-fisheye); "
@@ -630,6 +765,8 @@ def run(data: Path, progress: bool = True) -> dict:
         "jitter": uneven,
         "matchers": matchers,
         "rejoin_front_ends": front_ends,
+        "rejoin_evidence": evidence,
+        "front_ends_alone": alone,
         "states": states,
         "slow": slow,
         "profiles": profiles,
@@ -865,6 +1002,58 @@ def _front_end_table(data: dict) -> list[str]:
     return lines
 
 
+def _evidence_table(data: dict) -> list[str]:
+    """The detour's rejoin with each front end and odometry, and the front ends alone."""
+    p = data["protocol"]
+    lines = [
+        "",
+        "## The rejoin with more to go on",
+        "",
+        f"Here {p['rejoin_evidence']}.  Frames from the rejoin until the answers "
+        f"are right (it and the {RUN - 1} frames after it), until the answer is `localized` "
+        "and right (the must-show's figure), and the share of the off-map frames `localized`, "
+        "per seed.",
+        "",
+        "| front end | odometry | right from | localized and right | off-map frames `localized` |",
+        "|---|---|---|---|---|",
+    ]
+    rows = data["rejoin_evidence"]
+    for label in dict.fromkeys(r["front_end"] for r in rows):
+        for exact in (False, True):
+            mine = [r for r in rows if r["front_end"] == label and r["exact_odometry"] == exact]
+            if not mine:
+                continue
+            right, rejoin = (
+                " / ".join("never" if r[key] is None else str(r[key]) for r in mine)
+                for key in ("right_from", "rejoin_frames")
+            )
+            share = np.mean([r["offmap_localized_share"] for r in mine])
+            odometry = "exact" if exact else "none"
+            lines.append(f"| {label} | {odometry} | {right} | {rejoin} | {100 * share:.1f}% |")
+    alone = data.get("front_ends_alone") or []
+    if alone:
+        windows = list(dict.fromkeys(r["window"] for r in alone))
+        lines += [
+            "",
+            f"The front ends alone: {p['front_ends_alone']}; AUC and R@1 at tolerance "
+            f"{p['tolerance']}, the mean over the seeds.",
+            "",
+            "| front end | " + " | ".join(f"{w}: AUC / R@1" for w in windows) + " |",
+            "|---" * (len(windows) + 1) + "|",
+        ]
+        labels = _plain_labels()
+        for name in dict.fromkeys(r["front_end"] for r in alone):
+            cells = []
+            for w in windows:
+                mine = [r for r in alone if r["front_end"] == name and r["window"] == w]
+                cells.append(
+                    f"{np.mean([r['auc'] for r in mine]):.3f} / "
+                    f"{np.mean([r['recall_at_1'] for r in mine]):.3f}"
+                )
+            lines.append(f"| {labels.get(name, name)} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def _rejoin_table(data: dict) -> list[str]:
     """Per end of the left-out stretch, the rejoin of each seed and the off-map share."""
     rows = data["rejoins"]
@@ -970,6 +1159,8 @@ def render_markdown(data: dict) -> str:
         )
     if data.get("rejoin_front_ends"):
         lines += _front_end_table(data)
+    if data.get("rejoin_evidence"):
+        lines += _evidence_table(data)
     lines += [
         "",
         "## Cold start at 1x",

@@ -602,3 +602,183 @@ def test_committed_scans_start_from_the_accuracy_benchmarks_own_views():
             assert start[f"fisheye_auc_{tol}"] == pytest.approx(
                 accuracy_row(f"r-fisheye@{tol}", seed)["auc"]
             )
+
+
+def _per_frame_edges(frame: np.ndarray) -> np.ndarray:
+    """The Sobel magnitude of one frame alone (scipy's 2-d Sobel), centred, unit length."""
+    from scipy import ndimage
+
+    f = frame.astype(np.float64)
+    g = np.hypot(ndimage.sobel(f, axis=1), ndimage.sobel(f, axis=0)).ravel()
+    g -= g.mean()
+    return g / np.linalg.norm(g)
+
+
+def test_pixel_edges_code_each_frame_alone_by_its_sobel_magnitude():
+    rng = np.random.default_rng(3)
+    frames = rng.random((5, 32, 64)).astype(np.float32)
+    codes = robot_limits.PixelEdges._encode(frames)
+    assert codes.shape == (5, 32 * 64)
+    for frame, code in zip(frames, codes, strict=True):
+        np.testing.assert_allclose(code, _per_frame_edges(frame), atol=1e-5)
+    # a frame's code does not depend on its neighbours in the batch
+    np.testing.assert_allclose(robot_limits.PixelEdges._encode(frames[2:3])[0], codes[2])
+    # a blank frame has no edges: a zero code, no NaN
+    blank = robot_limits.PixelEdges._encode(np.full((1, 32, 64), 0.4, np.float32))
+    assert not blank.any()
+
+
+def test_pixel_edges_score_by_cosine_and_need_the_pixels_aligned():
+    rng = np.random.default_rng(4)
+    ref = ndimage_smooth(rng.random((6, 32, 64)))
+    edges = robot_limits.PixelEdges().fit(ref)
+    S = edges.score(ref)
+    assert S.shape == (6, 6) and S.dtype == np.float32
+    np.testing.assert_allclose(np.diag(S), 1.0, atol=1e-5)
+    assert (S.argmax(axis=1) == np.arange(6)).all()
+    # brighter and with more contrast: the same edges, scaled, so the same code
+    np.testing.assert_allclose(edges.score(0.2 + 0.5 * ref), S, atol=1e-5)
+    # the same frames moved by 3 pixels score well below themselves
+    moved = edges.score(np.roll(ref, 3, axis=2))
+    assert (np.diag(moved) < 0.8).all()
+
+
+def ndimage_smooth(x: np.ndarray) -> np.ndarray:
+    """Random frames with structure at a few pixels' scale (so a shift changes them)."""
+    from scipy import ndimage
+
+    return ndimage.gaussian_filter(x, (0, 1.0, 1.0)).astype(np.float32)
+
+
+def test_front_end_names_the_benchmarks_edges_or_makes_the_librarys():
+    assert isinstance(robot_limits._front_end("edges", 0, {}), robot_limits.PixelEdges)
+    kenyon = robot_limits._front_end("kenyon", 2, {"intensity": True})
+    assert (kenyon.name, kenyon.intensity) == ("kenyon", True)
+    # the seed goes to the front end: the same seed, the same connections
+    ref = ndimage_smooth(np.random.default_rng(7).random((12, 32, 64)))
+    again = robot_limits._front_end("kenyon", 2, {"intensity": True})
+    other = robot_limits._front_end("kenyon", 3, {"intensity": True})
+    for enc in (kenyon, again, other):
+        enc.fit(ref)
+    assert (kenyon.connections_ == again.connections_).all()
+    assert (kenyon.connections_ != other.connections_).any()
+    assert robot_limits._plain_labels()["kenyon"] == "kenyon"
+    assert robot_limits._plain_labels()["edges"] == robot_limits.EDGES
+
+
+def test_evidence_rows_feed_the_filter_each_front_end_with_and_without_odometry(monkeypatch):
+    # 40 places; r-detour's map leaves out 16-27, so the query rejoins at frame 28
+    streamed = []
+    real_stream = robot_limits._stream
+    made = []
+    real_make = robot_limits.make_method
+
+    def stream(filt, S, velocity):
+        streamed.append((S.shape, None if velocity is None else float(np.unique(velocity)[0])))
+        return real_stream(filt, S, velocity)
+
+    def make(name, seed, fp=None, params=None):
+        made.append((name, seed, dict(params or {})))
+        return real_make(name, seed, fp, params)
+
+    monkeypatch.setattr(robot_limits, "_stream", stream)
+    monkeypatch.setattr(robot_limits, "make_method", make)
+    ref = ndimage_smooth(np.random.default_rng(5).random((40, 32, 64)))
+    ids = np.arange(40)
+    rows = robot_limits._evidence_rows(0, ref, ref.copy(), ids, ids)
+    assert [(r["front_end"], r["exact_odometry"]) for r in rows] == [
+        ("kenyon", False),
+        ("kenyon", True),
+        (robot_limits.EDGES, False),
+        (robot_limits.EDGES, True),
+    ]
+    # every run streams the 40 frames against the 28 places; odometry 1 place per frame
+    assert streamed == [((40, 28), None), ((40, 28), 1.0)] * 2
+    filters = [m for m in made if m[0] == "kenyon+cann"]
+    assert [p.get("odometry") for _, _, p in filters] == [None, "exact", None, "exact"]
+    assert all([int(b) for b in p["breaks"]] == [16] for _, _, p in filters)
+    for r in rows:
+        assert r["seed"] == 0
+        # the query is the map's own frames: right and localized soon after the rejoin
+        assert 0 <= r["right_from"] <= r["rejoin_frames"] <= 10
+        assert 0.0 <= r["offmap_localized_share"] <= 1.0
+    # the benchmark's edges have no seed: the first seed's run only
+    later = robot_limits._evidence_rows(robot_limits.SEEDS[1], ref, ref.copy(), ids, ids)
+    assert [(r["front_end"], r["seed"]) for r in later] == [("kenyon", 1), ("kenyon", 1)]
+
+
+def test_alone_rows_score_each_window_without_a_filter():
+    rng = np.random.default_rng(6)
+    ref = ndimage_smooth(rng.random((30, 32, 64)))
+    ids = np.arange(30)
+    # window a: the map's own frames; window b: every query frame another place's
+    views = {"a": (ref, ref.copy(), ids, ids), "b": (ref, ref[::-1].copy(), ids, ids)}
+    rows = robot_limits._alone_rows(0, views)
+    assert [(r["window"], r["front_end"]) for r in rows] == [
+        ("a", "kenyon"),
+        ("a", "edges"),
+        ("b", "kenyon"),
+        ("b", "edges"),
+    ]
+    a_k, a_e, b_k, b_e = rows
+    assert a_k["recall_at_1"] == a_e["recall_at_1"] == 1.0
+    assert a_e["auc"] == pytest.approx(1.0)
+    # reversed: only the frames within the tolerance of the middle are right
+    assert b_e["recall_at_1"] <= 5 / 30 and b_k["recall_at_1"] <= 5 / 30
+    later = robot_limits._alone_rows(robot_limits.SEEDS[1], views)
+    assert [(r["window"], r["front_end"], r["seed"]) for r in later] == [
+        ("a", "kenyon", 1),
+        ("b", "kenyon", 1),
+    ]
+
+
+def test_evidence_table_lists_each_front_end_and_odometry_and_the_front_ends_alone():
+    edges = robot_limits.EDGES
+    data = {
+        "protocol": {"rejoin_evidence": "E", "front_ends_alone": "A", "tolerance": 2},
+        "rejoin_evidence": [
+            {
+                "seed": s,
+                "front_end": f,
+                "exact_odometry": o,
+                "right_from": r,
+                "rejoin_frames": j,
+                "offmap_localized_share": share,
+            }
+            for s, f, o, r, j, share in [
+                (0, "kenyon", False, 36, 42, 0.0),
+                (0, "kenyon", True, 36, None, 0.01),
+                (1, "kenyon", False, 38, 41, 0.02),
+                (1, "kenyon", True, 33, 35, 0.0),
+                (0, edges, False, 30, 47, 0.0),
+                (0, edges, True, None, None, 0.007),
+            ]
+        ],
+        "front_ends_alone": [
+            {"seed": s, "window": w, "front_end": f, "auc": a, "recall_at_1": r}
+            for s, w, f, a, r in [
+                (0, "n64-0", "kenyon", 0.1, 0.2),
+                (1, "n64-0", "kenyon", 0.2, 0.3),
+                (0, "vp-0", "kenyon", 0.02, 0.1),
+                (1, "vp-0", "kenyon", 0.04, 0.2),
+                (0, "n64-0", "edges", 0.4, 0.5),
+                (0, "vp-0", "edges", 0.008, 0.07),
+            ]
+        ],
+    }
+    lines = robot_limits._evidence_table(data)
+    expected = [
+        "| kenyon | none | 36 / 38 | 42 / 41 | 1.0% |",
+        "| kenyon | exact | 36 / 33 | never / 35 | 0.5% |",
+        f"| {edges} | none | 30 | 47 | 0.0% |",
+        f"| {edges} | exact | never | never | 0.7% |",
+        "| front end | n64-0: AUC / R@1 | vp-0: AUC / R@1 |",
+        "| kenyon | 0.150 / 0.250 | 0.030 / 0.150 |",
+        f"| {edges} | 0.400 / 0.500 | 0.008 / 0.070 |",
+    ]
+    at = [lines.index(line) for line in expected]
+    assert at == sorted(at)
+    assert any(line.startswith("Here E.") for line in lines)
+    # without the front ends alone (an older JSON) the first table only
+    data.pop("front_ends_alone")
+    assert robot_limits._evidence_table(data)[-1] == f"| {edges} | exact | never | never | 0.7% |"
