@@ -257,9 +257,10 @@ def _has_state(filt) -> bool:
     return isinstance(filt, CANN)
 
 
-def _stream(filt, S, velocity):
+def _stream(filt, S, velocity, sources: list | None = None):
     """The filter's rows frame by frame, with whether each frame was ``localized`` (all False
-    for a filter that does not say); a NaN odometry is none for that frame."""
+    for a filter that does not say); a NaN odometry is none for that frame.  ``sources``, a
+    list, gets each frame's ``source_`` (where the answer came from; None if not said)."""
     filt.reset()
     out = np.empty(S.shape, np.float32)
     states = np.zeros(len(S), bool)
@@ -267,6 +268,8 @@ def _stream(filt, S, velocity):
         v = None if velocity is None or t == 0 or np.isnan(velocity[t]) else float(velocity[t])
         out[t] = filt.step(S[t]) if v is None else filt.step(S[t], velocity=v)
         states[t] = getattr(filt, "state_", None) == "localized"
+        if sources is not None:
+            sources.append(getattr(filt, "source_", None))
     return out, states
 
 

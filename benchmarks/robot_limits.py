@@ -478,8 +478,10 @@ def _evidence_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
     """The detour of kenyon+cann's filter (given the map's break) fed by each front end of
     EVIDENCE_RUNS, without and with exact odometry (1 place per frame, none on the first
     frame): frames from the rejoin until the answers are right (``right_from``) and until
-    the answer is ``localized`` and right, and the off-map share ``localized``.  The
-    benchmark's PixelEdges has no seed: on the first of SEEDS only."""
+    the answer is ``localized`` and right, the off-map share ``localized``, and the share of
+    the ``2 AFTER`` frames from the rejoin whose answer is the front end's (the filter's
+    ``source_``: a hint handed on, never ``localized``).  The benchmark's PixelEdges has no
+    seed: on the first of SEEDS only."""
     view = _view("r-detour")
     keep = gap_keep(len(ref), view.gap)
     back = int(view.gap[1] * len(ref))
@@ -500,8 +502,10 @@ def _evidence_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
             "kenyon+cann", seed, {}, {**params, "odometry": "exact"} if exact else params
         ).filter
         S = scores[name]
-        out, localized = _stream(filt, S, np.ones(len(S)) if exact else None)
+        sources: list = []
+        out, localized = _stream(filt, S, np.ones(len(S)) if exact else None, sources)
         detour = _detour(qry_ids[idx], ref_ids[keep], out, localized, TOLERANCE)
+        after = sources[back : back + 2 * AFTER]
         rows.append(
             {
                 "seed": seed,
@@ -510,6 +514,9 @@ def _evidence_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
                 "right_from": right_from(gt[np.arange(len(out)), out.argmax(axis=1)], back),
                 "rejoin_frames": detour["rejoin_frames"],
                 "offmap_localized_share": detour["offmap_localized_share"],
+                "front_end_answers": float(np.mean([s == "front end" for s in after]))
+                if after
+                else None,
             }
         )
     return rows
@@ -519,6 +526,7 @@ def _alone_rows(seed: int, views: dict) -> list[dict]:
     """kenyon and PixelEdges alone (no filter) on each window of ``views`` (key: reference,
     query, their ids): AUC and R@1 at the tolerance, the whole query against the whole map.
     PixelEdges on the first of SEEDS only."""
+    labels = _plain_labels()
     rows = []
     for key, (ref, qry, ref_ids, qry_ids) in views.items():
         gt = ground_truth_from_frames(qry_ids, ref_ids, TOLERANCE)
@@ -533,7 +541,7 @@ def _alone_rows(seed: int, views: dict) -> list[dict]:
                 {
                     "seed": seed,
                     "window": key,
-                    "front_end": name,
+                    "front_end": labels[name],
                     "auc": result["auc"],
                     "recall_at_1": result["recall_at_1"],
                 }
@@ -735,10 +743,10 @@ def run(data: Path, progress: bool = True) -> dict:
             "places from a map stretch",
             "profiles": "draw d: the profile drawn with numpy.random.default_rng(d), "
             f"d in {list(PROFILE_SEEDS)}; draw 0 is the accuracy benchmark's own",
-            "rejoin_evidence": "the detour (map without 400-699, the CANN given its break) "
-            "with kenyon+cann's filter fed by kenyon and by the benchmark's pixel-aligned Sobel "
-            "edges (no seed: seed 0's run only), without and with exact odometry (1 place per "
-            "frame)",
+            "rejoin_evidence": "the map without 400-699, the CANN given its break; "
+            "kenyon+cann's filter fed by kenyon and by the benchmark's pixel-aligned Sobel "
+            f"edges (no seed: run with seed {SEEDS[0]} only), without and with exact odometry "
+            "(1 place per frame)",
             "front_ends_alone": f"kenyon (seeds {', '.join(map(str, SEEDS))}) and the Sobel "
             f"edges alone on {DATASET} (the dev window) and {EDGES_VIEWPOINT} (the same frames, "
             "winter seen from a drifting viewpoint): the whole query against the whole map",
@@ -1005,31 +1013,45 @@ def _front_end_table(data: dict) -> list[str]:
 def _evidence_table(data: dict) -> list[str]:
     """The detour's rejoin with each front end and odometry, and the front ends alone."""
     p = data["protocol"]
+    rows = data["rejoin_evidence"]
+    seeds = " / ".join(str(s) for s in sorted({r["seed"] for r in rows}))
     lines = [
         "",
         "## The rejoin with more to go on",
         "",
-        f"Here {p['rejoin_evidence']}.  Frames from the rejoin until the answers "
-        f"are right (it and the {RUN - 1} frames after it), until the answer is `localized` "
-        "and right (the must-show's figure), and the share of the off-map frames `localized`, "
-        "per seed.",
+        f"The same detour with more to go on ({p['rejoin_evidence']}).  Per seed, frames from "
+        f"the rejoin until the answers are right (a frame and the {RUN - 1} after it) and until "
+        "the answer is `localized` and right (the must-show's figure), and the share of the "
+        f"{2 * AFTER} frames from the rejoin on answered from the front end (handed on as a "
+        "`lost` hint); the share of the off-map frames `localized` is the mean over the seeds.",
         "",
-        "| front end | odometry | right from | localized and right | off-map frames `localized` |",
-        "|---|---|---|---|---|",
+        f"| front end | odometry | right from (seed {seeds}) | localized and right (seed "
+        f"{seeds}) | answers from the front end (seed {seeds}) | off-map frames `localized` |",
+        "|---|---|---|---|---|---|",
     ]
-    rows = data["rejoin_evidence"]
     for label in dict.fromkeys(r["front_end"] for r in rows):
         for exact in (False, True):
-            mine = [r for r in rows if r["front_end"] == label and r["exact_odometry"] == exact]
+            mine = sorted(
+                (r for r in rows if r["front_end"] == label and r["exact_odometry"] == exact),
+                key=lambda r: r["seed"],
+            )
             if not mine:
                 continue
             right, rejoin = (
                 " / ".join("never" if r[key] is None else str(r[key]) for r in mine)
                 for key in ("right_from", "rejoin_frames")
             )
+            hints = " / ".join(
+                "-"
+                if r.get("front_end_answers") is None
+                else f"{100 * r['front_end_answers']:.0f}%"
+                for r in mine
+            )
             share = np.mean([r["offmap_localized_share"] for r in mine])
             odometry = "exact" if exact else "none"
-            lines.append(f"| {label} | {odometry} | {right} | {rejoin} | {100 * share:.1f}% |")
+            lines.append(
+                f"| {label} | {odometry} | {right} | {rejoin} | {hints} | {100 * share:.1f}% |"
+            )
     alone = data.get("front_ends_alone") or []
     if alone:
         windows = list(dict.fromkeys(r["window"] for r in alone))
@@ -1041,16 +1063,15 @@ def _evidence_table(data: dict) -> list[str]:
             "| front end | " + " | ".join(f"{w}: AUC / R@1" for w in windows) + " |",
             "|---" * (len(windows) + 1) + "|",
         ]
-        labels = _plain_labels()
-        for name in dict.fromkeys(r["front_end"] for r in alone):
+        for label in dict.fromkeys(r["front_end"] for r in alone):
             cells = []
             for w in windows:
-                mine = [r for r in alone if r["front_end"] == name and r["window"] == w]
+                mine = [r for r in alone if r["front_end"] == label and r["window"] == w]
                 cells.append(
                     f"{np.mean([r['auc'] for r in mine]):.3f} / "
                     f"{np.mean([r['recall_at_1'] for r in mine]):.3f}"
                 )
-            lines.append(f"| {labels.get(name, name)} | " + " | ".join(cells) + " |")
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines
 
 

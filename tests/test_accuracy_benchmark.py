@@ -499,6 +499,30 @@ def test_stream_gives_no_odometry_where_it_is_nan():
     assert not accuracy_run._stream(f, np.ones((2, 3)), None)[1].any()
 
 
+def test_stream_collects_where_each_answer_came_from_when_asked():
+    class Switcher:
+        def reset(self):
+            self.t = 0
+
+        def step(self, row, velocity=None):
+            self.source_ = "front end" if self.t % 2 else "sequence"
+            self.t += 1
+            return row
+
+    sources: list = []
+    accuracy_run._stream(Switcher(), np.ones((3, 2)), None, sources)
+    assert sources == ["sequence", "front end", "sequence"]
+
+    # a filter that does not say gives None; without a list nothing is collected
+    class Silent(Switcher):
+        def step(self, row, velocity=None):
+            return row
+
+    sources.clear()
+    accuracy_run._stream(Silent(), np.ones((2, 2)), None, sources)
+    assert sources == [None, None]
+
+
 def _rows_answering(answers, n_ref):
     """A filter's rows whose best place is ``answers[t]``, with confidence ``0.1 + t / 100``."""
     out = np.zeros((len(answers), n_ref), np.float32)

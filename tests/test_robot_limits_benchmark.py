@@ -673,9 +673,9 @@ def test_evidence_rows_feed_the_filter_each_front_end_with_and_without_odometry(
     made = []
     real_make = robot_limits.make_method
 
-    def stream(filt, S, velocity):
+    def stream(filt, S, velocity, sources=None):
         streamed.append((S.shape, None if velocity is None else float(np.unique(velocity)[0])))
-        return real_stream(filt, S, velocity)
+        return real_stream(filt, S, velocity, sources)
 
     def make(name, seed, fp=None, params=None):
         made.append((name, seed, dict(params or {})))
@@ -716,9 +716,9 @@ def test_alone_rows_score_each_window_without_a_filter():
     rows = robot_limits._alone_rows(0, views)
     assert [(r["window"], r["front_end"]) for r in rows] == [
         ("a", "kenyon"),
-        ("a", "edges"),
+        ("a", robot_limits.EDGES),
         ("b", "kenyon"),
-        ("b", "edges"),
+        ("b", robot_limits.EDGES),
     ]
     a_k, a_e, b_k, b_e = rows
     assert a_k["recall_at_1"] == a_e["recall_at_1"] == 1.0
@@ -730,6 +730,12 @@ def test_alone_rows_score_each_window_without_a_filter():
         ("a", "kenyon", 1),
         ("b", "kenyon", 1),
     ]
+    # a window whose query is 12 frames, each one place ahead of its id: right within the
+    # tolerance (not at 0), the map fitted on the map's frames and the query scored
+    query = ref[6:18]
+    shifted = {"c": (ref, query, ids, np.arange(5, 17))}
+    for r in robot_limits._alone_rows(0, shifted):
+        assert r["recall_at_1"] == 1.0, r
 
 
 def test_evidence_table_lists_each_front_end_and_odometry_and_the_front_ends_alone():
@@ -744,14 +750,15 @@ def test_evidence_table_lists_each_front_end_and_odometry_and_the_front_ends_alo
                 "right_from": r,
                 "rejoin_frames": j,
                 "offmap_localized_share": share,
+                "front_end_answers": hints,
             }
-            for s, f, o, r, j, share in [
-                (0, "kenyon", False, 36, 42, 0.0),
-                (0, "kenyon", True, 36, None, 0.01),
-                (1, "kenyon", False, 38, 41, 0.02),
-                (1, "kenyon", True, 33, 35, 0.0),
-                (0, edges, False, 30, 47, 0.0),
-                (0, edges, True, None, None, 0.007),
+            for s, f, o, r, j, share, hints in [
+                (1, "kenyon", False, 38, 41, 0.02, 0.25),
+                (0, "kenyon", False, 36, 42, 0.0, 0.5),
+                (0, "kenyon", True, 36, None, 0.01, 0.0),
+                (1, "kenyon", True, 33, 35, 0.0, None),
+                (0, edges, False, 30, 47, 0.0, 0.95),
+                (0, edges, True, None, None, 0.007, 1.0),
             ]
         ],
         "front_ends_alone": [
@@ -761,24 +768,132 @@ def test_evidence_table_lists_each_front_end_and_odometry_and_the_front_ends_alo
                 (1, "n64-0", "kenyon", 0.2, 0.3),
                 (0, "vp-0", "kenyon", 0.02, 0.1),
                 (1, "vp-0", "kenyon", 0.04, 0.2),
-                (0, "n64-0", "edges", 0.4, 0.5),
-                (0, "vp-0", "edges", 0.008, 0.07),
+                (0, "n64-0", edges, 0.4, 0.5),
+                (0, "vp-0", edges, 0.008, 0.07),
             ]
         ],
     }
     lines = robot_limits._evidence_table(data)
     expected = [
-        "| kenyon | none | 36 / 38 | 42 / 41 | 1.0% |",
-        "| kenyon | exact | 36 / 33 | never / 35 | 0.5% |",
-        f"| {edges} | none | 30 | 47 | 0.0% |",
-        f"| {edges} | exact | never | never | 0.7% |",
+        "| kenyon | none | 36 / 38 | 42 / 41 | 50% / 25% | 1.0% |",
+        "| kenyon | exact | 36 / 33 | never / 35 | 0% / - | 0.5% |",
+        f"| {edges} | none | 30 | 47 | 95% | 0.0% |",
+        f"| {edges} | exact | never | never | 100% | 0.7% |",
         "| front end | n64-0: AUC / R@1 | vp-0: AUC / R@1 |",
         "| kenyon | 0.150 / 0.250 | 0.030 / 0.150 |",
         f"| {edges} | 0.400 / 0.500 | 0.008 / 0.070 |",
     ]
     at = [lines.index(line) for line in expected]
     assert at == sorted(at)
-    assert any(line.startswith("Here E.") for line in lines)
+    assert any(line.startswith("The same detour with more to go on (E).") for line in lines)
+    assert any(
+        line.startswith("| front end | odometry | right from (seed 0 / 1) |") for line in lines
+    )
     # without the front ends alone (an older JSON) the first table only
     data.pop("front_ends_alone")
-    assert robot_limits._evidence_table(data)[-1] == f"| {edges} | exact | never | never | 0.7% |"
+    assert robot_limits._evidence_table(data)[-1] == (
+        f"| {edges} | exact | never | never | 100% | 0.7% |"
+    )
+
+
+def test_evidence_rows_stream_each_front_ends_own_scores_of_the_seed(monkeypatch):
+    # query frame t shows place t + 1 (one ahead of its id): right within the tolerance only
+    ref = ndimage_smooth(np.random.default_rng(8).random((41, 32, 64)))
+    qry, ids = ref[1:], np.arange(40)
+    ref = ref[:40]
+    keep = robot_limits.gap_keep(40, robot_limits._view("r-detour").gap)
+    streamed = []
+    real_stream = robot_limits._stream
+
+    def stream(filt, S, velocity, sources=None):
+        streamed.append(S.copy())
+        return real_stream(filt, S, velocity, sources)
+
+    monkeypatch.setattr(robot_limits, "_stream", stream)
+    rows = robot_limits._evidence_rows(1, ref, qry, ids, ids)
+    kenyon = robot_limits.make_method("kenyon", 1).frontend
+    kenyon.fit(ref[keep])
+    own = kenyon.score(qry)
+    other = robot_limits.make_method("kenyon", 0).frontend
+    other.fit(ref[keep])
+    assert len(streamed) == 2
+    for S in streamed:
+        np.testing.assert_array_equal(S, own)
+    assert not np.array_equal(other.score(qry), own)
+    # one place off is within the tolerance: right soon after the rejoin
+    for r in rows:
+        assert r["right_from"] is not None and r["right_from"] <= r["rejoin_frames"] <= 10
+    streamed.clear()
+    robot_limits._evidence_rows(robot_limits.SEEDS[0], ref, qry, ids, ids)
+    edges = robot_limits.PixelEdges().fit(ref[keep]).score(qry)
+    assert len(streamed) == 4
+    for S in streamed[2:]:
+        np.testing.assert_array_equal(S, edges)
+
+
+def test_evidence_rows_count_as_the_detour_run_and_the_matchers_do():
+    # kenyon's rows are the figures the page's detour and matcher tables give the same data
+    rng = np.random.default_rng(9)
+    ref = ndimage_smooth(rng.random((40, 32, 64)))
+    qry = ndimage_smooth(ref + 0.8 * rng.random(ref.shape)) / 1.8
+    ids = np.arange(40)
+    view = robot_limits._view("r-detour")
+    back = int(view.gap[1] * 40)
+    for seed in robot_limits.SEEDS[:2]:
+        rows = robot_limits._evidence_rows(seed, ref, qry, ids, ids)
+        out, localized, S, gt, map_ids, truth = robot_limits._run(seed, view, ref, qry, ids, ids)
+        breaks = robot_limits.route_breaks(map_ids)
+        matchers = robot_limits._matchers(seed, "r-detour", back, S, gt, out, breaks)
+        detour = robot_limits._detour(truth, map_ids, out, localized, robot_limits.TOLERANCE)
+        mine = {r["exact_odometry"]: r for r in rows if r["front_end"] == "kenyon"}
+        assert mine[False]["right_from"] == matchers["kenyon+cann"]
+        assert mine[True]["right_from"] == matchers["kenyon+cann, exact odometry"]
+        assert mine[False]["rejoin_frames"] == detour["rejoin_frames"]
+        assert mine[False]["offmap_localized_share"] == detour["offmap_localized_share"]
+
+
+def test_committed_evidence_agrees_with_the_pages_detour_and_matchers():
+    limits = json.loads((ROOT / "benchmarks" / "robot-limits.json").read_text())
+    rows = limits["rejoin_evidence"]
+    assert sorted({r["seed"] for r in rows}) == list(robot_limits.SEEDS)
+    for seed in robot_limits.SEEDS:
+        mine = {
+            r["exact_odometry"]: r for r in rows if r["seed"] == seed and r["front_end"] == "kenyon"
+        }
+        detour = next(r for r in limits["detour"] if r["seed"] == seed)
+        matchers = next(
+            r for r in limits["matchers"] if r["seed"] == seed and r["view"] == "r-detour"
+        )
+        assert mine[False]["rejoin_frames"] == detour["rejoin_frames"]
+        assert mine[False]["right_from"] == matchers["kenyon+cann"]
+        assert mine[True]["right_from"] == matchers["kenyon+cann, exact odometry"]
+    # the benchmark's edges ran once, with the first seed
+    edges = [r for r in rows if r["front_end"] == robot_limits.EDGES]
+    assert [(r["seed"], r["exact_odometry"]) for r in edges] == [(0, False), (0, True)]
+    alone = limits["front_ends_alone"]
+    assert {(r["window"], r["front_end"]) for r in alone} == {
+        (w, f)
+        for w in (robot_limits.DATASET, robot_limits.EDGES_VIEWPOINT)
+        for f in ("kenyon", robot_limits.EDGES)
+    }
+
+
+def test_evidence_rows_give_the_share_answered_from_the_front_end_after_the_rejoin(monkeypatch):
+    # a filter whose answers come from the front end on every third frame: the share over
+    # the 2 AFTER frames from the rejoin (frame 28 of 40 here: the 12 left)
+    real_stream = robot_limits._stream
+
+    def stream(filt, S, velocity, sources=None):
+        out = real_stream(filt, S, velocity)
+        sources.extend("front end" if t % 3 == 0 else "sequence" for t in range(len(S)))
+        return out
+
+    monkeypatch.setattr(robot_limits, "_stream", stream)
+    ref = ndimage_smooth(np.random.default_rng(10).random((40, 32, 64)))
+    ids = np.arange(40)
+    rows = robot_limits._evidence_rows(1, ref, ref.copy(), ids, ids)
+    # frames 28-39: 30, 33, 36 and 39 from the front end
+    assert [r["front_end_answers"] for r in rows] == [4 / 12, 4 / 12]
+    monkeypatch.setattr(robot_limits, "AFTER", 2)
+    rows = robot_limits._evidence_rows(1, ref, ref.copy(), ids, ids)
+    assert [r["front_end_answers"] for r in rows] == [1 / 4, 1 / 4]  # frames 28-31: 30
