@@ -474,14 +474,15 @@ def _front_end_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
     return rows
 
 
-def _evidence_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
+def _evidence_rows(seed: int, ref, qry, ref_ids, qry_ids, scores=None) -> list[dict]:
     """The detour of kenyon+cann's filter (given the map's break) fed by each front end of
     EVIDENCE_RUNS, without and with exact odometry (1 place per frame, none on the first
     frame): frames from the rejoin until the answers are right (``right_from``) and until
     the answer is ``localized`` and right, the off-map share ``localized``, and the share of
     the ``2 AFTER`` frames from the rejoin whose answer is the front end's (the filter's
     ``source_``: a hint handed on, never ``localized``).  The benchmark's PixelEdges has no
-    seed: on the first of SEEDS only."""
+    seed: on the first of SEEDS only.  ``scores``: front-end scores of the view already
+    computed, by name (the detour run's kenyon scores), not computed again."""
     view = _view("r-detour")
     keep = gap_keep(len(ref), view.gap)
     back = int(view.gap[1] * len(ref))
@@ -489,7 +490,7 @@ def _evidence_rows(seed: int, ref, qry, ref_ids, qry_ids) -> list[dict]:
     gt = ground_truth_from_frames(qry_ids[idx], ref_ids[keep], TOLERANCE)
     params = {"breaks": route_breaks(ref_ids[keep])}
     labels = _plain_labels()
-    scores: dict[str, np.ndarray] = {}
+    scores = dict(scores or {})
     rows = []
     for name, exact in EVIDENCE_RUNS:
         if name == "edges" and seed != SEEDS[0]:
@@ -683,7 +684,7 @@ def run(data: Path, progress: bool = True) -> dict:
         rank = _true_rank(S[back : back + AFTER], truth[back : back + AFTER], map_ids)
         matchers.append(_matchers(seed, "r-detour", back, S, gt, out, route_breaks(map_ids)))
         front_ends += _front_end_rows(seed, ref, qry, ref_ids, qry_ids)
-        evidence += _evidence_rows(seed, ref, qry, ref_ids, qry_ids)
+        evidence += _evidence_rows(seed, ref, qry, ref_ids, qry_ids, {"kenyon": S})
         alone += _alone_rows(seed, windows)
         detour.append(
             {

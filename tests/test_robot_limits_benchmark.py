@@ -829,6 +829,13 @@ def test_evidence_rows_stream_each_front_ends_own_scores_of_the_seed(monkeypatch
     assert len(streamed) == 4
     for S in streamed[2:]:
         np.testing.assert_array_equal(S, edges)
+    # scores already computed are streamed as given, the front end not made again
+    streamed.clear()
+    given = own[:, ::-1].copy()
+    robot_limits._evidence_rows(1, ref, qry, ids, ids, {"kenyon": given})
+    assert len(streamed) == 2
+    for S in streamed:
+        np.testing.assert_array_equal(S, given)
 
 
 def test_evidence_rows_count_as_the_detour_run_and_the_matchers_do():
